@@ -1,0 +1,275 @@
+"""Speed benchmark of the JAX hysteresis operators against the NumPy baselines.
+
+What it measures, all in one run on one input (a fixed-seed random-amplitude
+multi-cycle signal plus a filtered random walk, squashed into [0, 3.6] V):
+
+1. Preisach, planes of n = 50 and 100 levels (n(n+1)/2 = 1275 / 5050 hysterons,
+   random non-negative lower-triangular density): jitted JAX forward and
+   forward+gradient (``eqx.filter_value_and_grad`` of a squared-error loss
+   w.r.t. the whole module), smooth=False (same model as the relay grid, used
+   for the speed-up) and smooth=True (the default); vs the NumPy loop
+   ``jaxafm.reference.preisach_relay_grid`` timed once on the full input.
+   The JAX/NumPy agreement (smooth=False) is checked and reported.
+2. Prandtl-Ishlinskii with 50 plays and random positive weights vs ``pi_loop``.
+3. The play operator itself: ``jaxafm.play`` (sequential ``lax.scan``) vs a
+   local ``lax.associative_scan`` formulation (clamps compose into clamps),
+   forward and gradient w.r.t. (radii, u), for n = 50 and 100.
+
+JAX timings: compile (``lower().compile()``) reported separately, one warm-up
+call, then the median of ``--repeats`` calls, each ``jax.block_until_ready``-ed.
+
+Run:  python experiments/bench_hysteresis.py [--samples 100000] [--repeats 5]
+      [--out experiments/results/bench_hysteresis.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+import jaxafm  # noqa: F401  (enables float64)
+from jaxafm import Preisach, PrandtlIshlinskii, play
+from jaxafm.hysteresis import play_state
+from jaxafm.reference import pi_loop, preisach_relay_grid
+
+U_MIN, U_MAX, SEED = 0.0, 3.6, 0
+GOAL_SPEEDUP, GOAL_GRAD_RATIO = 50.0, 4.0
+
+
+def make_input(T: int, seed: int = SEED) -> np.ndarray:
+    """Random-amplitude sine sweeps + smoothed random walk + minor loops, min-max into [U_MIN, U_MAX]."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T)
+    cycles = max(T // 2000, 2)  # 50 major cycles on 100k samples
+    knots = np.linspace(0, T, 2 * cycles + 1)
+    env = np.interp(t, knots, rng.uniform(0.1, 1.0, knots.size))
+    win = min(501, T // 4 + 1)
+    walk = np.convolve(np.cumsum(rng.standard_normal(T)), np.ones(win) / win, mode="same")
+    walk = (walk - walk.mean()) / (walk.std() + 1e-12)
+    x = env * np.sin(2 * np.pi * cycles * t / T) + 0.2 * walk
+    x += 0.05 * np.sin(2 * np.pi * 23 * cycles * t / T + rng.uniform(0, 2 * np.pi))
+    return U_MIN + (U_MAX - U_MIN) * (x - x.min()) / (x.max() - x.min())
+
+
+def assoc_play(u, radii):
+    """Play operator via ``lax.associative_scan``: step t is the clamp x -> clip(x, u_t - r, u_t + r).
+
+    clip(clip(x, a1, b1), a2, b2) = clip(x, clip(a1, a2, b2), clip(b1, a2, b2)), so the
+    prefix compositions (A_t, B_t) are an associative scan and P_t = clip(p0, A_t, B_t).
+    """
+    p0 = play_state(radii, u[:1])  # every play starts at u[0], as jaxafm.play without history
+
+    def combine(earlier, later):
+        (a1, b1), (a2, b2) = earlier, later
+        return jnp.clip(a1, a2, b2), jnp.clip(b1, a2, b2)
+
+    A, B = lax.associative_scan(combine, (u[:, None] - radii, u[:, None] + radii), axis=0)
+    return jnp.clip(p0, A, B)
+
+
+def time_jax(fn, *args, repeats: int):
+    """Compile time, then median/min of ``repeats`` warmed-up calls; returns (stats, output)."""
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    out = jax.block_until_ready(compiled(*args))  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - t0)
+    return {"compile_s": compile_s, "median_s": statistics.median(times), "min_s": min(times),
+            "repeats": repeats}, out
+
+
+def forward(m, u):
+    return m(u)
+
+
+def value_and_grad(m, u, target):  # w.r.t. every array of the module
+    return eqx.filter_value_and_grad(lambda m: jnp.sum((m(u) - target) ** 2))(m)
+
+
+def rates(seconds: float, T: int, hysterons: int) -> dict:
+    return {"samples_per_s": T / seconds, "hysteron_updates_per_s": T * hysterons / seconds}
+
+
+def bench_model(name, n, hyst, variants, np_fn, np_args, u, target, repeats):
+    """NumPy baseline once, then JAX fwd and value+grad for each variant ("hard" = relay-exact)."""
+    T, uj, target = u.size, jnp.asarray(u), jnp.asarray(target)
+    t0 = time.perf_counter()
+    y_np = np_fn(u, *np_args)  # timed once on the full input: no extrapolation
+    np_s = time.perf_counter() - t0
+    row = {"model": name, "samples": T, "plays_updated_per_sample": n, "plane_size": hyst,
+           "hysterons": hyst, "numpy_s": np_s, "numpy": rates(np_s, T, hyst)}
+    for key, m in variants.items():
+        row[f"fwd_{key}"], y = time_jax(forward, m, uj, repeats=repeats)
+        row[f"grad_{key}"], _ = time_jax(value_and_grad, m, uj, target, repeats=repeats)
+        row[f"fwd_{key}"].update(rates(row[f"fwd_{key}"]["median_s"], T, hyst))
+        row[f"grad_over_fwd_{key}"] = row[f"grad_{key}"]["median_s"] / row[f"fwd_{key}"]["median_s"]
+        row[f"speedup_{key}_vs_numpy"] = np_s / row[f"fwd_{key}"]["median_s"]
+        if key == "hard":
+            row["max_abs_diff_hard_vs_numpy"] = float(np.max(np.abs(np.asarray(y) - y_np)))
+    # the gradient goal uses the default model (smooth=True for Preisach)
+    row["grad_over_fwd"] = row.get("grad_over_fwd_smooth", row["grad_over_fwd_hard"])
+    return row
+
+
+def bench_preisach(u, n, rng, repeats):
+    dens = np.tril(rng.random((n, n)))
+    dens *= 10.0 / dens.sum()  # 10 nm total relay weight
+    hyst = n * (n + 1) // 2
+    variants = {key: Preisach(jnp.asarray(dens), jnp.asarray(U_MIN), jnp.asarray(U_MAX), jnp.asarray(0.0),
+                              smooth) for key, smooth in (("hard", False), ("smooth", True))}
+    target = 10.0 * (u - U_MIN) / (U_MAX - U_MIN) - 5.0
+    row = bench_model(f"Preisach n={n}", n, hyst, variants, preisach_relay_grid, (dens, U_MIN, U_MAX),
+                      u, target, repeats)
+    row["note"] = (f"hysteron-updates/s counts all n(n+1)/2={hyst} relays per sample for both JAX and "
+                   f"NumPy, but the JAX model (Krejci play representation) updates only n={n} plays "
+                   "per sample; the relay grid really updates every relay.")
+    return row
+
+
+def bench_pi(u, n, rng, repeats):
+    pi = PrandtlIshlinskii.uniform(n, U_MAX - U_MIN)
+    pi = eqx.tree_at(lambda m: m.weights, pi, jnp.asarray(rng.uniform(0.05, 1.0, n)))
+    np_args = (np.asarray(pi.thresholds), np.asarray(pi.weights), 0.0)
+    return bench_model(f"PI n={n}", n, n, {"hard": pi}, pi_loop, np_args, u, 5.0 * u, repeats)
+
+
+def scan_play_unroll1(u, radii):
+    """``jaxafm.play`` (no history) with ``lax.scan(unroll=1)``: isolates the effect of ``unroll=8``."""
+    def step(p, ut):
+        p = jnp.clip(p, ut - radii, ut + radii)
+        return p, p
+    return lax.scan(step, play_state(radii, u[:1]), u, unroll=1)[1]
+
+
+PLAY_VARIANTS = {"scan (jaxafm.play, unroll=8)": play, "scan unroll=1 (local)": scan_play_unroll1,
+                 "associative_scan (local)": assoc_play}
+
+
+def bench_play_variants(u, n, repeats):
+    """Each play variant vs jaxafm.play: agreement, forward, value+grad w.r.t. (radii, u)."""
+    radii = jnp.arange(n) * (U_MAX - U_MIN) / n / 2  # the Preisach plane's play radii
+    w = jnp.linspace(1.0, 0.1, n)
+    uj, target = jnp.asarray(u), jnp.asarray(u)
+    rows, ref = [], None
+    for name, f in PLAY_VARIANTS.items():
+        vg = jax.value_and_grad(lambda r, x, f=f: jnp.sum((f(x, r) @ w - target) ** 2), argnums=(0, 1))
+        row = {"n": n, "variant": name, "samples": u.size}
+        row["fwd"], P = time_jax(lambda x, r, f=f: f(x, r), uj, radii, repeats=repeats)
+        row["grad"], (_, g) = time_jax(vg, radii, uj, repeats=repeats)
+        ref = ref or (row, P, g)
+        row["max_abs_diff_P_vs_play"] = float(jnp.max(jnp.abs(P - ref[1])))
+        for i, wrt in enumerate(("radii", "u")):
+            row[f"max_rel_diff_grad_{wrt}_vs_play"] = float(jnp.max(jnp.abs(g[i] - ref[2][i]))
+                                                            / jnp.max(jnp.abs(ref[2][i])))
+        for k in ("fwd", "grad"):
+            row[f"time_over_play_{k}"] = row[k]["median_s"] / ref[0][k]["median_s"]
+        rows.append(row)
+    return rows
+
+
+def machine_info():
+    import jaxlib
+    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "equinox": eqx.__version__,
+            "numpy": np.__version__, "python": sys.version.split()[0], "devices": str(jax.devices()),
+            "cpu_count": os.cpu_count(), "platform": platform.platform(), "machine": platform.machine(),
+            "processor": platform.processor(), "x64": bool(jax.config.jax_enable_x64),
+            "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "loadavg_at_start": os.getloadavg()}
+
+
+def ms(s):
+    return f"{1e3 * s:9.1f}"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--samples", type=int, default=100_000)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "bench_hysteresis.json"))
+    args = ap.parse_args()
+    u, rng = make_input(args.samples), np.random.default_rng(SEED + 1)
+    info = machine_info()
+    print(f"jax {info['jax']} on {info['devices']}, {info['cpu_count']} CPUs, {info['platform']}, "
+          f"load avg {info['loadavg_at_start'][0]:.1f}")
+    print(f"input: {args.samples} samples in [{u.min():.2f}, {u.max():.2f}] V; JAX median of {args.repeats}")
+
+    models = [bench_preisach(u, 50, rng, args.repeats), bench_preisach(u, 100, rng, args.repeats),
+              bench_pi(u, 50, rng, args.repeats)]
+    print("\n== models (times in ms; JAX fwd/grad = smooth=False unless marked; grad = value+grad) ==")
+    print(f"{'model':14}{'plays/smp':>10}{'plane':>7}{'numpy':>10}{'jax fwd':>10}{'compile':>9}"
+          f"{'speedup':>9}{'fwd smth':>10}{'speedup':>9}{'grad':>10}{'grad smth':>10}{'g/f':>6}{'g/f smth':>9}"
+          f"{'max|diff|':>10}")
+    for r in models:
+        sm = "fwd_smooth" in r  # Preisach only
+        fs = ms(r["fwd_smooth"]["median_s"]) if sm else "-"
+        ss = f"{r['speedup_smooth_vs_numpy']:8.1f}x" if sm else "-"
+        gs = ms(r["grad_smooth"]["median_s"]) if sm else "-"
+        gfs = f"{r['grad_over_fwd_smooth']:9.2f}" if sm else "-"
+        print(f"{r['model']:14}{r['plays_updated_per_sample']:>10}{r['plane_size']:>7}{ms(r['numpy_s']):>10}"
+              f"{ms(r['fwd_hard']['median_s'])}{ms(r['fwd_hard']['compile_s'])}{r['speedup_hard_vs_numpy']:8.1f}x"
+              f"{fs:>10}{ss:>9}{ms(r['grad_hard']['median_s']):>10}{gs:>10}"
+              f"{r['grad_over_fwd_hard']:6.2f}{gfs:>9}{r['max_abs_diff_hard_vs_numpy']:10.1e}")
+    print("\n   rates (JAX smooth=False fwd / NumPy):")
+    for r in models:
+        j, n_ = r["fwd_hard"], r["numpy"]
+        print(f"   {r['model']:14} samples/s {j['samples_per_s']:10.3g} / {n_['samples_per_s']:9.3g}   "
+              f"hysteron-updates/s {j['hysteron_updates_per_s']:10.3g} / {n_['hysteron_updates_per_s']:9.3g}")
+    print("   note: Preisach hysteron-updates/s counts n(n+1)/2 relays per sample; JAX updates only n plays.")
+
+    plays = [row for n in (50, 100) for row in bench_play_variants(u, n, args.repeats)]
+    print("\n== play operator on its own: value+grad w.r.t. (radii, u); times in ms, compile in s ==")
+    print(f"{'n':>4}  {'variant':30}{'fwd':>9}{'grad':>10}{'fwd/play':>9}{'grad/play':>10}"
+          f"{'compile fwd':>12}{'compile grad':>13}{'max|dP|':>9}{'rel dg':>9}")
+    for r in plays:
+        dg = max(r["max_rel_diff_grad_radii_vs_play"], r["max_rel_diff_grad_u_vs_play"])
+        print(f"{r['n']:>4}  {r['variant']:30}{ms(r['fwd']['median_s'])}{ms(r['grad']['median_s']):>10}"
+              f"{r['time_over_play_fwd']:9.2f}{r['time_over_play_grad']:10.2f}{r['fwd']['compile_s']:12.2f}"
+              f"{r['grad']['compile_s']:13.2f}{r['max_abs_diff_P_vs_play']:9.1e}{dg:9.1e}")
+    print("   x/play = median time relative to jaxafm.play (< 1: faster); rel dg = max|grad diff| / max|grad|")
+
+    goals = {}
+    for r in models:
+        if r["model"].startswith("Preisach"):
+            goals[f"{r['model']}: JAX fwd >= {GOAL_SPEEDUP:g}x NumPy"] = (
+                r["speedup_hard_vs_numpy"], r["speedup_hard_vs_numpy"] >= GOAL_SPEEDUP)
+        goals[f"{r['model']}: value+grad <= {GOAL_GRAD_RATIO:g}x fwd"] = (
+            r["grad_over_fwd"], r["grad_over_fwd"] <= GOAL_GRAD_RATIO)
+    diff = max(r["max_abs_diff_P_vs_play"] for r in plays)
+    goals["play variants match jaxafm.play to 1e-12"] = (diff, diff <= 1e-12)
+    diff = max(r["max_abs_diff_hard_vs_numpy"] for r in models[:2])
+    goals["Preisach smooth=False matches relay grid to 1e-12"] = (diff, diff <= 1e-12)
+    print("\n== goals ==  (Preisach grad ratio on the default smooth=True model)")
+    for name, (value, ok) in goals.items():
+        print(f"   {'PASS' if ok else 'FAIL'}  {name}: {value:.3g}")
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = {"machine": info, "samples": args.samples, "repeats": args.repeats, "seed": SEED,
+              "u_range_V": [U_MIN, U_MAX], "models": models, "play_variants": plays,
+              "goals": {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in goals.items()},
+              "numpy_timing": "each NumPy baseline timed once on the full input (no extrapolation)"}
+    result["machine"]["loadavg_at_end"] = load = os.getloadavg()
+    if max(info["loadavg_at_start"][0], load[0]) > (os.cpu_count() or 1):
+        print(f"\nWARNING: load average {info['loadavg_at_start'][0]:.1f} -> {load[0]:.1f} exceeds the "
+              f"{os.cpu_count()} CPUs: other processes share the machine, timings are noisy")
+    out.write_text(json.dumps(result, indent=2))
+    print(f"\nsaved {out}")
+
+
+if __name__ == "__main__":
+    main()

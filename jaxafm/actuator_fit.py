@@ -1,0 +1,106 @@
+"""The ``jaxafm fit`` run: hysteresis models fitted to one actuator record, validated on held-out data."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import plots
+from .config import ActuatorFitConfig, SimulatedData, resolve_data_path
+from .effects import Creep
+from .fit import error_metrics, fit_operator, initial_model
+from .io import save_model
+from .records import Record, read_record
+from .scanner import Axis, default_scanner
+
+MODEL_CREEP = dict(gamma=0.0, tau_min=0.1, tau_max=100.0)  # creep stage a fit starts from
+
+
+def load_record(cfg: ActuatorFitConfig, config_path: Path) -> tuple[Record, object]:
+    """The configured record, and the true axis model when it is simulated (else ``None``)."""
+    if cfg.data is not None:
+        spec = cfg.data.model_dump(exclude={"path"})
+        return read_record(resolve_data_path(cfg.data.path, config_path), **spec), None
+    return simulate_record(cfg.simulate)
+
+
+def simulate_record(spec: SimulatedData) -> tuple[Record, Axis]:
+    """One axis of :func:`default_scanner` with the chosen effects, driven as ``spec`` says."""
+    names = set(spec.effects)
+    others = {"hysteresis", "asymmetry", "rate_dependence", "creep"} - names
+    truth = default_scanner().without(*others).x
+    t = np.arange(int(round(spec.duration_s * spec.sample_rate_hz))) / spec.sample_rate_hz
+    envelope = 0.55 + 0.45 * np.cos(2 * np.pi * t / spec.modulation_period_s)
+    u = spec.amplitude_v * envelope * np.sin(2 * np.pi * spec.frequency_hz * t)
+    clean = np.asarray(truth(jnp.asarray(u), jnp.asarray(t)))
+    noise = spec.noise_nm * np.asarray(jax.random.normal(jax.random.key(spec.seed), clean.shape))
+    meta = {"source": f"simulated: default_scanner().x with {sorted(names)}, noise {spec.noise_nm} nm",
+            "samples": len(t), "clean_output_nm": clean}
+    return Record(t, u, clean + noise, meta), truth
+
+
+def _build(spec, u, d):
+    model = initial_model(spec.kind, u, d, operators=spec.operators, levels=spec.levels,
+                          deadzones=spec.deadzones)
+    return Axis(model, creep=Creep.logarithmic(**MODEL_CREEP)) if spec.creep else model
+
+
+def _predict(model, record: Record, history):
+    u = jnp.asarray(record.u)
+    out = model(u, jnp.asarray(record.t), history) if isinstance(model, Axis) else model(u, history)
+    return np.asarray(out)
+
+
+def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, log=print) -> dict:
+    """Fit every configured model, write parameters, ``metrics.json`` and a figure into ``out``."""
+    record, truth = load_record(cfg, config_path)
+    split = record.split(cfg.train_fraction)
+    settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
+    history = None if cfg.history_v is None else jnp.asarray(cfg.history_v)
+    d_range = float(record.d.max() - record.d.min())
+    log(f"record: {record.meta['source']} - {len(record)} samples, output range {d_range / 1e3:.2f} µm; "
+        f"train {split - settle} samples after {settle} settling, hold out {len(record) - split}")
+    metrics = {"output_range_nm": d_range, "train_samples": split - settle, "heldout_samples": len(record) - split}
+    predictions, rows = {}, []
+    for spec in cfg.models:
+        u, d = record.u[:split], record.d[:split]
+        log(f"fitting {spec.name} ({spec.kind}{' + creep' if spec.creep else ''}) with {spec.solver_name} ...")
+        res = fit_operator(_build(spec, u, d), u, d, t=record.t[:split], solver=spec.solver_name,
+                           max_steps=spec.max_steps, history=history, settle=settle)
+        if not res.converged:
+            log(f"  WARNING: {res.message}")
+        pred = _predict(res.model, record, history)
+        predictions[spec.name] = pred
+        save_model(res.model, out / f"model_{spec.name}.json")
+        train = error_metrics(pred[settle:split], record.d[settle:split], d_range)
+        held = error_metrics(pred[split:], record.d[split:], d_range)
+        row = {f"{spec.name}_train_{k}": v for k, v in train.items()}
+        row |= {f"{spec.name}_heldout_{k}": v for k, v in held.items()}
+        row |= {f"{spec.name}_fit_s": res.seconds, f"{spec.name}_solver_steps": res.steps,
+                f"{spec.name}_converged": res.converged}
+        if truth is not None:  # simulated: distance to the noiseless truth on the held-out part
+            clean = record.meta["clean_output_nm"]
+            row[f"{spec.name}_heldout_vs_truth_rms_error_pct"] = error_metrics(
+                pred[split:], clean[split:], d_range)["rms_error_pct"]
+        metrics |= row
+        rows.append((spec.name, spec.solver_name, train["rms_error_pct"], held["rms_error_pct"],
+                     held["max_error_pct"], res.seconds, res.converged))
+    plots.actuator_fit(record, predictions, split, out / "fit.png", title=Path(record.meta["source"]).name)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    log(_table(rows))
+    return metrics
+
+
+def _table(rows) -> str:
+    head = f"{'model':14s} {'solver':32s} {'train rms':>10s} {'held-out rms':>13s} {'held-out max':>13s} {'fit':>7s}"
+    lines = [head, "-" * len(head)]
+    for name, solver, tr, va, mx, sec, ok in rows:
+        lines.append(f"{name:14s} {solver:32s} {tr:9.3f}% {va:12.3f}% {mx:12.3f}% {sec:6.1f}s"
+                     + ("" if ok else "  (not converged)"))
+    lines.append("errors in % of the output range")
+    return "\n".join(lines)

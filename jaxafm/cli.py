@@ -1,0 +1,60 @@
+"""The ``jaxafm`` command line: one sub-command per pipeline stage."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="jaxafm: differentiable AFM scanner models and positioning in JAX.")
+
+
+def _prepare_output(out: Path, overwrite: bool) -> None:
+    """Refuse to touch an existing, non-empty output folder unless asked to."""
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise ValueError(f"output folder {out} exists and is not empty: choose another with --out, "
+                             "or pass --overwrite to replace its contents")
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def _fail(e: Exception) -> None:
+    typer.echo(f"error: {e}", err=True)
+    raise typer.Exit(code=2)
+
+
+@app.command()
+def fit(
+    config: Path = typer.Argument(..., help="YAML config (see configs/)"),
+    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
+    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
+):
+    """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
+    from . import actuator_fit
+    from .config import load_config
+
+    try:
+        cfg = load_config(config)
+        folder = out or Path(cfg.output)
+        _prepare_output(folder, overwrite)
+        actuator_fit.run(cfg, config, folder, log=typer.echo)
+    except (ValueError, FileNotFoundError) as e:
+        _fail(e)
+    typer.echo(f"wrote {folder}/metrics.json, fit.png and model_*.json")
+
+
+@app.command()
+def effects():
+    """List the effect names used in configs and diagnosis."""
+    from .effects import EFFECTS
+
+    typer.echo("\n".join(EFFECTS))
+
+
+def main() -> None:  # pragma: no cover
+    app(prog_name="jaxafm", args=sys.argv[1:])

@@ -1,0 +1,169 @@
+"""The scanner's non-hysteretic effects, one module each (names as in design.md).
+
+Each module is a pure function of its parameters, the signal and the sample
+times ``t`` (s); lengths are nm. The scanner composes them in the order
+hysteresis -> rate_dependence -> creep -> coupling -> bow -> drift -> noise.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from . import checks
+
+Array = jax.Array
+
+#: Every effect name the project knows. The AFM layer (imaging) owns the last two.
+EFFECTS = (
+    "hysteresis", "asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow",
+    "noise", "feedback_lag", "tip",
+)
+
+
+def check_effect_names(names, where: str = "effects") -> None:
+    """Raise for any name not in :data:`EFFECTS`."""
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect {unknown[0]!r} in {where}; known effects: {', '.join(EFFECTS)}")
+
+
+def lowpass(v: Array, t: Array, taus: Array, z0: Array) -> Array:
+    """First-order lags ``dz_k/dt = (v - z_k) / tau_k``, exact for ``v`` held over each step.
+
+    ``v[n]`` is taken to hold over ``(t[n-1], t[n]]``, so a step applied at
+    ``t[0]`` gives ``z_k(t) = v (1 - exp(-(t - t[0]) / tau_k))`` exactly, and
+    ``tau -> 0`` gives ``z = v``. Returns ``Z`` of shape ``(T, K)``.
+    """
+    dt = jnp.diff(t, prepend=t[:1])
+
+    def step(z, inputs):
+        vn, dtn = inputs
+        a = jnp.exp(-dtn / taus)
+        z = a * z + (1 - a) * vn
+        return z, z
+
+    _, Z = lax.scan(step, jnp.broadcast_to(z0, taus.shape), (v, dt))
+    return Z
+
+
+class Creep(eqx.Module):
+    """Logarithmic creep as a bank of first-order elements (design.md, section 4).
+
+    ``y(t) = v(t) + sum_k g_k z_k(t)``, each ``z_k`` a lag of ``v`` with time
+    constant ``tau_k``. After a step of size ``d0``,
+    ``y = d0 (1 + sum_k g_k (1 - exp(-t/tau_k)))``, which for log-spaced
+    ``tau_k`` with ``g_k = gamma / m`` (``m`` per decade) grows by ``gamma d0``
+    per decade of time between ``tau_min`` and ``tau_max``: the slope of
+    ``d(t) = d0 (1 + gamma log10(t / 0.1 s))``, with a level about ``gamma d0 / 2`` higher.
+    The lags start relaxed at ``v[0]`` (the scanner rested there before ``t[0]``).
+    """
+
+    taus: Array  # (K,) s
+    weights: Array  # (K,) dimensionless
+
+    def __check_init__(self):
+        checks.positive("Creep.taus", self.taus)
+        checks.finite("Creep.weights", self.weights)
+
+    @classmethod
+    def logarithmic(cls, gamma: float, tau_min: float = 0.1, tau_max: float = 1000.0,
+                    per_decade: int = 2):
+        """Creep of ``gamma`` (fraction per decade) between ``tau_min`` and ``tau_max`` s."""
+        checks.nonnegative("creep gamma", gamma)
+        checks.positive("creep tau_min", tau_min)
+        if not tau_max > tau_min:
+            raise ValueError(f"creep tau_max must exceed tau_min, got {tau_min} s and {tau_max} s")
+        n = int(round(np.log10(tau_max / tau_min) * per_decade)) + 1
+        taus = jnp.logspace(np.log10(tau_min), np.log10(tau_max), n)
+        return cls(taus, jnp.full(n, gamma / per_decade))
+
+    def __call__(self, v: Array, t: Array) -> Array:
+        Z = lowpass(v, t, self.taus, v[0])
+        return v + (Z - v[0]) @ self.weights
+
+
+class RateDependence(eqx.Module):
+    """Rate-dependent loops: a first-order lag of time constant ``tau`` (s) after hysteresis.
+
+    A Hammerstein structure (rate-independent hysteresis, then linear
+    dynamics): the loop widens and tilts as the drive frequency nears ``1/tau``.
+    """
+
+    tau: Array  # s
+
+    def __check_init__(self):
+        checks.positive("RateDependence.tau", self.tau)
+
+    def __call__(self, v: Array, t: Array) -> Array:
+        return lowpass(v, t, jnp.reshape(self.tau, (1,)), v[0])[:, 0]
+
+
+class Coupling(eqx.Module):
+    """Linear x<->y cross-coupling: ``x += xy * y``, ``y += yx * x`` (dimensionless)."""
+
+    xy: Array
+    yx: Array
+
+    def __call__(self, p: Array) -> Array:
+        x, y = p[..., 0], p[..., 1]
+        return jnp.stack([x + self.xy * y, y + self.yx * x], axis=-1)
+
+
+class Bow(eqx.Module):
+    """Quadratic cross-coupling of a tube scanner: ``x += bx * y^2``, ``y += by * x^2`` (1/nm)."""
+
+    bx: Array
+    by: Array
+
+    def __call__(self, p: Array) -> Array:
+        x, y = p[..., 0], p[..., 1]
+        return jnp.stack([x + self.bx * y**2, y + self.by * x**2], axis=-1)
+
+
+class Drift(eqx.Module):
+    """Thermal drift: constant velocity plus an Ornstein–Uhlenbeck wander, per axis.
+
+    ``d(t) = v t + w(t)``, ``dw = -theta w dt + sigma dW``, sampled exactly
+    at the given times (``theta = 0`` gives a random walk). Velocity in nm/s,
+    ``sigma`` in nm/sqrt(s), ``theta`` in 1/s; ``w(t[0]) = 0``.
+    """
+
+    velocity: Array  # (2,) nm/s
+    sigma: Array  # (2,) nm/sqrt(s)
+    theta: Array  # 1/s
+
+    def __check_init__(self):
+        checks.finite("Drift.velocity", self.velocity)
+        checks.nonnegative("Drift.sigma", self.sigma)
+        checks.nonnegative("Drift.theta", self.theta)
+
+    def __call__(self, t: Array, key: Array) -> Array:
+        dt = jnp.diff(t, prepend=t[:1])[:, None]
+        theta = jnp.maximum(self.theta, 1e-12)
+        decay = jnp.exp(-theta * dt)
+        std = self.sigma * jnp.sqrt(-jnp.expm1(-2 * theta * dt) / (2 * theta))
+        kicks = std * jax.random.normal(key, (t.shape[0], 2))
+
+        def step(w, inputs):
+            a, kick = inputs
+            w = a * w + kick
+            return w, w
+
+        _, W = lax.scan(step, jnp.zeros(2), (decay, kicks))
+        return self.velocity * (t - t[0])[:, None] + W
+
+
+class Noise(eqx.Module):
+    """White position noise of standard deviation ``std`` (2,) nm per axis."""
+
+    std: Array
+
+    def __check_init__(self):
+        checks.nonnegative("Noise.std", self.std)
+
+    def __call__(self, shape, key: Array) -> Array:
+        return self.std * jax.random.normal(key, shape)

@@ -1,0 +1,142 @@
+"""Actuator time-series records (design.md, section 3): read, convert to V / nm / s, split.
+
+A record is a delimited text file with one row per sample. The reader is told
+where time (a column, or a sample rate), input and output are, and the units;
+a header row naming ``t, u, d`` (or ``t, ux, uy, x, y``) needs no mapping.
+Every conversion made is written into ``Record.meta``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+LENGTH_TO_NM = {"nm": 1.0, "um": 1e3, "µm": 1e3, "mm": 1e6, "m": 1e9}
+VOLTAGE_TO_V = {"V": 1.0, "mV": 1e-3}
+Column = Union[int, str]  # 1-based index or header name
+
+
+@dataclasses.dataclass(frozen=True)
+class Record:
+    """Samples ``t`` (T,) s, input ``u`` (T,) or (T, k) V, output ``d`` (T,) or (T, k) nm."""
+
+    t: np.ndarray
+    u: np.ndarray
+    d: np.ndarray
+    meta: dict
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def split(self, train_fraction: float) -> int:
+        """Index of the first held-out sample when the first ``train_fraction`` trains."""
+        if not 0 < train_fraction < 1:
+            raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
+        n = int(round(len(self) * train_fraction))
+        if n < 10 or len(self) - n < 10:
+            raise ValueError(
+                f"record {self.meta.get('source', '')!r} has {len(self)} samples: too few to "
+                f"split at train_fraction={train_fraction} into two parts of at least 10 samples"
+            )
+        return n
+
+
+def _header(path: Path, delimiter: Optional[str]) -> Optional[list]:
+    with open(path) as f:
+        first = f.readline().strip()
+    names = first.split(delimiter) if delimiter else first.split()
+    try:
+        [float(x) for x in names]
+        return None
+    except ValueError:
+        return [n.strip() for n in names]
+
+
+def _column(spec: Column, header: Optional[list], path: Path, key: str) -> int:
+    if isinstance(spec, str):
+        if header is None or spec not in header:
+            raise ValueError(f"{path}: {key}={spec!r} names no column; header is {header}")
+        return header.index(spec)
+    if spec < 1:
+        raise ValueError(f"{path}: {key}={spec} must be a 1-based column number (>= 1)")
+    return spec - 1
+
+
+def read_record(
+    path: Union[str, Path],
+    *,
+    input_columns: Optional[Sequence[Column]] = None,
+    output_columns: Optional[Sequence[Column]] = None,
+    time_column: Optional[Column] = None,
+    sample_rate_hz: Optional[float] = None,
+    input_unit: str = "V",
+    output_unit: Optional[str] = None,
+    delimiter: Optional[str] = None,
+) -> Record:
+    """Read a record, converting input to V, output to nm and time to s.
+
+    Columns are 1-based numbers or header names. Without a mapping the header
+    must name ``t, u, d`` or ``t, ux, uy, x, y``, values already in s, V, nm.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"record file {path} does not exist")
+    header = _header(path, delimiter)
+    if input_columns is None and output_columns is None:
+        names = set(header or [])
+        if {"t", "u", "d"} <= names:
+            input_columns, output_columns, time_column = ["u"], ["d"], "t"
+        elif {"t", "ux", "uy", "x", "y"} <= names:
+            input_columns, output_columns, time_column = ["ux", "uy"], ["x", "y"], "t"
+        else:
+            raise ValueError(
+                f"{path}: no column mapping given and the header {header} does not name "
+                "'t, u, d' or 't, ux, uy, x, y'; set input_columns, output_columns and "
+                "time_column or sample_rate_hz"
+            )
+        output_unit = output_unit or "nm"
+    if not input_columns or not output_columns:
+        raise ValueError(f"{path}: give both input_columns and output_columns")
+    if output_unit is None:
+        raise ValueError(f"{path}: output_unit is missing; one of {sorted(LENGTH_TO_NM)}")
+    if output_unit not in LENGTH_TO_NM:
+        raise ValueError(f"{path}: output_unit={output_unit!r} is not one of {sorted(LENGTH_TO_NM)}")
+    if input_unit not in VOLTAGE_TO_V:
+        raise ValueError(f"{path}: input_unit={input_unit!r} is not one of {sorted(VOLTAGE_TO_V)}")
+    if (time_column is None) == (sample_rate_hz is None):
+        raise ValueError(f"{path}: give exactly one of time_column and sample_rate_hz")
+
+    try:
+        data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{path}: not a numeric delimited record ({e})") from None
+    cols = lambda specs, key: [_column(c, header, path, key) for c in specs]  # noqa: E731
+    i_in, i_out = cols(input_columns, "input_columns"), cols(output_columns, "output_columns")
+    for i in i_in + i_out:
+        if i >= data.shape[1]:
+            raise ValueError(f"{path}: column {i + 1} requested but the file has {data.shape[1]} columns")
+    u = data[:, i_in] * VOLTAGE_TO_V[input_unit]
+    d = data[:, i_out] * LENGTH_TO_NM[output_unit]
+    if sample_rate_hz is not None:
+        if not sample_rate_hz > 0:
+            raise ValueError(f"{path}: sample_rate_hz must be > 0, got {sample_rate_hz}")
+        t = np.arange(len(data)) / sample_rate_hz
+    else:
+        t = data[:, _column(time_column, header, path, "time_column")]
+    for name, a in (("input", u), ("output", d), ("time", t)):
+        if not np.isfinite(a).all():
+            row = int(np.argwhere(~np.isfinite(a))[0][0])
+            raise ValueError(f"{path}: {name} column has a non-finite value at data row {row + 1}")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError(f"{path}: time must increase strictly from row to row")
+    meta = {
+        "source": str(path), "samples": len(t),
+        "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g}), "
+                     f"output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})",
+        "time": f"sample rate {sample_rate_hz} Hz" if sample_rate_hz else f"column {time_column}",
+    }
+    squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)
+    return Record(t, squeeze(u), d[:, 0] if len(i_out) == 1 else d, meta)

@@ -1,0 +1,190 @@
+"""The scanner model: drive voltages ``u_x(t), u_y(t)`` (V) -> tip position ``x(t), y(t)`` (nm).
+
+One ``Axis`` per direction (hysteresis -> rate dependence -> creep), then the
+two-axis effects (coupling, bow, drift, noise). An effect is on exactly when
+its module is present: the truth simulator and a fitted model are the same
+code with different modules switched in, and ``Scanner.effects`` names them.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Union
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import checks
+from .effects import Bow, Coupling, Creep, Drift, Noise, RateDependence, check_effect_names
+from .hysteresis import (
+    Anhysteretic, Deadzone, GeneralizedPI, Linear, PlayOperator, Preisach, PrandtlIshlinskii,
+)
+
+Array = jax.Array
+Hysteresis = Union[Linear, Anhysteretic, PrandtlIshlinskii, GeneralizedPI, Preisach]
+
+
+class Axis(eqx.Module):
+    """One actuator axis: ``y = creep(lag(H[u]))`` in nm, for ``u`` in V and ``t`` in s."""
+
+    hysteresis: Hysteresis
+    rate_dependence: Optional[RateDependence] = None
+    creep: Optional[Creep] = None
+
+    @property
+    def effects(self) -> frozenset:
+        h = self.hysteresis
+        names = set()
+        if isinstance(h, PlayOperator):
+            names.add("hysteresis")
+        if isinstance(h, GeneralizedPI) or (
+            isinstance(h, Anhysteretic) and isinstance(h.operator, GeneralizedPI)
+        ):
+            names.add("asymmetry")  # a Preisach density holds its asymmetry itself
+        names.update(n for n in ("rate_dependence", "creep") if getattr(self, n) is not None)
+        return frozenset(names)
+
+    def __call__(self, u: Array, t: Array, history=None) -> Array:
+        t = jnp.asarray(t, dtype=float)
+        checks.finite("times t", t)
+        if np.shape(t) != np.shape(u):
+            raise ValueError(f"times t {np.shape(t)} and input u {np.shape(u)} must have the same shape")
+        return self.dynamics(self.hysteresis(u, history), t)
+
+    def dynamics(self, v: Array, t: Array) -> Array:
+        """The rate-dependent stages applied to the hysteresis output ``v`` (nm)."""
+        if self.rate_dependence is not None:
+            v = self.rate_dependence(v, t)
+        if self.creep is not None:
+            v = self.creep(v, t)
+        return v
+
+
+class Scanner(eqx.Module):
+    """Two axes plus coupling, bow, drift and noise; call with ``u`` (T, 2) V, ``t`` (T,) s."""
+
+    x: Axis
+    y: Axis
+    coupling: Optional[Coupling] = None
+    bow: Optional[Bow] = None
+    drift: Optional[Drift] = None
+    noise: Optional[Noise] = None
+
+    @property
+    def effects(self) -> frozenset:
+        own = {n for n in ("coupling", "bow", "drift", "noise") if getattr(self, n) is not None}
+        return frozenset(own) | self.x.effects | self.y.effects
+
+    def __call__(self, u: Array, t: Array, key: Optional[Array] = None, history=None) -> Array:
+        """Tip positions (T, 2) nm. ``history``: per-axis pre-history, shape (H, 2)."""
+        u = jnp.asarray(u, dtype=float)
+        if u.ndim != 2 or u.shape[1] != 2:
+            raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
+        random = [n for n in ("drift", "noise") if getattr(self, n) is not None]
+        if random and key is None:
+            raise ValueError(
+                f"the scanner has the random effect(s) {random}: pass a PRNG key, "
+                "e.g. scanner(u, t, key=jax.random.key(0))"
+            )
+        hx = hy = None
+        if history is not None:
+            history = jnp.asarray(history, dtype=float)
+            hx, hy = history[:, 0], history[:, 1]
+        p = jnp.stack([self.x(u[:, 0], t, hx), self.y(u[:, 1], t, hy)], axis=-1)
+        if self.coupling is not None:
+            p = self.coupling(p)
+        if self.bow is not None:
+            p = self.bow(p)
+        if key is not None:
+            k_drift, k_noise = jax.random.split(key)
+        if self.drift is not None:
+            p = p + self.drift(jnp.asarray(t, dtype=float), k_drift)
+        if self.noise is not None:
+            p = p + self.noise(p.shape, k_noise)
+        return p
+
+    def without(self, *names: str) -> "Scanner":
+        """The same scanner with the named effects switched off."""
+        check_effect_names(names, "Scanner.without")
+        s = self
+        for n in names:
+            if n in ("coupling", "bow", "drift", "noise"):
+                s = eqx.tree_at(lambda m: getattr(m, n), s, None, is_leaf=lambda v: v is None)
+            for ax in ("x", "y"):
+                s = eqx.tree_at(lambda m: getattr(m, ax), s, _axis_without(getattr(s, ax), n))
+        return s
+
+
+def _axis_without(axis: Axis, name: str) -> Axis:
+    h = axis.hysteresis
+    if name in ("rate_dependence", "creep"):
+        return eqx.tree_at(lambda a: getattr(a, name), axis, None, is_leaf=lambda v: v is None)
+    if name == "asymmetry":
+        if isinstance(h, GeneralizedPI):
+            return eqx.tree_at(lambda a: a.hysteresis, axis, h.pi)
+        if isinstance(h, Anhysteretic) and isinstance(h.operator, GeneralizedPI):
+            return eqx.tree_at(lambda a: a.hysteresis, axis, Anhysteretic(h.operator.pi))
+    if name == "hysteresis" and isinstance(h, PlayOperator):
+        return eqx.tree_at(lambda a: a.hysteresis, axis, Anhysteretic(h))
+    return axis
+
+
+def pi_with_loop_width(n: int, span: float, travel: float, loop_width: float) -> PrandtlIshlinskii:
+    """A PI operator whose major loop over ``span`` V moves ``travel`` nm, ``loop_width`` wide.
+
+    Thresholds ``r_k = k span / (2n)``. On the major loop, play ``k`` moves
+    ``span - 2 r_k`` and opens a gap of ``min(2 r_k, span - 2 r_k)`` at
+    mid-input, where every play's gap peaks. Equal weights ``b`` above ``w_0 = a``
+    then give ``b = W T / sum_k min(...)`` and ``a = (T - b sum_k (span - 2 r_k)) / span``
+    for width fraction ``W`` and travel ``T``.
+    """
+    if n < 2 or not 0 <= loop_width < 1:
+        raise ValueError(f"need n >= 2 operators and 0 <= loop_width < 1, got n={n}, loop_width={loop_width}")
+    r = np.arange(1, n) * span / (2 * n)
+    b = loop_width * travel / np.minimum(2 * r, span - 2 * r).sum()
+    a = (travel - b * (span - 2 * r).sum()) / span
+    if a <= 0:
+        raise ValueError(f"loop_width={loop_width} is too wide for a PI operator with {n} plays")
+    return PrandtlIshlinskii(jnp.arange(n) * span / (2 * n), jnp.full(n, b).at[0].set(a), jnp.zeros(()))
+
+
+def default_scanner(
+    u_range: float = 10.0,
+    travel: float = 10_000.0,
+    loop_width: float = 0.15,
+    creep_gamma: float = 0.01,
+    coupling: float = 0.02,
+    bow: float = 2e-6,
+    drift_nm_per_min: tuple = (3.0, -1.8),
+    drift_sigma: float = 0.05,
+    noise_std: float = 0.2,
+    n_operators: int = 16,
+) -> Scanner:
+    """The default simulated tube scanner (figures from design.md, section 4).
+
+    Drive ``-u_range..+u_range`` V moves about ``travel`` nm; the major loop is
+    about ``loop_width`` of range wide and asymmetric (dead zones compress the
+    top and stretch the bottom, x and y a little differently); creep
+    ``creep_gamma`` per decade; linear coupling ``coupling`` (x from y) and
+    ``-0.6 coupling`` (y from x); bow ``bow`` 1/nm; drift ``drift_nm_per_min``
+    plus an Ornstein–Uhlenbeck wander of ``drift_sigma`` nm/sqrt(s); white
+    position noise ``noise_std`` nm. From a virgin state at 0 V (``history=[[0, 0]]``), ``u = 0``
+    is ``x = y = 0``.
+    """
+    def axis(upper_w: tuple, lower_w: tuple) -> Axis:
+        pi = pi_with_loop_width(n_operators, 2 * u_range, travel, loop_width)
+        half = travel / 2
+        asym = Deadzone(jnp.ones(()), jnp.array([0.2, 0.6]) * half, jnp.array(upper_w),
+                        jnp.array([-0.2, -0.6]) * half, jnp.array(lower_w))
+        return Axis(GeneralizedPI(pi, asym), creep=Creep.logarithmic(creep_gamma))
+
+    return Scanner(
+        axis((-0.08, -0.12), (0.06, 0.08)),
+        axis((-0.06, -0.10), (0.04, 0.06)),
+        coupling=Coupling(jnp.asarray(coupling), jnp.asarray(-0.6 * coupling)),
+        bow=Bow(jnp.asarray(bow), jnp.asarray(-0.5 * bow)),
+        drift=Drift(jnp.asarray(drift_nm_per_min, dtype=float) / 60.0, jnp.full(2, drift_sigma),
+                    jnp.asarray(1e-3)),
+        noise=Noise(jnp.full(2, noise_std)),
+    )

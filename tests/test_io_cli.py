@@ -1,0 +1,163 @@
+"""Records, configs, saved models and the command line: conversions, round trips, clear errors."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from jaxafm import default_scanner
+from jaxafm.cli import app
+from jaxafm.config import ConfigError, load_config
+from jaxafm.io import load_model, save_model
+from jaxafm.records import read_record
+
+runner = CliRunner()
+
+
+def write(path, text):
+    path.write_text(text)
+    return path
+
+
+# ---------------------------------------------------------------- records
+
+
+def test_record_with_header_needs_no_mapping(tmp_path):
+    f = write(tmp_path / "r.csv", "t,u,d\n0,0.5,10\n0.01,0.6,11\n0.02,0.7,12\n")
+    r = read_record(f, delimiter=",")
+    np.testing.assert_allclose(r.t, [0, 0.01, 0.02])
+    np.testing.assert_allclose(r.d, [10, 11, 12])
+
+
+def test_record_units_converted_to_nm_and_volts(tmp_path):
+    f = write(tmp_path / "r.dat", "500 0 -1.5\n600 0 -1.25\n")
+    r = read_record(f, input_columns=[1], output_columns=[3], sample_rate_hz=10, input_unit="mV",
+                    output_unit="um")
+    np.testing.assert_allclose(r.u, [0.5, 0.6])
+    np.testing.assert_allclose(r.d, [-1500, -1250])
+    np.testing.assert_allclose(r.t, [0, 0.1])
+    assert "um -> nm" in r.meta["converted"]
+
+
+def test_record_two_axes_by_header(tmp_path):
+    f = write(tmp_path / "r.txt", "t ux uy x y\n0 1 2 3 4\n1 1 2 3 4\n")
+    r = read_record(f)
+    assert r.u.shape == (2, 2) and r.d.shape == (2, 2)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10), "output_unit is missing"),
+    (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10, output_unit="furlong"), "furlong"),
+    (dict(input_columns=[1], output_columns=[9], sample_rate_hz=10, output_unit="nm"), "column 9"),
+    (dict(input_columns=[1], output_columns=[2], output_unit="nm"), "time_column or sample_rate_hz|exactly one"),
+    (dict(input_columns=[0], output_columns=[2], sample_rate_hz=10, output_unit="nm"), "1-based"),
+])
+def test_record_bad_mapping(tmp_path, kwargs, match):
+    f = write(tmp_path / "r.dat", "1 2\n3 4\n")
+    with pytest.raises(ValueError, match=match):
+        read_record(f, **kwargs)
+
+
+def test_record_errors_name_the_problem(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        read_record(tmp_path / "missing.dat")
+    f = write(tmp_path / "nan.dat", "1 2\nnan 4\n")
+    with pytest.raises(ValueError, match="row 2"):
+        read_record(f, input_columns=[1], output_columns=[2], sample_rate_hz=1, output_unit="nm")
+    f = write(tmp_path / "nohead.dat", "a b c\n1 2 3\n")
+    with pytest.raises(ValueError, match="does not name"):
+        read_record(f)
+    f = write(tmp_path / "short.dat", "".join(f"{i} {i}\n" for i in range(15)))
+    r = read_record(f, input_columns=[1], output_columns=[2], sample_rate_hz=1, output_unit="nm")
+    with pytest.raises(ValueError, match="too few"):
+        r.split(0.5)
+
+
+# ---------------------------------------------------------------- configs
+
+GOOD = """
+simulate: {duration_s: 3, sample_rate_hz: 100, modulation_period_s: 1.5}
+models:
+  - {name: line, kind: linear}
+  - {name: pi, kind: pi, operators: 6}
+output: {out}
+"""
+
+
+@pytest.mark.parametrize("text, match", [
+    ("simulate: {}\nmodels: [{name: a, kind: pi, operatorz: 3}]\n", r"models\.0\.operatorz: unknown key"),
+    ("simulate: {}\nmodels: [{name: a, kind: preisach, levels: 1}]\n", r"models\.0\.levels.*greater than or equal to 2.*got 1"),
+    ("simulate: {effects: [gravity]}\nmodels: [{name: a, kind: pi}]\n", "unknown effect 'gravity'"),
+    ("simulate: {effects: [drift]}\nmodels: [{name: a, kind: pi}]\n", "not an effect of one axis"),
+    ("models: [{name: a, kind: pi}]\n", "exactly one of 'data'"),
+    ("simulate: {}\nmodels: [{name: a, kind: pi, solver: magic.newton}]\n", r"models\.0\.solver"),
+    ("simulate: {}\ntrain_fraction: 1.5\nmodels: [{name: a, kind: pi}]\n", "train_fraction"),
+    ("- just\n- a list\n", "mapping"),
+])
+def test_config_errors_name_key_and_value(tmp_path, text, match):
+    f = write(tmp_path / "c.yaml", text)
+    with pytest.raises(ConfigError, match=match) as e:
+        load_config(f)
+    assert str(f) in str(e.value)
+
+
+def test_config_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "nope.yaml")
+
+
+# ---------------------------------------------------------------- saved models
+
+
+def test_saved_scanner_round_trips(tmp_path):
+    s = default_scanner()
+    save_model(s, tmp_path / "s.json")
+    back = load_model(tmp_path / "s.json")
+    t = jnp.linspace(0, 1, 50)
+    u = jnp.stack([5 * jnp.sin(6 * t), 5 * jnp.cos(6 * t)], -1)
+    key = jax.random.key(3)
+    np.testing.assert_array_equal(np.asarray(s(u, t, key)), np.asarray(back(u, t, key)))
+    assert back.effects == s.effects
+
+
+def test_load_model_rejects_other_files(tmp_path):
+    f = write(tmp_path / "x.json", json.dumps({"format": "other"}))
+    with pytest.raises(ValueError, match="not a saved jaxafm model"):
+        load_model(f)
+
+
+# ---------------------------------------------------------------- command line
+
+
+def test_cli_fit_writes_metrics_with_units(tmp_path):
+    out = tmp_path / "run"
+    cfg = write(tmp_path / "c.yaml", GOOD.replace("{out}", str(out)))
+    result = runner.invoke(app, ["fit", str(cfg)])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["pi_heldout_rms_error_pct"] < metrics["line_heldout_rms_error_pct"]
+    assert {"output_range_nm", "pi_fit_s", "pi_heldout_max_error_nm"} <= set(metrics)
+    assert (out / "fit.png").stat().st_size > 0
+    assert load_model(out / "model_pi.json").weights.shape == (6,)
+    assert "held-out rms" in result.output
+
+
+def test_cli_never_overwrites_without_asking(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    keep = write(out / "precious.txt", "keep me")
+    cfg = write(tmp_path / "c.yaml", GOOD.replace("{out}", str(out)))
+    result = runner.invoke(app, ["fit", str(cfg)])
+    assert result.exit_code == 2
+    assert "--overwrite" in result.output
+    assert keep.read_text() == "keep me"
+
+
+def test_cli_bad_config_is_a_message_not_a_traceback(tmp_path):
+    cfg = write(tmp_path / "c.yaml", "simulate: {}\nmodels: [{name: a, kind: pi, levls: 3}]\n")
+    result = runner.invoke(app, ["fit", str(cfg)])
+    assert result.exit_code == 2
+    assert "levls" in result.output and "Traceback" not in result.output
