@@ -199,9 +199,11 @@ def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: in
     flat0, unravel = ravel_pytree(raw0)  # jaxopt's least-squares solvers want one flat vector
     if method == "lbfgs":
         opt = jaxopt.LBFGS(fun=lambda x: loss(unravel(x)), maxiter=max_steps, tol=atol)
+    elif method == "levenberg_marquardt":  # relative step or gradient, as optimistix's rtol/atol
+        opt = jaxopt.LevenbergMarquardt(residual_fun=lambda x: residuals(unravel(x)), maxiter=max_steps,
+                                        stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol)
     else:
-        cls = {"levenberg_marquardt": jaxopt.LevenbergMarquardt, "gauss_newton": jaxopt.GaussNewton}[method]
-        opt = cls(residual_fun=lambda x: residuals(unravel(x)), maxiter=max_steps, tol=atol)
+        opt = jaxopt.GaussNewton(residual_fun=lambda x: residuals(unravel(x)), maxiter=max_steps, tol=atol)
     flat, state = opt.run(flat0)
     steps = int(state.iter_num)
     return unravel(flat), steps, bool(steps < max_steps)

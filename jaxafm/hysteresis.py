@@ -1,9 +1,10 @@
 """Rate-independent hysteresis operators: play, Prandtl–Ishlinskii, dead-zone, Preisach.
 
 All operators map an input sequence ``u`` (V) of shape ``(T,)`` to an output
-``y`` (nm) of shape ``(T,)``. The only sequential part is the play (backlash)
-operator, run once per threshold with ``lax.scan``; everything else is
-vectorised over time, so ``jit``, ``vmap`` and ``grad`` work throughout.
+``y`` (nm) of shape ``(T,)``. Each is a memoryless ``readout`` of play
+(backlash) operators; the plays are the only sequential part, one ``lax.scan``
+over time that applies the readout block by block. ``jit``, ``vmap`` and
+``grad`` work throughout.
 
 The Preisach model is evaluated through Krejčí's play representation: relay
 ``(alpha, beta)`` is up exactly when the play of radius ``r = (alpha-beta)/2``
@@ -39,42 +40,79 @@ def play_state(radii: Array, history) -> Array:
     return p
 
 
-def play(u: Array, radii: Array, history=None) -> Array:
-    """Outputs ``P[t, k]`` of the play operators of radius ``radii[k]``.
-
-    ``p_k(t) = max(u(t) - r_k, min(u(t) + r_k, p_k(t-1)))`` (the backlash
-    operator, Krejčí 1996); shape ``(T, n)``.
-    """
+def _checked_input(u) -> Array:
     u = jnp.asarray(u, dtype=float)
     checks.finite("input u", u)
     if u.ndim != 1:
         raise ValueError(f"input u must be 1-D (T,), got shape {u.shape}; use jax.vmap for batches")
-    p0 = play_state(radii, u[:1] if history is None else history)
+    return u
 
+
+def _play_step(radii: Array):
     def step(p, ut):
-        p = jnp.clip(p, ut - radii, ut + radii)
+        # clip(p, ut - r, ut + r) as two selects: same values, a cheaper backward pass,
+        # and a one-sided derivative at r = 0 (jnp.clip splits that tie's cotangent)
+        lo, hi = ut - radii, ut + radii
+        p = jnp.where(p < lo, lo, jnp.where(p > hi, hi, p))
         return p, p
 
-    _, P = lax.scan(step, p0, u)
+    return step
+
+
+def play(u: Array, radii: Array, history=None) -> Array:
+    """Outputs ``P[t, k]`` of the play operators of radius ``radii[k]``, shape ``(T, n)``.
+
+    ``p_k(t) = max(u(t) - r_k, min(u(t) + r_k, p_k(t-1)))`` (the backlash
+    operator, Krejčí 1996).
+    """
+    u = _checked_input(u)
+    _, P = lax.scan(_play_step(radii), play_state(radii, u[:1] if history is None else history), u)
     return P
+
+
+def play_map(u: Array, radii: Array, readout, history=None, block: int = 32) -> Array:
+    """``readout(play(u, radii, history))`` of shape (T,), without storing the (T, n) plays.
+
+    The scan runs over blocks of ``block`` samples: an inner scan fills one
+    (block, n) slab of plays and ``readout`` reduces it at once;
+    ``jax.checkpoint`` makes the gradient recompute a slab instead of storing
+    it. On a CPU, writing and re-reading all of P costs more than the plays.
+    """
+    u = _checked_input(u)
+    T = u.shape[0]
+    nb = -(-T // block)
+    blocks = jnp.pad(u, (0, nb * block - T), mode="edge").reshape(nb, block)  # repeating u[-1] moves no play
+
+    @jax.checkpoint
+    def run_block(p, ub):
+        p, P = lax.scan(_play_step(radii), p, ub)
+        return p, readout(P)
+
+    _, y = lax.scan(run_block, play_state(radii, u[:1] if history is None else history), blocks)
+    return y.reshape(-1)[:T]
 
 
 class PlayOperator(eqx.Module):
     """An operator ``y = f(P)`` of the plays ``P = play(u, radii())``.
 
-    Subclasses give ``radii()`` and the memoryless map ``from_plays(P)``.
+    Subclasses give ``radii()`` and ``readout()``, the memoryless map ``f``
+    from plays ``(..., n)`` to outputs ``(...)``.
     """
 
     def radii(self) -> Array:
         raise NotImplementedError
 
-    def from_plays(self, P: Array) -> Array:
+    def readout(self):
         raise NotImplementedError
+
+    def from_plays(self, P: Array) -> Array:
+        """The output for known play trajectories ``P`` (T, n)."""
+        return self.readout()(P)
 
     def __call__(self, u: Array, history=None) -> Array:
         if history is not None:
             checks.finite("history", history)
-        return self.from_plays(play(u, self.radii(), history))
+        return play_map(u, self.radii(), self.readout(), history)
 
 
 class Anhysteretic(eqx.Module):
@@ -140,8 +178,8 @@ class PrandtlIshlinskii(PlayOperator):
     def radii(self) -> Array:
         return self.thresholds
 
-    def from_plays(self, P: Array) -> Array:
-        return self.offset + P @ self.weights
+    def readout(self):
+        return lambda P: self.offset + P @ self.weights
 
     def inverse(self) -> "PrandtlIshlinskii":
         """The analytic inverse, again a PI operator (Kuhnen & Janocha 2001).
@@ -248,8 +286,9 @@ class GeneralizedPI(PlayOperator):
     def radii(self) -> Array:
         return self.pi.radii()
 
-    def from_plays(self, P: Array) -> Array:
-        return self.deadzone(self.pi.from_plays(P))
+    def readout(self):
+        pi = self.pi.readout()
+        return lambda P: self.deadzone(pi(P))
 
     def inverse(self) -> "_InverseGeneralizedPI":
         return _InverseGeneralizedPI(self.deadzone.inverse(), self.pi.inverse())
@@ -335,25 +374,34 @@ class Preisach(PlayOperator):
         i = j + k
         return jnp.where(i < n, jnp.tril(self.density)[np.minimum(i, n - 1), j], 0.0)
 
-    def from_plays(self, P: Array) -> Array:
-        """Output for play trajectories ``P`` (T, n): ``sum_k 2 F_k(p_k) - F_k(inf)``.
+    def readout(self):
+        """``P (..., n) -> y = offset + sum_k 2 F_k(p_k) - F_k(inf)``, its tables built once.
 
         ``F_k`` is the cumulative relay weight along play line ``k`` up to
         ``p_k``; relay ``(k, j)`` sits at ``s_kj = u_min + (2j + k + 1) D / 2``.
+        Smooth: with ``q = (p_k - s_k0) / D + 1/2`` and ``i = floor(q)``,
+        ``F_k = C[k, i] + (q - i) M[k, i] = A[k, i] + q M[k, i]`` (``A = C - i M``),
+        both read from flattened tables at ``k n + i``.
         """
         n, D = self.levels, self._step()
         M = self.masses()
         C = jnp.concatenate([jnp.zeros((n, 1)), jnp.cumsum(M, axis=1)], axis=1)  # (n, n+1)
         s0 = self.u_min + (jnp.arange(n) + 1) * D / 2  # first relay of each play line
-        x = (P - s0) / D  # position along the line in relay spacings
-        rows = jnp.arange(n)
+        base = self.offset - jnp.sum(C[:, -1])
         if self.smooth:
-            q = jnp.clip(x + 0.5, 0.0, n)
-            i0 = jnp.minimum(jnp.floor(q), n - 1).astype(int)
-            F = C[rows, i0] + (q - i0) * M[rows, i0]
+            A, Mf = (C[:, :-1] - jnp.arange(n) * M).ravel(), M.ravel()
+
+            def readout(P):
+                q = jnp.clip((P - s0) / D + 0.5, 0.0, n)
+                i = jnp.arange(n) * n + jnp.minimum(jnp.floor(q), n - 1).astype(int)
+                return base + 2 * jnp.sum(A[i] + q * Mf[i], axis=-1)
         else:
-            F = C[rows, jnp.clip(jnp.floor(x).astype(int) + 1, 0, n)]
-        return self.offset + jnp.sum(2 * F - C[:, -1], axis=-1)
+            Cf = C.ravel()
+
+            def readout(P):
+                i = jnp.arange(n) * (n + 1) + jnp.clip(jnp.floor((P - s0) / D).astype(int) + 1, 0, n)
+                return base + 2 * jnp.sum(Cf[i], axis=-1)
+        return readout
 
     def relay_states(self, P: Array) -> Array:
         """States (T, n, n) in [-1, 1] of every relay, so ``y = offset + sum(states * density)``.
