@@ -12,13 +12,14 @@ import numpy as np
 
 from . import plots
 from .config import ActuatorFitConfig, SimulatedData, resolve_data_path
-from .effects import Creep
+from .effects import Creep, RateDependence
 from .fit import error_metrics, fit_operator, initial_model
 from .io import save_model
 from .records import Record, read_record
 from .scanner import Axis, default_scanner
 
-MODEL_CREEP = dict(gamma=0.0, tau_min=0.1, tau_max=100.0)  # creep stage a fit starts from
+MODEL_CREEP = dict(gamma=0.0, tau_min=0.1, tau_max=100.0)  # the creep stage a fit starts from
+MODEL_LAG_S = 0.005  # the rate-dependence lag a fit starts from
 
 
 def load_record(cfg: ActuatorFitConfig, config_path: Path) -> tuple[Record, object]:
@@ -47,7 +48,10 @@ def simulate_record(spec: SimulatedData) -> tuple[Record, Axis]:
 def _build(spec, u, d):
     model = initial_model(spec.kind, u, d, operators=spec.operators, levels=spec.levels,
                           deadzones=spec.deadzones)
-    return Axis(model, creep=Creep.logarithmic(**MODEL_CREEP)) if spec.creep else model
+    if not (spec.creep or spec.rate_dependence):
+        return model
+    return Axis(model, rate_dependence=RateDependence(jnp.asarray(MODEL_LAG_S)) if spec.rate_dependence else None,
+                creep=Creep.logarithmic(**MODEL_CREEP) if spec.creep else None)
 
 
 def _predict(model, record: Record, history):
@@ -69,7 +73,8 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, log=print) -> dict
     predictions, rows = {}, []
     for spec in cfg.models:
         u, d = record.u[:split], record.d[:split]
-        log(f"fitting {spec.name} ({spec.kind}{' + creep' if spec.creep else ''}) with {spec.solver_name} ...")
+        extras = "".join(f" + {e}" for e in ("rate_dependence", "creep") if getattr(spec, e))
+        log(f"fitting {spec.name} ({spec.kind}{extras}) with {spec.solver_name} ...")
         res = fit_operator(_build(spec, u, d), u, d, t=record.t[:split], solver=spec.solver_name,
                            max_steps=spec.max_steps, history=history, settle=settle)
         if not res.converged:

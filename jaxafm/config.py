@@ -75,6 +75,7 @@ class ModelSpec(_Strict):
     deadzones: int = Field(3, ge=1, le=20, description="dead zones each side (gpi)")
     levels: int = Field(20, ge=2, le=200, description="Preisach plane levels")
     creep: bool = Field(False, description="add a logarithmic creep stage (0.1 s to 100 s)")
+    rate_dependence: bool = Field(False, description="add a first-order lag after hysteresis")
     solver: Optional[Solver] = Field(None, description="default: LM, or BFGS for preisach")
     max_steps: int = Field(2000, ge=1, le=100_000)
 

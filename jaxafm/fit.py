@@ -22,7 +22,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from .effects import Creep
+from .effects import Creep, RateDependence
 from .hysteresis import Deadzone, GeneralizedPI, Linear, PlayOperator, Preisach, PrandtlIshlinskii, play
 from .scanner import Axis
 
@@ -98,16 +98,13 @@ def free_parameters(model, u_span: float, d_range: float):
 
         return raw, rebuild
     if isinstance(model, Creep):
-        raw = model.weights / 0.01
-        return raw, lambda p: Creep(model.taus, p * 0.01)
+        return model.weights / 0.01, lambda p: Creep(model.taus, p * 0.01)
+    if isinstance(model, RateDependence):
+        return _softplus_inv(model.tau / 0.01), lambda p: RateDependence(jax.nn.softplus(p) * 0.01)
     if isinstance(model, Axis):
-        if model.rate_dependence is not None:
-            raise TypeError("fitting an Axis with rate_dependence is not supported yet")
-        h_raw, h_rebuild = free_parameters(model.hysteresis, u_span, d_range)
-        if model.creep is None:
-            return h_raw, lambda p: Axis(h_rebuild(p))
-        c_raw, c_rebuild = free_parameters(model.creep, u_span, d_range)
-        return (h_raw, c_raw), lambda p: Axis(h_rebuild(p[0]), creep=c_rebuild(p[1]))
+        stages = [n for n in ("hysteresis", "rate_dependence", "creep") if getattr(model, n) is not None]
+        raws, rebuilds = zip(*(free_parameters(getattr(model, n), u_span, d_range) for n in stages))
+        return raws, lambda p: Axis(**{n: rebuild(q) for n, rebuild, q in zip(stages, rebuilds, p)})
     raise TypeError(f"cannot fit a {type(model).__name__}")
 
 
