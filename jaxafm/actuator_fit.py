@@ -60,12 +60,23 @@ def _predict(model, record: Record, history):
     return np.asarray(out)
 
 
-def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, log=print) -> dict:
-    """Fit every configured model, write parameters, ``metrics.json`` and a figure into ``out``."""
+def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
+    """Fit every configured model, write parameters, ``metrics.json`` and a figure into ``out``.
+
+    Everything is read and checked before ``prepare()`` readies the output folder.
+    """
     record, truth = load_record(cfg, config_path)
+    if record.u.ndim != 1 or record.d.ndim != 1:
+        raise ValueError(f"{record.meta['source']}: `jaxafm fit` fits one axis, but the record has "
+                         f"{record.u.shape[1:] or 1} input and {record.d.shape[1:] or 1} output columns; "
+                         "map one input and one output column")
     split = record.split(cfg.train_fraction)
     settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
+    if split - settle < 10:
+        raise ValueError(f"settle_s={cfg.settle_s} s leaves {split - settle} training samples; "
+                         f"the training part is {record.t[split] - record.t[0]:.3g} s long")
     history = None if cfg.history_v is None else jnp.asarray(cfg.history_v)
+    prepare()
     d_range = float(record.d.max() - record.d.min())
     log(f"record: {record.meta['source']} - {len(record)} samples, output range {d_range / 1e3:.2f} µm; "
         f"train {split - settle} samples after {settle} settling, hold out {len(record) - split}")

@@ -51,17 +51,16 @@ def positive(name: str, x) -> None:
         raise ValueError(f"{name} must be > 0, but element {idx} is {v[idx]!r}")
 
 
-def increasing(name: str, x, strict: bool = True) -> None:
-    """Raise if the 1-D array ``x`` is not (strictly) increasing."""
+def increasing(name: str, x) -> None:
+    """Raise if the 1-D array ``x`` is not strictly increasing."""
     finite(name, x)
     v = _values(x)
     if v is None:
         return
     d = np.diff(v)
-    bad = d <= 0 if strict else d < 0
+    bad = d <= 0
     if bad.any():
         i = int(np.argmax(bad))
-        word = "strictly increasing" if strict else "non-decreasing"
         raise ValueError(
-            f"{name} must be {word}, but {name}[{i}]={v[i]!r} and {name}[{i + 1}]={v[i + 1]!r}"
+            f"{name} must be strictly increasing, but {name}[{i}]={v[i]!r} and {name}[{i + 1}]={v[i + 1]!r}"
         )

@@ -13,13 +13,21 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="jaxafm: differentiable AFM scanner models and positioning in JAX.")
 
 
-def _prepare_output(out: Path, overwrite: bool) -> None:
-    """Refuse to touch an existing, non-empty output folder unless asked to."""
+OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
+
+
+def prepare_output(out: Path, overwrite: bool) -> None:
+    """Create ``out``; an existing, non-empty one only with ``overwrite``, which removes
+    just the files this command writes and leaves everything else where it is."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output {out} exists and is not a folder: choose another with --out")
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise ValueError(f"output folder {out} exists and is not empty: choose another with --out, "
-                             "or pass --overwrite to replace its contents")
-        shutil.rmtree(out)
+                             "or pass --overwrite to replace the results in it")
+        for pattern in OUTPUTS:
+            for f in out.glob(pattern):
+                f.unlink()
     out.mkdir(parents=True, exist_ok=True)
 
 
@@ -41,9 +49,8 @@ def fit(
     try:
         cfg = load_config(config)
         folder = out or Path(cfg.output)
-        _prepare_output(folder, overwrite)
-        actuator_fit.run(cfg, config, folder, log=typer.echo)
-    except (ValueError, FileNotFoundError) as e:
+        actuator_fit.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite), log=typer.echo)
+    except (ValueError, OSError) as e:
         _fail(e)
     typer.echo(f"wrote {folder}/metrics.json, fit.png and model_*.json")
 

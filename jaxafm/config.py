@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import List, Literal, Optional, Union
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -57,19 +58,19 @@ class SimulatedData(_Strict):
 
     @model_validator(mode="after")
     def _known_effects(self):
-        axis_effects = ("hysteresis", "asymmetry", "rate_dependence", "creep")
+        axis_effects = ("hysteresis", "asymmetry", "creep")  # what default_scanner's axes have
         for e in self.effects:
             if e not in EFFECTS:
                 raise ValueError(f"unknown effect {e!r}; known effects: {', '.join(EFFECTS)}")
             if e not in axis_effects:
-                raise ValueError(f"effect {e!r} is not an effect of one axis; choose from {axis_effects}")
+                raise ValueError(f"effect {e!r} is not one of the simulated axis's effects {axis_effects}")
         return self
 
 
 class ModelSpec(_Strict):
     """One model to fit: its kind, size, optional creep stage and solver."""
 
-    name: str
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]+$", description="names the model's output file")
     kind: Literal["linear", "pi", "gpi", "preisach"]
     operators: int = Field(20, ge=2, le=500, description="play operators (pi, gpi)")
     deadzones: int = Field(3, ge=1, le=20, description="dead zones each side (gpi)")
@@ -92,7 +93,7 @@ class ActuatorFitConfig(_Strict):
     data: Optional[RecordData] = None
     simulate: Optional[SimulatedData] = None
     history_v: Optional[List[float]] = Field(
-        None, description="inputs applied before t=0 (V); default: the plays start at u[0]")
+        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]")
     settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
     train_fraction: float = Field(0.6, gt=0, lt=1)
     models: List[ModelSpec] = Field(min_length=1)
@@ -100,6 +101,8 @@ class ActuatorFitConfig(_Strict):
 
     @model_validator(mode="after")
     def _one_source(self):
+        if self.history_v is not None and not all(np.isfinite(self.history_v)):
+            raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
         if (self.data is None) == (self.simulate is None):
             raise ValueError("give exactly one of 'data' (a measured record) and 'simulate'")
         names = [m.name for m in self.models]
@@ -118,7 +121,7 @@ def _format(error: ValidationError, path: Path) -> str:
     return "\n".join(lines)
 
 
-def load_config(path: Union[str, Path], schema=ActuatorFitConfig):
+def load_config(path: Union[str, Path]) -> ActuatorFitConfig:
     """Read and validate a YAML configuration; raise :class:`ConfigError` naming what is wrong."""
     path = Path(path)
     if not path.is_file():
@@ -130,7 +133,7 @@ def load_config(path: Union[str, Path], schema=ActuatorFitConfig):
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     try:
-        return schema.model_validate(raw)
+        return ActuatorFitConfig.model_validate(raw)
     except ValidationError as e:
         raise ConfigError(_format(e, path)) from None
 

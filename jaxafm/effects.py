@@ -36,7 +36,8 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array) -> Array:
 
     ``v[n]`` is taken to hold over ``(t[n-1], t[n]]``, so a step applied at
     ``t[0]`` gives ``z_k(t) = v (1 - exp(-(t - t[0]) / tau_k))`` exactly, and
-    ``tau -> 0`` gives ``z = v``. Returns ``Z`` of shape ``(T, K)``.
+    ``tau -> 0`` gives ``z = v``. Against a continuous drive this leads by half
+    a sample, so a fitted ``tau`` absorbs about ``dt/2``. Returns ``Z`` of shape ``(T, K)``.
     """
     dt = jnp.diff(t, prepend=t[:1])
 
@@ -59,7 +60,8 @@ class Creep(eqx.Module):
     ``tau_k`` with ``g_k = gamma / m`` (``m`` per decade) grows by ``gamma d0``
     per decade of time between ``tau_min`` and ``tau_max``: the slope of
     ``d(t) = d0 (1 + gamma log10(t / 0.1 s))``, with a level about ``gamma d0 / 2`` higher.
-    The lags start relaxed at ``v[0]`` (the scanner rested there before ``t[0]``).
+    The lags start relaxed at ``v[0]`` (the scanner rested there before ``t[0]``),
+    whatever input ``history`` the hysteresis stage was given.
     """
 
     taus: Array  # (K,) s

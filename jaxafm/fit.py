@@ -39,7 +39,7 @@ def _softplus_inv(x):
     return x + jnp.log(-jnp.expm1(-x))
 
 
-def initial_model(kind: str, u, d, *, operators: int = 50, levels: int = 30, deadzones: int = 3):
+def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):
     """A start for ``kind`` from the record's ranges: the straight line through the data.
 
     ``pi``: ``operators`` thresholds evenly over half the input span (wider
@@ -124,7 +124,9 @@ def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Calla
     else:
         hysteresis = lambda m: m(u, history)  # noqa: E731
     if isinstance(model, Axis):
-        t = jnp.arange(u.shape[0], dtype=float) if t is None else jnp.asarray(t, dtype=float)
+        if t is None:
+            raise ValueError("fitting an Axis (creep or rate dependence) needs the sample times t (s)")
+        t = jnp.asarray(t, dtype=float)
         return lambda m: m.dynamics(hysteresis(m.hysteresis), t)
     return hysteresis
 

@@ -34,6 +34,9 @@ Array = jax.Array
 def play_state(radii: Array, history) -> Array:
     """Play outputs after the turning points ``history`` (every play starts at ``history[0]``)."""
     history = jnp.atleast_1d(jnp.asarray(history, dtype=float))
+    if history.ndim != 1 or history.shape[0] == 0:
+        raise ValueError(f"history must be a non-empty 1-D sequence of inputs (V), got shape {history.shape}")
+    checks.finite("history", history)
     p = jnp.broadcast_to(history[0], radii.shape)
     for h in history[1:]:
         p = jnp.clip(p, h - radii, h + radii)
@@ -110,23 +113,22 @@ class PlayOperator(eqx.Module):
         return self.readout()(P)
 
     def __call__(self, u: Array, history=None) -> Array:
-        if history is not None:
-            checks.finite("history", history)
         return play_map(u, self.radii(), self.readout(), history)
 
 
 class Anhysteretic(eqx.Module):
     """The effect ``hysteresis`` switched off: ``operator`` with every play at the input.
 
-    For a PI operator this is the straight centre line of its loops; for a
-    Preisach model the curve of its relays with zero width.
+    For a PI operator the straight line of slope ``sum(w)`` through the middle of
+    its loops; for a Preisach model the curve of its relays with zero width. It
+    meets each loop at mid-input but not at its tips: over a major loop it
+    travels further than the hysteretic operator, by about the loop's width.
     """
 
     operator: PlayOperator
 
     def __call__(self, u: Array, history=None) -> Array:
-        u = jnp.asarray(u, dtype=float)
-        checks.finite("input u", u)
+        u = _checked_input(u)
         return self.operator.from_plays(jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape))
 
 

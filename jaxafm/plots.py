@@ -16,13 +16,13 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     """
     u, d, t = record.u, record.d, record.t
     d_range = float(d.max() - d.min())
-    fig, (ax_loop, ax_err) = plt.subplots(1, 2, figsize=(13, 5), gridspec_kw={"width_ratios": [1, 1.4]})
+    fig, (ax_loop, ax_err) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.4]})
     ax_loop.plot(u[split:], d[split:] / 1e3, color="0.6", lw=2.5, label="measured")
     for name, pred in predictions.items():
         ax_loop.plot(u[split:], pred[split:] / 1e3, lw=0.8, label=name)
     ax_loop.set(xlabel="input u [V]", ylabel="output d [µm]", title="held-out part: loops")
     ax_loop.legend(fontsize=8)
-    window = max(1, int(round(1.0 / np.median(np.diff(t)))))  # 1 s of samples
+    window = min(len(t), max(1, int(round(1.0 / np.median(np.diff(t))))))  # 1 s of samples
     for name, pred in predictions.items():
         e = 100 * (pred - d) / d_range
         held = float(np.sqrt(np.mean(e[split:] ** 2)))
@@ -33,7 +33,7 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     ax_err.set(xlabel="time [s]", ylabel="rms error over the last 1 s [% of output range]", yscale="log",
                title=f"model - measured (output range {d_range / 1e3:.1f} µm)")
     ax_err.grid(True, which="both", alpha=0.3)
-    ax_err.legend(fontsize=8, loc="lower center", ncol=2)
+    ax_err.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

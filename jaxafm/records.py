@@ -45,8 +45,11 @@ class Record:
 
 
 def _header(path: Path, delimiter: Optional[str]) -> Optional[list]:
+    """Column names from a first line that is not numeric (a leading ``#`` is dropped)."""
     with open(path) as f:
-        first = f.readline().strip()
+        first = f.readline().strip().lstrip("#").strip()
+    if not first:
+        raise ValueError(f"{path}: the first line is empty; the record needs data rows")
     names = first.split(delimiter) if delimiter else first.split()
     try:
         [float(x) for x in names]
@@ -88,9 +91,9 @@ def read_record(
     if input_columns is None and output_columns is None:
         names = set(header or [])
         if {"t", "u", "d"} <= names:
-            input_columns, output_columns, time_column = ["u"], ["d"], "t"
+            input_columns, output_columns = ["u"], ["d"]
         elif {"t", "ux", "uy", "x", "y"} <= names:
-            input_columns, output_columns, time_column = ["ux", "uy"], ["x", "y"], "t"
+            input_columns, output_columns = ["ux", "uy"], ["x", "y"]
         else:
             raise ValueError(
                 f"{path}: no column mapping given and the header {header} does not name "
@@ -98,6 +101,7 @@ def read_record(
                 "time_column or sample_rate_hz"
             )
         output_unit = output_unit or "nm"
+        time_column = "t" if sample_rate_hz is None else None
     if not input_columns or not output_columns:
         raise ValueError(f"{path}: give both input_columns and output_columns")
     if output_unit is None:
@@ -112,7 +116,10 @@ def read_record(
     try:
         data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2)
     except ValueError as e:
-        raise ValueError(f"{path}: not a numeric delimited record ({e})") from None
+        hint = " (set delimiter: ',' for a CSV file)" if delimiter is None and "," in path.read_text()[:200] else ""
+        raise ValueError(f"{path}: not a numeric delimited record{hint} ({e})") from None
+    if data.size == 0:
+        raise ValueError(f"{path}: no data rows")
     cols = lambda specs, key: [_column(c, header, path, key) for c in specs]  # noqa: E731
     i_in, i_out = cols(input_columns, "input_columns"), cols(output_columns, "output_columns")
     for i in i_in + i_out:

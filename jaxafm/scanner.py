@@ -47,7 +47,7 @@ class Axis(eqx.Module):
 
     def __call__(self, u: Array, t: Array, history=None) -> Array:
         t = jnp.asarray(t, dtype=float)
-        checks.finite("times t", t)
+        checks.increasing("times t", t)
         if np.shape(t) != np.shape(u):
             raise ValueError(f"times t {np.shape(t)} and input u {np.shape(u)} must have the same shape")
         return self.dynamics(self.hysteresis(u, history), t)

@@ -91,7 +91,7 @@ output: {out}
     ("simulate: {}\nmodels: [{name: a, kind: pi, operatorz: 3}]\n", r"models\.0\.operatorz: unknown key"),
     ("simulate: {}\nmodels: [{name: a, kind: preisach, levels: 1}]\n", r"models\.0\.levels.*greater than or equal to 2.*got 1"),
     ("simulate: {effects: [gravity]}\nmodels: [{name: a, kind: pi}]\n", "unknown effect 'gravity'"),
-    ("simulate: {effects: [drift]}\nmodels: [{name: a, kind: pi}]\n", "not an effect of one axis"),
+    ("simulate: {effects: [drift]}\nmodels: [{name: a, kind: pi}]\n", "not one of the simulated axis"),
     ("models: [{name: a, kind: pi}]\n", "exactly one of 'data'"),
     ("simulate: {}\nmodels: [{name: a, kind: pi, solver: magic.newton}]\n", r"models\.0\.solver"),
     ("simulate: {}\ntrain_fraction: 1.5\nmodels: [{name: a, kind: pi}]\n", "train_fraction"),
@@ -161,3 +161,55 @@ def test_cli_bad_config_is_a_message_not_a_traceback(tmp_path):
     result = runner.invoke(app, ["fit", str(cfg)])
     assert result.exit_code == 2
     assert "levls" in result.output and "Traceback" not in result.output
+
+
+# ---------------------------------------------------------------- review findings stay fixed
+
+
+def test_overwrite_replaces_only_results(tmp_path):
+    """--overwrite removes the files a fit writes and nothing else, even with output: ."""
+    cfg = write(tmp_path / "c.yaml", GOOD.replace("{out}", "."))
+    old = write(tmp_path / "metrics.json", "{}")
+    data = write(tmp_path / "notes.txt", "my notes")
+    result = runner.invoke(app, ["fit", str(cfg), "--out", str(tmp_path), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert cfg.exists() and data.read_text() == "my notes"
+    assert json.loads(old.read_text())  # replaced by the new metrics
+
+
+def test_invalid_run_creates_no_output_folder(tmp_path):
+    out = tmp_path / "never"
+    cfg = write(tmp_path / "c.yaml", GOOD.replace("{out}", str(out)) + "settle_s: 100\n")
+    result = runner.invoke(app, ["fit", str(cfg)])
+    assert result.exit_code == 2 and "settle_s" in result.output
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("history, match", [("[]", "history_v"), ("[.nan]", "finite")])
+def test_config_history_checked(tmp_path, history, match):
+    f = write(tmp_path / "c.yaml", f"simulate: {{}}\nhistory_v: {history}\nmodels: [{{name: a, kind: pi}}]\n")
+    with pytest.raises(ConfigError, match=match):
+        load_config(f)
+
+
+def test_commented_header_and_sample_rate(tmp_path):
+    f = write(tmp_path / "r.txt", "# t u d\n0 0.5 10\n1 0.6 11\n")
+    r = read_record(f)
+    np.testing.assert_allclose(r.u, [0.5, 0.6])
+    np.testing.assert_allclose(r.t, [0, 1])
+    np.testing.assert_allclose(read_record(f, sample_rate_hz=4.0).t, [0, 0.25])
+
+
+def test_fit_refuses_two_axis_record(tmp_path):
+    rows = "".join(f"{i * 0.1} {np.sin(i)} {np.cos(i)} {i} {2 * i}\n" for i in range(60))
+    write(tmp_path / "xy.txt", "t ux uy x y\n" + rows)
+    cfg = write(tmp_path / "c.yaml", f"data: {{path: xy.txt}}\nmodels: [{{name: a, kind: pi}}]\noutput: {tmp_path / 'o'}\n")
+    result = runner.invoke(app, ["fit", str(cfg)])
+    assert result.exit_code == 2 and "one axis" in result.output
+
+
+def test_axis_needs_increasing_times():
+    from jaxafm import Axis, Linear
+    ax = Axis(Linear(jnp.asarray(1.0), jnp.asarray(0.0)))
+    with pytest.raises(ValueError, match="times t must be strictly increasing"):
+        ax(jnp.zeros(3), jnp.array([0.0, 2.0, 1.0]))
