@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 from typing import Optional
@@ -52,7 +51,7 @@ def fit(
         actuator_fit.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite), log=typer.echo)
     except (ValueError, OSError) as e:
         _fail(e)
-    typer.echo(f"wrote {folder}/metrics.json, fit.png and model_*.json")
+    typer.echo(f"wrote {', '.join(OUTPUTS)} into {folder}")
 
 
 @app.command()

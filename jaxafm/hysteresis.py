@@ -43,6 +43,11 @@ def play_state(radii: Array, history) -> Array:
     return p
 
 
+def _start(radii: Array, u: Array, history) -> Array:
+    """The plays' state before ``u[0]``: after ``history``, or every play at ``u[0]``."""
+    return play_state(radii, u[:1] if history is None else history)
+
+
 def _checked_input(u) -> Array:
     u = jnp.asarray(u, dtype=float)
     checks.finite("input u", u)
@@ -69,7 +74,7 @@ def play(u: Array, radii: Array, history=None) -> Array:
     operator, Krejčí 1996).
     """
     u = _checked_input(u)
-    _, P = lax.scan(_play_step(radii), play_state(radii, u[:1] if history is None else history), u)
+    _, P = lax.scan(_play_step(radii), _start(radii, u, history), u)
     return P
 
 
@@ -91,7 +96,7 @@ def play_map(u: Array, radii: Array, readout, history=None, block: int = 32) -> 
         p, P = lax.scan(_play_step(radii), p, ub)
         return p, readout(P)
 
-    _, y = lax.scan(run_block, play_state(radii, u[:1] if history is None else history), blocks)
+    _, y = lax.scan(run_block, _start(radii, u, history), blocks)
     return y.reshape(-1)[:T]
 
 
