@@ -30,9 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -42,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxafm  # noqa: F401  (enables float64)
+from benchutil import machine_info, time_jax
 from jaxafm import Preisach, PrandtlIshlinskii
 from jaxafm.reference import pi_loop, preisach_relay_grid
 
@@ -62,21 +60,6 @@ def make_input(T: int, seed: int = SEED) -> np.ndarray:
     x = env * np.sin(2 * np.pi * cycles * t / T) + 0.2 * walk
     x += 0.05 * np.sin(2 * np.pi * 23 * cycles * t / T + rng.uniform(0, 2 * np.pi))
     return U_MIN + (U_MAX - U_MIN) * (x - x.min()) / (x.max() - x.min())
-
-
-def time_jax(fn, *args, repeats: int):
-    """Compile time, then median/min of ``repeats`` warmed-up calls; returns (stats, output)."""
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    out = jax.block_until_ready(compiled(*args))  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - t0)
-    return {"compile_s": compile_s, "median_s": statistics.median(times), "min_s": min(times),
-            "repeats": repeats}, out
 
 
 def forward(m, u):
@@ -144,15 +127,6 @@ def bench_pi(u, n, rng, repeats):
     pi = eqx.tree_at(lambda m: m.weights, pi, jnp.asarray(rng.uniform(0.05, 1.0, n)))
     np_args = (np.asarray(pi.thresholds), np.asarray(pi.weights), 0.0)
     return bench_model(f"PI n={n}", n, n, {"hard": pi}, pi_loop, np_args, u, 5.0 * u, repeats)
-
-
-def machine_info():
-    import jaxlib
-    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "equinox": eqx.__version__,
-            "numpy": np.__version__, "python": sys.version.split()[0], "devices": str(jax.devices()),
-            "cpu_count": os.cpu_count(), "platform": platform.platform(), "machine": platform.machine(),
-            "processor": platform.processor(), "x64": bool(jax.config.jax_enable_x64),
-            "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "loadavg_at_start": os.getloadavg()}
 
 
 def ms(s):

@@ -31,15 +31,16 @@ def check_effect_names(names, where: str = "effects") -> None:
         raise ValueError(f"unknown effect {unknown[0]!r} in {where}; known effects: {', '.join(EFFECTS)}")
 
 
-def lowpass(v: Array, t: Array, taus: Array, z0: Array) -> Array:
+def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None) -> Array:
     """First-order lags ``dz_k/dt = (v - z_k) / tau_k``, exact for ``v`` held over each step.
 
     ``v[n]`` is taken to hold over ``(t[n-1], t[n]]``, so a step applied at
     ``t[0]`` gives ``z_k(t) = v (1 - exp(-(t - t[0]) / tau_k))`` exactly, and
     ``tau -> 0`` gives ``z = v``. Against a continuous drive this leads by half
-    a sample, so a fitted ``tau`` absorbs about ``dt/2``. Returns ``Z`` of shape ``(T, K)``.
+    a sample, so a fitted ``tau`` absorbs about ``dt/2``. ``z0`` is the state at
+    ``t0`` (default ``t[0]``). Returns ``Z`` of shape ``(T, K)``.
     """
-    dt = jnp.diff(t, prepend=t[:1])
+    dt = jnp.diff(t, prepend=t[:1] if t0 is None else jnp.reshape(t0, (1,)))
 
     def step(z, inputs):
         vn, dtn = inputs
@@ -83,25 +84,55 @@ class Creep(eqx.Module):
         taus = jnp.logspace(np.log10(tau_min), np.log10(tau_max), n)
         return cls(taus, jnp.full(n, gamma / per_decade))
 
+    def initial_state(self, v0) -> tuple:
+        """Relaxed at ``v0``: the lags (K,) and the rest level ``v0`` they creep from."""
+        v0 = jnp.asarray(v0, dtype=float)
+        return jnp.broadcast_to(v0, self.taus.shape), v0
+
+    def run(self, v: Array, t: Array, state: tuple, t0) -> tuple:
+        """Output (T,) and the next state, continuing from ``state`` at time ``t0``."""
+        z0, rest = state
+        Z = lowpass(v, t, self.taus, z0, t0)
+        return v + (Z - rest) @ self.weights, (Z[-1], rest)
+
     def __call__(self, v: Array, t: Array) -> Array:
-        Z = lowpass(v, t, self.taus, v[0])
-        return v + (Z - v[0]) @ self.weights
+        return self.run(v, t, self.initial_state(v[0]), t[0])[0]
 
 
-class RateDependence(eqx.Module):
-    """Rate-dependent loops: a first-order lag of time constant ``tau`` (s) after hysteresis.
+class FirstOrderLag(eqx.Module):
+    """``dz/dt = (v - z) / tau``: a first-order lag of time constant ``tau`` (s)."""
+
+    tau: Array  # s
+
+    def __check_init__(self):
+        checks.positive(f"{type(self).__name__}.tau", self.tau)
+
+    def initial_state(self, v0) -> Array:
+        return jnp.reshape(jnp.asarray(v0, dtype=float), (1,))
+
+    def run(self, v: Array, t: Array, z0: Array, t0) -> tuple:
+        """Output (T,) and the final state (1,), continuing from ``z0`` at time ``t0``."""
+        Z = lowpass(v, t, jnp.reshape(self.tau, (1,)), z0, t0)
+        return Z[:, 0], Z[-1]
+
+    def __call__(self, v: Array, t: Array) -> Array:
+        return self.run(v, t, self.initial_state(v[0]), t[0])[0]
+
+
+class RateDependence(FirstOrderLag):
+    """Rate-dependent loops (effect ``rate_dependence``): a lag after hysteresis.
 
     A Hammerstein structure (rate-independent hysteresis, then linear
     dynamics): the loop widens and tilts as the drive frequency nears ``1/tau``.
     """
 
-    tau: Array  # s
 
-    def __check_init__(self):
-        checks.positive("RateDependence.tau", self.tau)
+class FeedbackLag(FirstOrderLag):
+    """z-feedback (effect ``feedback_lag``): the recorded height lags the true one.
 
-    def __call__(self, v: Array, t: Array) -> Array:
-        return lowpass(v, t, jnp.reshape(self.tau, (1,)), v[0])[:, 0]
+    Scanning at ``v`` nm/s shifts an edge by about ``v tau`` along the scan, one
+    way in trace and the other in retrace, so the two images differ.
+    """
 
 
 class Coupling(eqx.Module):
@@ -131,7 +162,8 @@ class Drift(eqx.Module):
 
     ``d(t) = v t + w(t)``, ``dw = -theta w dt + sigma dW``, sampled exactly
     at the given times (``theta = 0`` gives a random walk). Velocity in nm/s,
-    ``sigma`` in nm/sqrt(s), ``theta`` in 1/s; ``w(t[0]) = 0``.
+    ``sigma`` in nm/sqrt(s), ``theta`` in 1/s. Called plainly, ``t`` starts at
+    0 and ``w(t[0]) = 0``; ``run`` continues a wander ``w0`` from time ``t0``.
     """
 
     velocity: Array  # (2,) nm/s
@@ -144,7 +176,11 @@ class Drift(eqx.Module):
         checks.nonnegative("Drift.theta", self.theta)
 
     def __call__(self, t: Array, key: Array) -> Array:
-        dt = jnp.diff(t, prepend=t[:1])[:, None]
+        return self.run(t, key, jnp.zeros(2), t[0], t[0])[0]
+
+    def run(self, t: Array, key: Array, w0: Array, t0, origin) -> tuple:
+        """Drift (T, 2) nm since time ``origin`` and the final wander (2,)."""
+        dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))[:, None]
         theta = jnp.maximum(self.theta, 1e-12)
         decay = jnp.exp(-theta * dt)
         std = self.sigma * jnp.sqrt(-jnp.expm1(-2 * theta * dt) / (2 * theta))
@@ -155,8 +191,8 @@ class Drift(eqx.Module):
             w = a * w + kick
             return w, w
 
-        _, W = lax.scan(step, jnp.zeros(2), (decay, kicks))
-        return self.velocity * (t - t[0])[:, None] + W
+        w, W = lax.scan(step, w0, (decay, kicks))
+        return self.velocity * (t - origin)[:, None] + W, w
 
 
 class Noise(eqx.Module):

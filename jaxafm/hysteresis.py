@@ -15,7 +15,9 @@ Initial state: ``history`` lists the inputs applied before ``t = 0``; every play
 starts at ``history[0]`` and then follows the rest. ``history=(u_min, u_max)``
 is the paper's initialisation cycle ``{u2, u1}`` (section III-A), after which
 the state no longer depends on anything earlier (wiping-out). Without a history
-every play starts at ``u[0]`` (a demagnetised, virgin state).
+every play starts at ``u[0]`` (a demagnetised, virgin state). To carry on from
+where a previous input stopped, ``y, plays = op.run(u, plays)`` takes and returns
+the plays' state (``op.initial_state(u0, history)`` makes the first).
 """
 
 from __future__ import annotations
@@ -78,13 +80,14 @@ def play(u: Array, radii: Array, history=None) -> Array:
     return P
 
 
-def play_map(u: Array, radii: Array, readout, history=None, block: int = 32) -> Array:
-    """``readout(play(u, radii, history))`` of shape (T,), without storing the (T, n) plays.
+def play_map(u: Array, radii: Array, readout, plays: Array, block: int = 32):
+    """``(readout(P), P[-1])`` for the plays ``P`` started from ``plays``, without storing P.
 
     The scan runs over blocks of ``block`` samples: an inner scan fills one
     (block, n) slab of plays and ``readout`` reduces it at once;
     ``jax.checkpoint`` makes the gradient recompute a slab instead of storing
     it. On a CPU, writing and re-reading all of P costs more than the plays.
+    Returns the outputs (T,) and the plays' final state (n,).
     """
     u = _checked_input(u)
     T = u.shape[0]
@@ -96,8 +99,8 @@ def play_map(u: Array, radii: Array, readout, history=None, block: int = 32) -> 
         p, P = lax.scan(_play_step(radii), p, ub)
         return p, readout(P)
 
-    _, y = lax.scan(run_block, _start(radii, u, history), blocks)
-    return y.reshape(-1)[:T]
+    p, y = lax.scan(run_block, plays, blocks)
+    return y.reshape(-1)[:T], p
 
 
 class PlayOperator(eqx.Module):
@@ -117,8 +120,17 @@ class PlayOperator(eqx.Module):
         """The output for known play trajectories ``P`` (T, n)."""
         return self.readout()(P)
 
+    def initial_state(self, u0, history=None) -> Array:
+        """The plays (n,) after ``history``, or all at ``u0`` without one."""
+        return play_state(self.radii(), jnp.reshape(u0, (1,)) if history is None else history)
+
+    def run(self, u: Array, plays: Array):
+        """Outputs (T,) and final plays (n,) for the input ``u`` from the state ``plays``."""
+        return play_map(u, self.radii(), self.readout(), plays)
+
     def __call__(self, u: Array, history=None) -> Array:
-        return play_map(u, self.radii(), self.readout(), history)
+        u = _checked_input(u)
+        return self.run(u, self.initial_state(u[0], history))[0]
 
 
 class Anhysteretic(eqx.Module):
@@ -132,9 +144,15 @@ class Anhysteretic(eqx.Module):
 
     operator: PlayOperator
 
-    def __call__(self, u: Array, history=None) -> Array:
+    def initial_state(self, u0, history=None) -> Array:
+        return jnp.zeros((0,))  # memoryless
+
+    def run(self, u: Array, plays: Array):
         u = _checked_input(u)
-        return self.operator.from_plays(jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape))
+        return self.operator.from_plays(jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape)), plays
+
+    def __call__(self, u: Array, history=None) -> Array:
+        return self.run(u, self.initial_state(None))[0]
 
 
 class Linear(eqx.Module):
@@ -143,9 +161,15 @@ class Linear(eqx.Module):
     gain: Array  # nm/V
     offset: Array  # nm
 
-    def __call__(self, u: Array, history=None) -> Array:
+    def initial_state(self, u0, history=None) -> Array:
+        return jnp.zeros((0,))  # memoryless
+
+    def run(self, u: Array, plays: Array):
         checks.finite("input u", u)
-        return self.gain * jnp.asarray(u, dtype=float) + self.offset
+        return self.gain * jnp.asarray(u, dtype=float) + self.offset, plays
+
+    def __call__(self, u: Array, history=None) -> Array:
+        return self.run(u, self.initial_state(None))[0]
 
     def inverse(self) -> "Linear":
         checks.positive("Linear.gain", self.gain)

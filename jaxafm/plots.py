@@ -38,3 +38,41 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every: int = 16) -> None:
+    """Trace, retrace and their difference (nm) at the nominal pixel positions, and the true
+    tip path: where every ``every``-th line and column of pixels really was, over the
+    nominal grid. ``trace``/``retrace`` are ``AFMImage``; ``path`` (lines, pixels, 2) nm."""
+    fig, axes = plt.subplots(1, 4, figsize=(20, 5.2), constrained_layout=True)
+    um = [e / 1e3 for e in trace.extent]
+    for ax, image, name in ((axes[0], trace.z, "trace"), (axes[1], retrace.z, "retrace")):
+        im = ax.imshow(image, origin="lower", extent=um, cmap="afmhot")
+        fig.colorbar(im, ax=ax, label="height (nm)", shrink=0.85)
+        ax.set_title(f"{name} (x rising)" if name == "trace" else f"{name} (x falling)")
+    diff = trace.z - retrace.z
+    lim = float(np.max(np.abs(diff))) or 1.0
+    im = axes[2].imshow(diff, origin="lower", extent=um, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    fig.colorbar(im, ax=axes[2], label="trace - retrace (nm)", shrink=0.85)
+    axes[2].set_title(f"difference (rms {np.sqrt(np.mean(diff ** 2)):.0f} nm)")
+    ax = axes[3]
+    nx, ny = np.meshgrid(trace.x, trace.y)
+    for pick in (np.s_[::every, :], np.s_[:, ::every]):
+        for a, b, style in ((nx, ny, dict(color="k", lw=0.6, ls=":")), (path[..., 0], path[..., 1],
+                                                                   dict(color="C3", lw=1.0))):
+            seg_a, seg_b = a[pick] / 1e3, b[pick] / 1e3
+            lines = zip(seg_a, seg_b) if pick[1] == slice(None) else zip(seg_a.T, seg_b.T)
+            for xa, yb in lines:
+                ax.plot(xa, yb, **style)
+    ax.plot([], [], color="k", lw=0.6, ls=":", label="nominal pixel grid")
+    ax.plot([], [], color="C3", label="true tip path (trace)")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, frameon=False)
+    ax.set_title("where the tip really was")
+    for a in axes:
+        a.set_xlabel("x (µm)")
+        a.set_ylabel("y (µm)")
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path_file, dpi=110)
+    plt.close(fig)

@@ -14,7 +14,7 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-LENGTH_TO_NM = {"nm": 1.0, "um": 1e3, "µm": 1e3, "mm": 1e6, "m": 1e9}
+LENGTH_TO_NM = {"pm": 1e-3, "Å": 0.1, "nm": 1.0, "um": 1e3, "µm": 1e3, "\u03bcm": 1e3, "mm": 1e6, "m": 1e9}
 VOLTAGE_TO_V = {"V": 1.0, "mV": 1e-3}
 Column = Union[int, str]  # 1-based index or header name
 

@@ -25,6 +25,14 @@ Array = jax.Array
 Hysteresis = Union[Linear, Anhysteretic, PrandtlIshlinskii, GeneralizedPI, Preisach]
 
 
+class AxisState(eqx.Module):
+    """Where one axis stands: its plays (V), lag (nm) and creep lags plus rest level (nm)."""
+
+    plays: Array
+    lag: Array
+    creep: tuple
+
+
 class Axis(eqx.Module):
     """One actuator axis: ``y = creep(lag(H[u]))`` in nm, for ``u`` in V and ``t`` in s."""
 
@@ -45,6 +53,24 @@ class Axis(eqx.Module):
         names.update(n for n in ("rate_dependence", "creep") if getattr(self, n) is not None)
         return frozenset(names)
 
+    def initial_state(self, u0, history=None) -> AxisState:
+        """At rest at the input ``u0`` (V) after ``history``: the lags and creep relaxed there."""
+        plays = self.hysteresis.initial_state(u0, history)
+        v0 = self.hysteresis.run(jnp.reshape(jnp.asarray(u0, dtype=float), (1,)), plays)[0][0]
+        lag = jnp.zeros((0,)) if self.rate_dependence is None else self.rate_dependence.initial_state(v0)
+        creep = () if self.creep is None else self.creep.initial_state(v0)
+        return AxisState(plays, lag, creep)
+
+    def run(self, u: Array, t: Array, state: AxisState, t0) -> tuple:
+        """Positions (T,) nm and the next state, continuing from ``state`` reached at time ``t0``."""
+        v, plays = self.hysteresis.run(u, state.plays)
+        lag, creep = state.lag, state.creep
+        if self.rate_dependence is not None:
+            v, lag = self.rate_dependence.run(v, t, lag, t0)
+        if self.creep is not None:
+            v, creep = self.creep.run(v, t, creep, t0)
+        return v, AxisState(plays, lag, creep)
+
     def __call__(self, u: Array, t: Array, history=None) -> Array:
         t = jnp.asarray(t, dtype=float)
         checks.increasing("times t", t)
@@ -61,8 +87,25 @@ class Axis(eqx.Module):
         return v
 
 
+class ScannerState(eqx.Module):
+    """Where the scanner stands after a drive: both axes, the drift's wander (2,) nm,
+    the time of the last sample ``t`` (s) and the drift's time origin (s)."""
+
+    x: AxisState
+    y: AxisState
+    wander: Array
+    t: Array
+    origin: Array
+
+
 class Scanner(eqx.Module):
-    """Two axes plus coupling, bow, drift and noise; call with ``u`` (T, 2) V, ``t`` (T,) s."""
+    """Two axes plus coupling, bow, drift and noise; call with ``u`` (T, 2) V, ``t`` (T,) s.
+
+    ``scanner(u, t, key, history)`` starts at rest at ``u[0]``. To drive on
+    where a previous drive stopped (a scan, then a move, then a press), use
+    ``p, state = scanner.run(u, t, state, key)`` from ``initial_state``:
+    running two halves in turn equals running the whole.
+    """
 
     x: Axis
     y: Axis
@@ -76,33 +119,65 @@ class Scanner(eqx.Module):
         own = {n for n in ("coupling", "bow", "drift", "noise") if getattr(self, n) is not None}
         return frozenset(own) | self.x.effects | self.y.effects
 
-    def __call__(self, u: Array, t: Array, key: Optional[Array] = None, history=None) -> Array:
-        """Tip positions (T, 2) nm. ``history``: per-axis pre-history, shape (H, 2)."""
+    def initial_state(self, u0, t0=0.0, history=None) -> ScannerState:
+        """At rest at the drive ``u0`` (2,) V at time ``t0`` s, after ``history`` (H, 2) V."""
+        u0 = jnp.asarray(u0, dtype=float)
+        if u0.shape != (2,):
+            raise ValueError(f"the starting drive u0 must have shape (2,) V, got {u0.shape}")
+        hx = hy = None
+        if history is not None:
+            history = jnp.asarray(history, dtype=float)
+            if history.ndim != 2 or history.shape[1] != 2:
+                raise ValueError(f"history must have shape (H, 2) V, got {history.shape}")
+            hx, hy = history[:, 0], history[:, 1]
+        t0 = jnp.asarray(t0, dtype=float)
+        return ScannerState(self.x.initial_state(u0[0], hx), self.y.initial_state(u0[1], hy),
+                            jnp.zeros(2), t0, t0)
+
+    def run(self, u: Array, t: Array, state: ScannerState, key: Optional[Array] = None) -> tuple:
+        """Tip positions (T, 2) nm for drive ``u`` (T, 2) V at times ``t`` (T,) s after
+        ``state``, and the state after the last sample."""
         u = jnp.asarray(u, dtype=float)
+        t = jnp.asarray(t, dtype=float)
         if u.ndim != 2 or u.shape[1] != 2:
             raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
+        if t.shape != u.shape[:1]:
+            raise ValueError(f"times t {t.shape} must have one entry per drive sample {u.shape[:1]}")
+        checks.increasing("times t", t)
+        if checks.is_concrete(t) and checks.is_concrete(state.t) and t[0] < state.t:
+            raise ValueError(f"times t start at {float(t[0])} s, before the state's last sample at "
+                             f"{float(state.t)} s: drive forward in time")
         random = [n for n in ("drift", "noise") if getattr(self, n) is not None]
         if random and key is None:
             raise ValueError(
                 f"the scanner has the random effect(s) {random}: pass a PRNG key, "
                 "e.g. scanner(u, t, key=jax.random.key(0))"
             )
-        hx = hy = None
-        if history is not None:
-            history = jnp.asarray(history, dtype=float)
-            hx, hy = history[:, 0], history[:, 1]
-        p = jnp.stack([self.x(u[:, 0], t, hx), self.y(u[:, 1], t, hy)], axis=-1)
+        x, sx = self.x.run(u[:, 0], t, state.x, state.t)
+        y, sy = self.y.run(u[:, 1], t, state.y, state.t)
+        p = jnp.stack([x, y], axis=-1)
         if self.coupling is not None:
             p = self.coupling(p)
         if self.bow is not None:
             p = self.bow(p)
         if key is not None:
             k_drift, k_noise = jax.random.split(key)
+        wander = state.wander
         if self.drift is not None:
-            p = p + self.drift(jnp.asarray(t, dtype=float), k_drift)
+            d, wander = self.drift.run(t, k_drift, wander, state.t, state.origin)
+            p = p + d
         if self.noise is not None:
             p = p + self.noise(p.shape, k_noise)
-        return p
+        return p, ScannerState(sx, sy, wander, t[-1], state.origin)
+
+    def __call__(self, u: Array, t: Array, key: Optional[Array] = None, history=None) -> Array:
+        """Tip positions (T, 2) nm from rest at ``u[0]``; ``history``: per-axis pre-history (H, 2) V."""
+        u = jnp.asarray(u, dtype=float)
+        if u.ndim != 2 or u.shape[1] != 2:
+            raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
+        t = jnp.asarray(t, dtype=float)
+        return self.run(u, t, self.initial_state(u[0], t[0] if t.ndim == 1 and t.size else 0.0, history),
+                        key)[0]
 
     def without(self, *names: str) -> "Scanner":
         """The same scanner with the named effects switched off."""

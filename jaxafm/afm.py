@@ -1,0 +1,283 @@
+"""The simulated AFM: drive voltages through the scanner, the probe over the sample.
+
+An action (a raster scan, a line scan, a move, a press) is a drive ``u(t)`` (V)
+run from where the instrument stands (``AFMState``). The scanner turns it into
+the true tip path (nm); the probe follows the sample, dilated by the tip
+(effect ``tip``), and the z-feedback records that height through a lag
+(effect ``feedback_lag``). Every action returns the state after it, so actions
+chain in real time: creep and drift carry on from one to the next.
+
+Voltages come from wanted positions through ``volts`` (nm -> V): by default the
+instrument's nominal linear calibration ``u = xy / sensitivity``, which is what
+an uncompensated AFM does; a fitted inverse model compensates instead.
+
+Everything is a pure function of equinox Modules: ``jit``, ``vmap`` over
+instruments or samples, and ``grad`` with respect to scanner parameters work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import checks
+from .effects import FeedbackLag, check_effect_names
+from .samples import Indented, Tip, surface
+from .scanner import Scanner, ScannerState, default_scanner
+
+Array = jax.Array
+
+
+class AFMState(eqx.Module):
+    """Where the instrument stands: the scanner's state, the drive ``u`` (2,) V, and
+    the feedback's recorded height ``z`` (1,) nm."""
+
+    scanner: ScannerState
+    u: Array
+    z: Array
+
+
+class AFM(eqx.Module):
+    """A scanner, a tip and a z-feedback, with the nominal calibration the software assumes.
+
+    ``sensitivity`` (2,) nm/V: the linear calibration turning wanted positions
+    into voltages; ``u_max`` V: the drive range, ``|u| <= u_max`` on each axis.
+    ``tip`` is the probe's shape (pressing always uses it); ``dilate`` says
+    whether images see it (effect ``tip``); ``feedback`` (effect ``feedback_lag``)
+    or ``None`` for a perfect feedback.
+    """
+
+    scanner: Scanner
+    tip: Tip
+    sensitivity: Array
+    feedback: Optional[FeedbackLag] = None
+    u_max: float = eqx.field(static=True, default=10.0)
+    dilate: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        checks.positive("AFM.sensitivity (nm/V)", self.sensitivity)
+        if not self.u_max > 0:
+            raise ValueError(f"AFM.u_max is the drive range in V and must be > 0, got {self.u_max}")
+
+    @property
+    def effects(self) -> frozenset:
+        own = {"tip"} if self.dilate else set()
+        if self.feedback is not None:
+            own.add("feedback_lag")
+        return frozenset(own) | self.scanner.effects
+
+    def without(self, *names: str) -> "AFM":
+        """The same instrument with the named effects switched off."""
+        check_effect_names(names, "AFM.without")
+        afm = eqx.tree_at(lambda a: a.scanner, self, self.scanner.without(*names))
+        if "feedback_lag" in names:
+            afm = eqx.tree_at(lambda a: a.feedback, afm, None, is_leaf=lambda v: v is None)
+        if "tip" in names:
+            afm = dataclasses.replace(afm, dilate=False)
+        return afm
+
+    def nominal_volts(self, xy: Array) -> Array:
+        """The uncompensated drive for wanted positions ``xy`` (..., 2) nm: ``xy / sensitivity``."""
+        return jnp.asarray(xy, dtype=float) / self.sensitivity
+
+    def initial_state(self, u0=(0.0, 0.0), t0=0.0, history=None) -> AFMState:
+        """At rest at the drive ``u0`` (2,) V at time ``t0`` s, after the drive ``history`` (H, 2) V.
+
+        ``history=[[-u_max, -u_max], [u_max, u_max]]`` is the paper's initialisation cycle.
+        """
+        u0 = jnp.asarray(u0, dtype=float)
+        return AFMState(self.scanner.initial_state(u0, t0, history), u0, jnp.zeros(1))
+
+    def drive(self, sample, u: Array, t: Array, state: AFMState, key: Optional[Array] = None) -> tuple:
+        """Run the drive ``u`` (T, 2) V at times ``t`` (T,) s from ``state``.
+
+        Returns the true tip path (T, 2) nm, the recorded height (T,) nm and the next state.
+        """
+        self.check_range(u)
+        return _drive(self, sample, jnp.asarray(u, dtype=float), jnp.asarray(t, dtype=float), state, key)
+
+    def check_range(self, u: Array) -> None:
+        if not checks.is_concrete(u):
+            return
+        peak = float(np.max(np.abs(np.asarray(u)))) if np.size(u) else 0.0
+        if peak > self.u_max * (1 + 1e-9):
+            raise ValueError(
+                f"the drive needs {peak:.3g} V, beyond the scanner's range of +-{self.u_max:g} V "
+                f"(about +-{self.u_max * float(np.min(self.sensitivity)):.0f} nm): make the scan smaller, "
+                "move its centre inward or reduce the overscan")
+
+
+@eqx.filter_jit
+def _drive(afm: AFM, sample, u: Array, t: Array, state: AFMState, key) -> tuple:
+    """``AFM.drive`` after its checks, compiled once per instrument structure and drive length."""
+    path, scanner_state = afm.scanner.run(u, t, state.scanner, key)
+    h = surface(sample, afm.tip if afm.dilate else None)(path)
+    if afm.feedback is not None:
+        h, z = afm.feedback.run(h, t, state.z, state.scanner.t)
+    else:
+        z = h[-1:]
+    return path, h, AFMState(scanner_state, u[-1], z)
+
+
+def default_afm(tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3,
+                **scanner_options) -> AFM:
+    """The default instrument: ``default_scanner(**scanner_options)``, a 10 nm tip of 20 degrees,
+    a 1 ms feedback lag, and the nominal calibration ``travel / (2 u_range)`` nm/V."""
+    scanner = default_scanner(**scanner_options)
+    u_range = scanner_options.get("u_range", 10.0)
+    travel = scanner_options.get("travel", 10_000.0)
+    return AFM(scanner, Tip(jnp.asarray(tip_radius), jnp.asarray(np.deg2rad(tip_half_angle_deg))),
+               jnp.full(2, travel / (2 * u_range)), FeedbackLag(jnp.asarray(feedback_tau)), u_max=u_range)
+
+
+def _times(state: AFMState, n: int, dt: float) -> Array:
+    return state.scanner.t + dt * jnp.arange(1, n + 1)
+
+
+def move(afm: AFM, sample, state: AFMState, u_target: Array, duration: float = 0.1, samples: int = 32,
+         key: Optional[Array] = None) -> tuple:
+    """Ramp the drive straight to ``u_target`` (2,) V over ``duration`` s; returns ``(path, state)``."""
+    if not duration > 0 or samples < 1:
+        raise ValueError(f"a move needs duration > 0 s and samples >= 1, got {duration} s, {samples}")
+    frac = jnp.arange(1, samples + 1)[:, None] / samples
+    u = state.u + frac * (jnp.asarray(u_target, dtype=float) - state.u)
+    path, _, state = afm.drive(sample, u, _times(state, samples, duration / samples), state, key)
+    return path, state
+
+
+def press(afm: AFM, sample: Indented, state: AFMState, depth: float, hold: float = 0.2, samples: int = 32,
+          key: Optional[Array] = None) -> tuple:
+    """Hold the drive for ``hold`` s and press the tip ``depth`` nm into the sample where it is.
+
+    Returns ``(sample with the indent, state, xy)``; ``xy`` (2,) nm is where the
+    tip really was, at the end of the hold.
+    """
+    if not isinstance(sample, Indented):
+        raise TypeError("press needs a sample that can take indents: wrap it as Indented.empty(sample, afm.tip)")
+    checks.positive("press depth (nm)", depth)
+    path, state = move(afm, sample, state, state.u, hold, samples, key)
+    return sample.press(path[-1], depth), state, path[-1]
+
+
+def line_scan(afm: AFM, sample, state: AFMState, start: Array, end: Array, points: int, speed: float,
+              volts: Optional[Callable] = None, key: Optional[Array] = None, move_time: float = 0.1) -> tuple:
+    """Scan from ``start`` to ``end`` (2,) nm (wanted positions) in ``points`` samples at ``speed`` nm/s.
+
+    The tip first moves to the start over ``move_time`` s. Returns the recorded
+    heights (points,) nm, the true path (points, 2) nm and the next state.
+    """
+    if points < 2:
+        raise ValueError(f"a line scan needs points >= 2, got {points}")
+    checks.positive("line scan speed (nm/s)", speed)
+    volts = afm.nominal_volts if volts is None else volts
+    start, end = jnp.asarray(start, dtype=float), jnp.asarray(end, dtype=float)
+    wanted = start + jnp.linspace(0.0, 1.0, points)[:, None] * (end - start)
+    u = volts(wanted)
+    afm.check_range(u)
+    k_move, k_scan = (None, None) if key is None else jax.random.split(key)
+    _, state = move(afm, sample, state, u[0], move_time, key=k_move)
+    length = jnp.linalg.norm(end - start)
+    dt = jnp.maximum(length, 1e-9) / speed / (points - 1)
+    path, h, state = afm.drive(sample, u, _times(state, points, dt), state, k_scan)
+    return h, path, state
+
+
+@dataclasses.dataclass(frozen=True)
+class Raster:
+    """A raster scan: ``size`` (width, height) nm centred on ``centre`` (nm), ``pixels`` per
+    line, ``lines``, ``line_rate`` Hz (trace + retrace of one line per period), and
+    ``overscan``, the fraction of the width added at each end of a line.
+
+    The fast axis is x: each line is a trace (x rising), then a retrace, at the
+    line's y; the slow axis steps from bottom to top (``direction="up"``) or
+    top to bottom. Images are stored with row 0 at the lowest y.
+    """
+
+    size: tuple
+    pixels: int
+    lines: int
+    line_rate: float = 1.0
+    centre: tuple = (0.0, 0.0)
+    overscan: float = 0.1
+    direction: str = "up"
+
+    def __post_init__(self):
+        size = tuple(float(s) for s in np.broadcast_to(np.asarray(self.size, dtype=float), (2,)))
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "centre", tuple(float(c) for c in self.centre))
+        if not all(np.isfinite(size)) or min(size) <= 0:
+            raise ValueError(f"Raster.size must be > 0 nm on both axes, got {self.size}")
+        if int(self.pixels) < 2 or int(self.lines) < 1:
+            raise ValueError(f"Raster needs pixels >= 2 and lines >= 1, got {self.pixels} and {self.lines}")
+        if not self.line_rate > 0:
+            raise ValueError(f"Raster.line_rate must be > 0 Hz, got {self.line_rate}")
+        if not 0 <= self.overscan <= 1:
+            raise ValueError(f"Raster.overscan is a fraction of the width, 0 to 1, got {self.overscan}")
+        if self.direction not in ("up", "down"):
+            raise ValueError(f"Raster.direction must be 'up' or 'down', got {self.direction!r}")
+
+    @property
+    def pixel_size(self) -> tuple:
+        return (self.size[0] / self.pixels, self.size[1] / self.lines)
+
+    @property
+    def margin(self) -> int:
+        """Over-scan samples at each end of a line."""
+        return int(round(self.overscan * self.pixels))
+
+    @property
+    def origin(self) -> tuple:
+        """Nominal position of pixel [0, 0]'s centre, nm."""
+        return tuple(c - s / 2 + p / 2 for c, s, p in zip(self.centre, self.size, self.pixel_size))
+
+    @property
+    def sample_time(self) -> float:
+        return 1.0 / (2 * self.line_rate * (self.pixels + 2 * self.margin))
+
+    def wanted(self) -> np.ndarray:
+        """Wanted positions (lines, 2, n, 2) nm: per line, trace then retrace samples."""
+        m, dx, dy = self.margin, *self.pixel_size
+        x = self.origin[0] + dx * np.arange(-m, self.pixels + m)
+        y = self.origin[1] + dy * np.arange(self.lines)
+        if self.direction == "down":
+            y = y[::-1]
+        xs = np.stack([x, x[::-1]])  # (2, n)
+        out = np.empty((self.lines, 2, x.size, 2))
+        out[..., 0] = xs
+        out[..., 1] = y[:, None, None]
+        return out
+
+
+def raster_scan(afm: AFM, sample, state: AFMState, raster: Raster, volts: Optional[Callable] = None,
+                key: Optional[Array] = None, move_time: float = 0.1) -> dict:
+    """Image ``sample`` with ``raster`` from ``state``: trace and retrace height images (nm).
+
+    Returns a dict of arrays: ``trace`` and ``retrace`` (lines, pixels) nm, both
+    left to right, row 0 at the lowest y; ``path_trace``/``path_retrace``
+    (lines, pixels, 2) nm, the true tip positions of those pixels; ``t_trace``/
+    ``t_retrace`` (lines, pixels) s; and ``state`` after the scan.
+    """
+    volts = afm.nominal_volts if volts is None else volts
+    wanted = raster.wanted()
+    L, _, n, _ = wanted.shape
+    u = volts(jnp.asarray(wanted.reshape(-1, 2))).reshape(L, 2 * n, 2)
+    afm.check_range(u)
+    k_move, k_scan = (None, None) if key is None else jax.random.split(key)
+    _, state = move(afm, sample, state, u[0, 0], move_time, key=k_move)
+    t = _times(state, L * 2 * n, raster.sample_time)
+    path, h, state = afm.drive(sample, u.reshape(-1, 2), t, state, k_scan)
+    out = {"state": state}
+    P, m = raster.pixels, raster.margin
+    for i, name in enumerate(("trace", "retrace")):
+        pick = lambda a: a.reshape((L, 2, n) + a.shape[1:])[:, i, m:m + P]  # noqa: E731
+        flip = (lambda a: a[:, ::-1]) if i == 1 else (lambda a: a)  # noqa: E731
+        rows = (lambda a: a[::-1]) if raster.direction == "down" else (lambda a: a)  # noqa: E731
+        out[name] = rows(flip(pick(h)))
+        out[f"path_{name}"] = rows(flip(pick(path)))
+        out[f"t_{name}"] = rows(flip(pick(t)))
+    return out

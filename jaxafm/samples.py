@@ -1,0 +1,257 @@
+"""Sample topographies ``z = sample.height(xy)`` (nm) and the AFM tip that images them.
+
+Every sample is an equinox Module with ``height(xy)`` for points ``xy`` of shape
+``(..., 2)`` nm, differentiable in the points and the sample's parameters:
+calibration gratings (1-D lines, 2-D lattices of pits or pillars) with edges of
+finite width, nanoparticles on a flat or tilted substrate, indents pressed by
+the tip, and any measured height map, sampled by bilinear interpolation.
+
+The tip (effect ``tip``): a sphere of radius ``R`` capped by a cone of half-angle
+``theta``. What the AFM records is the dilation of the surface by the tip,
+``I(p) = max_q [z(p + q) - tip(q)]`` (Villarrubia 1997), evaluated here over a
+fixed polar stencil of offsets ``q`` so that it works at any point of a
+distorted scan path.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import checks
+
+Array = jax.Array
+
+
+def _ramp(distance_inside: Array, edge_width: Array) -> Array:
+    """0 outside, 1 inside, linear across an edge ``edge_width`` nm wide centred on the boundary."""
+    return jnp.clip(distance_inside / edge_width + 0.5, 0.0, 1.0)
+
+
+def _rotate(xy: Array, angle: Array) -> Array:
+    """Coordinates of ``xy`` in axes turned by ``angle`` (rad) anticlockwise."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    x, y = xy[..., 0], xy[..., 1]
+    return jnp.stack([c * x + s * y, -s * x + c * y], axis=-1)
+
+
+def _nearest_offset(u: Array, pitch: Array, phase: Array) -> Array:
+    """Offset of ``u`` from the nearest of the points ``phase + k pitch``."""
+    return jnp.mod(u - phase + pitch / 2, pitch) - pitch / 2
+
+
+class Plane(eqx.Module):
+    """A flat substrate ``z = z0 + slope . xy`` (nm; slopes dimensionless)."""
+
+    z0: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    slope: Array = eqx.field(default_factory=lambda: jnp.zeros(2))
+
+    def height(self, xy: Array) -> Array:
+        return self.z0 + xy @ self.slope
+
+
+class Grating(eqx.Module):
+    """A 1-D calibration grating: raised lines of ``depth`` nm every ``pitch`` nm.
+
+    Lines run perpendicular to the direction ``angle`` (rad; 0: lines along
+    y, so x crosses them); a line's top is ``duty * pitch`` wide, and each edge
+    rises over ``edge_width`` nm. A line is centred at ``phase`` nm.
+    """
+
+    pitch: Array
+    depth: Array
+    duty: Array = eqx.field(default_factory=lambda: jnp.asarray(0.5))
+    edge_width: Array = eqx.field(default_factory=lambda: jnp.asarray(50.0))
+    angle: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    phase: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+
+    def __check_init__(self):
+        checks.positive("Grating.pitch", self.pitch)
+        checks.positive("Grating.edge_width", self.edge_width)
+        checks.finite("Grating.depth", self.depth)
+        v = np.asarray(self.duty) if checks.is_concrete(self.duty) else None
+        if v is not None and not 0 < v < 1:
+            raise ValueError(f"Grating.duty is the fraction of a pitch a line's top covers: 0 < duty < 1, got {v}")
+
+    def height(self, xy: Array) -> Array:
+        d = jnp.abs(_nearest_offset(_rotate(xy, self.angle)[..., 0], self.pitch, self.phase))
+        return self.depth * _ramp(self.duty * self.pitch / 2 - d, self.edge_width)
+
+
+class Lattice(eqx.Module):
+    """A 2-D calibration grating: round pits or pillars of ``radius`` on a square or
+    rectangular lattice of ``pitch`` (2,) nm turned by ``angle`` (rad).
+
+    ``depth > 0`` gives pillars that high, ``depth < 0`` pits that deep, on a
+    base at 0 nm. Centre of one feature at ``phase`` (2,) nm.
+    """
+
+    pitch: Array
+    radius: Array
+    depth: Array
+    edge_width: Array = eqx.field(default_factory=lambda: jnp.asarray(50.0))
+    angle: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
+    phase: Array = eqx.field(default_factory=lambda: jnp.zeros(2))
+
+    def __check_init__(self):
+        checks.positive("Lattice.pitch", self.pitch)
+        checks.positive("Lattice.radius", self.radius)
+        checks.positive("Lattice.edge_width", self.edge_width)
+        checks.finite("Lattice.depth", self.depth)
+
+    def height(self, xy: Array) -> Array:
+        off = _nearest_offset(_rotate(xy, self.angle), self.pitch, _rotate(self.phase, self.angle))
+        r = jnp.sqrt(jnp.sum(off**2, axis=-1) + 1e-12)
+        return self.depth * _ramp(self.radius - r, self.edge_width)
+
+
+class Particles(eqx.Module):
+    """Spheres of ``radii`` (K,) nm resting at ``centres`` (K, 2) nm on a ``substrate``.
+
+    The surface is the higher of the substrate and the spheres' upper halves:
+    a sphere touching the substrate at ``c`` has its top ``2R`` above it.
+    """
+
+    centres: Array
+    radii: Array
+    substrate: eqx.Module = eqx.field(default_factory=Plane)
+
+    def __check_init__(self):
+        checks.positive("Particles.radii", self.radii)
+        checks.finite("Particles.centres", self.centres)
+        if np.size(self.radii) == 0:
+            raise ValueError("Particles needs at least one particle; use the substrate alone for none")
+        if np.shape(self.centres) != np.shape(self.radii) + (2,):
+            raise ValueError(f"Particles.centres must have shape (K, 2) for K radii, got "
+                             f"{np.shape(self.centres)} for {np.shape(self.radii)} radii")
+
+    def height(self, xy: Array) -> Array:
+        base = self.substrate.height(xy)
+        r2 = jnp.sum((xy[..., None, :] - self.centres) ** 2, axis=-1)  # (..., K)
+        inside = r2 < self.radii**2
+        cap = jnp.sqrt(jnp.where(inside, self.radii**2 - r2, 1.0))
+        top = self.substrate.height(self.centres) + self.radii + cap
+        return jnp.maximum(base, jnp.max(jnp.where(inside, top, -jnp.inf), axis=-1))
+
+
+class HeightMap(eqx.Module):
+    """A measured topography ``z`` (rows = y, columns = x) nm, pixel ``pixel_size`` (2,) nm
+    (x, y), pixel ``[0, 0]`` centred at ``origin`` (2,) nm; bilinear between pixels,
+    the edge value beyond them."""
+
+    z: Array = eqx.field(converter=lambda z: jnp.asarray(z, dtype=float))
+    pixel_size: Array
+    origin: Array = eqx.field(default_factory=lambda: jnp.zeros(2))
+
+    def __check_init__(self):
+        checks.finite("HeightMap.z", self.z)
+        checks.positive("HeightMap.pixel_size", self.pixel_size)
+        if np.ndim(self.z) != 2:
+            raise ValueError(f"HeightMap.z must be a 2-D image, got shape {np.shape(self.z)}")
+
+    def height(self, xy: Array) -> Array:
+        ij = (xy - self.origin) / self.pixel_size  # (..., 2) as (col, row)
+        coords = [jnp.ravel(ij[..., 1]), jnp.ravel(ij[..., 0])]
+        z = jax.scipy.ndimage.map_coordinates(self.z, coords, order=1, mode="nearest")
+        return z.reshape(ij.shape[:-1])
+
+
+class Tip(eqx.Module):
+    """A sphere-capped cone: apex radius ``radius`` nm, cone half-angle ``half_angle`` rad.
+
+    ``profile(r)``, the tip's surface above its apex at lateral distance ``r``:
+    ``R - sqrt(R^2 - r^2)`` up to where the sphere meets the cone tangentially,
+    ``r_t = R cos(theta)``, then ``z_t + (r - r_t) / tan(theta)``.
+
+    ``dilate(height, xy)`` images a surface with the tip over a stencil of
+    ``rings`` rings of ``per_ring`` offsets each (plus the centre), out to
+    ``reach`` nm, the rings denser near the apex. The reach needs to cover how
+    far the flank can touch: about ``r_t + h tan(theta)`` for features ``h`` nm high.
+    """
+
+    radius: Array = eqx.field(default_factory=lambda: jnp.asarray(10.0))
+    half_angle: Array = eqx.field(default_factory=lambda: jnp.asarray(np.deg2rad(20.0)))
+    reach: float = eqx.field(static=True, default=100.0)
+    rings: int = eqx.field(static=True, default=8)
+    per_ring: int = eqx.field(static=True, default=16)
+
+    def __check_init__(self):
+        checks.positive("Tip.radius", self.radius)
+        a = np.asarray(self.half_angle) if checks.is_concrete(self.half_angle) else None
+        if a is not None and not 0 < a < np.pi / 2:
+            raise ValueError(f"Tip.half_angle is in radians, 0 < half_angle < pi/2, got {a}")
+        if not self.reach > 0 or self.rings < 1 or self.per_ring < 4:
+            raise ValueError(f"Tip stencil needs reach > 0 nm, rings >= 1 and per_ring >= 4, got "
+                             f"reach={self.reach}, rings={self.rings}, per_ring={self.per_ring}")
+
+    def profile(self, r: Array) -> Array:
+        R, th = self.radius, self.half_angle
+        rt = R * jnp.cos(th)
+        sphere = R - jnp.sqrt(jnp.maximum(R**2 - jnp.minimum(r, rt) ** 2, 1e-12))
+        return sphere + jnp.maximum(r - rt, 0.0) / jnp.tan(th)
+
+    def stencil(self) -> tuple:
+        """Offsets (S, 2) nm and the tip's height at each (S,)."""
+        radii = self.reach * (np.arange(1, self.rings + 1) / self.rings) ** 2
+        angles = 2 * np.pi * np.arange(self.per_ring) / self.per_ring
+        q = np.concatenate([np.zeros((1, 2)), (radii[:, None, None] * np.stack(
+            [np.cos(angles), np.sin(angles)], axis=-1)).reshape(-1, 2)])
+        return jnp.asarray(q), self.profile(jnp.asarray(np.hypot(q[:, 0], q[:, 1])))
+
+    def dilate(self, height, xy: Array) -> Array:
+        """``max_q [height(xy + q) - profile(|q|)]`` for ``height`` a function of points (..., 2)."""
+        q, lift = self.stencil()
+        return jnp.max(height(xy[..., None, :] + q) - lift, axis=-1)
+
+
+class Indented(eqx.Module):
+    """A ``base`` sample with up to ``capacity`` indents pressed into it by a ``tip``.
+
+    An indent pressed at ``xy`` to ``depth`` nm leaves the tip's shape in the
+    surface: ``z = min(base, bottom + profile(|p - xy|))``, ``bottom`` the
+    base height there less the depth (plastic indentation, no pile-up).
+    Slots are fixed so that ``press`` works under ``jit``; ``count`` are used.
+    The capacity is checked on concrete values only: under ``jit`` an indent
+    beyond it is dropped.
+    """
+
+    base: eqx.Module
+    tip: Tip
+    centres: Array  # (capacity, 2) nm
+    bottoms: Array  # (capacity,) nm
+    count: Array  # () int
+
+    @classmethod
+    def empty(cls, base, tip: Tip, capacity: int = 32) -> "Indented":
+        return cls(base, tip, jnp.zeros((capacity, 2)), jnp.zeros(capacity), jnp.zeros((), dtype=int))
+
+    @property
+    def capacity(self) -> int:
+        return self.bottoms.shape[0]
+
+    def press(self, xy: Array, depth) -> "Indented":
+        """The sample with one more indent at ``xy`` (2,) nm, ``depth`` nm deep."""
+        if checks.is_concrete(self.count) and int(self.count) >= self.capacity:
+            raise ValueError(f"all {self.capacity} indent slots are used; make the sample with "
+                             "Indented.empty(base, tip, capacity=...) larger")
+        bottom = self.height(xy) - depth
+        return eqx.tree_at(lambda s: (s.centres, s.bottoms, s.count), self,
+                           (self.centres.at[self.count].set(xy), self.bottoms.at[self.count].set(bottom),
+                            self.count + 1))
+
+    def height(self, xy: Array) -> Array:
+        r = jnp.sqrt(jnp.sum((xy[..., None, :] - self.centres) ** 2, axis=-1) + 1e-12)
+        used = jnp.arange(self.capacity) < self.count
+        pits = jnp.where(used, self.bottoms + self.tip.profile(r), jnp.inf)
+        return jnp.minimum(self.base.height(xy), jnp.min(pits, axis=-1))
+
+
+def surface(sample, tip: Optional[Tip]):
+    """The height the AFM's probe follows: the sample dilated by ``tip``, or the bare sample."""
+    if tip is None:
+        return sample.height
+    return lambda xy: tip.dilate(sample.height, xy)
