@@ -99,6 +99,10 @@ class AFM(eqx.Module):
         Returns the true tip path (T, 2) nm, the recorded height (T,) nm and the next state.
         """
         self.check_range(u)
+        checks.increasing("times t", t)
+        if checks.is_concrete(t) and checks.is_concrete(state.scanner.t) and np.size(t) and t[0] < state.scanner.t:
+            raise ValueError(f"the drive's times start at {float(t[0])} s, before the state's last sample at "
+                             f"{float(state.scanner.t)} s: drive forward in time")
         return _drive(self, sample, jnp.asarray(u, dtype=float), jnp.asarray(t, dtype=float), state, key)
 
     def check_range(self, u: Array) -> None:
@@ -212,7 +216,13 @@ class Raster:
         object.__setattr__(self, "centre", tuple(float(c) for c in self.centre))
         if not all(np.isfinite(size)) or min(size) <= 0:
             raise ValueError(f"Raster.size must be > 0 nm on both axes, got {self.size}")
-        if int(self.pixels) < 2 or int(self.lines) < 1:
+        if self.pixels != int(self.pixels) or self.lines != int(self.lines):
+            raise ValueError(f"Raster pixels and lines must be whole numbers, got {self.pixels} and {self.lines}")
+        object.__setattr__(self, "pixels", int(self.pixels))
+        object.__setattr__(self, "lines", int(self.lines))
+        if len(self.centre) != 2:
+            raise ValueError(f"Raster.centre must be (x, y) nm, got {self.centre}")
+        if self.pixels < 2 or self.lines < 1:
             raise ValueError(f"Raster needs pixels >= 2 and lines >= 1, got {self.pixels} and {self.lines}")
         if not self.line_rate > 0:
             raise ValueError(f"Raster.line_rate must be > 0 Hz, got {self.line_rate}")

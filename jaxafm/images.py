@@ -1,7 +1,7 @@
 """AFM images, simulated or measured: one type, readers for instrument files, a file format.
 
 ``AFMImage``: heights ``z`` (rows, columns) nm, row 0 at the lowest y and
-column 0 at the lowest x (as stored, for files that do not say), the pixel
+column 0 at the lowest x (files that do not say keep their stored order, noted in ``meta``), the pixel
 size (x, y) nm, the position of pixel [0, 0]'s centre, and a ``meta`` dict
 (source, direction, line rate, start time, unit conversions done).
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 from pathlib import Path
 from typing import Optional
@@ -33,11 +34,6 @@ FORMAT, VERSION = "jaxafm-image", 1
 AFMREADER_FORMATS = {
     ".spm": ("spm", "load_spm", "Height"), ".ibw": ("ibw", "load_ibw", "HeightTracee"),
     ".jpk": ("jpk", "load_jpk", "height_trace"), ".topostats": ("topostats", None, "image"),
-}
-FORMATS = {
-    ".spm": ("spm", "load_spm", "Height"), ".ibw": ("ibw", "load_ibw", "HeightTracee"),
-    ".jpk": ("jpk", "load_jpk", "height_trace"), ".gwy": ("gwy", "load_gwy", "Height"),
-    ".topostats": ("topostats", None, "image"),
 }
 FORMATS = (".txt", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
 
@@ -154,7 +150,11 @@ def _read_nanosurf_text(path: Path) -> AFMImage:
     if missing:
         raise ValueError(f"{path} is not a Nanosurf text export: header line(s) {missing} missing "
                          f"(found {sorted(header) or 'no header'})")
-    cols, rows = int(header["Image Width"]), int(header["Image Height"])
+    try:
+        cols, rows = int(header["Image Width"]), int(header["Image Height"])
+    except ValueError:
+        raise ValueError(f"{path}: 'Image Width' = {header['Image Width']!r} and 'Image Height' = "
+                         f"{header['Image Height']!r} must be whole numbers of pixels") from None
     try:
         z = np.array(" ".join(values).split(), dtype=float)
     except ValueError as e:
@@ -226,11 +226,12 @@ def _read_gwy(path: Path, channel: Optional[str]) -> AFMImage:
         if unit not in LENGTH_TO_NM:
             raise ValueError(f"{path}: channel {channel!r} has {axis} unit {unit!r}, not a length "
                              f"({', '.join(LENGTH_TO_NM)})")
-    z = np.asarray(field.data, dtype=float) * LENGTH_TO_NM[units["z"]]
+    z = np.flipud(np.asarray(field.data, dtype=float)) * LENGTH_TO_NM[units["z"]]  # Gwyddion: row 0 on top
     rows, cols = z.shape
     scale = LENGTH_TO_NM[units["xy"]]
     meta = {"source": str(path), "reader": "gwyfile", "channel": channel,
-            "converted": f"x, y from {units['xy']} and z from {units['z']} to nm", "row_order": "as stored"}
+            "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
+            "row_order": "flipped: row 0 is the bottom line"}
     return AFMImage(z, (field.xreal * scale / cols, field.yreal * scale / rows), (0.0, 0.0), meta)
 
 
@@ -254,6 +255,15 @@ def _read_afmreader(path: Path, channel: Optional[str]) -> AFMImage:
     return AFMImage(np.asarray(z, dtype=float), (float(px), float(px)), (0.0, 0.0), meta)
 
 
+def _json_number(value):
+    """NumPy and JAX numbers in ``meta`` as plain JSON numbers; anything else is refused."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"image meta value {value!r} is not a number, string, list or dict; "
+                        "convert it before saving")
+    return a.tolist()
+
+
 def save_image(image: AFMImage, path, overwrite: bool = False) -> Path:
     """Write ``image`` as a ``.npz`` in the jaxafm image format; never overwrites unless asked."""
     path = Path(path)
@@ -263,8 +273,11 @@ def save_image(image: AFMImage, path, overwrite: bool = False) -> Path:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
     doc = {"format": FORMAT, "version": VERSION, "pixel_size_nm": list(image.pixel_size),
            "origin_nm": list(image.origin), "meta": image.meta}
-    with open(path, "wb") as f:
-        np.savez_compressed(f, z=image.z, meta_json=np.asarray(json.dumps(doc)))
+    text = json.dumps(doc, default=_json_number)
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as f:
+        np.savez_compressed(f, z=image.z, meta_json=np.asarray(text))
+    os.replace(partial, path)  # a failed write never leaves a damaged file at ``path``
     return path
 
 
@@ -274,10 +287,14 @@ def load_image(path) -> AFMImage:
     try:
         with np.load(path, allow_pickle=False) as f:
             z, doc = f["z"], json.loads(str(f["meta_json"]))
-    except (OSError, ValueError, KeyError) as e:
-        raise ValueError(f"{path} is not a jaxafm image file ({e})") from None
-    if doc.get("format") != FORMAT:
-        raise ValueError(f"{path} is not a jaxafm image file (format {doc.get('format')!r})")
-    if doc.get("version") != VERSION:
-        raise ValueError(f"{path}: image format version {doc.get('version')} is not supported ({VERSION} is)")
-    return AFMImage(z, tuple(doc["pixel_size_nm"]), tuple(doc["origin_nm"]), doc["meta"])
+        fmt, version = doc.get("format"), doc.get("version")
+    except (OSError, ValueError, KeyError, EOFError, AttributeError) as e:
+        raise ValueError(f"{path} is not a jaxafm image file ({type(e).__name__}: {e})") from None
+    if fmt != FORMAT:
+        raise ValueError(f"{path} is not a jaxafm image file (format {fmt!r})")
+    if version != VERSION:
+        raise ValueError(f"{path}: image format version {version} is not supported ({VERSION} is)")
+    try:
+        return AFMImage(z, tuple(doc["pixel_size_nm"]), tuple(doc["origin_nm"]), doc["meta"])
+    except KeyError as e:
+        raise ValueError(f"{path}: the image's meta_json lacks the key {e}") from None

@@ -212,8 +212,9 @@ class Indented(eqx.Module):
     """A ``base`` sample with up to ``capacity`` indents pressed into it by a ``tip``.
 
     An indent pressed at ``xy`` to ``depth`` nm leaves the tip's shape in the
-    surface: ``z = min(base, bottom + profile(|p - xy|))``, ``bottom`` the
-    base height there less the depth (plastic indentation, no pile-up).
+    surface: ``z = min(surface, bottom + profile(|p - xy|))``, ``bottom`` the
+    surface height there (earlier indents included) less the depth (plastic
+    indentation, no pile-up).
     Slots are fixed so that ``press`` works under ``jit``; ``count`` are used.
     The capacity is checked on concrete values only: under ``jit`` an indent
     beyond it is dropped.

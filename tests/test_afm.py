@@ -50,6 +50,15 @@ def test_scanner_run_refuses_to_go_back_in_time():
         scanner.run(jnp.zeros((3, 2)), jnp.array([1.0, 2.0, 3.0]), state, jax.random.key(0))
 
 
+def test_afm_drive_checks_its_times_before_compiling():
+    afm = ideal_afm()
+    state = afm.initial_state(t0=2.0)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        afm.drive(GRATING, jnp.zeros((3, 2)), jnp.array([3.0, 2.5, 4.0]), state)
+    with pytest.raises(ValueError, match="before the state's last sample"):
+        afm.drive(GRATING, jnp.zeros((3, 2)), jnp.array([1.0, 2.5, 4.0]), state)
+
+
 def test_ideal_instrument_images_the_sample_at_the_nominal_pixels():
     afm = ideal_afm()
     raster = Raster((3000.0, 2000.0), 24, 6, line_rate=2.0, centre=(100.0, -50.0))

@@ -45,6 +45,19 @@ def test_image_format_round_trips_exactly_and_never_overwrites(tmp_path):
     assert doc["format"] == "jaxafm-image" and doc["version"] == 1
 
 
+def test_failed_save_leaves_the_existing_file_intact(tmp_path):
+    good = AFMImage(np.ones((2, 2)), (1.0, 1.0), meta={"line_rate_hz": jnp.asarray(2.0)})  # JAX value: saved
+    path = save_image(good, tmp_path / "a.npz")
+    assert load_image(path).meta["line_rate_hz"] == 2.0
+    bad = AFMImage(np.zeros((2, 2)), (1.0, 1.0), meta={"note": object()})
+    with pytest.raises(TypeError):
+        save_image(bad, path, overwrite=True)
+    assert np.array_equal(load_image(path).z, np.ones((2, 2)))
+    path.write_bytes(b"")
+    with pytest.raises(ValueError, match="not a jaxafm image file"):
+        load_image(path)
+
+
 def test_image_format_refuses_other_npz_and_other_versions(tmp_path):
     np.savez(tmp_path / "other.npz", data=np.zeros(3))
     with pytest.raises(ValueError, match="not a jaxafm image file"):
@@ -77,7 +90,7 @@ def test_gwyddion_file_reads_non_square_images_in_nm(tmp_path):
                                 si_unit_z=GwySIUnit(unitstr="m"))
     c.tofile(str(tmp_path / "a.gwy"))
     im = read_image(tmp_path / "a.gwy")
-    np.testing.assert_allclose(im.z, np.arange(12.0).reshape(3, 4))
+    np.testing.assert_allclose(im.z, np.arange(12.0).reshape(3, 4)[::-1])  # Gwyddion's row 0 is the top line
     assert np.allclose(im.pixel_size, (1000.0, 1000.0)) and im.meta["channel"] == "Height"
     with pytest.raises(ValueError, match="no channel 'Phase'"):
         read_image(tmp_path / "a.gwy", channel="Phase")
