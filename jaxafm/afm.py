@@ -7,9 +7,10 @@ the true tip path (nm); the probe follows the sample, dilated by the tip
 (effect ``feedback_lag``). Every action returns the state after it, so actions
 chain in real time: creep and drift carry on from one to the next.
 
-Voltages come from wanted positions through ``volts`` (nm -> V): by default the
-instrument's nominal linear calibration ``u = xy / sensitivity``, which is what
-an uncompensated AFM does; a fitted inverse model compensates instead.
+Voltages come from wanted positions through ``volts(xy, t)`` (nm and s -> V): by
+default the instrument's nominal linear calibration ``u = xy / sensitivity``,
+which is what an uncompensated AFM does; a fitted inverse model
+(:class:`~jaxafm.inverse.Compensator`) compensates instead.
 
 Everything is a pure function of equinox Modules: ``jit``, ``vmap`` over
 instruments or samples, and ``grad`` with respect to scanner parameters work.
@@ -81,8 +82,9 @@ class AFM(eqx.Module):
             afm = dataclasses.replace(afm, dilate=False)
         return afm
 
-    def nominal_volts(self, xy: Array) -> Array:
-        """The uncompensated drive for wanted positions ``xy`` (..., 2) nm: ``xy / sensitivity``."""
+    def nominal_volts(self, xy: Array, t: Optional[Array] = None) -> Array:
+        """The uncompensated drive for wanted positions ``xy`` (..., 2) nm: ``xy / sensitivity``
+        (whenever ``t`` they are wanted)."""
         return jnp.asarray(xy, dtype=float) / self.sensitivity
 
     def initial_state(self, u0=(0.0, 0.0), t0=0.0, history=None) -> AFMState:
@@ -181,13 +183,14 @@ def line_scan(afm: AFM, sample, state: AFMState, start: Array, end: Array, point
     volts = afm.nominal_volts if volts is None else volts
     start, end = jnp.asarray(start, dtype=float), jnp.asarray(end, dtype=float)
     wanted = start + jnp.linspace(0.0, 1.0, points)[:, None] * (end - start)
-    u = volts(wanted)
+    length = jnp.linalg.norm(end - start)
+    dt = jnp.maximum(length, 1e-9) / speed / (points - 1)
+    t = state.scanner.t + move_time + dt * jnp.arange(1, points + 1)
+    u = volts(wanted, t)
     afm.check_range(u)
     k_move, k_scan = (None, None) if key is None else jax.random.split(key)
     _, state = move(afm, sample, state, u[0], move_time, key=k_move)
-    length = jnp.linalg.norm(end - start)
-    dt = jnp.maximum(length, 1e-9) / speed / (points - 1)
-    path, h, state = afm.drive(sample, u, _times(state, points, dt), state, k_scan)
+    path, h, state = afm.drive(sample, u, t, state, k_scan)
     return h, path, state
 
 
@@ -275,11 +278,11 @@ def raster_scan(afm: AFM, sample, state: AFMState, raster: Raster, volts: Option
     volts = afm.nominal_volts if volts is None else volts
     wanted = raster.wanted()
     L, _, n, _ = wanted.shape
-    u = volts(jnp.asarray(wanted.reshape(-1, 2))).reshape(L, 2 * n, 2)
+    t = state.scanner.t + move_time + raster.sample_time * jnp.arange(1, L * 2 * n + 1)
+    u = volts(jnp.asarray(wanted.reshape(-1, 2)), t).reshape(L, 2 * n, 2)
     afm.check_range(u)
     k_move, k_scan = (None, None) if key is None else jax.random.split(key)
     _, state = move(afm, sample, state, u[0, 0], move_time, key=k_move)
-    t = _times(state, L * 2 * n, raster.sample_time)
     path, h, state = afm.drive(sample, u.reshape(-1, 2), t, state, k_scan)
     out = {"state": state}
     P, m = raster.pixels, raster.margin

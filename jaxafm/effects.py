@@ -31,25 +31,28 @@ def check_effect_names(names, where: str = "effects") -> None:
         raise ValueError(f"unknown effect {unknown[0]!r} in {where}; known effects: {', '.join(EFFECTS)}")
 
 
-def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None) -> Array:
+def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -> tuple:
     """First-order lags ``dz_k/dt = (v - z_k) / tau_k``, exact for ``v`` held over each step.
 
     ``v[n]`` is taken to hold over ``(t[n-1], t[n]]``, so a step applied at
     ``t[0]`` gives ``z_k(t) = v (1 - exp(-(t - t[0]) / tau_k))`` exactly, and
     ``tau -> 0`` gives ``z = v``. Against a continuous drive this leads by half
     a sample, so a fitted ``tau`` absorbs about ``dt/2``. ``z0`` is the state at
-    ``t0`` (default ``t[0]``). Returns ``Z`` of shape ``(T, K)``.
+    ``t0`` (default ``t[0]``). Returns the lags' weighted sum ``Z @ weights`` (T,)
+    (default weights: ones) and the final state (K,); only the sum is stored,
+    which keeps forward-mode Jacobians through many lags cheap.
     """
     dt = jnp.diff(t, prepend=t[:1] if t0 is None else jnp.reshape(t0, (1,)))
+    weights = jnp.ones_like(taus) if weights is None else weights
 
     def step(z, inputs):
         vn, dtn = inputs
         a = jnp.exp(-dtn / taus)
         z = a * z + (1 - a) * vn
-        return z, z
+        return z, z @ weights
 
-    _, Z = lax.scan(step, jnp.broadcast_to(z0, taus.shape), (v, dt))
-    return Z
+    z, out = lax.scan(step, jnp.broadcast_to(z0, taus.shape), (v, dt))
+    return out, z
 
 
 class Creep(eqx.Module):
@@ -92,8 +95,8 @@ class Creep(eqx.Module):
     def run(self, v: Array, t: Array, state: tuple, t0) -> tuple:
         """Output (T,) and the next state, continuing from ``state`` at time ``t0``."""
         z0, rest = state
-        Z = lowpass(v, t, self.taus, z0, t0)
-        return v + (Z - rest) @ self.weights, (Z[-1], rest)
+        out, z = lowpass(v, t, self.taus, z0, t0, self.weights)
+        return v + out - rest * jnp.sum(self.weights), (z, rest)
 
     def __call__(self, v: Array, t: Array) -> Array:
         return self.run(v, t, self.initial_state(v[0]), t[0])[0]
@@ -112,8 +115,7 @@ class FirstOrderLag(eqx.Module):
 
     def run(self, v: Array, t: Array, z0: Array, t0) -> tuple:
         """Output (T,) and the final state (1,), continuing from ``z0`` at time ``t0``."""
-        Z = lowpass(v, t, jnp.reshape(self.tau, (1,)), z0, t0)
-        return Z[:, 0], Z[-1]
+        return lowpass(v, t, jnp.reshape(self.tau, (1,)), z0, t0)
 
     def __call__(self, v: Array, t: Array) -> Array:
         return self.run(v, t, self.initial_state(v[0]), t[0])[0]

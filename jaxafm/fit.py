@@ -183,27 +183,34 @@ def fit_operator(model, u, d, *, t=None, solver: str = "optimistix.levenberg_mar
     return FitResult(rebuild(raw), solver, ok, steps, final, seconds, message)
 
 
-def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: int, rtol: float, atol: float):
+def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: int, rtol: float, atol: float,
+           args=None):
+    """Minimise with the named solver; ``residuals(raw, args)`` and ``loss(raw, args)``.
+
+    Pass data through ``args``, not closures, with module-level functions: the
+    compiled solver is then reused for other data of the same shapes.
+    """
     library, method = solver.split(".")
     if library == "optimistix":
         if method == "bfgs":
-            sol = optx.minimise(loss, optx.BFGS(rtol=rtol, atol=atol), raw0, max_steps=max_steps, throw=False)
+            sol = optx.minimise(loss, optx.BFGS(rtol=rtol, atol=atol), raw0, args, max_steps=max_steps,
+                                throw=False)
         else:
             cls = {"levenberg_marquardt": optx.LevenbergMarquardt, "gauss_newton": optx.GaussNewton,
                    "dogleg": optx.Dogleg}[method]
             # normal equations + Cholesky: the parameters are few, the residuals many (7x faster than QR)
             opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-            sol = optx.least_squares(residuals, opt, raw0, max_steps=max_steps, throw=False)
+            sol = optx.least_squares(residuals, opt, raw0, args, max_steps=max_steps, throw=False)
         return sol.value, int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
     flat0, unravel = ravel_pytree(raw0)  # jaxopt's least-squares solvers want one flat vector
     if method == "lbfgs":
-        opt = jaxopt.LBFGS(fun=lambda x: loss(unravel(x)), maxiter=max_steps, tol=atol)
+        opt = jaxopt.LBFGS(fun=lambda x, a: loss(unravel(x), a), maxiter=max_steps, tol=atol)
     elif method == "levenberg_marquardt":  # relative step or gradient, as optimistix's rtol/atol
-        opt = jaxopt.LevenbergMarquardt(residual_fun=lambda x: residuals(unravel(x)), maxiter=max_steps,
+        opt = jaxopt.LevenbergMarquardt(residual_fun=lambda x, a: residuals(unravel(x), a), maxiter=max_steps,
                                         stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol)
     else:
-        opt = jaxopt.GaussNewton(residual_fun=lambda x: residuals(unravel(x)), maxiter=max_steps, tol=atol)
-    flat, state = opt.run(flat0)
+        opt = jaxopt.GaussNewton(residual_fun=lambda x, a: residuals(unravel(x), a), maxiter=max_steps, tol=atol)
+    flat, state = opt.run(flat0, args)
     steps = int(state.iter_num)
     return unravel(flat), steps, bool(steps < max_steps)
 
