@@ -83,8 +83,8 @@ class AFM(eqx.Module):
         return afm
 
     def nominal_volts(self, xy: Array, t: Optional[Array] = None) -> Array:
-        """The uncompensated drive for wanted positions ``xy`` (..., 2) nm: ``xy / sensitivity``
-        (whenever ``t`` they are wanted)."""
+        """The uncompensated drive for wanted positions ``xy`` (..., 2) nm: ``xy / sensitivity``,
+        the same at any time ``t``."""
         return jnp.asarray(xy, dtype=float) / self.sensitivity
 
     def initial_state(self, u0=(0.0, 0.0), t0=0.0, history=None) -> AFMState:

@@ -116,10 +116,6 @@ class ScanModel(eqx.Module):
     feedback: Optional[FeedbackLag]
     lattice: Lattice
 
-    @property
-    def effects(self) -> frozenset:
-        return self.scanner.effects | ({"feedback_lag"} if self.feedback is not None else set())
-
     def afm(self, scan: CalibrationScan) -> AFM:
         """The simulated AFM with this model as its scanner (tip dilation off)."""
         return AFM(self.scanner, Tip(), jnp.asarray(scan.sensitivity), self.feedback,

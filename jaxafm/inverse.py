@@ -158,7 +158,7 @@ class Compensator(eqx.Module):
     model: Scanner
     state: ScannerState
     u_now: Array
-    u_range: np.ndarray = eqx.field(static=False)
+    u_range: np.ndarray
     method: str = eqx.field(static=True, default="numerical")
     history: Optional[Array] = None
     u_max: float = eqx.field(static=True, default=10.0)
