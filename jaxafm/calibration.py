@@ -33,7 +33,7 @@ from .effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
 from .features import LatticeFeatures, lattice_features
 from .fit import FitResult, _softplus_inv, _solve, free_parameters
 from .hysteresis import Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii
-from .samples import Lattice, Tip
+from .samples import Lattice, Plane, Tip
 from .scanner import Axis, Scanner
 
 Array = jax.Array
@@ -121,11 +121,20 @@ class ScanModel(eqx.Module):
         return AFM(self.scanner, Tip(), jnp.asarray(scan.sensitivity), self.feedback,
                    u_max=scan.u_max, dilate=False)
 
+    def paths(self, scan: CalibrationScan) -> tuple:
+        """The tip's path (lines, pixels, 2) nm over the trace and the retrace pixels, along the
+        scan's drive (the heights are not rendered)."""
+        afm = eqx.tree_at(lambda a: a.feedback, self.afm(scan), None, is_leaf=lambda v: v is None)
+        out = raster_scan(afm, Plane(), self._start(afm, scan), scan.raster, key=KEY)
+        return out["path_trace"], out["path_retrace"]
+
+    def _start(self, afm: AFM, scan: CalibrationScan):
+        return afm.initial_state(scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history))
+
     def image(self, scan: CalibrationScan) -> dict:
         """:func:`~jaxafm.afm.raster_scan` of the lattice through this model, along the scan's drive."""
         afm = self.afm(scan)
-        state = afm.initial_state(scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history))
-        return raster_scan(afm, self.lattice, state, scan.raster, key=KEY)
+        return raster_scan(afm, self.lattice, self._start(afm, scan), scan.raster, key=KEY)
 
 
 def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[str] = MODEL_EFFECTS,
@@ -133,8 +142,9 @@ def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[st
     """The nominal model a fit starts from: the straight calibration line, no other effect yet.
 
     ``kind``: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
-    ``deadzones`` dead zones a side over the half travel) or ``preisach`` (``levels``
-    levels over ``+-u_max``). ``effects`` lists the others to fit (names as in design.md).
+    ``deadzones`` dead zones a side, evenly over the imaged half width: beyond it no data
+    would hold them) or ``preisach`` (``levels`` levels over ``+-u_max``). ``effects``
+    lists the others to fit (names as in design.md).
     """
     unknown = [e for e in effects if e not in MODEL_EFFECTS]
     if unknown:
@@ -143,15 +153,16 @@ def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[st
     if kind == "gpi" and "asymmetry" not in effects:
         kind = "pi"
 
-    def axis(gain: float) -> Axis:
+    def axis(gain: float, k: int) -> Axis:
         half = gain * scan.u_max
+        imaged = scan.raster.size[k] / 2  # dead zones where the image constrains them
         if kind == "preisach":
             h = Preisach.uniform(levels, -scan.u_max, scan.u_max, total=half)
         else:
             pi = PrandtlIshlinskii.uniform(operators, scan.u_max, gain)
             h = PrandtlIshlinskii(pi.thresholds, jnp.full(operators, 1e-3 * gain).at[0].set(gain), pi.offset)
             if kind == "gpi":
-                steps = (np.arange(deadzones) + 1) / (deadzones + 1) * half
+                steps = (np.arange(deadzones) + 1) / (deadzones + 1) * imaged
                 h = GeneralizedPI(h, Deadzone.identity(-steps, steps))
             elif kind != "pi":
                 raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
@@ -159,7 +170,7 @@ def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[st
                     Creep.logarithmic(0.0, per_decade=1) if "creep" in effects else None)
 
     has = lambda e, module: module if e in effects else None  # noqa: E731
-    scanner = Scanner(axis(scan.sensitivity[0]), axis(scan.sensitivity[1]),
+    scanner = Scanner(axis(scan.sensitivity[0], 0), axis(scan.sensitivity[1], 1),
                       has("coupling", Coupling(jnp.zeros(()), jnp.zeros(()))),
                       has("bow", Bow(jnp.zeros(()), jnp.zeros(()))),
                       has("drift", Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))))
@@ -264,33 +275,37 @@ class Identification:
         return all(s.converged for s in self.stages)
 
 
-def _residuals(raw, args) -> Array:
-    """All of step A's residuals, weighted per stage (one compiled solver serves every stage):
-
-    - at each feature point, where the model puts the tip less that feature's lattice site
-      ``phase + index * pitch``, in pitches;
-    - the model's image less the measured one, both blurred by ``kernel``, trace and retrace,
-      in fractions of the measured depth.
-    """
-    start, scan, features, (w_features, w_images, kernel) = args
+def _point_residuals(raw, args) -> Array:
+    """At each feature point, where the model puts the tip less that feature's lattice site
+    ``phase + index * pitch``, in pitches (trace and retrace). Needs only the tip's path."""
+    start, scan, features = args
     model = parameters(start, scan)[1](raw)
-    out = model.image(scan)
+    paths = model.paths(scan)
     pitch = jnp.asarray(scan.pitch)
-    points = [(_interpolate(out[f"path_{k}"], rc) - (model.lattice.phase + ij * pitch)) / pitch
-              for (rc, ij), k in zip(features, ("trace", "retrace"))]
-    images = [(blur(out[k], kernel) - blur(z, kernel)) / scan.depth_scale
-              for k, z in (("trace", scan.trace), ("retrace", scan.retrace))]
-    return jnp.concatenate([w_features * q.ravel() for q in points] + [w_images * q.ravel() for q in images])
+    return jnp.concatenate([((_interpolate(path, rc) - (model.lattice.phase + ij * pitch)) / pitch).ravel()
+                            for (rc, ij), path in zip(features, paths)])
 
 
-def _loss(raw, args) -> Array:
-    return 0.5 * jnp.mean(_residuals(raw, args) ** 2)
+def _image_residuals(raw, args) -> Array:
+    """The model's image less the measured one, both blurred by ``kernel``, trace and retrace,
+    in fractions of the measured depth."""
+    start, scan, kernel = args
+    out = parameters(start, scan)[1](raw).image(scan)
+    return jnp.concatenate([((blur(out[k], kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
+                            for k, z in (("trace", scan.trace), ("retrace", scan.retrace))])
+
+
+def _mean_square(residuals: Callable) -> Callable:
+    return lambda raw, args: 0.5 * jnp.mean(residuals(raw, args) ** 2)
+
+
+_POINT_LOSS, _IMAGE_LOSS = _mean_square(_point_residuals), _mean_square(_image_residuals)
 
 
 def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: str = "gpi",
-             effects: Sequence[str] = MODEL_EFFECTS, operators: int = 20,
+             effects: Sequence[str] = MODEL_EFFECTS, operators: int = 20, deadzones: int = 3, levels: int = 20,
              solver: str = "optimistix.levenberg_marquardt", blur_px: Sequence[float] = (2.0, 1.0),
-             max_steps: int = 30, rtol: float = 1e-5, atol: float = 1e-8, log: Callable = print) -> Identification:
+             max_steps: int = 100, rtol: float = 1e-5, atol: float = 1e-8, log: Callable = print) -> Identification:
     """Fit the scanner end to end: to the feature points, then to the images at each blur.
 
     Never returns a silently bad fit: each stage's convergence and last loss
@@ -298,23 +313,21 @@ def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: 
     """
     start = time.perf_counter()
     features = scan.features()
-    model = initial_model(scan, kind, effects, operators) if model is None else model
+    model = initial_model(scan, kind, effects, operators, deadzones, levels) if model is None else model
     model = _start_lattice(model, scan, features)
-    radius = int(np.ceil(3 * max(blur_px, default=0)))
-    plan = [("feature points", (1.0, 0.0, gaussian_kernel(0, radius)))]
-    plan += [(f"images, blur {b:g} px", (0.0, 1.0, gaussian_kernel(b, radius))) for b in blur_px]
     points = tuple((jnp.asarray(f.rc), jnp.asarray(f.ij)) for f in features)
+    plan = [("feature points", _point_residuals, _POINT_LOSS, points)]
+    radius = int(np.ceil(3 * max(blur_px, default=0)))
+    plan += [(f"images, blur {b:g} px", _image_residuals, _IMAGE_LOSS, jnp.asarray(gaussian_kernel(b, radius)))
+             for b in blur_px]
     stages = []
-    n_points = 2 * sum(len(f.rc) for f in features)
-    for i, (name, weights) in enumerate(plan):
+    for i, (name, residuals, loss_fn, data) in enumerate(plan):
         model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
-        args = (model, scan, points, tuple(jnp.asarray(w, dtype=float) for w in weights))
+        args = (model, scan, data)
         raw0, rebuild = parameters(model, scan)
         t0 = time.perf_counter()
-        raw, steps, ok = _solve(solver, _residuals, _loss, raw0, max_steps, rtol, atol, args)
-        r = np.asarray(jax.jit(_residuals)(raw, args))
-        r = r[:n_points] if weights[0] else r[n_points:]  # the stage's own residuals
-        loss = float(np.mean(r**2))
+        raw, steps, ok = _solve(solver, residuals, loss_fn, raw0, max_steps, rtol, atol, args)
+        loss = float(2 * jax.jit(loss_fn)(raw, args))  # the mean square residual
         if not np.isfinite(loss):
             raise RuntimeError(f"step A stage '{name}' diverged with {solver} (loss {loss}); "
                                "try another solver or a smaller model")
@@ -329,7 +342,7 @@ def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: 
 def _start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> ScanModel:
     """Phase from the feature points through the starting model; radius from the pillars' area."""
     ft = features[0]
-    path = np.asarray(model.image(scan)["path_trace"])
+    path = np.asarray(model.paths(scan)[0])
     phase = np.mean(np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc))) - ft.ij * np.asarray(scan.pitch), axis=0)
     z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
     area = (z > 0.5 * (z.max() + z.min())).mean() * np.prod(scan.pitch)
@@ -354,10 +367,20 @@ class BranchPolynomials:
     y: np.ndarray
     u_range: np.ndarray
 
+    def branch(self, name: str, u: np.ndarray) -> np.ndarray:
+        """Position (nm) on branch ``name`` (``x_up``, ``x_down``, ``y``) at drive ``u`` (V).
+        Outside the fitted drive range the polynomial continues along its end tangent:
+        a polynomial of degree 5 extrapolated further runs off within a volt."""
+        coef = getattr(self, name)
+        lo, hi = self.u_range[0 if name.startswith("x") else 1]
+        u = np.asarray(u, dtype=float)
+        end = np.clip(u, lo, hi)
+        return np.polyval(coef, end) + np.polyval(np.polyder(coef), end) * (u - end)
+
     def position(self, u: np.ndarray, rising: np.ndarray) -> np.ndarray:
         u = np.asarray(u, dtype=float)
-        x = np.where(rising, np.polyval(self.x_up, u[..., 0]), np.polyval(self.x_down, u[..., 0]))
-        return np.stack([x, np.polyval(self.y, u[..., 1])], axis=-1)
+        x = np.where(rising, self.branch("x_up", u[..., 0]), self.branch("x_down", u[..., 0]))
+        return np.stack([x, self.branch("y", u[..., 1])], axis=-1)
 
 
 def fit_polynomials(scan: CalibrationScan, features: Optional[tuple] = None, degree: int = 5) -> BranchPolynomials:

@@ -12,10 +12,11 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="jaxafm: differentiable AFM scanner models and positioning in JAX.")
 
 
-OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
+FIT_OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
+CALIBRATE_OUTPUTS = ("metrics.json", "compensation.png", "model_*.json")  # what `jaxafm calibrate` writes
 
 
-def prepare_output(out: Path, overwrite: bool) -> None:
+def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
     """Create ``out``; an existing, non-empty one only with ``overwrite``, which removes
     just the files this command writes and leaves everything else where it is."""
     if out.exists() and not out.is_dir():
@@ -24,7 +25,7 @@ def prepare_output(out: Path, overwrite: bool) -> None:
         if not overwrite:
             raise ValueError(f"output folder {out} exists and is not empty: choose another with --out, "
                              "or pass --overwrite to replace the results in it")
-        for pattern in OUTPUTS:
+        for pattern in outputs:
             for f in out.glob(pattern):
                 f.unlink()
     out.mkdir(parents=True, exist_ok=True)
@@ -48,10 +49,32 @@ def fit(
     try:
         cfg = load_config(config)
         folder = out or Path(cfg.output)
-        actuator_fit.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite), log=typer.echo)
+        actuator_fit.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, FIT_OUTPUTS),
+                         log=typer.echo)
     except (ValueError, OSError) as e:
         _fail(e)
-    typer.echo(f"wrote {', '.join(OUTPUTS)} into {folder}")
+    typer.echo(f"wrote {', '.join(FIT_OUTPUTS)} into {folder}")
+
+
+@app.command()
+def calibrate(
+    config: Path = typer.Argument(..., help="YAML config (see configs/step_a_*.yaml)"),
+    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
+    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
+):
+    """Step A: identify the scanner from a grating image pair, invert it and compensate; write
+    fitted scanners, metrics.json and compensation.png."""
+    from . import step_a
+    from .config import CalibrateConfig, load_config
+
+    try:
+        cfg = load_config(config, CalibrateConfig)
+        folder = out or Path(cfg.output)
+        step_a.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, CALIBRATE_OUTPUTS),
+                   log=typer.echo)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(e)
+    typer.echo(f"wrote the results into {folder}")
 
 
 @app.command()

@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from .calibration import MODEL_EFFECTS
 from .effects import EFFECTS
 from .fit import SOLVERS
 from .records import LENGTH_TO_NM, VOLTAGE_TO_V
@@ -111,6 +112,100 @@ class ActuatorFitConfig(_Strict):
         return self
 
 
+class Grating(_Strict):
+    """The calibration grating: a square lattice of pillars (or pits) of known pitch."""
+
+    pitch_nm: float = Field(1000.0, gt=0, description="lattice pitch, nm (both axes)")
+    pits: bool = Field(False, description="pits instead of pillars")
+
+
+class SimulatedCalibration(_Strict):
+    """A trace/retrace image pair of the grating from the built-in simulated AFM
+    (``default_afm()``), taken after the initialisation cycle ``+-u_max``."""
+
+    pixels: int = Field(128, ge=32, le=1024, description="pixels per line = lines")
+    size_nm: float = Field(8000.0, gt=0, le=9000.0, description="scan width = height, nm")
+    line_rate_hz: float = Field(1.0, gt=0, le=50.0)
+    withheld: List[str] = Field([], description="effects the simulated instrument does not have")
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _known_effects(self):
+        for e in self.withheld:
+            if e not in EFFECTS:
+                raise ValueError(f"unknown effect {e!r}; known effects: {', '.join(EFFECTS)}")
+        return self
+
+
+class CalibrationImages(_Strict):
+    """A measured trace/retrace pair (any format ``jaxafm.images.read_image`` reads) and
+    how the instrument drove it; the scan is centred on the scanner's zero."""
+
+    trace: str = Field(description="image file, relative to the config file")
+    retrace: str = Field(description="image file, relative to the config file")
+    sensitivity_nm_per_v: List[float] = Field(min_length=2, max_length=2, description="nominal x, y calibration")
+    u_max_v: float = Field(10.0, gt=0)
+    line_rate_hz: float = Field(gt=0)
+    history_v: Optional[List[List[float]]] = Field(
+        None, description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]")
+
+
+class CalibrationModel(_Strict):
+    """One scanner model to identify (an ablation lists several)."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]+$", description="names the model's output file")
+    kind: Literal["pi", "gpi", "preisach"] = "gpi"
+    operators: int = Field(16, ge=2, le=200)
+    deadzones: int = Field(3, ge=1, le=20)
+    levels: int = Field(20, ge=2, le=100)
+    effects: List[str] = Field(["asymmetry", "creep", "coupling", "bow", "feedback_lag"],
+                               description="effects besides hysteresis")
+
+
+class CalibrationSolver(_Strict):
+    name: Solver = "optimistix.levenberg_marquardt"  # type: ignore[valid-type]
+    max_steps: int = Field(100, ge=1, le=10_000, description="per stage")
+    blur_px: List[float] = Field([2.0, 1.0], description="image stages, coarse to fine (px)")
+
+
+class Compensation(_Strict):
+    """Re-image the grating with compensated drives (simulated instrument only)."""
+
+    scan_fraction: float = Field(0.85, gt=0, le=1.0, description="compensated scan size / calibration scan size: "
+                               "below 1, as the tip's true travel over the calibration image falls short "
+                               "of its nominal size")
+    overscan: float = Field(0.05, ge=0, le=0.5, description="over-scan of the compensated scans, fraction of "
+                            "the width each side")
+    inverses: List[Literal["analytic", "numerical"]] = ["analytic", "numerical"]
+    paper_baseline: bool = Field(True, description="also the paper's polynomial + neural-network inverse")
+
+
+class CalibrateConfig(_Strict):
+    """Step A: identify the scanner from one grating image pair, invert it, compensate."""
+
+    data: Optional[CalibrationImages] = None
+    simulate: Optional[SimulatedCalibration] = None
+    grating: Grating = Grating()
+    models: List[CalibrationModel] = Field([CalibrationModel(name="gpi")], min_length=1)
+    solver: CalibrationSolver = CalibrationSolver()
+    compensate: Optional[Compensation] = Compensation()
+    output: str = "runs/calibrate"
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.data is None) == (self.simulate is None):
+            raise ValueError("give exactly one of 'data' (measured trace/retrace images) and 'simulate'")
+        names = [m.name for m in self.models]
+        if len(set(names)) != len(names):
+            raise ValueError(f"model names must be unique, got {names}")
+        for m in self.models:
+            for e in m.effects:
+                if e not in MODEL_EFFECTS:
+                    raise ValueError(f"model {m.name!r}: effect {e!r} cannot be fitted from grating images; "
+                                     f"choose from {', '.join(MODEL_EFFECTS)}")
+        return self
+
+
 def _format(error: ValidationError, path: Path) -> str:
     lines = [f"{path}: invalid configuration"]
     for e in error.errors():
@@ -121,8 +216,9 @@ def _format(error: ValidationError, path: Path) -> str:
     return "\n".join(lines)
 
 
-def load_config(path: Union[str, Path]) -> ActuatorFitConfig:
-    """Read and validate a YAML configuration; raise :class:`ConfigError` naming what is wrong."""
+def load_config(path: Union[str, Path], schema: type = ActuatorFitConfig):
+    """Read a YAML configuration and validate it against ``schema``; raise
+    :class:`ConfigError` naming what is wrong."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
@@ -133,7 +229,7 @@ def load_config(path: Union[str, Path]) -> ActuatorFitConfig:
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping of keys at the top level")
     try:
-        return ActuatorFitConfig.model_validate(raw)
+        return schema.model_validate(raw)
     except ValidationError as e:
         raise ConfigError(_format(e, path)) from None
 

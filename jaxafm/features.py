@@ -94,24 +94,30 @@ def local_pitch(f: LatticeFeatures, pixel_size: tuple) -> np.ndarray:
     return np.concatenate(out)
 
 
-def line_centres(z: np.ndarray, name: str = "image") -> list:
-    """Per row of a 1-D grating image (lines along the slow axis): the sub-pixel centres
-    (fractional columns) of its complete raised lines, where the row crosses its mid-level
-    upwards and then downwards (linear interpolation). Grooves: pass ``-z``."""
-    z = _check_image(z, name)
-    out = []
-    for row in z:
-        level = 0.5 * (np.percentile(row, 10) + np.percentile(row, 90))
-        s = row - level
-        k = np.flatnonzero(np.sign(s[:-1]) != np.sign(s[1:]))
-        cross = k + s[k] / (s[k] - s[k + 1])
-        rising = s[k + 1] > s[k]
-        if rising.size and not rising[0]:
-            cross, rising = cross[1:], rising[1:]
-        n = len(cross) // 2
-        pairs = cross[: 2 * n].reshape(n, 2)
-        out.append(pairs.mean(axis=1))
-    return out
+def edge_crossings(row: np.ndarray, band: float = 0.2) -> tuple:
+    """Sub-pixel edges of one grating profile: where ``row`` crosses its mid-level.
+
+    The mid-level is halfway between the row's 10th and 90th percentiles. An
+    edge counts only once the profile has gone from below ``level - band * c``
+    to above ``level + band * c`` (or back), ``c`` the 10-90 % contrast, so that
+    noise on a slope gives one edge, not three; its position is the mean of the
+    mid-level crossings (linear interpolation between samples) on that passage.
+    Returns ``(positions, rising)``: fractional indices, ascending, and whether
+    the profile rises there.
+    """
+    row = np.asarray(row, dtype=float)
+    lo, hi = np.percentile(row, [10, 90])
+    level, half = 0.5 * (lo + hi), band * (hi - lo)
+    state = np.where(row > level + half, 1, np.where(row < level - half, -1, 0))
+    k = np.flatnonzero(state)
+    turns = np.flatnonzero(np.diff(state[k]) != 0)
+    pos = np.empty(len(turns))
+    for i, t in enumerate(turns):
+        a, b = k[t], k[t + 1]
+        s = row[a:b + 1] - level
+        j = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
+        pos[i] = np.mean(a + j + s[j] / (s[j] - s[j + 1]))
+    return pos, state[k[turns + 1]] > 0
 
 
 def pitch_spread(pitches: np.ndarray) -> dict:

@@ -31,6 +31,7 @@ MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
 SOLVERS = (
     "optimistix.levenberg_marquardt", "optimistix.gauss_newton", "optimistix.dogleg",
     "optimistix.bfgs", "jaxopt.levenberg_marquardt", "jaxopt.gauss_newton", "jaxopt.lbfgs",
+    "scipy.least_squares",
 )
 
 
@@ -84,9 +85,13 @@ def free_parameters(model, u_span: float, d_range: float):
     if isinstance(model, GeneralizedPI):
         pi_raw, pi_rebuild = free_parameters(model.pi, u_span, d_range)
         dz = model.deadzone
-        raw = (pi_raw, dz.upper_weights, dz.lower_weights)
+        # each side's partial slopes g_0 + g_1 + ... + g_i stay > 0: the dead zones stay
+        # monotone and invertible however far the fit moves them
+        partial = lambda g: _softplus_inv((dz.slope + jnp.cumsum(g)) / dz.slope)  # noqa: E731
+        weights = lambda p: jnp.diff(jax.nn.softplus(p) * dz.slope, prepend=dz.slope)  # noqa: E731
+        raw = (pi_raw, partial(dz.upper_weights), partial(dz.lower_weights))
         return raw, lambda p: GeneralizedPI(
-            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, p[1], dz.lower, p[2], dz.centre))
+            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, weights(p[1]), dz.lower, weights(p[2]), dz.centre))
     if isinstance(model, Preisach):
         tri = np.tril_indices(model.levels)
         scale = d_range / len(tri[0])
@@ -202,7 +207,16 @@ def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: in
             opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
             sol = optx.least_squares(residuals, opt, raw0, args, max_steps=max_steps, throw=False)
         return sol.value, int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
-    flat0, unravel = ravel_pytree(raw0)  # jaxopt's least-squares solvers want one flat vector
+    flat0, unravel = ravel_pytree(raw0)  # jaxopt's and scipy's solvers want one flat vector
+    if library == "scipy":  # trust-region reflective, the Jacobian by jax (forward mode), on the host
+        from scipy.optimize import least_squares
+
+        fun = jax.jit(lambda x, a: residuals(unravel(x), a))
+        jac = jax.jit(jax.jacfwd(lambda x, a: residuals(unravel(x), a)))
+        res = least_squares(lambda x: np.asarray(fun(x, args)), np.asarray(flat0),
+                            jac=lambda x: np.asarray(jac(x, args)),
+                            method="trf", max_nfev=max_steps, xtol=rtol, ftol=rtol, gtol=atol)
+        return unravel(jnp.asarray(res.x)), int(res.nfev), bool(res.status > 0)
     if method == "lbfgs":
         opt = jaxopt.LBFGS(fun=lambda x, a: loss(unravel(x), a), maxiter=max_steps, tol=atol)
     elif method == "levenberg_marquardt":  # relative step or gradient, as optimistix's rtol/atol

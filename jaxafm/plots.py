@@ -76,3 +76,42 @@ def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every:
         fig.suptitle(title)
     fig.savefig(path_file, dpi=110)
     plt.close(fig)
+
+
+def compensation(images: dict, raster, path, title: str = "", every: int = 16) -> None:
+    """One column per drive: trace and retrace images (nm) of the same lattice at the nominal
+    pixel positions (the paper's Fig. 6 and 7), and the fast-axis error of the tip (true
+    minus wanted x, nm; its mean over the image removed) along every ``every``-th line."""
+    names = list(images)
+    fig, axes = plt.subplots(3, len(names), figsize=(3.3 * len(names), 10), constrained_layout=True,
+                             squeeze=False)
+    ext = [raster.origin[0] / 1e3, (raster.origin[0] + raster.size[0]) / 1e3,
+           raster.origin[1] / 1e3, (raster.origin[1] + raster.size[1]) / 1e3]
+    x = (raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels))
+    errors = {n: np.stack([np.asarray(images[n][f"path_{k}"])[..., 0] - x for k in ("trace", "retrace")])
+              for n in names}
+    lim = max(float(np.abs(e - e.mean()).max()) for e in errors.values())
+    for j, n in enumerate(names):
+        for i, k in enumerate(("trace", "retrace")):
+            ax = axes[i, j]
+            im = ax.imshow(np.asarray(images[n][k]), origin="lower", extent=ext, cmap="afmhot")
+            ax.set_title(f"{n}\n{k}" if i == 0 else k, fontsize=9)
+            ax.set_xlabel("x nominal (µm)")
+            if j == 0:
+                ax.set_ylabel("y nominal (µm)")
+        e = errors[n] - errors[n].mean()
+        ax = axes[2, j]
+        for i, (k, c) in enumerate((("trace", "C0"), ("retrace", "C3"))):
+            ax.plot(x / 1e3, e[i, ::every].T, color=c, lw=0.6, alpha=0.7)
+            ax.plot([], [], color=c, label=k)
+        ax.set(xlabel="x nominal (µm)", ylim=(-1.05 * lim, 1.05 * lim),
+               title=f"max |error| {100 * np.abs(e).max() / raster.size[0]:.2f} % of width")
+        if j == 0:
+            ax.set_ylabel("true - wanted x (nm)")
+            ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.colorbar(im, ax=axes[:2], label="height (nm)", shrink=0.6)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

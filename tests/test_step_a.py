@@ -55,13 +55,6 @@ def test_wrong_pitch_is_no_periodicity():
         features.lattice_features(lattice_image(), (16.0, 16.0))
 
 
-def test_line_centres_of_a_drawn_grating():
-    c = np.arange(80.0)
-    row = (np.abs(np.mod(c - 7.25 + 8, 16) - 8) < 4).astype(float)
-    centres = features.line_centres(np.tile(row, (8, 1)))[0]
-    assert np.allclose(centres, 7.25 + 16 * np.arange(len(centres)), atol=0.3)
-
-
 def _model_and_state(with_drift=True):
     """The default scanner as a deterministic model (drift velocity kept, its wander off)."""
     s = default_scanner().without("noise")
@@ -162,3 +155,114 @@ def test_parameters_rebuild_the_model_they_came_from():
     back = rebuild(raw)
     for a, b in zip(jax.tree.leaves(model), jax.tree.leaves(back)):
         assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+
+
+# ---------------------------------------------------------------- the paper's baseline, the run
+
+
+def test_branch_polynomial_continues_along_its_end_tangent():
+    """Beyond the drive its features covered, a branch goes on straight, with the end's slope."""
+    poly = calibration.BranchPolynomials(np.array([1.0, 0.0, 2.0, 0.0]), np.array([3.0, 0.0]),
+                                         np.array([3.0, 0.0]), np.array([[-1.0, 2.0], [-1.0, 1.0]]))
+    assert poly.branch("x_up", np.array([1.5]))[0] == pytest.approx(1.5**3 + 2 * 1.5)  # inside: the cubic
+    # at u = 4: x(2) + x'(2) (4 - 2) = 12 + 14 * 2
+    assert poly.branch("x_up", np.array([4.0]))[0] == pytest.approx(40.0)
+    assert poly.branch("x_up", np.array([-3.0]))[0] == pytest.approx(-3.0 + 5.0 * -2.0)
+
+
+def test_fitted_dead_zones_stay_monotone_and_invertible():
+    """Whatever the solver does to the raw parameters, every partial slope stays > 0."""
+    from jaxafm.fit import free_parameters
+    from jaxafm.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii
+
+    g = GeneralizedPI(PrandtlIshlinskii.uniform(5, 10.0, 100.0),
+                      Deadzone.identity(-jnp.array([500.0, 1000.0]), jnp.array([500.0, 1000.0, 1500.0])))
+    raw, rebuild = free_parameters(g, 20.0, 1000.0)
+    assert np.allclose(rebuild(raw).deadzone.upper_weights, 0.0, atol=1e-9)
+    noisy = jax.tree.map(lambda r: r + 5 * jax.random.normal(jax.random.key(1), jnp.shape(r)), raw)
+    dz = rebuild(noisy).deadzone
+    for w in (dz.upper_weights, dz.lower_weights):
+        assert (np.asarray(dz.slope + jnp.cumsum(w)) > 0).all()
+    z = jnp.linspace(-3000.0, 3000.0, 61)
+    assert np.allclose(dz.inverse()(dz(z)), z, atol=1e-6)
+
+
+def test_position_errors_of_a_known_path():
+    from jaxafm.step_a import position_errors
+
+    raster = Raster(1000.0, 11, 5)
+    x0, dx = raster.origin[0], raster.pixel_size[0]
+    wanted = np.stack(np.meshgrid(x0 + dx * np.arange(11), raster.origin[1] + 200.0 * np.arange(5)), -1)
+    bend = np.zeros_like(wanted)
+    bend[..., 0] = 30.0 * np.sin(np.pi * np.arange(11) / 10)  # 0 at the ends, 30 nm mid-line
+    out = {"path_trace": wanted + bend + 7.0, "path_retrace": wanted - bend + 7.0}  # + an unobservable shift
+    e = position_errors(out, raster)
+    assert e["linearity_error_trace_pct"] == pytest.approx(3.0) and e["linearity_error_retrace_pct"] == pytest.approx(3.0)
+    assert e["y_max_error_nm"] == pytest.approx(0.0, abs=1e-9)
+
+
+CALIBRATE = """
+simulate: {{pixels: 64, size_nm: 6000, line_rate_hz: 2.0}}
+grating: {{pitch_nm: 1000}}
+models: [{{name: pi, kind: pi, operators: 8, effects: [coupling]}}]
+solver: {{max_steps: 8, blur_px: [1.5]}}
+compensate: {{inverses: [analytic], paper_baseline: false}}
+output: {out}
+"""
+
+
+def test_cli_calibrate_identifies_and_compensates(tmp_path):
+    """A small simulated step A run: files written, errors smaller with the fitted inverse."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from jaxafm.cli import app
+    from jaxafm.io import load_model
+
+    out = tmp_path / "run"
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(CALIBRATE.format(out=out))
+    result = CliRunner().invoke(app, ["calibrate", str(cfg)])
+    assert result.exit_code == 0, result.output
+    m = json.loads((out / "metrics.json").read_text())
+    for k in ("trace", "retrace"):
+        assert m[f"pi_analytic_linearity_error_{k}_pct"] < 0.5 * m[f"uncompensated_linearity_error_{k}_pct"]
+    assert abs(m["pi_fit_coupling_xy"] - m["pi_true_coupling_xy"]) < 0.005
+    assert (out / "compensation.png").stat().st_size > 0
+    assert load_model(out / "model_pi.json").coupling is not None
+    assert "lin. trace" in result.output
+
+
+@pytest.mark.parametrize("text, match", [
+    ("simulate: {}\nmodels: [{name: a, effects: [tip]}]\n", "effect 'tip' cannot be fitted"),
+    ("simulate: {}\ndata: {trace: a, retrace: b, sensitivity_nm_per_v: [1, 1], line_rate_hz: 1}\n", "exactly one"),
+    ("simulate: {pixels: 8}\n", "simulate.pixels"),
+])
+def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
+    from jaxafm.config import CalibrateConfig, ConfigError, load_config
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        load_config(cfg, CalibrateConfig)
+
+
+def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
+    """Trace and retrace files, read back with their size, give the scan the images came from."""
+    from jaxafm.config import CalibrationImages, Grating
+    from jaxafm.images import from_scan, save_image
+    from jaxafm.step_a import read_calibration
+
+    scan, (_, out) = _simulated_scan()
+    for k in ("trace", "retrace"):
+        save_image(from_scan(out, scan.raster, k), tmp_path / f"{k}.npz")
+    spec = CalibrationImages(trace="trace.npz", retrace="retrace.npz", sensitivity_nm_per_v=[500.0, 500.0],
+                             line_rate_hz=2.0, history_v=CYCLE.tolist())
+    back = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
+    assert np.array_equal(np.asarray(back.retrace), np.asarray(scan.retrace))
+    assert back.raster.pixel_size == pytest.approx(scan.raster.pixel_size)
+    assert back.history == scan.history
+    spec = spec.model_copy(update={"retrace": "missing.npz"})
+    with pytest.raises(OSError, match="missing.npz"):
+        read_calibration(spec, Grating(), tmp_path / "c.yaml")
