@@ -29,8 +29,8 @@ from jaxafm.step_a import simulate_calibration  # noqa: E402
 
 def path_error(model: calibration.ScanModel, scan, truth: dict) -> dict:
     """Fitted against true tip path over the image (nm), the unobservable mean shift removed."""
-    fitted = model.image(scan)
-    e = np.stack([np.asarray(fitted[k]) - np.asarray(truth[k]) for k in ("path_trace", "path_retrace")])
+    paths = zip(model.paths(scan), ("path_trace", "path_retrace"))
+    e = np.stack([np.asarray(p) - np.asarray(truth[k]) for p, k in paths])
     e = e - e.reshape(-1, 2).mean(axis=0)
     return {"path_x_rms_nm": float(np.sqrt(np.mean(e[..., 0] ** 2))), "path_x_max_nm": float(np.abs(e[..., 0]).max())}
 

@@ -13,7 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .calibration import MODEL_EFFECTS
-from .effects import EFFECTS
+from .effects import EFFECTS, check_effect_names
 from .fit import SOLVERS
 from .records import LENGTH_TO_NM, VOLTAGE_TO_V
 
@@ -131,9 +131,7 @@ class SimulatedCalibration(_Strict):
 
     @model_validator(mode="after")
     def _known_effects(self):
-        for e in self.withheld:
-            if e not in EFFECTS:
-                raise ValueError(f"unknown effect {e!r}; known effects: {', '.join(EFFECTS)}")
+        check_effect_names(self.withheld, "withheld")
         return self
 
 
