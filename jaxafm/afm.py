@@ -25,6 +25,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from . import checks
 from .effects import FeedbackLag, check_effect_names
@@ -122,12 +123,21 @@ class AFM(eqx.Module):
 def _drive(afm: AFM, sample, u: Array, t: Array, state: AFMState, key) -> tuple:
     """``AFM.drive`` after its checks, compiled once per instrument structure and drive length."""
     path, scanner_state = afm.scanner.run(u, t, state.scanner, key)
-    h = surface(sample, afm.tip if afm.dilate else None)(path)
+    h = render(sample, afm.tip if afm.dilate else None, path)
     if afm.feedback is not None:
         h, z = afm.feedback.run(h, t, state.z, state.scanner.t)
     else:
         z = h[-1:]
     return path, h, AFMState(scanner_state, u[-1], z)
+
+
+def render(sample, tip: Optional[Tip], path: Array, batch: int = 2048) -> Array:
+    """The height (T,) nm the probe follows along ``path`` (T, 2) nm, in batches of ``batch``
+    points so that memory stays bounded on long paths over samples with many features."""
+    height = surface(sample, tip)
+    if path.shape[0] <= batch:
+        return height(path)
+    return lax.map(height, path, batch_size=batch)
 
 
 def default_afm(tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3,
@@ -276,16 +286,28 @@ def raster_scan(afm: AFM, sample, state: AFMState, raster: Raster, volts: Option
     ``t_retrace`` (lines, pixels) s; and ``state`` after the scan.
     """
     volts = afm.nominal_volts if volts is None else volts
-    wanted = raster.wanted()
-    L, _, n, _ = wanted.shape
-    t = state.scanner.t + move_time + raster.sample_time * jnp.arange(1, L * 2 * n + 1)
-    u = volts(jnp.asarray(wanted.reshape(-1, 2)), t).reshape(L, 2 * n, 2)
+    wanted = raster.wanted().reshape(-1, 2)
+    t = raster_times(raster, state.scanner.t + move_time)
+    u = volts(jnp.asarray(wanted), t)
     afm.check_range(u)
     k_move, k_scan = (None, None) if key is None else jax.random.split(key)
-    _, state = move(afm, sample, state, u[0, 0], move_time, key=k_move)
-    path, h, state = afm.drive(sample, u.reshape(-1, 2), t, state, k_scan)
-    out = {"state": state}
-    P, m = raster.pixels, raster.margin
+    _, state = move(afm, sample, state, u[0], move_time, key=k_move)
+    path, h, state = afm.drive(sample, u, t, state, k_scan)
+    return raster_images(raster, path, h, t) | {"state": state}
+
+
+def raster_times(raster: Raster, after) -> Array:
+    """Times (T,) s of every sample of ``raster.wanted()``, the first one sample time after ``after`` s."""
+    n = raster.lines * 2 * (raster.pixels + 2 * raster.margin)
+    return after + raster.sample_time * jnp.arange(1, n + 1)
+
+
+def raster_images(raster: Raster, path: Array, h: Array, t: Array) -> dict:
+    """Heights ``h`` (T,), true path (T, 2) and times (T,) of a raster's samples as images:
+    ``trace``, ``retrace``, ``path_*`` and ``t_*`` (see :func:`raster_scan`)."""
+    L, P, m = raster.lines, raster.pixels, raster.margin
+    n = P + 2 * m
+    out = {}
     for i, name in enumerate(("trace", "retrace")):
         pick = lambda a: a.reshape((L, 2, n) + a.shape[1:])[:, i, m:m + P]  # noqa: E731
         flip = (lambda a: a[:, ::-1]) if i == 1 else (lambda a: a)  # noqa: E731

@@ -14,6 +14,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 FIT_OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
 CALIBRATE_OUTPUTS = ("metrics.json", "compensation.png", "model_*.json")  # what `jaxafm calibrate` writes
+RUN_OUTPUTS = ("metrics.json", "trials.npz", "landmarks.png", "local_scan.png", "push.png", "errors.png",
+               "model_scanner.json")  # what `jaxafm run` writes
 
 
 def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
@@ -72,6 +74,27 @@ def calibrate(
         folder = out or Path(cfg.output)
         step_a.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, CALIBRATE_OUTPUTS),
                    log=typer.echo)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(e)
+    typer.echo(f"wrote the results into {folder}")
+
+
+@app.command()
+def run(
+    config: Path = typer.Argument(..., help="YAML config (see configs/paper.yaml)"),
+    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
+    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
+):
+    """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
+    push, with an ablation table; write metrics.json, the fitted scanner and figures."""
+    from . import strategy
+    from .config import RunConfig, load_config
+
+    try:
+        cfg = load_config(config, RunConfig)
+        folder = out or Path(cfg.output)
+        strategy.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, RUN_OUTPUTS),
+                     log=typer.echo)
     except (ValueError, OSError, RuntimeError) as e:
         _fail(e)
     typer.echo(f"wrote the results into {folder}")

@@ -204,6 +204,137 @@ class CalibrateConfig(_Strict):
         return self
 
 
+class StepA(_Strict):
+    """Step A of a positioning run: the calibration scan of the simulated AFM and the model
+    identified from it, or a scanner fitted earlier (``model_file``, a ``model_*.json``
+    written by ``jaxafm calibrate`` from the same calibration scan)."""
+
+    simulate: SimulatedCalibration = SimulatedCalibration()
+    grating: Grating = Grating()
+    model: CalibrationModel = CalibrationModel(name="gpi")
+    solver: CalibrationSolver = CalibrationSolver()
+    model_file: Optional[str] = Field(None, description="relative to the config file; skips identification")
+
+    @model_validator(mode="after")
+    def _fittable(self):
+        if self.simulate.withheld:
+            raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
+        for e in self.model.effects:
+            if e not in MODEL_EFFECTS:
+                raise ValueError(f"model.effects: {e!r} cannot be fitted from grating images; "
+                                 f"choose from {', '.join(MODEL_EFFECTS)}")
+        return self
+
+
+class Workspace(_Strict):
+    """The area of the task: re-scanned after the landmarks are pressed (step B)."""
+
+    size_nm: float = Field(3000.0, gt=0, description="width = height, nm")
+    centre_nm: List[float] = Field([0.0, 0.0], min_length=2, max_length=2)
+    pixels: int = Field(256, ge=32, le=1024, description="pixels per line = lines (n of eq. 3)")
+    line_rate_hz: float = Field(2.0, gt=0, le=50.0)
+
+
+class ParticleField(_Strict):
+    """Nanoparticles in the cells of the landmark grid, ``per_cell`` x ``per_cell`` to a cell,
+    each jittered by up to 1/8 of their spacing, radii uniform in ``radius_nm``; none sits on an
+    indent."""
+
+    radius_nm: List[float] = Field([5.0, 50.0], min_length=2, max_length=2, description="[min, max], nm")
+    per_cell: int = Field(2, ge=1, le=10, description="particles per landmark cell, each way")
+    seed: int = 1
+
+    @model_validator(mode="after")
+    def _sizes(self):
+        lo, hi = self.radius_nm
+        if not lo > 0:
+            raise ValueError(f"radius_nm: a particle radius must be > 0 nm, got {lo}")
+        if lo > hi:
+            raise ValueError(f"radius_nm: [min, max] needs min <= max, got {self.radius_nm}")
+        return self
+
+
+class LandmarkSpec(_Strict):
+    """Step B's indent grid (paper eq. 3, in pixels of the workspace image) and interpolation."""
+
+    n: int = Field(5, ge=2, description="N x N indents")
+    start_px: float = Field(16.0, ge=0, description="P")
+    step_px: float = Field(56.0, gt=0, description="S")
+    depth_nm: float = Field(50.0, gt=0, description="deep enough that the pit spans a few pixels")
+    interpolation: List[Literal["polynomial", "pairwise"]] = Field(
+        ["polynomial", "pairwise"], min_length=1, description="compared; the first one drives step C and the push")
+    m: int = Field(4, ge=2, description="nearest landmarks in the pairwise interpolation")
+    degree: int = Field(3, ge=1, le=6, description="polynomial surface degree")
+
+
+class LocalScanSpec(_Strict):
+    """Step C's local scan."""
+
+    points: int = Field(192, ge=16, le=4096, description="samples per line")
+    line_time_s: float = Field(0.5, gt=0, description="one direction of a line")
+    margin_nm: float = Field(40.0, gt=0, description="how far beyond its expected place to search")
+    max_lines: int = Field(24, ge=3, le=1000)
+    width_tolerance: float = Field(0.1, gt=0, lt=1, description="accepted pulse-width mismatch, fraction")
+
+
+class PushSpec(_Strict):
+    """The pushing task: each particle pushed by a distance uniform in ``distance_nm`` in a
+    random direction; success when it ends within ``tolerance_radii`` x R of the goal."""
+
+    distance_nm: List[float] = Field([100.0, 300.0], min_length=2, max_length=2)
+    speed_nm_per_s: float = Field(200.0, gt=0)
+    tolerance_radii: float = Field(1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _range(self):
+        lo, hi = self.distance_nm
+        if not 0 < lo <= hi:
+            raise ValueError(f"distance_nm: [min, max] needs 0 < min <= max, got {self.distance_nm}")
+        return self
+
+
+class RunConfig(_Strict):
+    """The paper's full strategy on the simulated AFM: step A, then an ablation of open loop,
+    A, B, A+B and A+B+C over every particle of the workspace, and the push."""
+
+    calibration: StepA = StepA()
+    drift_nm_per_min: List[float] = Field([3.0, -1.8], min_length=2, max_length=2)
+    workspace: Workspace = Workspace()
+    particles: ParticleField = ParticleField()
+    landmarks: LandmarkSpec = LandmarkSpec()
+    local_scan: LocalScanSpec = LocalScanSpec()
+    push: PushSpec = PushSpec()
+    stages: List[Literal["open_loop", "A", "B", "A+B"]] = Field(
+        ["open_loop", "A", "B", "A+B"], min_length=1, description="A+B goes on to step C and the push")
+    seed: int = 0
+    output: str = "runs/paper"
+
+    @model_validator(mode="after")
+    def _fits(self):
+        from .landmarks import LandmarkGrid
+
+        lm = self.landmarks
+        try:
+            LandmarkGrid(lm.n, lm.start_px, lm.step_px, self.workspace.pixels)
+        except ValueError as e:
+            raise ValueError(f"landmarks: {e}") from None
+        if lm.m > lm.n**2:
+            raise ValueError(f"landmarks.m = {lm.m} exceeds the {lm.n**2} landmarks")
+        spacing = lm.step_px * self.workspace.size_nm / self.workspace.pixels / self.particles.per_cell
+        if spacing < 4 * self.particles.radius_nm[1]:
+            raise ValueError(f"particles.per_cell = {self.particles.per_cell} puts particles {spacing:.0f} nm apart, "
+                             f"too close for radii up to {self.particles.radius_nm[1]:g} nm: at least 4 x the "
+                             "largest radius is needed; use fewer per cell or a larger landmark step")
+        reach = max(abs(c) for c in self.workspace.centre_nm) + self.workspace.size_nm / 2
+        calibrated = Compensation().scan_fraction * self.calibration.simulate.size_nm / 2
+        if reach > calibrated:
+            raise ValueError(f"workspace: it reaches {reach:.0f} nm from the scanner's centre, beyond the "
+                             f"{calibrated:.0f} nm that step A's calibration scan covers reliably "
+                             f"({Compensation().scan_fraction:g} x half its size): make the workspace "
+                             "smaller, move it inward, or calibrate over a larger scan")
+        return self
+
+
 def _format(error: ValidationError, path: Path) -> str:
     lines = [f"{path}: invalid configuration"]
     for e in error.errors():

@@ -106,7 +106,9 @@ def _targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -> Ar
 
 
 @eqx.filter_jit
-def _numerical(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max: float):
+def numerical_inverse(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max: float):
+    """The drive (T, 2) V that puts ``model``, from ``state`` with the drive at ``u0``, at ``wanted``
+    (T, 2) nm at times ``t``, sample by sample, and where each sample saturated at ``+-u_max``."""
     v = _targets(model, wanted, t, state)
 
     def step(carry, inputs):
@@ -183,7 +185,7 @@ class Compensator(eqx.Module):
             u = _analytic(self.model, wanted, t, self.state, jnp.asarray(self.history, dtype=float))
             saturated = np.zeros(u.shape, dtype=bool)
         else:
-            u, saturated = _numerical(self.model, wanted, t, self.state, jnp.asarray(self.u_now, dtype=float),
+            u, saturated = numerical_inverse(self.model, wanted, t, self.state, jnp.asarray(self.u_now, dtype=float),
                                       self.u_max)
         self._check(np.asarray(u), np.asarray(saturated), np.asarray(wanted))
         return u

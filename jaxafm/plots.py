@@ -115,3 +115,114 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
         fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def landmarks(panels: dict, raster, path) -> None:
+    """Step B: each workspace image with the indents intended (``D``, +) and found (``M``, o),
+    their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M, sample)``."""
+    panels = {k: v for k, v in panels.items() if v is not None}
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
+    x0, y0 = raster.origin
+    dx, dy = raster.pixel_size
+    extent = np.array([x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)])
+    for ax, (title, (images, D, M, _)) in zip(axes[0], panels.items()):
+        z = np.asarray(images["trace"])
+        lo, hi = np.percentile(z, [1, 99.5])
+        ax.imshow(z, origin="lower", extent=extent / 1e3, cmap="afmhot", vmin=lo, vmax=hi)
+        ax.plot(D[:, 0] / 1e3, D[:, 1] / 1e3, "+", color="c", ms=10, mew=1.5, label="intended D")
+        ax.plot(M[:, 0] / 1e3, M[:, 1] / 1e3, "o", mfc="none", color="lime", ms=9, label="found M")
+        if M.shape == D.shape:
+            err = np.linalg.norm(M - D, axis=1)
+            spacing = np.median(np.linalg.norm(np.diff(D, axis=0), axis=1))
+            gain = float(np.clip(0.4 * spacing / max(err.max(), 1e-9), 1, 20)) // 1
+            ax.quiver(D[:, 0] / 1e3, D[:, 1] / 1e3, (M - D)[:, 0] / 1e3, (M - D)[:, 1] / 1e3, angles="xy",
+                      scale_units="xy", scale=1 / gain, color="w", width=0.004, label=f"M - D (x{gain:g})")
+            title += f"\n|M - D|: rms {np.sqrt(np.mean(err**2)):.0f} nm, max {err.max():.0f} nm"
+        else:
+            title += f"\nonly {len(M)} of {len(D)} landmarks in the image"
+        ax.set(title=title, xlabel="x [µm]", ylabel="y [µm]")
+        ax.legend(fontsize=8, loc="upper right", framealpha=0.6)
+    fig.suptitle("Step B: landmark grid pressed, re-scanned and found (particles are the bright dots)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _examples(radii: np.ndarray, k: int = 3) -> np.ndarray:
+    """Indices of ``k`` trials spread over the particle sizes: smallest, middle, largest."""
+    order = np.argsort(radii)
+    return order[np.linspace(0, len(order) - 1, k).round().astype(int)]
+
+
+def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
+    """Step C: the local-scan lines of three targets, about the centre each scan found, with
+    the particle where it truly lies relative to the tip after the final move."""
+    names = {0: ("search (x)", "0.6"), 1: ("centre (y)", "tab:blue"), 2: ("verify (x)", "tab:red")}
+    picks = _examples(radii)
+    fig, axes = plt.subplots(1, len(picks), figsize=(5.2 * len(picks), 5.4))
+    for ax, i in zip(np.atleast_1d(axes), picks):
+        c = r["c_centre"][i]
+        n = int(r["c_lines"][i])
+        for j in range(n):
+            phase = int(r["c_phases"][i, j])
+            a, b = r["c_starts"][i, j] - c, r["c_ends"][i, j] - c
+            label, colour = names[phase]
+            ax.plot([a[0], b[0]], [a[1], b[1]], color=colour, lw=1.5, alpha=0.8,
+                    label=label if j == min(k for k in range(n) if int(r["c_phases"][i, k]) == phase) else None)
+        p = truth[i] - r["c_tip"][i]
+        ax.add_patch(plt.Circle(p, radii[i], fill=False, color="k", lw=1.5, label="particle (true, vs tip)"))
+        guess = r["c_starts"][i, 0] * 0.5 + r["c_ends"][i, 0] * 0.5 - c
+        ax.plot(*guess, "x", color="tab:orange", ms=10, mew=2, label="target after A+B")
+        ax.plot(0, 0, "k+", ms=14, mew=1.5, label="centre found")
+        ax.set(title=f"R = {radii[i]:.1f} nm: {n} lines, error {r['c_error_nm'][i]:.2f} nm "
+               f"({r['c_error_nm'][i] / radii[i]:.3f} R)", xlabel="x - centre found [nm]",
+               ylabel="y - centre found [nm]", aspect="equal")
+        ax.legend(fontsize=7, loc="lower left")
+    fig.suptitle("Step C: local scans (each line scanned there and back) on particles of three sizes")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
+    """The push: three examples (tip path, particle before and after, goal and its tolerance),
+    and the miss distance of every particle in units of its radius."""
+    picks = _examples(radii)
+    fig, axes = plt.subplots(1, len(picks) + 1, figsize=(5 * (len(picks) + 1), 5))
+    for ax, i in zip(axes, picks):
+        o = truth[i]
+        tip = r["push_path"][i] - o
+        ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true)")
+        ax.add_patch(plt.Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before"))
+        ax.add_patch(plt.Circle(r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5,
+                                label="particle after"))
+        g = r["push_goal"][i] - o
+        ax.plot(*g, "*", color="tab:red", ms=12, label="goal")
+        miss = np.linalg.norm(r["push_final"][i] - r["push_goal"][i])
+        ax.set(title=f"R = {radii[i]:.1f} nm: miss {miss:.2f} nm", xlabel="x [nm]", ylabel="y [nm]", aspect="equal")
+        ax.legend(fontsize=7, loc="best")
+    miss = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1) / radii
+    ax = axes[-1]
+    ax.hist(miss, bins=40, color="tab:blue")
+    ax.set(xlabel="miss / R", ylabel="particles", title=f"all {len(miss)} pushes: median miss {np.median(miss):.3f} R")
+    fig.suptitle("The pushing task after A+B+C (particle carried by the tip from contact on)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def stage_errors(errors: dict, path) -> None:
+    """Cumulative distribution of the error at the target (nm) after each stage."""
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for name, e in errors.items():
+        e = np.sort(np.asarray(e))
+        ax.step(e, np.arange(1, e.size + 1) / e.size, where="post", label=f"{name} (median {np.median(e):.1f} nm)")
+    ax.axvline(20.0, color="k", ls=":", lw=1)
+    ax.text(20.0, 0.02, " 20 nm", fontsize=8)
+    ax.set(xscale="log", xlabel="error at the target [nm] (true tip to true particle centre)",
+           ylabel="fraction of targets", title="Positioning error after each stage (one run, simulated AFM)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -27,7 +27,8 @@ from .config import CalibrateConfig, CalibrationImages, Grating, SimulatedCalibr
 from .images import read_image
 from .inverse import Compensator, train_neural_inverse
 from .io import save_model
-from .samples import Lattice, Plane
+from .samples import Lattice, Plane, Tip
+from .scanner import Scanner
 
 SETTLE_S = 0.5  # each leg of the initialisation cycle, s
 PAUSE_S = 0.1  # from the end of the cycle to the first sample of a scan, s
@@ -45,9 +46,10 @@ class Simulation:
     key: jax.Array
 
 
-def simulate_calibration(spec: SimulatedCalibration, grating: Grating) -> tuple:
-    """The calibration scan of the default simulated AFM: ``(CalibrationScan, Simulation)``."""
-    afm = default_afm()
+def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Optional[AFM] = None) -> tuple:
+    """The calibration scan of the simulated AFM (``default_afm()`` unless given):
+    ``(CalibrationScan, Simulation)``."""
+    afm = default_afm() if afm is None else afm
     if spec.withheld:
         afm = afm.without(*spec.withheld)
     p = grating.pitch_nm
@@ -156,14 +158,20 @@ def compensated_scan(sim: Simulation, raster: Raster, volts: Optional[Callable])
     return raster_scan(sim.afm, sim.lattice, s, raster, volts=timed, key=sim.key), seconds[0]
 
 
+def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.ndarray):
+    """Where a fitted ``scanner`` stands after replaying every drive the instrument saw: the
+    calibration scan, then the initialisation ``cycle`` again (an ``AFMState``)."""
+    twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
+    s = raster_scan(twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster,
+                    key=calibration.KEY)["state"]
+    return _cycle(twin, Plane(), s, cycle, calibration.KEY)
+
+
 def model_compensator(model: calibration.ScanModel, scan: calibration.CalibrationScan, sim: Simulation,
                       method: str) -> Compensator:
-    """The model's inverse from the state its twin reaches: the twin replays every drive
-    the instrument saw (calibration scan, cycle), so it knows where its plays and creep stand."""
-    twin = model.afm(scan)
-    s = raster_scan(twin, Plane(), twin.initial_state(scan.u0, scan.t0, sim.cycle), scan.raster,
-                    key=calibration.KEY)["state"]
-    s = _cycle(twin, Plane(), s, sim.cycle, calibration.KEY)
+    """The model's inverse from the state its twin reaches (:func:`twin_state`), so it knows
+    where its plays and creep stand."""
+    s = twin_state(model.scanner, scan, sim.cycle)
     return Compensator(model.scanner, s.scanner, s.u, drive_range(scan), method,
                        history=jnp.asarray(sim.cycle), u_max=scan.u_max)
 

@@ -1,0 +1,295 @@
+"""Positioning on the simulated AFM: the paper's steps A, B and C and the pushing task.
+
+The software drives the instrument with *wanted* positions (nm) in the frame of
+the images it took. They pass through step B's landmark map (wanted ->
+command), then through step A's inverse model or the nominal calibration
+(command -> volts), then the instrument. Step A's model runs beside the
+instrument as a twin: every drive goes through both, so the inverse always
+knows where the model's plays and creep stand.
+
+Every action is a pure function of equinox Modules and runs in real time from a
+:class:`Stand` (instrument and twin state): creep and drift carry on from one to
+the next. Step C (:func:`local_scan`) is a ``lax.while_loop`` of line scans, so
+all of it runs under ``jit`` and ``vmap``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from . import checks
+from .afm import AFM, AFMState, Raster, raster_images, raster_times
+from .inverse import numerical_inverse
+from .landmarks import LandmarkMap
+from .samples import Particles, Tip, surface
+from .scanner import Scanner, ScannerState
+
+Array = jax.Array
+
+
+class Stand(eqx.Module):
+    """Where things stand: the instrument, step A's twin (``None`` without a model), and the
+    last wanted position ``wanted`` (2,) nm, from which the next move starts."""
+
+    afm: AFMState
+    twin: Optional[ScannerState]
+    wanted: Array
+
+
+class Positioner(eqx.Module):
+    """The instrument ``afm`` as the positioning software drives it: through the landmark
+    map ``frame`` (step B) if given, then step A's fitted ``model`` if given (its numerical
+    inverse, run from the twin's state), else the nominal calibration. Drives beyond
+    ``+-afm.u_max`` saturate."""
+
+    afm: AFM
+    model: Optional[Scanner] = None
+    frame: Optional[LandmarkMap] = None
+
+    def start(self, state: AFMState, twin: Optional[ScannerState] = None) -> Stand:
+        """A stand at the instrument's ``state``; the wanted position is where the drive points."""
+        if (self.model is None) != (twin is None):
+            raise ValueError("a positioner with a model needs the twin's state, and one without a model none")
+        return Stand(state, twin, state.u * self.afm.sensitivity)
+
+    def volts(self, wanted: Array, t: Array, stand: Stand) -> tuple:
+        """The drive (T, 2) V for ``wanted`` (T, 2) nm at times ``t`` and the twin's next state."""
+        command = wanted if self.frame is None else self.frame(wanted)
+        if self.model is None:
+            return self.afm.nominal_volts(command), stand.twin
+        u, _ = numerical_inverse(self.model, command, t, stand.twin, stand.afm.u, self.afm.u_max)
+        return u, self.model.run(u, t, stand.twin)[1]
+
+    def drive(self, sample, stand: Stand, wanted: Array, t: Array, key: Array) -> tuple:
+        """Follow ``wanted`` (T, 2) nm at times ``t`` (T,) s: true path (T, 2) nm, recorded
+        heights (T,) nm, and the next stand."""
+        u, twin = self.volts(wanted, t, stand)
+        u = jnp.clip(u, -self.afm.u_max, self.afm.u_max)
+        path, h, state = self.afm.drive(sample, u, t, stand.afm, key)
+        return path, h, Stand(state, twin, wanted[-1])
+
+
+def goto(pos: Positioner, sample, stand: Stand, target: Array, key: Array, move_time: float = 0.1,
+         dwell: float = 0.2, samples: int = 64) -> tuple:
+    """Move straight to ``target`` (2,) nm over ``move_time`` s and dwell there ``dwell`` s.
+
+    Returns the true tip position (2,) nm at the end of the dwell, the true path
+    and the next stand.
+    """
+    n_move = samples // 2
+    frac = jnp.concatenate([jnp.arange(1, n_move + 1) / n_move, jnp.ones(samples - n_move)])
+    wanted = stand.wanted + frac[:, None] * (jnp.asarray(target, dtype=float) - stand.wanted)
+    dt = jnp.concatenate([jnp.full(n_move, move_time / n_move), jnp.full(samples - n_move, dwell / (samples - n_move))])
+    t = stand.afm.scanner.t + jnp.cumsum(dt)
+    path, _, stand = pos.drive(sample, stand, wanted, t, key)
+    return path[-1], path, stand
+
+
+def press_at(pos: Positioner, sample, stand: Stand, target: Array, depth: float, key: Array,
+             dwell: float = 0.2) -> tuple:
+    """Move to ``target`` (2,) nm, dwell, and indent ``depth`` nm where the tip really is.
+    Returns ``(sample with the indent, stand, true xy)``."""
+    xy, _, stand = goto(pos, sample, stand, target, key, dwell=dwell)
+    return sample.press(xy, depth), stand, xy
+
+
+def raster(pos: Positioner, sample, stand: Stand, raster: Raster, key: Array, move_time: float = 0.1) -> tuple:
+    """Image ``sample`` along ``raster`` (wanted positions); the images as
+    :func:`~jaxafm.afm.raster_scan` gives them, and the next stand."""
+    wanted = jnp.asarray(raster.wanted().reshape(-1, 2))
+    k_move, k_scan = jax.random.split(key)
+    _, _, stand = goto(pos, sample, stand, wanted[0], k_move, move_time, dwell=0.05)
+    t = raster_times(raster, stand.afm.scanner.t)
+    path, h, stand = pos.drive(sample, stand, wanted, t, k_scan)
+    return raster_images(raster, path, h, t), stand
+
+
+# ---------------------------------------------------------------------------------------------
+# Step C: local-scan fine positioning (paper section III-C)
+
+
+class LocalScan(eqx.Module):
+    """The local scan's settings: ``points`` per line, each line scanned there and back in
+    ``line_time`` s per direction (the mean of both cancels the feedback lag), a move of
+    ``move_time`` s to each line; the search reaches ``margin`` nm beyond the particle's
+    expected place; at most ``max_lines`` lines in all; accept when the pulse width through
+    the centre is within ``width_tolerance`` of that of a centred line."""
+
+    points: int = eqx.field(static=True, default=192)
+    line_time: float = eqx.field(static=True, default=0.5)
+    move_time: float = eqx.field(static=True, default=0.05)
+    margin: float = eqx.field(static=True, default=40.0)
+    max_lines: int = eqx.field(static=True, default=24)
+    width_tolerance: float = eqx.field(static=True, default=0.1)
+
+    def half_length(self, radius: Array, tip: Tip) -> Array:
+        """Half the length of a line, nm: the search margin plus the imaged particle's reach."""
+        return self.margin + 2 * (radius + tip.radius)
+
+
+class ScanResult(eqx.Module):
+    """What the local scan found: ``centre`` (2,) nm in the wanted frame, ``found`` (verified),
+    the ``lines`` scanned, their ``starts``/``ends`` (max_lines, 2) nm and kind ``phases``
+    (0 search, 1 along y, 2 verification; -1 unused), the scanning ``seconds``."""
+
+    centre: Array
+    found: Array
+    lines: Array
+    starts: Array
+    ends: Array
+    phases: Array
+    seconds: Array
+
+
+def pulse(h: Array, s: Array, min_height: Array) -> tuple:
+    """The pulse of a line's heights ``h`` (P,) nm at positions ``s`` (P,) nm: present when it
+    rises ``min_height`` above the median and lies wholly inside the line; its middle and its
+    width at half height, both from linear interpolation between samples."""
+    P = h.shape[0]
+    base = jnp.median(h)
+    peak = jnp.max(h)
+    level = base + (peak - base) / 2
+    above = h > level
+    first = jnp.argmax(above)
+    last = P - 1 - jnp.argmax(above[::-1])
+
+    def crossing(i0, i1):
+        frac = (level - h[i0]) / jnp.where(h[i1] != h[i0], h[i1] - h[i0], 1.0)
+        return s[i0] + frac * (s[i1] - s[i0])
+
+    left = crossing(jnp.maximum(first - 1, 0), first)
+    right = crossing(jnp.minimum(last + 1, P - 1), last)
+    found = (peak - base > min_height) & (first > 0) & (last < P - 1)
+    return found, (left + right) / 2, right - left
+
+
+def centred_width(radius: Array, tip: Tip, samples: int = 4001) -> Array:
+    """Width at half height (nm) of a particle of ``radius`` nm on a flat substrate imaged by
+    ``tip`` along a line through its centre: the local scan's acceptance reference
+    (``2 R`` for a point tip, as in the paper)."""
+    reach = 4 * (radius + tip.radius)  # the pulse's foot covers under half of the line
+    s = jnp.linspace(-1.0, 1.0, samples) * reach
+    line = jnp.stack([s, jnp.zeros_like(s)], -1)
+    h = surface(Particles(jnp.zeros((1, 2)), jnp.reshape(radius, (1,))), tip)(line)
+    return pulse(h, s, radius)[2]
+
+
+def _offset(k: Array) -> Array:
+    """Search order of line offsets, in units of 0.75 R: 0, +1, -1, +2, -2, ..."""
+    m = (k + 1) // 2
+    return jnp.where(k % 2 == 1, m, -m)
+
+
+def local_scan(pos: Positioner, sample, stand: Stand, guess: Array, radius: Array, key: Array,
+               spec: LocalScan = LocalScan()) -> tuple:
+    """Find the centre of a particle of ``radius`` nm expected near ``guess`` (2,) nm (paper III-C).
+
+    x lines through the guess, shifted by 0.75 R in y until the heights show
+    the particle; the middle of that pulse; a y line through it to the centre;
+    a verification x line through the centre, accepted when its pulse width is
+    within ``spec.width_tolerance`` of a centred line's, else the y and
+    verification lines again. A line that loses the particle restarts the
+    search from the current estimate. At most ``spec.max_lines`` lines: then
+    ``found`` is false. Returns ``(ScanResult, stand)``.
+    """
+    radius = jnp.asarray(radius, dtype=float)
+    if checks.is_concrete(radius):
+        checks.positive("particle radius R (nm)", radius)
+    tip = pos.afm.tip
+    L = spec.half_length(radius, tip)
+    width0 = centred_width(radius, tip)
+    P = spec.points
+    s = jnp.linspace(-1.0, 1.0, P) * L
+    dt_line = spec.line_time / (P - 1)
+    n_search = 2 * jnp.ceil(spec.margin / (0.75 * radius)) + 1
+    ex, ey = jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])
+    n_move = 16
+    frac_move = jnp.arange(1, n_move + 1) / n_move
+
+    def scan_line(stand, centre, along, k):
+        """Move to the line's start, scan to its end and back: heights (2, P), new stand."""
+        start, end = centre - L * along, centre + L * along
+        there = start + (s[:, None] + L) / (2 * L) * (end - start)
+        wanted = jnp.concatenate([stand.wanted + frac_move[:, None] * (start - stand.wanted), there, there[::-1]])
+        dt = jnp.concatenate([jnp.full(n_move, spec.move_time / n_move), jnp.full(2 * P, dt_line)])
+        t = stand.afm.scanner.t + jnp.cumsum(dt)
+        _, h, stand = pos.drive(sample, stand, wanted, t, k)
+        return jnp.stack([h[n_move:n_move + P], h[n_move + P:][::-1]]), start, end, stand
+
+    def body(c):
+        stand, key, phase, k, origin, est, n, done, ok, starts, ends, phases = c
+        key, sub = jax.random.split(key)
+        centre = jnp.where(phase == 0, origin + _offset(k) * 0.75 * radius * ey, est)
+        along = jnp.where(phase == 1, ey, ex)
+        h, start, end, stand = scan_line(stand, centre, along, sub)
+        f1, mid1, w1 = pulse(h[0], s, radius)
+        f2, mid2, w2 = pulse(h[1], s, radius)
+        seen, mid, width = f1 & f2, (mid1 + mid2) / 2, (w1 + w2) / 2
+        hit = centre + mid * along
+        verified = (phase == 2) & seen & (jnp.abs(width - width0) <= spec.width_tolerance * width0)
+        next_est = jnp.where(seen, hit, est)
+        # search: next offset or on to y; y or verification: on, or restart the search from the estimate
+        next_phase = jnp.where(seen, jnp.where(phase == 2, 1, phase + 1), 0)
+        next_k = jnp.where(seen | (phase > 0), 0, k + 1)
+        next_origin = jnp.where(seen | (phase == 0), origin, est)
+        exhausted = (phase == 0) & ~seen & (k + 1 >= n_search)
+        starts, ends, phases = starts.at[n].set(start), ends.at[n].set(end), phases.at[n].set(phase)
+        n = n + 1
+        done = verified | exhausted | (n >= spec.max_lines)
+        return (stand, key, next_phase, next_k, next_origin, next_est, n, done, verified, starts, ends, phases)
+
+    guess = jnp.asarray(guess, dtype=float)
+    t0 = stand.afm.scanner.t
+    empty = jnp.zeros((spec.max_lines, 2))
+    init = (stand, key, 0, 0, guess, guess, 0, False, False, empty, empty, jnp.full(spec.max_lines, -1))
+    out = lax.while_loop(lambda c: ~c[7], body, init)
+    stand, est, n, ok = out[0], out[5], out[6], out[8]
+    result = ScanResult(est, ok, n, out[9], out[10], out[11], stand.afm.scanner.t - t0)
+    return result, stand
+
+
+# ---------------------------------------------------------------------------------------------
+# The pushing task
+
+
+class Push(eqx.Module):
+    """The pushing task's settings: start ``gap`` nm behind the contact, push at ``speed``
+    nm/s in ``samples`` steps. The particle model: the tip touches a particle of radius R
+    when their centres come within ``R + tip radius``; from then on the particle moves
+    with the tip (rigidly), and it stays where it is when the tip retracts."""
+
+    gap: float = eqx.field(static=True, default=20.0)
+    speed: float = eqx.field(static=True, default=200.0)
+    samples: int = eqx.field(static=True, default=512)
+
+
+def push(pos: Positioner, sample, stand: Stand, centre: Array, particle: Array, radius: Array,
+         direction: Array, distance: Array, key: Array, spec: Push = Push()) -> tuple:
+    """Push the particle whose centre the software sees at ``centre`` (2,) nm (truly at
+    ``particle``) by ``distance`` nm along the unit ``direction`` (2,): approach behind it
+    (lifted), lower, push so that it ends at ``centre + distance * direction``, retract.
+
+    Returns the particle's true final centre (2,) nm, whether the tip touched it, the
+    tip's true path during the push (samples, 2) nm and the next stand.
+    """
+    rho = radius + pos.afm.tip.radius
+    direction = direction / jnp.linalg.norm(direction)
+    start = centre - (rho + spec.gap) * direction
+    end = centre + (distance - rho) * direction
+    k_to, k_push = jax.random.split(key)
+    _, _, stand = goto(pos, sample, stand, start, k_to, dwell=0.1)
+    frac = jnp.arange(1, spec.samples + 1) / spec.samples
+    wanted = start + frac[:, None] * (end - start)
+    length = spec.gap + distance
+    t = stand.afm.scanner.t + length / spec.speed / spec.samples * jnp.arange(1, spec.samples + 1)
+    path, _, stand = pos.drive(sample, stand, wanted, t, k_push)
+    touching = jnp.linalg.norm(path - particle, axis=-1) <= rho
+    contact = jnp.argmax(touching)
+    moved = touching.any()
+    final = jnp.where(moved, particle + path[-1] - path[contact], particle)
+    return final, moved, path, stand

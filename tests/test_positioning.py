@@ -1,0 +1,249 @@
+"""Steps B and C and the push: landmark interpolation, landmark detection, the local scan, the push."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxafm.afm import Raster, default_afm
+from jaxafm.config import RunConfig
+from jaxafm.landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
+from jaxafm.positioning import LocalScan, Positioner, goto, local_scan, push
+from jaxafm.samples import Indented, Particles, Plane, surface
+from jaxafm.step_a import _cycle
+
+CYCLE = np.array([[-10.0, -10.0], [10.0, 10.0]])
+
+
+# ---------------------------------------------------------------------------------------------
+# Step B: the landmark map
+
+
+def test_pairwise_interpolation_matches_a_hand_computed_case():
+    # three landmarks, m = 3, target (5, 5); eq. 5 per pair, by hand:
+    # x: (5/10)*12 + 0 = 6; (5/4)*3 + 0 = 3.75; (-5/-6)*(3-12) + 12 = 4.5  -> mean 4.75
+    # y: (5/2)*1 + 0 = 2.5; (5/10)*11 + 0 = 5.5; (3/8)*(11-1) + 1 = 4.75  -> mean 4.25
+    M = np.array([[0.0, 0.0], [10.0, 2.0], [4.0, 10.0]])
+    I = np.array([[0.0, 0.0], [12.0, 1.0], [3.0, 11.0]])
+    f = LandmarkMap(M, I, "pairwise", m=3, min_separation=0.5)
+    np.testing.assert_allclose(f(jnp.array([5.0, 5.0])), [4.75, 4.25], atol=1e-12)
+
+
+def test_pairwise_leaves_out_pairs_in_one_column_and_is_exact_for_a_separable_map():
+    # on a square cell, pairs in one column (row) divide by zero in eq. 5; without them the
+    # average of the cross pairs reproduces a map whose x depends on x alone (y on y) exactly
+    M = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 100.0], [100.0, 100.0]])
+    x = np.array([[30.0, 70.0], [91.0, 12.0]])
+    b = np.array([5.0, -3.0])
+    A = np.diag([1.02, 0.97])
+    np.testing.assert_allclose(LandmarkMap(M, M @ A.T + b, "pairwise", m=4)(x), x @ A.T + b, atol=1e-9)
+    # eq. 5 interpolates x along x only: x-y coupling leaves an error, the polynomial surface none
+    A = np.array([[1.02, 0.03], [-0.01, 0.97]])
+    pairwise = LandmarkMap(M, M @ A.T + b, "pairwise", m=4)(x)
+    polynomial = LandmarkMap(M, M @ A.T + b, "polynomial", degree=1)(x)
+    np.testing.assert_allclose(polynomial, x @ A.T + b, atol=1e-9)
+    assert np.abs(pairwise - (x @ A.T + b)).max() > 0.5
+
+
+def test_polynomial_surface_recovers_a_cubic_map():
+    g = np.linspace(-1000, 1000, 5)
+    M = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    cubic = lambda p: np.stack([p[:, 0] + 2e-4 * p[:, 0] * p[:, 1] + 1e-8 * p[:, 1] ** 3,  # noqa: E731
+                                p[:, 1] - 3e-9 * p[:, 0] ** 3 + 0.02 * p[:, 0]], -1)
+    f = LandmarkMap(M, cubic(M), "polynomial", degree=3)
+    x = np.random.default_rng(0).uniform(-900, 900, (20, 2))
+    np.testing.assert_allclose(f(x), cubic(x), atol=1e-8)
+
+
+def test_landmarks_are_found_at_their_known_positions():
+    # indents pressed at known points, imaged by the tip on a nominal pixel grid (no scanner)
+    afm = default_afm()
+    raster = Raster(2000.0, 128, 128)
+    grid = LandmarkGrid(4, 12, 34, 128)
+    D = grid.positions(raster)
+    rng = np.random.default_rng(1)
+    truth = D + rng.uniform(-20, 20, D.shape)  # where the tip really pressed
+    sample = Indented.empty(Plane(), afm.tip, capacity=16)
+    for p in truth:
+        sample = sample.press(jnp.asarray(p), 50.0)
+    xy = np.stack(np.meshgrid(raster.origin[0] + raster.pixel_size[0] * np.arange(128),
+                              raster.origin[1] + raster.pixel_size[1] * np.arange(128)), -1)
+    z = np.asarray(surface(sample, afm.tip)(jnp.asarray(xy)))
+    found = order_grid(find_features(z, raster, 16, pits=True, min_height=12.0, min_distance_nm=200,
+                                     window_nm=30), 4)
+    assert np.abs(found - truth).max() < 2.0  # nm, with 15.6 nm pixels
+
+
+def test_order_grid_needs_every_landmark():
+    with pytest.raises(ValueError, match="found 3 landmarks.*expected N x N = 4"):
+        order_grid(np.zeros((3, 2)), 2)
+
+
+@pytest.mark.parametrize("n, start, step, match", [
+    (1, 0, 10, "N >= 2"),
+    (4, 16, 40, r"eq. 3, P \+ S\(N-1\) < n.*136 px.*n = 128"),
+    (3, -1, 10, "start P must be >= 0"),
+])
+def test_landmark_grid_rejects_grids_that_do_not_fit(n, start, step, match):
+    with pytest.raises(ValueError, match=match):
+        LandmarkGrid(n, start, step, 128)
+
+
+def test_target_outside_the_landmark_grid_is_an_error():
+    M = np.array([[0.0, 0.0], [100.0, 0.0], [0.0, 100.0], [100.0, 100.0]])
+    f = LandmarkMap(M, M, "polynomial", degree=1)
+    f.check_inside(np.array([[50.0, 50.0]]))
+    with pytest.raises(ValueError, match=r"target \(150, 50\) nm lies outside the landmark grid"):
+        f.check_inside(np.array([[150.0, 50.0]]))
+
+
+def test_map_rejects_too_few_landmarks_for_its_degree():
+    with pytest.raises(ValueError, match="degree-3 surface has 10 coefficients per axis but there are 4"):
+        LandmarkMap(np.eye(4, 2), np.eye(4, 2), "polynomial", degree=3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Step C: the local scan, under drift
+
+
+def twin_after_cycle(afm, model):
+    from jaxafm.afm import AFM
+    from jaxafm.samples import Tip
+
+    twin = AFM(model, Tip(), afm.sensitivity, None, dilate=False)
+    return _cycle(twin, Plane(), twin.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0)).scanner
+
+
+@pytest.fixture(scope="module")
+def drifting():
+    afm = default_afm(drift_nm_per_min=(3.0, -2.0))
+    model = afm.scanner.without("drift", "noise")
+    state = _cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
+    pos = Positioner(afm, model)
+    stand = pos.start(state, twin_after_cycle(afm, model))
+    # let the drift build up for ten minutes: 30 nm in x, -20 nm in y
+    _, _, stand = goto(pos, Plane(), stand, jnp.zeros(2), jax.random.key(1), dwell=600.0)
+    return pos, stand
+
+
+@eqx.filter_jit
+def find_and_go(pos, sample, stand, guess, radius, key):
+    k1, k2 = jax.random.split(key)
+    res, stand = local_scan(pos, sample, stand, guess, radius, k1, LocalScan())
+    xy, _, _ = goto(pos, sample, stand, res.centre, k2)
+    return res, xy
+
+
+def test_local_scan_finds_particles_at_known_positions_under_drift(drifting):
+    pos, stand = drifting
+    centres = jnp.array([[300.0, -200.0], [-250.0, 400.0]])
+    radii = jnp.array([5.0, 30.0])
+    sample = Particles(centres, radii)
+    # the software believes the particles lie at their nominal places: the drift has moved the
+    # tip's frame by about (30, -20) nm since, and the guesses are off by a further (12, -9) nm
+    guesses = centres + jnp.array([12.0, -9.0])
+    keys = jax.random.split(jax.random.key(2), 2)
+    without_c = jax.vmap(lambda g, k: goto(pos, sample, stand, g, k)[0])(centres, keys)
+    res, xy = jax.vmap(lambda g, r, k: find_and_go(pos, sample, stand, g, r, k))(guesses, radii, keys)
+    before = np.linalg.norm(np.asarray(without_c - centres), axis=1)
+    after = np.linalg.norm(np.asarray(xy - centres), axis=1)
+    assert np.all(before > 25.0)  # the drift alone misplaces the tip
+    assert np.asarray(res.found).all()
+    assert np.all(after < 0.1 * np.asarray(radii)), after
+
+
+def test_local_scan_gives_up_cleanly_without_a_particle(drifting):
+    pos, stand = drifting
+    spec = LocalScan(max_lines=24)
+    res, _ = local_scan(pos, Plane(), stand, jnp.array([100.0, 100.0]), jnp.asarray(10.0), jax.random.key(3), spec)
+    n_search = 2 * int(np.ceil(spec.margin / 7.5)) + 1  # lines 0.75 R apart over +-margin
+    assert not bool(res.found)
+    assert int(res.lines) == n_search <= spec.max_lines
+    np.testing.assert_allclose(res.centre, [100.0, 100.0])
+    assert float(res.seconds) > n_search * 2 * spec.line_time  # every line cost its real duration
+
+
+def test_local_scan_rejects_a_radius_that_is_not_positive(drifting):
+    pos, stand = drifting
+    with pytest.raises(ValueError, match="particle radius R"):
+        local_scan(pos, Plane(), stand, jnp.zeros(2), jnp.asarray(-5.0), jax.random.key(0))
+
+
+# ---------------------------------------------------------------------------------------------
+# The push
+
+
+def test_push_carries_the_particle_to_the_goal_and_misses_when_off_centre(drifting):
+    pos, stand = drifting
+    p, R = jnp.array([200.0, 100.0]), jnp.asarray(20.0)
+    d, dist = jnp.array([0.6, 0.8]), jnp.asarray(150.0)
+    res, xy = find_and_go(pos, Particles(p[None], R[None]), stand, p + 10.0, R, jax.random.key(4))
+    final, moved, path, _ = push(pos, Plane(), stand, res.centre, p, R, d, dist, jax.random.key(5))
+    assert bool(moved)
+    assert float(jnp.linalg.norm(final - (p + dist * d))) < 2.0  # nm
+    # aimed 2 (R + tip radius) to the side, the tip passes the particle by: it stays put
+    side = jnp.array([-0.8, 0.6]) * 2 * (R + pos.afm.tip.radius)
+    final, moved, _, _ = push(pos, Plane(), stand, res.centre + side, p, R, d, dist, jax.random.key(5))
+    assert not bool(moved)
+    np.testing.assert_allclose(final, p)
+
+
+# ---------------------------------------------------------------------------------------------
+# The run's configuration
+
+
+@pytest.mark.parametrize("patch, match", [
+    ({"landmarks": {"n": 1}}, "landmarks.n"),
+    ({"landmarks": {"n": 5, "start_px": 40, "step_px": 60}}, r"eq. 3"),
+    ({"particles": {"radius_nm": [0, 20]}}, "radius must be > 0"),
+    ({"particles": {"radius_nm": [30, 20]}}, "min <= max"),
+    ({"workspace": {"size_nm": 9000}}, "beyond the .* nm that step A's calibration scan covers"),
+    ({"calibration": {"model": {"name": "m", "effects": ["tip"]}}}, "cannot be fitted"),
+])
+def test_run_config_rejects_impossible_settings(patch, match):
+    with pytest.raises(ValueError, match=match):
+        RunConfig.model_validate(patch)
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole run, small: `jaxafm run` with the true scanner as step A's model
+
+
+SMALL_RUN = """
+calibration:
+  simulate: {{pixels: 32, size_nm: 8000}}
+  model_file: {model}
+workspace: {{size_nm: 1200, pixels: 64, line_rate_hz: 8}}
+landmarks: {{n: 3, start_px: 8, step_px: 24, interpolation: [polynomial, pairwise], m: 3, degree: 1}}
+particles: {{radius_nm: [20, 30], per_cell: 1, seed: 3}}
+local_scan: {{points: 96}}
+stages: [A, A+B]
+output: {out}
+"""
+
+
+def test_cli_run_positions_on_particles_and_pushes_them(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from jaxafm.cli import app
+    from jaxafm.io import save_model
+
+    save_model(default_afm().scanner.without("drift", "noise"), tmp_path / "true.json")
+    out = tmp_path / "run"
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(SMALL_RUN.format(model=tmp_path / "true.json", out=out))
+    result = CliRunner().invoke(app, ["run", str(cfg)])
+    assert result.exit_code == 0, result.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["AB_landmarks_found"] == 9
+    # with the true scanner as the model, what is left after A and B is drift and feature error
+    assert m["A_error_median_nm"] < 20 and m["AB_polynomial_error_max_nm"] < 20
+    assert m["ABC_within_0p1R_pct"] == 100.0 and m["push_success_pct"] == 100.0
+    for f in ("landmarks.png", "local_scan.png", "push.png", "errors.png"):
+        assert (out / f).stat().st_size > 0
+    assert "A+B+C" in result.output
+    again = CliRunner().invoke(app, ["run", str(cfg)])
+    assert again.exit_code == 2 and "--overwrite" in again.output
