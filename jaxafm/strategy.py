@@ -229,6 +229,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                                                 Indented.empty(particles, afm.tip, capacity=grid.n**2),
                                                 work, grid, D, with_b, key_survey)
         targets, which = find_targets(images, work, particles, cfg)
+        found = f"{len(targets)} of the {len(particles.radii)} particles found"
         maps = {"": None}
         if with_b:
             M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
@@ -243,8 +244,8 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                     for m in cfg.landmarks.interpolation}
             inside = np.all((targets >= M.min(0)) & (targets <= M.max(0)), axis=1)
             targets, which = targets[inside], which[inside]
-        log(f"  {len(targets)} particles found and matched of {len(particles.radii)}; "
-            f"{'pressing and ' if with_b else ''}imaging took {prep_s:.0f} s")
+            found += f", {len(targets)} inside the landmark grid"
+        log(f"  {found}; {'pressing and ' if with_b else ''}imaging took {prep_s:.0f} s")
         truth, radii = particles.centres[which], particles.radii[which]
         directions, distances = _push_goals(cfg, targets, which, len(particles.radii), box)
         keys = jax.random.split(key_trials, len(targets))
