@@ -135,7 +135,9 @@ def pitch_uniformity(out: dict, raster: Raster, pitch: float) -> dict:
     return result
 
 
-def _cycle(afm: AFM, sample, state, cycle: np.ndarray, key):
+def run_cycle(afm: AFM, sample, state, cycle: np.ndarray, key):
+    """The initialisation cycle from ``state``: a move to each drive of ``cycle`` (H, 2) V in turn,
+    each held ``SETTLE_S`` s; returns the state after it."""
     for target in cycle:
         _, state = move(afm, sample, state, target, SETTLE_S, key=key)
     return state
@@ -144,7 +146,7 @@ def _cycle(afm: AFM, sample, state, cycle: np.ndarray, key):
 def compensated_scan(sim: Simulation, raster: Raster, volts: Optional[Callable]) -> tuple:
     """The cycle again, then the lattice imaged along the drive ``volts(xy, t)`` (nominal if
     ``None``); returns the scan and the seconds the inverse took for the whole raster."""
-    s = _cycle(sim.afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    s = run_cycle(sim.afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
     if volts is None:
         return raster_scan(sim.afm, sim.lattice, s, raster, key=sim.key), 0.0
     seconds = []
@@ -164,7 +166,7 @@ def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.nd
     twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
     s = raster_scan(twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster,
                     key=calibration.KEY)["state"]
-    return _cycle(twin, Plane(), s, cycle, calibration.KEY)
+    return run_cycle(twin, Plane(), s, cycle, calibration.KEY)
 
 
 def model_compensator(model: calibration.ScanModel, scan: calibration.CalibrationScan, sim: Simulation,

@@ -37,7 +37,7 @@ from .io import load_model, save_model
 from .landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
 from .positioning import LocalScan, Positioner, Push, goto, local_scan, press_at, push, raster
 from .samples import Indented, Particles
-from .step_a import _cycle, simulate_calibration, twin_state
+from .step_a import run_cycle, simulate_calibration, twin_state
 
 STAGES = (("open_loop", False, False), ("A", True, False), ("B", False, True), ("A+B", True, True))
 NEARBY = 8  # particles each trial's local scan sees (the others lie beyond its lines)
@@ -209,7 +209,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
     model, fit_s = identify_scanner(cfg, scan, config_path, log)
     save_model(model, out / "model_scanner.json")
     calib_s = scan.raster.lines / scan.raster.line_rate
-    start_state = _cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    start_state = run_cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
     twin = twin_state(model, scan, sim.cycle).scanner
     metrics = {"step_a_fit_s": fit_s, "step_a_scan_s": calib_s, "particles": len(particles.radii),
                "workspace_nm": cfg.workspace.size_nm, "workspace_pixels": cfg.workspace.pixels,

@@ -6,12 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.afm import Raster, default_afm
+from jaxafm.afm import AFM, Raster, default_afm
 from jaxafm.config import RunConfig
 from jaxafm.landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
 from jaxafm.positioning import LocalScan, Positioner, goto, local_scan, push
-from jaxafm.samples import Indented, Particles, Plane, surface
-from jaxafm.step_a import _cycle
+from jaxafm.samples import Indented, Particles, Plane, Tip, surface
+from jaxafm.step_a import run_cycle
 
 CYCLE = np.array([[-10.0, -10.0], [10.0, 10.0]])
 
@@ -108,18 +108,16 @@ def test_map_rejects_too_few_landmarks_for_its_degree():
 
 
 def twin_after_cycle(afm, model):
-    from jaxafm.afm import AFM
-    from jaxafm.samples import Tip
-
+    """The model's state after the same initialisation cycle as the instrument's."""
     twin = AFM(model, Tip(), afm.sensitivity, None, dilate=False)
-    return _cycle(twin, Plane(), twin.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0)).scanner
+    return run_cycle(twin, Plane(), twin.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0)).scanner
 
 
 @pytest.fixture(scope="module")
 def drifting():
     afm = default_afm(drift_nm_per_min=(3.0, -2.0))
     model = afm.scanner.without("drift", "noise")
-    state = _cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
+    state = run_cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
     pos = Positioner(afm, model)
     stand = pos.start(state, twin_after_cycle(afm, model))
     # let the drift build up for ten minutes: 30 nm in x, -20 nm in y
