@@ -38,66 +38,46 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(code=2)
 
 
-@app.command()
-def fit(
-    config: Path = typer.Argument(..., help="YAML config (see configs/)"),
-    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
-    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
-):
-    """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
-    from . import actuator_fit
-    from .config import load_config
+def _launch(config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple) -> None:
+    """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it into the
+    output folder, prepared only once the inputs have been checked; errors become messages."""
+    import importlib
+
+    from . import config as configs
 
     try:
-        cfg = load_config(config)
+        cfg = configs.load_config(config, getattr(configs, schema))
         folder = out or Path(cfg.output)
-        actuator_fit.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, FIT_OUTPUTS),
-                         log=typer.echo)
-    except (ValueError, OSError) as e:
+        importlib.import_module(f"jaxafm.{job}").run(
+            cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, outputs), log=typer.echo)
+    except (ValueError, OSError, RuntimeError) as e:
         _fail(e)
-    typer.echo(f"wrote {', '.join(FIT_OUTPUTS)} into {folder}")
+    typer.echo(f"wrote the results into {folder}")
+
+
+CONFIG = typer.Argument(..., help="YAML config (see configs/)")
+OUT = typer.Option(None, help="output folder (default: the config's 'output')")
+OVERWRITE = typer.Option(False, help="replace the output folder's contents")
 
 
 @app.command()
-def calibrate(
-    config: Path = typer.Argument(..., help="YAML config (see configs/step_a_*.yaml)"),
-    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
-    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
-):
+def fit(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+    """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
+    _launch(config, out, overwrite, "ActuatorFitConfig", "actuator_fit", FIT_OUTPUTS)
+
+
+@app.command()
+def calibrate(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """Step A: identify the scanner from a grating image pair, invert it and compensate; write
     fitted scanners, metrics.json and compensation.png."""
-    from . import step_a
-    from .config import CalibrateConfig, load_config
-
-    try:
-        cfg = load_config(config, CalibrateConfig)
-        folder = out or Path(cfg.output)
-        step_a.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, CALIBRATE_OUTPUTS),
-                   log=typer.echo)
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(e)
-    typer.echo(f"wrote the results into {folder}")
+    _launch(config, out, overwrite, "CalibrateConfig", "step_a", CALIBRATE_OUTPUTS)
 
 
 @app.command()
-def run(
-    config: Path = typer.Argument(..., help="YAML config (see configs/paper.yaml)"),
-    out: Optional[Path] = typer.Option(None, help="output folder (default: the config's 'output')"),
-    overwrite: bool = typer.Option(False, help="replace the output folder's contents"),
-):
+def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
-    push, with an ablation table; write metrics.json, the fitted scanner and figures."""
-    from . import strategy
-    from .config import RunConfig, load_config
-
-    try:
-        cfg = load_config(config, RunConfig)
-        folder = out or Path(cfg.output)
-        strategy.run(cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, RUN_OUTPUTS),
-                     log=typer.echo)
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(e)
-    typer.echo(f"wrote the results into {folder}")
+    push, with an ablation table; write metrics.json, trials.npz, the fitted scanner and figures."""
+    _launch(config, out, overwrite, "RunConfig", "strategy", RUN_OUTPUTS)
 
 
 @app.command()
