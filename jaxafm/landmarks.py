@@ -116,7 +116,8 @@ class LandmarkMap(eqx.Module):
     ``method``: ``"pairwise"`` (eq. 4-5 over the ``m`` nearest) or ``"polynomial"``
     (of total ``degree``). A pair of landmarks that share a column (row) carries
     no x (y) information and makes eq. 5 divide by about zero; pairs closer than
-    ``min_separation`` nm on an axis are left out of that axis's average.
+    ``min_separation`` nm on an axis (default: a quarter of the median distance between
+    neighbouring landmarks) are left out of that axis's average.
     """
 
     measured: Array
@@ -124,7 +125,7 @@ class LandmarkMap(eqx.Module):
     method: str = eqx.field(static=True, default="polynomial")
     m: int = eqx.field(static=True, default=4)
     degree: int = eqx.field(static=True, default=3)
-    min_separation: float = eqx.field(static=True, default=1.0)
+    min_separation: Array = None
     coefficients: Array = None  # (terms, 2), polynomial only
     centre: Array = None
     scale: Array = None
@@ -149,7 +150,7 @@ class LandmarkMap(eqx.Module):
         self.centre = jnp.mean(measured, axis=0)
         self.scale = jnp.maximum(jnp.ptp(measured, axis=0) / 2, 1e-9)
         spacing = float(np.median(_nearest_distances(np.asarray(measured))))
-        self.min_separation = 0.25 * spacing if min_separation is None else float(min_separation)
+        self.min_separation = jnp.asarray(0.25 * spacing if min_separation is None else min_separation, dtype=float)
         if method == "polynomial":
             A = self._terms(measured)
             self.coefficients = jnp.linalg.lstsq(A, commands)[0]
