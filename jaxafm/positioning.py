@@ -222,7 +222,7 @@ def local_scan(pos: Positioner, sample, stand: Stand, guess: Array, radius: Arra
         return jnp.stack([h[n_move:n_move + P], h[n_move + P:][::-1]]), start, end, stand
 
     def body(c):
-        stand, key, phase, k, origin, est, n, done, ok, starts, ends, phases = c
+        stand, key, phase, k, origin, est, n, _, _, starts, ends, phases = c  # done, verified: outputs only
         key, sub = jax.random.split(key)
         centre = jnp.where(phase == 0, origin + _offset(k) * 0.75 * radius * ey, est)
         along = jnp.where(phase == 1, ey, ex)
