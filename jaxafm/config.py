@@ -309,6 +309,12 @@ class RunConfig(_Strict):
     seed: int = 0
     output: str = "runs/paper"
 
+    @property
+    def particle_spacing_nm(self) -> float:
+        """Distance between neighbouring particle sites: a landmark cell over ``per_cell``."""
+        ws = self.workspace
+        return self.landmarks.step_px * ws.size_nm / ws.pixels / self.particles.per_cell
+
     @model_validator(mode="after")
     def _fits(self):
         from .landmarks import LandmarkGrid
@@ -320,7 +326,7 @@ class RunConfig(_Strict):
             raise ValueError(f"landmarks: {e}") from None
         if lm.m > lm.n**2:
             raise ValueError(f"landmarks.m = {lm.m} exceeds the {lm.n**2} landmarks")
-        spacing = lm.step_px * self.workspace.size_nm / self.workspace.pixels / self.particles.per_cell
+        spacing = self.particle_spacing_nm
         if spacing < 4 * self.particles.radius_nm[1]:
             raise ValueError(f"particles.per_cell = {self.particles.per_cell} puts particles {spacing:.0f} nm apart, "
                              f"too close for radii up to {self.particles.radius_nm[1]:g} nm: at least 4 x the "

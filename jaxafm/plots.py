@@ -119,13 +119,13 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
 
 def landmarks(panels: dict, raster, path) -> None:
     """Step B: each workspace image with the indents intended (``D``, +) and found (``M``, o),
-    their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M, sample)``."""
+    their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M)``."""
     panels = {k: v for k, v in panels.items() if v is not None}
     fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
     x0, y0 = raster.origin
     dx, dy = raster.pixel_size
     extent = np.array([x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)])
-    for ax, (title, (images, D, M, _)) in zip(axes[0], panels.items()):
+    for ax, (title, (images, D, M)) in zip(axes[0], panels.items()):
         z = np.asarray(images["trace"])
         lo, hi = np.percentile(z, [1, 99.5])
         ax.imshow(z, origin="lower", extent=extent / 1e3, cmap="afmhot", vmin=lo, vmax=hi)

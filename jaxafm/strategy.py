@@ -43,12 +43,12 @@ STAGES = (("open_loop", False, False), ("A", True, False), ("B", False, True), (
 NEARBY = 8  # particles each trial's local scan sees (the others lie beyond its lines)
 
 
-def particle_field(cfg: RunConfig, grid: LandmarkGrid, D: np.ndarray, pixel: float) -> Particles:
+def particle_field(cfg: RunConfig, grid: LandmarkGrid, D: np.ndarray) -> Particles:
     """Particles in the landmark grid's cells, ``per_cell`` x ``per_cell`` to a cell, jittered by up
     to 1/8 of their spacing: the nearest indent is at least about a third of a cell away."""
     spec = cfg.particles
     rng = np.random.default_rng(spec.seed)
-    a = grid.step_px * pixel / spec.per_cell
+    a = cfg.particle_spacing_nm
     k = (np.arange((grid.n - 1) * spec.per_cell) + 0.5) * a
     sites = D.min(axis=0) + np.stack(np.meshgrid(k, k), -1).reshape(-1, 2)
     centres = sites + rng.uniform(-a / 8, a / 8, sites.shape)
@@ -122,7 +122,7 @@ def find_targets(images: dict, work: Raster, particles: Particles, cfg: RunConfi
     """The particles found in the workspace images (K, 2) nm, and the index of the true particle
     each one is (from the true tip path over its pixel); unmatched finds are dropped."""
     spec = cfg.particles
-    spacing = cfg.landmarks.step_px * work.pixel_size[0] / spec.per_cell
+    spacing = cfg.particle_spacing_nm
     found = _trace_and_retrace(images, lambda z: find_features(
         z, work, len(particles.radii) + 16, pits=False, min_height=spec.radius_nm[0],
         min_distance_nm=spacing / 3, window_nm=spec.radius_nm[1] + 20.0), spacing / 2)
@@ -168,7 +168,7 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
         path = resolve_data_path(cfg.calibration.model_file, config_path)
         if not path.is_file():
             raise ValueError(f"calibration.model_file: {path} does not exist")
-    return afm, work, grid, D, particle_field(cfg, grid, D, work.pixel_size[0])
+    return afm, work, grid, D, particle_field(cfg, grid, D)
 
 
 def _survey(cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool,
@@ -233,7 +233,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         maps = {"": None}
         if with_b:
             M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
-            figures["landmarks" + ("_A" if with_a else "")] = (images, D, M, sample)
+            figures["landmarks" + ("_A" if with_a else "")] = (images, D, M)
             metrics[f"{_key(name)}_landmarks_found"] = len(M)
             if len(M) < grid.n**2:
                 log(f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
