@@ -1,0 +1,216 @@
+"""Where a fitted model misses: residual decomposition, whiteness and cross-correlation tests,
+the figures and the Markdown report of ``jaxafm diagnose``.
+
+Residuals are ``r = measured - model`` in nm. Tests, for ``N`` residual samples:
+
+- whiteness: the autocorrelation ``rho_k = sum_t r_t r_{t+k} / sum_t r_t^2`` at lags
+  ``k = 1..K`` against the 95 % band ``+-1.96 / sqrt(N)`` of white noise, and the
+  Ljung-Box statistic ``Q = N (N + 2) sum_k rho_k^2 / (N - k)``, chi-squared with ``K``
+  degrees of freedom when ``r`` is white;
+- input cross-correlation: ``rho_ru(k)`` between ``r`` and the input ``u`` (and its rate
+  ``du/dt``) at lags ``-K..K``, against the same band: a model that has caught
+  everything the input explains leaves none.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy import stats  # noqa: E402
+
+MAX_LAG = 50  # samples
+BINS = 8
+
+
+def _rms(x) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
+
+
+def autocorrelation(r: np.ndarray, max_lag: int = MAX_LAG) -> np.ndarray:
+    """``rho_k``, k = 1..max_lag, of the mean-removed ``r`` (T,)."""
+    r = r - r.mean()
+    den = float(r @ r)
+    return np.array([float(r[:-k] @ r[k:]) / den for k in range(1, max_lag + 1)])
+
+
+def cross_correlation(r: np.ndarray, u: np.ndarray, max_lag: int = MAX_LAG) -> np.ndarray:
+    """``rho_ru(k)`` for k = -max_lag..max_lag: ``r`` at t + k against ``u`` at t."""
+    r, u = r - r.mean(), u - u.mean()
+    den = np.sqrt(float(r @ r) * float(u @ u))
+    out = []
+    for k in range(-max_lag, max_lag + 1):
+        a, b = (r[k:], u[:len(u) - k]) if k >= 0 else (r[:k], u[-k:])
+        out.append(float(a @ b) / den)
+    return np.array(out)
+
+
+def tests(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
+    """Whiteness and input cross-correlation of residuals ``r`` (T, k), inputs ``u`` (T, k)."""
+    out = {}
+    n = r.shape[0]
+    band = 1.96 / np.sqrt(n)
+    acf = [autocorrelation(r[:, i]) for i in range(r.shape[1])]
+    q = [n * (n + 2) * np.sum(a**2 / (n - np.arange(1, a.size + 1))) for a in acf]
+    rate = np.gradient(u, t, axis=0)
+    ccf_u = [cross_correlation(r[:, i], u[:, i]) for i in range(r.shape[1])]
+    ccf_rate = [cross_correlation(r[:, i], rate[:, i]) for i in range(r.shape[1])]
+    out["acf"], out["ccf_u"], out["ccf_rate"], out["band"] = acf, ccf_u, ccf_rate, band
+    out["metrics"] = {
+        "residual_acf_lag1": float(np.mean([a[0] for a in acf])),
+        "residual_acf_outside_band_pct": float(100 * np.mean([np.abs(a) > band for a in acf])),
+        "ljung_box_q": float(np.sum(q)),
+        "ljung_box_p": float(stats.chi2.sf(np.sum(q), MAX_LAG * r.shape[1])),
+        "input_ccf_max_abs": float(np.max(np.abs(ccf_u))),
+        "input_rate_ccf_max_abs": float(np.max(np.abs(ccf_rate))),
+        "correlation_band_95": float(band),
+    }
+    return out
+
+
+def _binned(x: np.ndarray, r: np.ndarray, edges: np.ndarray) -> list:
+    idx = np.clip(np.digitize(x, edges[1:-1]), 0, len(edges) - 2)
+    return [_rms(r[idx == b]) for b in range(len(edges) - 1)]
+
+
+def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
+    """rms residual (nm) by time, by input level on each branch, and by input rate.
+
+    Each entry: ``edges`` and ``rms_nm`` per bin (all axes together); branches split at
+    the sign of ``du/dt`` (ascending: > 0).
+    """
+    rate = np.gradient(u, t, axis=0)
+    tt = np.repeat(t[:, None], u.shape[1], 1)
+    flat = lambda a: np.ravel(a)  # noqa: E731
+    r_, u_, v_, t_ = flat(r), flat(u), flat(rate), flat(tt)
+    out = {"time_s": np.linspace(t[0], t[-1], 11), "input_v": np.linspace(u_.min(), u_.max(), BINS + 1),
+           "input_rate_v_per_s": np.linspace(0, np.abs(v_).max(), BINS + 1)}
+    table = {"time_s": _binned(t_, r_, out["time_s"]),
+             "input_rate_v_per_s": _binned(np.abs(v_), r_, out["input_rate_v_per_s"])}
+    for name, sel in (("ascending", v_ > 0), ("descending", v_ <= 0)):
+        table[f"input_v_{name}"] = _binned(u_[sel], r_[sel], out["input_v"])
+    return {"edges": {k: v.tolist() for k, v in out.items()}, "rms_nm": table, "overall_rms_nm": _rms(r_)}
+
+
+def where(dec: dict, split_s: float) -> list:
+    """Sentences that say where the residual is concentrated, with the numbers."""
+    e, tab, overall = dec["edges"], dec["rms_nm"], dec["overall_rms_nm"]
+    lines = []
+    time = np.array(tab["time_s"])
+    lines.append(f"Over time the rms residual goes from {time[0]:.3g} nm (first tenth) to {time[-1]:.3g} nm "
+                 f"(last tenth), {time[-1] / time[0]:.2f}x; the held-out part starts at {split_s:.3g} s.")
+    best = None
+    for branch in ("ascending", "descending"):
+        vals = np.array(tab[f"input_v_{branch}"], dtype=float)
+        if np.all(np.isnan(vals)):
+            continue
+        b = int(np.nanargmax(vals))
+        if best is None or vals[b] > best[0]:
+            best = (vals[b], branch, e["input_v"][b], e["input_v"][b + 1])
+    lines.append(f"By input level, it is largest on the {best[1]} branch between {best[2]:.3g} and {best[3]:.3g} V: "
+                 f"{best[0]:.3g} nm rms against {overall:.3g} nm overall ({best[0] / overall:.2f}x).")
+    rate = np.array(tab["input_rate_v_per_s"], dtype=float)
+    lo, hi = rate[0], rate[~np.isnan(rate)][-1]
+    lines.append(f"By input rate, it is {lo:.3g} nm rms at the slowest and {hi:.3g} nm rms at the fastest "
+                 f"({hi / lo:.2f}x).")
+    return lines
+
+
+def concentration(dec: dict) -> dict:
+    """Flat metrics: the largest bin of each decomposition over the overall rms."""
+    overall = dec["overall_rms_nm"]
+    tab = dec["rms_nm"]
+    by_level = np.nanmax(np.r_[tab["input_v_ascending"], tab["input_v_descending"]])
+    return {"residual_rms_nm": overall,
+            "residual_time_last_over_first": tab["time_s"][-1] / tab["time_s"][0],
+            "residual_level_max_over_overall": float(by_level / overall),
+            "residual_rate_fast_over_slow": float(np.nanmax(tab["input_rate_v_per_s"][-2:]) / tab["input_rate_v_per_s"][0])}
+
+
+def figure(t, u, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, rows: list, path) -> None:
+    """Six panels: residual against time, input by branch, input rate; autocorrelation and
+    input cross-correlation with their 95 % bands; held-out gap before and after each candidate."""
+    fig, ax = plt.subplots(2, 3, figsize=(15, 8.5))
+    a = ax[0, 0]
+    for i in range(r_nominal.shape[1]):
+        a.plot(t, r_nominal[:, i], lw=0.6, label=f"nominal, output {i + 1}")
+    if r_best is not None:
+        a.plot(t, r_best[:, 0], lw=0.6, color="k", alpha=0.7, label=f"with {best}, output 1")
+    a.axvline(t[split], color="k", ls="--", lw=1)
+    a.text(t[split], 0.97, "  train | held out", transform=a.get_xaxis_transform(), va="top")
+    a.set(xlabel="time [s]", ylabel="residual measured - model [nm]", title="residual against time")
+    a.legend(fontsize=7)
+    a = ax[0, 1]
+    e = np.array(dec["edges"]["input_v"])
+    mid = 0.5 * (e[1:] + e[:-1])
+    for branch, m in (("ascending", "^-"), ("descending", "v-")):
+        a.plot(mid, dec["rms_nm"][f"input_v_{branch}"], m, label=branch)
+    a.set(xlabel="input u [V]", ylabel="rms residual [nm]", title="by input level and branch")
+    a.legend(fontsize=8)
+    a = ax[0, 2]
+    e = np.array(dec["edges"]["input_rate_v_per_s"])
+    a.plot(0.5 * (e[1:] + e[:-1]), dec["rms_nm"]["input_rate_v_per_s"], "o-")
+    a.set(xlabel="|du/dt| [V/s]", ylabel="rms residual [nm]", title="by input rate")
+    a = ax[1, 0]
+    for i, acf in enumerate(test["acf"]):
+        a.plot(np.arange(1, acf.size + 1), acf, lw=1, label=f"output {i + 1}")
+    a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band (white)")
+    a.set(xlabel="lag [samples]", ylabel="autocorrelation", title="whiteness of the nominal residual")
+    a.legend(fontsize=8)
+    a = ax[1, 1]
+    lags = np.arange(-(test["ccf_u"][0].size // 2), test["ccf_u"][0].size // 2 + 1)
+    for i, (cu, cr) in enumerate(zip(test["ccf_u"], test["ccf_rate"])):
+        a.plot(lags, cu, lw=1, label=f"with u, output {i + 1}")
+        a.plot(lags, cr, lw=1, ls=":", label=f"with du/dt, output {i + 1}")
+    a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band")
+    a.set(xlabel="lag [samples]", ylabel="cross-correlation", title="residual against the input")
+    a.legend(fontsize=7)
+    a = ax[1, 2]
+    if rows:
+        names = [r["effect"] for r in rows]
+        after = [r["heldout_gap_after_nm"] for r in rows]
+        colors = ["tab:red" if r["significant"] else "tab:gray" for r in rows]
+        a.barh(names, after, color=colors)
+        a.axvline(rows[0]["heldout_gap_before_nm"], color="k", ls="--", lw=1, label="nominal")
+        a.invert_yaxis()
+        a.legend(fontsize=8)
+    a.set(xlabel="held-out gap (rms) [nm]", title="nominal + candidate (red: significant)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def markdown_head(doc: dict) -> list:
+    """Report lines: title, verdict, candidate table, where the gap is (sentences)."""
+    v = doc["verdict"]
+    head = (f"**Verdict: {v['effect']}** - adding it shrinks the held-out gap from "
+            f"{v['heldout_gap_before_nm']:.3g} nm to {v['heldout_gap_after_nm']:.3g} nm rms ({v['shrink_pct']:.1f} %)."
+            if v["effect"] else f"**Verdict: {v['text']}** (held-out gap {doc['nominal']['heldout_gap_nm']:.3g} nm rms).")
+    lines = [f"# Sim-to-real gap diagnosis: {doc['data']['source']}", "", head, "",
+             f"Nominal model: {doc['nominal']['model']}; trained on {doc['data']['train_samples']} {doc['data']['counts']}, "
+             f"held out {doc['data']['heldout_samples']} (later in the scan). A candidate is significant when "
+             f"it shrinks the held-out gap by >= {doc['rules']['min_shrink_pct']:g} % and lowers the training BIC "
+             f"by >= {doc['rules']['min_delta_bic']:g}.", "",
+             "| rank | effect | held-out gap before [nm] | after [nm] | shrink [%] | delta BIC (train) | extra params | significant |",
+             "|---|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(doc["candidates"], 1):
+        lines.append(f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
+                     f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | "
+                     f"{'yes' if r['significant'] else 'no'} |")
+    for name, why in doc["skipped"].items():
+        lines.append(f"| - | {name} | - | - | - | - | - | not tried: {why} |")
+    return lines + ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
+
+
+def markdown(doc: dict, metrics: dict) -> str:
+    """The one-minute report of a record: :func:`markdown_head`, the tests, the figure."""
+    lines = markdown_head(doc)
+    lines += [f"- Whiteness: lag-1 autocorrelation {metrics['residual_acf_lag1']:.2f}, "
+              f"{metrics['residual_acf_outside_band_pct']:.0f} % of lags 1-{MAX_LAG} outside the 95 % band "
+              f"(+-{metrics['correlation_band_95']:.3f}); Ljung-Box p = {metrics['ljung_box_p']:.2g}.",
+              f"- Input cross-correlation: max |rho| {metrics['input_ccf_max_abs']:.2f} with u, "
+              f"{metrics['input_rate_ccf_max_abs']:.2f} with du/dt (band +-{metrics['correlation_band_95']:.3f}).",
+              "", "![residuals](residuals.png)", ""]
+    return "\n".join(lines)

@@ -1,0 +1,138 @@
+"""Sim-to-real gap diagnosis: withheld effects are found and their size recovered, controls stay
+quiet, bad input is refused with a message, and the CLI writes its outputs once."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from jaxafm import diagnose as D
+from jaxafm.cli import app
+from jaxafm.config import ConfigError, DiagnoseConfig, load_config
+from jaxafm.images import AFMImage
+from jaxafm.records import Record
+
+runner = CliRunner()
+CANDIDATES = ["creep", "coupling", "drift"]  # one compile each, shared by every record test
+SHORT = dict(duration_s=20.0, sample_rate_hz=50.0)  # 1000 samples per axis
+
+
+def record(effect=None, magnitude=0.0, seed=7):
+    return D.simulate_record(effect, magnitude, seed, **SHORT)
+
+
+def quiet(*_):
+    pass
+
+
+@pytest.mark.parametrize("effect, magnitude", [("creep", 0.01), ("coupling", 0.01)])
+def test_withheld_effect_is_found_with_its_size(effect, magnitude):
+    res = D.diagnose_record(record(effect, magnitude), D.Nominal(), CANDIDATES, log=quiet)
+    assert res["verdict"] == effect
+    top = res["candidates"][0]
+    assert top["effect"] == effect and top["shrink_pct"] > 60
+    plant = top["fit"]["plant"]
+    if effect == "creep":  # Creep.logarithmic(gamma) puts gamma / 2 on each lag
+        np.testing.assert_allclose([2 * float(a.creep.weights[0]) for a in plant.axes], magnitude, rtol=0.3)
+    else:  # the simulator couples y into x by m, x into y by -0.6 m
+        np.testing.assert_allclose([float(plant.coupling.xy), float(plant.coupling.yx)],
+                                   [magnitude, -0.6 * magnitude], rtol=0.1)
+
+
+def test_control_gives_no_significant_effect():
+    res = D.diagnose_record(record(seed=8), D.Nominal(), CANDIDATES, log=quiet)
+    assert res["verdict"] is None
+    assert all(r["shrink_pct"] < 5 for r in res["candidates"])
+    noise = 2.0  # nm, the simulator's white noise: the held-out gap is near it
+    assert noise < res["nominal"]["heldout_gap_nm"] < 2 * noise
+
+
+def test_one_axis_record_skips_two_axis_effects():
+    r = record("creep", 0.01)
+    one = Record(r.t, r.u[:, 0], r.d[:, 0], r.meta)
+    res = D.diagnose_record(one, D.Nominal(), ["creep", "coupling", "tip"], log=quiet)
+    assert res["verdict"] == "creep"
+    assert "two axes" in res["skipped"]["coupling"] and "images" in res["skipped"]["tip"]
+
+
+def test_image_skew_is_found_as_coupling():
+    """A 1-D grating imaged with a known skew (x shifted by s y) and 2 nm edge noise."""
+    pitch, skew, px = 1000.0, 0.02, 40.0
+    x, y = np.arange(128) * px, np.arange(96) * px
+
+    def image(s):
+        rng = np.random.default_rng(3)
+        shift = s * y[:, None] + rng.normal(0, 2.0, (y.size, 1))
+        z = 50 + 50 * np.tanh(3 * np.sin(2 * np.pi * (x[None, :] + shift) / pitch))  # sub-pixel edges
+        return AFMImage(z, (px, px), meta={"source": "synthetic"})
+
+    rules = D.Rules()
+    found = D.diagnose_image.diagnose_image(image(skew), ["coupling", "bow", "creep", "tip"], 0.6, rules)
+    assert found["verdict"] == "coupling"
+    row = found["candidates"][0]
+    assert row["shrink_pct"] > 80
+    assert row["fitted"]["skew"] == pytest.approx(skew, rel=0.05)  # edges seen at x = edge - s y
+    assert "absorb" in found["skipped"]["tip"]
+    plain = D.diagnose_image.diagnose_image(image(0.0), ["coupling", "bow", "creep"], 0.6, rules)
+    assert plain["verdict"] is None
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_too_little_data_to_split():
+    r = record()
+    short = Record(r.t[:15], r.u[:15], r.d[:15], {"source": "short.dat"})
+    with pytest.raises(ValueError, match="too few to split"):
+        D.diagnose_record(short, D.Nominal(), CANDIDATES, log=quiet)
+
+
+def test_nominal_model_that_cannot_be_fitted_says_so():
+    r = record()
+    rng = np.random.default_rng(0)
+    unrelated = 20.0 * r.u + rng.normal(0, 200.0, r.u.shape)  # 20 nm/V under 200 nm of noise
+    with pytest.raises(ValueError, match="cannot be fitted to this record: it explains"):
+        D.diagnose_record(Record(r.t, r.u, unrelated, r.meta), D.Nominal(), CANDIDATES, log=quiet)
+    with pytest.raises(ValueError, match="cannot be fitted to output 1.*falls as the input rises"):
+        D.diagnose_record(Record(r.t, r.u, -r.d, r.meta), D.Nominal(), CANDIDATES, log=quiet)
+
+
+def test_unknown_effect_name(tmp_path):
+    with pytest.raises(ValueError, match="unknown effect 'creeep'"):
+        D.diagnose_record(record(), D.Nominal(), ["creeep"], log=quiet)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("simulate: {withheld: creep, magnitude: 0.01}\ncandidates: [creep, creeep]\n")
+    with pytest.raises(ConfigError, match="unknown effect 'creeep' in candidates"):
+        load_config(cfg, DiagnoseConfig)
+
+
+def test_record_with_missing_units(tmp_path):
+    (tmp_path / "r.dat").write_text("".join(f"{i * 0.1} {i}\n" for i in range(40)))
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("data: {path: r.dat, input_columns: [1], output_columns: [2], sample_rate_hz: 10}\n")
+    result = runner.invoke(app, ["diagnose", str(cfg), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert "output_unit" in result.output and "c.yaml" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "o").exists()
+
+
+# ---------------------------------------------------------------- command line
+
+
+def test_cli_writes_the_diagnosis_once(tmp_path):
+    cfg = tmp_path / "d.yaml"
+    cfg.write_text("simulate: {withheld: coupling, magnitude: 0.01, duration_s: 20, sample_rate_hz: 50, seed: 9}\n"
+                   f"candidates: {CANDIDATES + ['tip']}\n")
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert doc["verdict"]["effect"] == "coupling"
+    assert [c["effect"] for c in doc["candidates"]][0] == "coupling" and "tip" in doc["skipped"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["coupling_heldout_gap_after_nm"] < metrics["nominal_heldout_gap_nm"] / 3
+    assert "![residuals](residuals.png)" in (out / "report.md").read_text()
+    assert (out / "residuals.png").stat().st_size > 10_000
+    again = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
+    assert again.exit_code == 2 and "--overwrite" in again.output and "Traceback" not in again.output
