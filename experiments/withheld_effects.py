@@ -78,7 +78,7 @@ def summarise(rows: list) -> dict:
     for lv in LEVELS:
         sel = [r for r in rows if r["level"] == lv]
         if sel:
-            out[f"top1_accuracy_{lv}_pct"] = 100 * np.mean([r["verdict"] == r["truth"] for r in sel])
+            out[f"top1_accuracy_{lv}_pct"] = float(100 * np.mean([r["verdict"] == r["truth"] for r in sel]))
             out[f"median_shrink_{lv}_pct"] = float(np.median([r["verdict_shrink_pct"] for r in sel]))
     ctrl = [r for r in rows if r["truth"] is None]
     out["controls"] = len(ctrl)
@@ -86,10 +86,11 @@ def summarise(rows: list) -> dict:
     withheld = [r for r in rows if r["truth"] is not None]
     out["median_shrink_pct"] = float(np.median([r["verdict_shrink_pct"] for r in withheld])) if withheld else None
     out["median_truth_shrink_pct"] = float(np.median([r["truth_shrink_pct"] for r in withheld])) if withheld else None
-    out["top1_accuracy_all_pct"] = 100 * np.mean([r["verdict"] == r["truth"] for r in withheld]) if withheld else None
-    out["goals"] = {"top1_middle_ge_90_pct": out.get("top1_accuracy_middle_pct", 0) >= 90,
-                    "controls_flagged_le_1_in_20": out["controls_flagged"] <= max(1, len(ctrl) // 20),
-                    "median_shrink_ge_80_pct": (out["median_shrink_pct"] or 0) >= 80}
+    out["top1_accuracy_all_pct"] = float(100 * np.mean([r["verdict"] == r["truth"] for r in withheld])) if withheld else None
+    out["goals"] = {"top1_middle_ge_90_pct": bool(out.get("top1_accuracy_middle_pct", 0) >= 90),
+                    "controls_flagged_le_1_in_20": bool(out["controls_flagged"] <= max(1, len(ctrl) // 20)),
+                    "median_shrink_ge_80_pct": bool((out["median_shrink_pct"] or 0) >= 80),
+                    "median_shrink_middle_ge_80_pct": bool(out.get("median_shrink_middle_pct", 0) >= 80)}
     out["seconds_per_case_median"] = float(np.median([r["seconds"] for r in rows]))
     return out
 
@@ -119,10 +120,11 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    todo = cases(args.seeds, args.controls)
+    rows = json.loads((args.out / "cases.json").read_text()) if args.summarise else []
+    todo = [] if args.summarise else cases(args.seeds, args.controls)
     for i, (effect, m, level, seed) in enumerate(todo):
         row = run_case(effect, m, seed) | {"level": level}
         rows.append(row)

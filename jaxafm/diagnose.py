@@ -23,7 +23,6 @@ deterministic part of :class:`~jaxafm.effects.Drift` (``v t``).
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Optional
 
@@ -455,7 +454,7 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
         f"{split - settle}, hold out {len(record) - split}")
     res = diagnose_record(record, spec, cfg.candidates, cfg.train_fraction, settle, history, rules, log)
     prepare()
-    return write_outputs(res, record, spec, rules, settle, Path(out), log)
+    return gap_report.write_outputs(res, record, _model_name(spec), rules, settle, Path(out), log)
 
 
 def _run_image(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) -> dict:
@@ -479,41 +478,3 @@ def _model_name(spec: Nominal) -> str:
     return {"pi": "symmetric PI", "gpi": "generalised PI", "preisach": "Preisach"}[spec.kind] + \
         f" ({spec.operators if spec.kind != 'preisach' else spec.levels} " + \
         ("plays" if spec.kind != "preisach" else "levels") + ")" + "".join(f" + {e}" for e in extra)
-
-
-def write_outputs(res: dict, record: Record, spec: Nominal, rules: Rules, settle: int, out: Path, log=print) -> dict:
-    """``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md``; returns the metrics."""
-    u, d = _columns(record.u), _columns(record.d)
-    nominal, rows, split = res["nominal"], res["candidates"], res["split"]
-    r = nominal["residual"][settle:]
-    test = gap_report.tests(r, u[settle:], record.t[settle:])
-    dec = gap_report.decompose(r, u[settle:], record.t[settle:])
-    top = next((row for row in rows if row["effect"] == res["verdict"]), None)
-    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
-               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
-    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
-               "nominal_parameters": nominal["parameters"], "train_samples": int(split - settle),
-               "heldout_samples": int(len(record) - split), "verdict": verdict["text"],
-               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
-               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
-    for row in rows:
-        for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
-            metrics[f"{row['effect']}_{k}"] = row[k]
-    metrics |= test["metrics"] | gap_report.concentration(dec)
-    doc = {"data": {"source": record.meta["source"], "samples": len(record), "outputs": d.shape[1],
-                    "train_samples": int(split - settle), "heldout_samples": int(len(record) - split),
-                    "heldout_from_s": float(record.t[split]), "counts": "samples", "units": "nm (gaps, residuals), V, s"},
-           "nominal": {"model": _model_name(spec), "train_rms_nm": nominal["train_rms_nm"],
-                       "heldout_gap_nm": nominal["heldout_gap_nm"], "parameters": nominal["parameters"]},
-           "verdict": verdict, "candidates": [{k: v for k, v in row.items() if k != "fit"} for row in rows],
-           "skipped": res["skipped"], "rules": dataclasses.asdict(rules),
-           "where": gap_report.where(dec, float(record.t[split])), "decomposition": dec}
-    best = top["fit"]["residual"] if top else None
-    gap_report.figure(record.t, u, nominal["residual"], best, res["verdict"], split, test, dec, rows,
-                      out / "residuals.png")
-    (out / "diagnosis.json").write_text(json.dumps(doc, indent=1))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    (out / "report.md").write_text(gap_report.markdown(doc, metrics))
-    log(f"verdict: {verdict['text']}" + (f" (held-out gap {top['heldout_gap_before_nm']:.3g} -> "
-                                         f"{top['heldout_gap_after_nm']:.3g} nm, {top['shrink_pct']:.1f} %)" if top else ""))
-    return metrics

@@ -14,6 +14,10 @@ Residuals are ``r = measured - model`` in nm. Tests, for ``N`` residual samples:
 
 from __future__ import annotations
 
+import dataclasses
+import json
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -76,7 +80,7 @@ def _binned(x: np.ndarray, r: np.ndarray, edges: np.ndarray) -> list:
 
 
 def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
-    """rms residual (nm) by time, by input level on each branch, and by input rate.
+    """rms residual (nm) by time (and its mean), by input level on each branch, and by input rate.
 
     Each entry: ``edges`` and ``rms_nm`` per bin (all axes together); branches split at
     the sign of ``du/dt`` (ascending: > 0).
@@ -87,7 +91,9 @@ def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
     r_, u_, v_, t_ = flat(r), flat(u), flat(rate), flat(tt)
     out = {"time_s": np.linspace(t[0], t[-1], 11), "input_v": np.linspace(u_.min(), u_.max(), BINS + 1),
            "input_rate_v_per_s": np.linspace(0, np.abs(v_).max(), BINS + 1)}
+    idx = np.clip(np.digitize(t_, out["time_s"][1:-1]), 0, 9)
     table = {"time_s": _binned(t_, r_, out["time_s"]),
+             "time_s_mean": [float(np.mean(r_[idx == b])) for b in range(10)],
              "input_rate_v_per_s": _binned(np.abs(v_), r_, out["input_rate_v_per_s"])}
     for name, sel in (("ascending", v_ > 0), ("descending", v_ <= 0)):
         table[f"input_v_{name}"] = _binned(u_[sel], r_[sel], out["input_v"])
@@ -100,7 +106,8 @@ def where(dec: dict, split_s: float) -> list:
     lines = []
     time = np.array(tab["time_s"])
     lines.append(f"Over time the rms residual goes from {time[0]:.3g} nm (first tenth) to {time[-1]:.3g} nm "
-                 f"(last tenth), {time[-1] / time[0]:.2f}x; the held-out part starts at {split_s:.3g} s.")
+                 f"(last tenth), {time[-1] / time[0]:.2f}x, and its mean from {tab['time_s_mean'][0]:+.3g} nm to "
+                 f"{tab['time_s_mean'][-1]:+.3g} nm; the held-out part starts at {split_s:.3g} s.")
     best = None
     for branch in ("ascending", "descending"):
         vals = np.array(tab[f"input_v_{branch}"], dtype=float)
@@ -125,11 +132,12 @@ def concentration(dec: dict) -> dict:
     by_level = np.nanmax(np.r_[tab["input_v_ascending"], tab["input_v_descending"]])
     return {"residual_rms_nm": overall,
             "residual_time_last_over_first": tab["time_s"][-1] / tab["time_s"][0],
+            "residual_mean_change_nm": tab["time_s_mean"][-1] - tab["time_s_mean"][0],
             "residual_level_max_over_overall": float(by_level / overall),
             "residual_rate_fast_over_slow": float(np.nanmax(tab["input_rate_v_per_s"][-2:]) / tab["input_rate_v_per_s"][0])}
 
 
-def figure(t, u, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, rows: list, path) -> None:
+def figure(t, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, rows: list, path) -> None:
     """Six panels: residual against time, input by branch, input rate; autocorrelation and
     input cross-correlation with their 95 % bands; held-out gap before and after each candidate."""
     fig, ax = plt.subplots(2, 3, figsize=(15, 8.5))
@@ -214,3 +222,42 @@ def markdown(doc: dict, metrics: dict) -> str:
               f"{metrics['input_rate_ccf_max_abs']:.2f} with du/dt (band +-{metrics['correlation_band_95']:.3f}).",
               "", "![residuals](residuals.png)", ""]
     return "\n".join(lines)
+
+
+def write_outputs(res: dict, record, model: str, rules, settle: int, out: Path, log=print) -> dict:
+    """``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md`` of a record's
+    diagnosis (``jaxafm.diagnose.diagnose_record``); returns the metrics."""
+    u, d = (np.asarray(a, dtype=float).reshape(len(record), -1) for a in (record.u, record.d))
+    nominal, rows, split = res["nominal"], res["candidates"], res["split"]
+    r = nominal["residual"][settle:]
+    test = tests(r, u[settle:], record.t[settle:])
+    dec = decompose(r, u[settle:], record.t[settle:])
+    top = next((row for row in rows if row["effect"] == res["verdict"]), None)
+    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
+               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
+    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
+               "nominal_parameters": nominal["parameters"], "train_samples": int(split - settle),
+               "heldout_samples": int(len(record) - split), "verdict": verdict["text"],
+               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
+               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
+    for row in rows:
+        for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
+            metrics[f"{row['effect']}_{k}"] = row[k]
+    metrics |= test["metrics"] | concentration(dec)
+    doc = {"data": {"source": record.meta["source"], "samples": len(record), "outputs": d.shape[1],
+                    "train_samples": int(split - settle), "heldout_samples": int(len(record) - split),
+                    "heldout_from_s": float(record.t[split]), "counts": "samples", "units": "nm (gaps, residuals), V, s"},
+           "nominal": {"model": model, "train_rms_nm": nominal["train_rms_nm"],
+                       "heldout_gap_nm": nominal["heldout_gap_nm"], "parameters": nominal["parameters"]},
+           "verdict": verdict, "candidates": [{k: v for k, v in row.items() if k != "fit"} for row in rows],
+           "skipped": res["skipped"], "rules": dataclasses.asdict(rules),
+           "where": where(dec, float(record.t[split])), "decomposition": dec}
+    best = top["fit"]["residual"][settle:] if top else None
+    figure(record.t[settle:], nominal["residual"][settle:], best, res["verdict"], split - settle, test, dec, rows,
+           out / "residuals.png")
+    (out / "diagnosis.json").write_text(json.dumps(doc, indent=1))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    (out / "report.md").write_text(markdown(doc, metrics))
+    log(f"verdict: {verdict['text']}" + (f" (held-out gap {top['heldout_gap_before_nm']:.3g} -> "
+                                         f"{top['heldout_gap_after_nm']:.3g} nm, {top['shrink_pct']:.1f} %)" if top else ""))
+    return metrics
