@@ -14,6 +14,10 @@ falls by at least ``min_delta_bic`` against the nominal model (Kass & Raftery:
 10 is "very strong" evidence). Candidates are ranked by held-out shrink; the
 verdict is the top significant one, or none.
 
+Hysteresis weights start from a non-negative least-squares solve and are then
+fitted unconstrained (outputs are linear in them, so Levenberg-Marquardt needs a
+few steps); creep is one logarithmic rate ``gamma >= 0`` per axis.
+
 Actuator records (one or two axes) are modelled as ``Plant``: one
 :class:`~jaxafm.scanner.Axis` per output (hysteresis, rate dependence, creep),
 then :class:`~jaxafm.effects.Coupling`, :class:`~jaxafm.effects.Bow` and the
@@ -441,7 +445,10 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
     if cfg.image is not None:
         return _run_image(cfg, Path(config_path), Path(out), rules, prepare, log)
     record = _load(cfg, Path(config_path))
-    split = record.split(cfg.train_fraction)
+    try:
+        split = record.split(cfg.train_fraction)
+    except ValueError as e:
+        raise ValueError(f"{e}: give a longer record, or change train_fraction in {config_path}") from None
     settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
     if split - settle < 10:
         raise ValueError(f"settle_s={cfg.settle_s} s leaves {split - settle} training samples: lower settle_s "
