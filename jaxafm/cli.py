@@ -16,6 +16,9 @@ FIT_OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` w
 CALIBRATE_OUTPUTS = ("metrics.json", "compensation.png", "model_*.json")  # what `jaxafm calibrate` writes
 RUN_OUTPUTS = ("metrics.json", "trials.npz", "landmarks.png", "local_scan.png", "push.png", "errors.png",
                "model_scanner.json")  # what `jaxafm run` writes
+STUDY_OUTPUTS = ("metrics.json", "trials.npz", "trials.csv", "errors.png", "study.yaml", "scanners.json",
+                 "chunks/trials_*.npz", "scanners/model_*.json")  # what `jaxafm study` writes
+DIAGNOSE_OUTPUTS = ("metrics.json", "diagnosis.json", "residuals.png", "report.md")  # what `jaxafm diagnose` writes
 
 
 def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
@@ -38,9 +41,11 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(code=2)
 
 
-def _launch(config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple) -> None:
-    """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it into the
-    output folder, prepared only once the inputs have been checked; errors become messages."""
+def _launch(config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple,
+            **options) -> None:
+    """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it (with
+    ``options``) into the output folder, prepared only once the inputs have been checked; errors
+    become messages."""
     import importlib
 
     from . import config as configs
@@ -49,7 +54,7 @@ def _launch(config: Path, out: Optional[Path], overwrite: bool, schema: str, job
         cfg = configs.load_config(config, getattr(configs, schema))
         folder = out or Path(cfg.output)
         importlib.import_module(f"jaxafm.{job}").run(
-            cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, outputs), log=typer.echo)
+            cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, outputs), log=typer.echo, **options)
     except (ValueError, OSError, RuntimeError) as e:
         _fail(e)
     typer.echo(f"wrote the results into {folder}")
@@ -78,6 +83,25 @@ def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVER
     """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
     push, with an ablation table; write metrics.json, trials.npz, the fitted scanner and figures."""
     _launch(config, out, overwrite, "RunConfig", "strategy", RUN_OUTPUTS)
+
+
+@app.command()
+def diagnose(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+    """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
+    held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
+    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose", DIAGNOSE_OUTPUTS)
+
+
+@app.command()
+def study(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE,
+          resume: bool = typer.Option(False, help="go on with an interrupted study in the output folder")):
+    """A Monte-Carlo positioning study: trials over drawn scanners, particles and targets, in
+    vmapped batches over every JAX device; writes per-chunk results, trials.csv/npz, metrics.json
+    and errors.png. Interrupted, it resumes with --resume."""
+    if resume and overwrite:
+        _fail(ValueError("--resume goes on with the results in the output folder; --overwrite would delete them: "
+                         "pass one of them"))
+    _launch(config, out, overwrite, "StudyConfig", "study", STUDY_OUTPUTS, resume=resume)
 
 
 @app.command()

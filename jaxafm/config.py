@@ -6,7 +6,7 @@ Errors name the file, the key and the value, and say what is allowed.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Literal, Optional, Union
+from typing import Dict, List, Literal, Optional, Union
 
 import numpy as np
 import yaml
@@ -317,37 +317,44 @@ class RunConfig(_Strict):
 
     @model_validator(mode="after")
     def _fits(self):
-        from .landmarks import LandmarkGrid
-
-        lm = self.landmarks
-        try:
-            LandmarkGrid(lm.n, lm.start_px, lm.step_px, self.workspace.pixels)
-        except ValueError as e:
-            raise ValueError(f"landmarks: {e}") from None
-        if lm.m > lm.n**2:
-            raise ValueError(f"landmarks.m = {lm.m} exceeds the {lm.n**2} landmarks")
+        _check_layout(self)
         spacing = self.particle_spacing_nm
         if spacing < 4 * self.particles.radius_nm[1]:
             raise ValueError(f"particles.per_cell = {self.particles.per_cell} puts particles {spacing:.0f} nm apart, "
                              f"too close for radii up to {self.particles.radius_nm[1]:g} nm: at least 4 x the "
                              "largest radius is needed; use fewer per cell or a larger landmark step")
-        reach = max(abs(c) for c in self.workspace.centre_nm) + self.workspace.size_nm / 2
-        calibrated = Compensation().scan_fraction * self.calibration.simulate.size_nm / 2
-        if reach > calibrated:
-            raise ValueError(f"workspace: it reaches {reach:.0f} nm from the scanner's centre, beyond the "
-                             f"{calibrated:.0f} nm that step A's calibration scan covers reliably "
-                             f"({Compensation().scan_fraction:g} x half its size): make the workspace "
-                             "smaller, move it inward, or calibrate over a larger scan")
         return self
+
+
+def _check_layout(cfg) -> None:
+    """The landmark grid fits the workspace image (eq. 3), and the workspace lies where step A's
+    calibration scan covers the scanner reliably."""
+    from .landmarks import LandmarkGrid
+
+    lm = cfg.landmarks
+    try:
+        LandmarkGrid(lm.n, lm.start_px, lm.step_px, cfg.workspace.pixels)
+    except ValueError as e:
+        raise ValueError(f"landmarks: {e}") from None
+    if lm.m > lm.n**2:
+        raise ValueError(f"landmarks.m = {lm.m} exceeds the {lm.n**2} landmarks")
+    reach = max(abs(c) for c in cfg.workspace.centre_nm) + cfg.workspace.size_nm / 2
+    calibrated = Compensation().scan_fraction * cfg.calibration.simulate.size_nm / 2
+    if reach > calibrated:
+        raise ValueError(f"workspace: it reaches {reach:.0f} nm from the scanner's centre, beyond the "
+                         f"{calibrated:.0f} nm that step A's calibration scan covers reliably "
+                         f"({Compensation().scan_fraction:g} x half its size): make the workspace "
+                         "smaller, move it inward, or calibrate over a larger scan")
 
 
 def _format(error: ValidationError, path: Path) -> str:
     lines = [f"{path}: invalid configuration"]
     for e in error.errors():
-        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        value = "" if e["type"] == "missing" else f" (got {e.get('input')!r})"
+        key = ".".join(str(p) for p in e["loc"])
+        value = "" if e["type"] == "missing" or not key else f" (got {e.get('input')!r})"
         msg = e["msg"].replace("Extra inputs are not permitted", "unknown key: remove it or check its spelling")
-        lines.append(f"  {key}: {msg}{value}")
+        msg = msg.removeprefix("Value error, ")
+        lines.append(f"  {key}: {msg}{value}" if key else f"  {msg}")
     return "\n".join(lines)
 
 
@@ -375,3 +382,202 @@ def resolve_data_path(spec: str, config_path: Path) -> Path:
         return Path(__file__).parent / "data" / "real" / spec.removeprefix("builtin:")
     p = Path(spec)
     return p if p.is_absolute() else config_path.parent / p
+
+
+class DiagnoseNominal(_Strict):
+    """The nominal model ``jaxafm diagnose`` starts from: its hysteresis and its other effects."""
+
+    kind: Literal["pi", "gpi", "preisach"] = Field("pi", description="pi: the classical symmetric PI model")
+    effects: List[str] = Field(["hysteresis"], description="effects the nominal model has")
+    operators: int = Field(20, ge=2, le=200, description="play operators (pi, gpi)")
+    deadzones: int = Field(3, ge=1, le=20, description="dead zones each side (gpi)")
+    levels: int = Field(20, ge=2, le=100, description="Preisach plane levels")
+
+    @model_validator(mode="after")
+    def _known_effects(self):
+        check_effect_names(self.effects, "nominal.effects")
+        if "hysteresis" not in self.effects:
+            raise ValueError(f"nominal.effects must include 'hysteresis', got {self.effects}")
+        return self
+
+
+class DiagnoseSimulation(_Strict):
+    """A two-axis record of the simulated PI scanner with one effect the nominal model lacks
+    (``jaxafm.diagnose.simulate_record``; ``magnitude`` in ``diagnose.MAGNITUDE_UNITS``)."""
+
+    withheld: Optional[str] = Field(None, description="the effect switched on; none: a control")
+    magnitude: float = 0.0
+    duration_s: float = Field(20.0, gt=0)
+    sample_rate_hz: float = Field(100.0, gt=0)
+    noise_nm: float = Field(2.0, ge=0)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _known_effect(self):
+        if self.withheld is not None:
+            check_effect_names([self.withheld], "simulate.withheld")
+        return self
+
+
+class DiagnoseImage(_Strict):
+    """One image of a 1-D grating (any format ``jaxafm.images.read_image`` reads), lines along
+    the slow axis; rows are taken in scan order (row 0 first)."""
+
+    path: str = Field(description="image file, relative to the config file, or builtin:NAME")
+
+
+class DiagnoseConfig(_Strict):
+    """Sim-to-real gap diagnosis: fit the nominal model, then nominal + each candidate effect on the
+    training part; compare the gaps on the held-out part (``jaxafm.diagnose``)."""
+
+    data: Optional[RecordData] = None
+    simulate: Optional[DiagnoseSimulation] = None
+    image: Optional[DiagnoseImage] = None
+    nominal: DiagnoseNominal = DiagnoseNominal()
+    candidates: List[str] = Field(["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow",
+                                   "feedback_lag", "tip"], min_length=1)
+    history_v: Optional[List[float]] = Field(
+        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]")
+    settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
+    train_fraction: float = Field(0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows")
+    min_shrink_pct: float = Field(5.0, ge=0, description="held-out gap shrink a significant candidate needs, %")
+    min_delta_bic: float = Field(10.0, ge=0, description="training BIC drop a significant candidate needs")
+    max_steps: int = Field(300, ge=1, le=100_000, description="Levenberg-Marquardt steps per fit")
+    output: str = "runs/diagnose"
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if sum(s is not None for s in (self.data, self.simulate, self.image)) != 1:
+            raise ValueError("give exactly one of 'data' (an actuator record), 'simulate' and 'image'")
+        check_effect_names(self.candidates, "candidates")
+        if self.history_v is not None and not all(np.isfinite(self.history_v)):
+            raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
+        return self
+
+
+# ---------------------------------------------------------------------------------------------
+# Monte-Carlo positioning studies (`jaxafm study`)
+
+
+class Distribution(_Strict):
+    """One parameter's spread across a study: exactly one of ``uniform: [min, max]``,
+    ``loguniform: [min, max]`` (min > 0), ``normal: [mean, std]`` or ``fixed: value``;
+    a bare number in the YAML is ``fixed``."""
+
+    uniform: Optional[List[float]] = Field(None, min_length=2, max_length=2)
+    loguniform: Optional[List[float]] = Field(None, min_length=2, max_length=2)
+    normal: Optional[List[float]] = Field(None, min_length=2, max_length=2)
+    fixed: Optional[float] = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _number_is_fixed(cls, raw):
+        return {"fixed": raw} if isinstance(raw, (int, float)) and not isinstance(raw, bool) else raw
+
+    @model_validator(mode="after")
+    def _valid(self):
+        given = [k for k in ("uniform", "loguniform", "normal", "fixed") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of uniform, loguniform, normal, fixed; got {given or 'none'}")
+        a, b = (self.fixed, self.fixed) if self.fixed is not None else getattr(self, given[0])
+        if given[0] in ("uniform", "loguniform") and a > b:
+            raise ValueError(f"{given[0]}: [min, max] needs min <= max, got [{a}, {b}]")
+        if given[0] == "loguniform" and not a > 0:
+            raise ValueError(f"loguniform: needs min > 0, got {a}")
+        if given[0] == "normal" and b < 0:
+            raise ValueError(f"normal: [mean, std] needs std >= 0, got {b}")
+        return self
+
+    @property
+    def support(self) -> tuple:
+        """The smallest and largest value it can draw."""
+        if self.fixed is not None:
+            return self.fixed, self.fixed
+        if self.normal is not None:
+            mean, std = self.normal
+            return (mean, mean) if std == 0 else (-np.inf, np.inf)
+        return tuple((self.uniform or self.loguniform))
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        if self.fixed is not None:
+            return np.full(n, float(self.fixed))
+        if self.uniform is not None:
+            return rng.uniform(*self.uniform, n)
+        if self.loguniform is not None:
+            return np.exp(rng.uniform(*np.log(self.loguniform), n))
+        return rng.normal(*self.normal, n)
+
+
+#: What a study can vary, per effect: parameter -> (``default_afm`` argument, allowed range, default).
+STUDY_PARAMETERS = {
+    "hysteresis": {"loop_width": ("loop_width", (0.0, 0.45), 0.15)},
+    "creep": {"gamma": ("creep_gamma", (0.0, 0.1), 0.01)},
+    "coupling": {"strength": ("coupling", (-0.2, 0.2), 0.02)},
+    "bow": {"per_nm": ("bow", (-2e-5, 2e-5), 2e-6)},
+    "drift": {"x_nm_per_min": ("drift_x", (-np.inf, np.inf), 3.0),
+              "y_nm_per_min": ("drift_y", (-np.inf, np.inf), -1.8),
+              "wander_nm_per_sqrt_s": ("drift_sigma", (0.0, 10.0), 0.05)},
+    "noise": {"std_nm": ("noise_std", (0.0, 20.0), 0.2)},
+    "feedback_lag": {"tau_s": ("feedback_tau", (0.0, 0.05), 1e-3)},
+    "tip": {"radius_nm": ("tip_radius", (0.5, 100.0), 10.0)},
+}
+
+
+class StudyConfig(_Strict):
+    """A Monte-Carlo positioning study: ``trials`` independent trials, each a particle of radius
+    drawn from ``particles.radius_nm`` at a random place in the landmark grid, on a scanner drawn
+    from ``scanner`` (shared by ``trials_per_scanner`` consecutive trials: step A and the surveys
+    run once per scanner; 1 runs them per trial), through the ``stages``."""
+
+    trials: int = Field(256, ge=1, le=10_000_000)
+    trials_per_scanner: int = Field(256, ge=1, description="1: step A per trial")
+    chunk: int = Field(256, ge=1, le=1_000_000, description="trials per batch and per results file")
+    stages: List[Literal["open_loop", "A", "B", "A+B", "A+B+C", "push"]] = Field(
+        ["open_loop", "A", "A+B", "A+B+C", "push"], min_length=1)
+    scanner: Dict[str, Dict[str, Distribution]] = Field(
+        default_factory=dict, description="effect -> parameter -> distribution (see STUDY_PARAMETERS)")
+    particle_radius_nm: Distribution = Distribution(uniform=[5.0, 50.0])
+    calibration: StepA = StepA()
+    workspace: Workspace = Workspace()
+    landmarks: LandmarkSpec = LandmarkSpec()
+    local_scan: LocalScanSpec = LocalScanSpec()
+    push: PushSpec = PushSpec()
+    seed: int = 0
+    output: str = "runs/study"
+
+    @model_validator(mode="after")
+    def _possible(self):
+        for effect, params in self.scanner.items():
+            check_effect_names([effect], "scanner")
+            if effect not in STUDY_PARAMETERS:
+                raise ValueError(f"scanner.{effect}: a study cannot vary this effect; vary "
+                                 f"{', '.join(STUDY_PARAMETERS)}")
+            for name, dist in params.items():
+                if name not in STUDY_PARAMETERS[effect]:
+                    raise ValueError(f"scanner.{effect}.{name}: unknown parameter; {effect} has "
+                                     f"{', '.join(STUDY_PARAMETERS[effect])}")
+                _inside(f"scanner.{effect}.{name}", dist, *STUDY_PARAMETERS[effect][name][1])
+        _inside("particle_radius_nm", self.particle_radius_nm, 1.0, 200.0)
+        _check_layout(self)
+        lm = self.landmarks
+        cell = lm.step_px * self.workspace.size_nm / self.workspace.pixels
+        if cell < 8 * self.particle_radius_nm.support[1]:
+            raise ValueError(f"particle_radius_nm: radii up to {self.particle_radius_nm.support[1]:g} nm need "
+                             f"landmark cells of at least 8 R; they are {cell:.0f} nm: use a larger landmark step")
+        needs = {"A+B+C": "A+B", "push": "A+B+C"}
+        for stage, before in needs.items():
+            if stage in self.stages and before not in self.stages:
+                raise ValueError(f"stages: {stage!r} goes on from {before!r}; add {before!r}")
+        return self
+
+    @property
+    def scanners(self) -> int:
+        """How many scanners the study draws."""
+        return -(-self.trials // self.trials_per_scanner)
+
+
+def _inside(key: str, dist: Distribution, lo: float, hi: float) -> None:
+    a, b = dist.support
+    if a < lo or b > hi:
+        raise ValueError(f"{key}: the distribution reaches [{a:g}, {b:g}], outside the allowed [{lo:g}, {hi:g}]"
+                         + ("; a normal distribution is unbounded: use uniform" if np.isinf([a, b]).any() else ""))

@@ -51,7 +51,11 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -
         z = a * z + (1 - a) * vn
         return z, z @ weights
 
-    z, out = lax.scan(step, jnp.broadcast_to(z0, taus.shape), (v, dt))
+    z0 = jnp.broadcast_to(z0, taus.shape)
+    if v.shape[0] == 1:  # one sample (the inverses step sample by sample): no scan
+        z, out = step(z0, (v[0], dt[0]))
+        return out[None], z
+    z, out = lax.scan(step, z0, (v, dt))
     return out, z
 
 

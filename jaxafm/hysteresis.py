@@ -128,6 +128,11 @@ class PlayOperator(eqx.Module):
         """Outputs (T,) and final plays (n,) for the input ``u`` from the state ``plays``."""
         return play_map(u, self.radii(), self.readout(), plays)
 
+    def step(self, u: Array, plays: Array) -> tuple:
+        """``run`` for one sample ``u`` (): the output () and the next plays (n,), without a scan."""
+        p, _ = _play_step(self.radii())(plays, u)
+        return self.readout()(p), p
+
     def __call__(self, u: Array, history=None) -> Array:
         u = _checked_input(u)
         return self.run(u, self.initial_state(u[0], history))[0]
@@ -151,6 +156,9 @@ class Anhysteretic(eqx.Module):
         u = _checked_input(u)
         return self.operator.from_plays(jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape)), plays
 
+    def step(self, u: Array, plays: Array) -> tuple:
+        return self.operator.from_plays(jnp.broadcast_to(u, self.operator.radii().shape)), plays
+
     def __call__(self, u: Array, history=None) -> Array:
         return self.run(u, self.initial_state(None))[0]
 
@@ -167,6 +175,9 @@ class Linear(eqx.Module):
     def run(self, u: Array, plays: Array):
         checks.finite("input u", u)
         return self.gain * jnp.asarray(u, dtype=float) + self.offset, plays
+
+    def step(self, u: Array, plays: Array) -> tuple:
+        return self.gain * u + self.offset, plays
 
     def __call__(self, u: Array, history=None) -> Array:
         return self.run(u, self.initial_state(None))[0]

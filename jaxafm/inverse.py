@@ -11,8 +11,9 @@ stateful stage carries its state:
 4. hysteresis, one of
    - ``"analytic"``: the exact inverse operator of a PI or generalised-PI model
      (Kuhnen & Janocha), run after the initialisation cycle on the output history;
-   - ``"numerical"``: a safeguarded Newton root find of the monotone map
-     ``u -> H[u; plays]`` per sample, for any hysteresis model (Preisach too).
+   - ``"numerical"``: per sample from the plays' state, exact for a PI or
+     generalised-PI model (:func:`_pi_step`), else a safeguarded Newton root find
+     of the monotone map ``u -> H[u; plays]`` (Preisach too).
 
 The paper's baseline, a neural network trained on (position, voltage) pairs per
 branch, is :class:`NeuralInverse`.
@@ -71,7 +72,7 @@ def _hysteresis_target(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array) 
 def _root(axis: Axis, h: Array, plays: Array, u_guess: Array, lo: float, hi: float, tol: float = 1e-7):
     """``u`` in ``[lo, hi]`` with ``H[u; plays] = h``: Newton steps, bisection when a step leaves
     the bracket. Returns ``(u, saturated)``; saturated when ``h`` lies beyond ``H[lo]``/``H[hi]``."""
-    H = lambda u: axis.hysteresis.run(jnp.reshape(u, (1,)), plays)[0][0] - h  # noqa: E731
+    H = lambda u: axis.hysteresis.step(u, plays)[0] - h  # noqa: E731
     below, above = H(lo) > 0, H(hi) < 0
 
     def body(c):
@@ -89,11 +90,39 @@ def _root(axis: Axis, h: Array, plays: Array, u_guess: Array, lo: float, hi: flo
     return u, below | above
 
 
+def _pi_step(pi: PrandtlIshlinskii, z: Array, plays: Array, lo: float, hi: float) -> tuple:
+    """``u`` in ``[lo, hi]`` with ``PI[u; plays] = z``, exactly, and whether it saturated.
+
+    From the plays' state, the output is piecewise linear in ``u``: rising, play
+    ``k`` moves once ``u`` passes ``b_k = p_k + r_k`` (falling: ``p_k - r_k``),
+    so at ``b_j`` it is ``Y_j = y0 + s sum_k w_k max(0, s (b_j - b_k))`` (``s``
+    the direction) with slope ``W_j = sum_{k: s b_k <= s b_j} w_k`` beyond it.
+    The last breakpoint not past ``z`` gives ``u = b_j + (z - Y_j) / W_j``.
+    """
+    r, w = pi.thresholds, pi.weights
+    y0 = pi.offset + plays @ w
+    sign = jnp.where(z >= y0, 1.0, -1.0)
+    b = plays + sign * r
+    ahead = sign * (b[:, None] - b[None, :])  # (j, k): how far b_j lies beyond b_k
+    Y = y0 + sign * (jnp.maximum(ahead, 0.0) @ w)
+    W = (ahead >= 0) @ w
+    passed = sign * (z - Y) >= 0
+    j = jnp.argmax(jnp.where(passed, sign * b, -jnp.inf))
+    u = b[j] + (z - Y[j]) / W[j]
+    return jnp.clip(u, lo, hi), (u < lo) | (u > hi)
+
+
 def _step_axis(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array, u_prev: Array, u_max: float):
     h = _hysteresis_target(axis, v, t, s, t0)
-    u, saturated = _root(axis, h, s.plays, u_prev, -u_max, u_max)
-    y, plays = axis.hysteresis.run(jnp.reshape(u, (1,)), s.plays)
-    _, lag, creep = _dynamics(axis, y[0], t, s, t0)
+    op = axis.hysteresis
+    if isinstance(op, PrandtlIshlinskii):
+        u, saturated = _pi_step(op, h, s.plays, -u_max, u_max)
+    elif isinstance(op, GeneralizedPI):
+        u, saturated = _pi_step(op.pi, op.deadzone.inverse()(h), s.plays, -u_max, u_max)
+    else:
+        u, saturated = _root(axis, h, s.plays, u_prev, -u_max, u_max)
+    y, plays = axis.hysteresis.step(u, s.plays)
+    _, lag, creep = _dynamics(axis, y, t, s, t0)
     return u, AxisState(plays, lag, creep), saturated
 
 

@@ -226,3 +226,32 @@ def stage_errors(errors: dict, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def study_errors(errors: dict, radii: np.ndarray, path) -> None:
+    """A study's error per stage: cumulative distribution (nm) and histogram of error / R."""
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.8))
+    rel = {name: e / radii for name, e in errors.items()}
+    finite = np.concatenate([r[np.isfinite(r)] for r in rel.values()])
+    bins = np.logspace(np.log10(max(finite.min(), 1e-4)), np.log10(finite.max() * 1.01), 50) if finite.size else 10
+    for name, e in errors.items():
+        ok = np.isfinite(e)
+        if not ok.any():
+            continue
+        s = np.sort(e[ok])
+        ax.step(s, np.arange(1, s.size + 1) / e.size, where="post",
+                label=f"{name} (median {np.median(s):.2g} nm, {ok.mean():.0%} ran)")
+        bx.hist(rel[name][ok], bins=bins, histtype="step", lw=1.5, label=name)
+    ax.set(xscale="log", xlabel="error at the target [nm] (true tip to true particle centre)",
+           ylabel="fraction of trials", title="Cumulative distribution per stage")
+    bx.axvline(0.1, color="k", ls=":", lw=1)
+    bx.text(0.1, 0.97, " 0.1 R", fontsize=8, transform=bx.get_xaxis_transform(), va="top")
+    bx.set(xscale="log", xlabel="error / particle radius R (push: miss / R)", ylabel="trials",
+           title="Histogram of the error relative to the particle's radius")
+    for a in (ax, bx):
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=8, loc="upper left")
+    fig.suptitle(f"Monte-Carlo positioning study, {len(radii)} trials (simulated AFM)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -10,7 +10,8 @@ The tip (effect ``tip``): a sphere of radius ``R`` capped by a cone of half-angl
 ``theta``. What the AFM records is the dilation of the surface by the tip,
 ``I(p) = max_q [z(p + q) - tip(q)]`` (Villarrubia 1997), evaluated here over a
 fixed polar stencil of offsets ``q`` so that it works at any point of a
-distorted scan path.
+distorted scan path; for particles alone it has a closed form
+(:meth:`Particles.imaged`).
 """
 
 from __future__ import annotations
@@ -137,6 +138,26 @@ class Particles(eqx.Module):
         top = self.substrate.height(self.centres) + self.radii + cap
         return jnp.maximum(base, jnp.max(jnp.where(inside, top, -jnp.inf), axis=-1))
 
+    def imaged(self, tip: "Tip", xy: Array) -> Array:
+        """The exact tip image at ``xy`` (..., 2) nm, for a level substrate.
+
+        The tip is the ball of radius ``r`` swept by a cone of half-angle ``theta``,
+        so it touches a sphere of radius ``R`` where a sharp cone touches the sphere
+        of radius ``rho = R + r``. At lateral distance ``d`` the apex stands at
+        ``R - r + sqrt(rho^2 - d^2)`` for ``d <= rho cos(theta)`` (contact on the
+        apex ball), else ``R - r + rho / sin(theta) - d / tan(theta)`` (on the
+        flank); the substrate holds it at ``z0``. A tilted substrate adds its height
+        at ``xy`` (exact to first order in the slope).
+        """
+        base = self.substrate.height(xy)
+        R, th = self.radii, tip.half_angle
+        rho = R + tip.radius
+        d = jnp.sqrt(jnp.sum((xy[..., None, :] - self.centres) ** 2, axis=-1) + 1e-12)  # (..., K)
+        ball = jnp.sqrt(jnp.maximum(rho**2 - jnp.minimum(d, rho * jnp.cos(th)) ** 2, 0.0))
+        flank = jnp.maximum(d - rho * jnp.cos(th), 0.0) / jnp.tan(th)
+        apex = R - tip.radius + ball - flank
+        return base + jnp.maximum(jnp.max(apex, axis=-1), 0.0)
+
 
 class HeightMap(eqx.Module):
     """A measured topography ``z`` (rows = y, columns = x) nm, pixel ``pixel_size`` (2,) nm
@@ -252,7 +273,10 @@ class Indented(eqx.Module):
 
 
 def surface(sample, tip: Optional[Tip]):
-    """The height the AFM's probe follows: the sample dilated by ``tip``, or the bare sample."""
+    """The height the AFM's probe follows: the sample dilated by ``tip`` (in closed form for
+    :class:`Particles`, over the tip's stencil otherwise), or the bare sample."""
     if tip is None:
         return sample.height
+    if isinstance(sample, Particles):
+        return lambda xy: sample.imaged(tip, xy)
     return lambda xy: tip.dilate(sample.height, xy)

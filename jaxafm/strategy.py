@@ -74,36 +74,40 @@ def identify_scanner(cfg: RunConfig, scan, config_path: Path, log) -> tuple:
     return ident.model.scanner, ident.seconds
 
 
-def _near(sample: Indented, centre: jax.Array) -> Indented:
-    """``sample`` with only the ``NEARBY`` particles nearest ``centre``."""
+def _near(sample: Indented, centre: jax.Array) -> Particles:
+    """The ``NEARBY`` particles of ``sample`` nearest ``centre``: what a trial's moves, local
+    scan and push see, imaged in closed form. The indents are left out: a simplification,
+    as the particles lie about a quarter of a landmark cell or more from the nearest one."""
     parts = sample.base
     k = min(NEARBY, parts.radii.shape[0])
     idx = lax.top_k(-jnp.sum((parts.centres - centre) ** 2, axis=-1), k)[1]
-    return eqx.tree_at(lambda s: s.base, sample, Particles(parts.centres[idx], parts.radii[idx], parts.substrate))
+    return Particles(parts.centres[idx], parts.radii[idx], parts.substrate)
 
 
 @eqx.filter_jit
-def trials(pos: Positioner, sample: Indented, stand, targets, truth, radii, directions, distances, keys,
+def trials(pos: Positioner, seen: Particles, stand, targets, truth, radii, directions, distances, keys,
            local: LocalScan = None, push_spec: Push = None) -> dict:
-    """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``);
-    with ``local``, then step C and the push. Errors against the true centres ``truth``."""
-    def one(target, p, R, d, dist, key):
+    """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``), with
+    ``seen`` (batched over the trials) the particles each trial's tip meets; with ``local``,
+    then step C, and with ``push_spec`` the push. Errors against the true centres ``truth``."""
+    def one(near, target, p, R, d, dist, key):
         k = jax.random.split(key, 4)
-        near = _near(sample, p)
         xy, _, s = goto(pos, near, stand, target, k[0])
         out = {"tip": xy, "error_nm": jnp.linalg.norm(xy - p)}
         if local is None:
             return out
         res, s = local_scan(pos, near, s, target, R, k[1], local)
         xy_c, _, s = goto(pos, near, s, res.centre, k[2])
+        out |= {"c_tip": xy_c, "c_error_nm": jnp.linalg.norm(xy_c - p), "c_found": res.found,
+                "c_lines": res.lines, "c_seconds": res.seconds, "c_centre": res.centre,
+                "c_starts": res.starts, "c_ends": res.ends, "c_phases": res.phases}
+        if push_spec is None:
+            return out
         final, moved, path, s = push(pos, near, s, res.centre, p, R, d, dist, k[3], push_spec)
-        return out | {"c_tip": xy_c, "c_error_nm": jnp.linalg.norm(xy_c - p), "c_found": res.found,
-                      "c_lines": res.lines, "c_seconds": res.seconds, "c_centre": res.centre,
-                      "c_starts": res.starts, "c_ends": res.ends, "c_phases": res.phases,
-                      "push_final": final, "push_contact": moved, "push_goal": p + dist * d,
+        return out | {"push_final": final, "push_contact": moved, "push_goal": p + dist * d,
                       "push_path": path[::8]}
 
-    return jax.vmap(one)(targets, truth, radii, directions, distances, keys)
+    return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys)
 
 
 def _trace_and_retrace(images: dict, find, tolerance: float) -> np.ndarray:
@@ -144,7 +148,7 @@ def find_landmarks(images: dict, work: Raster, grid: LandmarkGrid, depth: float)
     return order_grid(found, grid.n) if len(found) == grid.n**2 else found
 
 
-def _key(label: str) -> str:
+def stage_key(label: str) -> str:
     """A stage label as a metrics key: ``"A+B (polynomial)"`` -> ``"AB_polynomial"``."""
     return label.replace("+", "").replace(" (", "_").replace(")", "")
 
@@ -171,8 +175,8 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
     return afm, work, grid, D, particle_field(cfg, grid, D)
 
 
-def _survey(cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool,
-            key) -> tuple:
+def survey(cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool,
+           key) -> tuple:
     """Press the landmarks (with ``with_b``) and image the workspace: the images, the sample with
     its indents, the stand after, and the seconds it took."""
     k_press, k_scan = jax.random.split(key)
@@ -225,16 +229,16 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         log(f"{name}: {'pressing the landmarks, ' if with_b else ''}imaging the workspace ...")
         pos = Positioner(afm, model if with_a else None)
         key_survey, key_trials = jax.random.split(jax.random.fold_in(jax.random.key(cfg.seed), i))
-        images, sample, stand, prep_s = _survey(cfg, pos, pos.start(start_state, twin if with_a else None),
-                                                Indented.empty(particles, afm.tip, capacity=grid.n**2),
-                                                work, grid, D, with_b, key_survey)
+        images, sample, stand, prep_s = survey(cfg, pos, pos.start(start_state, twin if with_a else None),
+                                               Indented.empty(particles, afm.tip, capacity=grid.n**2),
+                                               work, grid, D, with_b, key_survey)
         targets, which = find_targets(images, work, particles, cfg)
         found = f"{len(targets)} of the {len(particles.radii)} particles found"
         maps = {"": None}
         if with_b:
             M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
             figures["landmarks" + ("_A" if with_a else "")] = (images, D, M)
-            metrics[f"{_key(name)}_landmarks_found"] = len(M)
+            metrics[f"{stage_key(name)}_landmarks_found"] = len(M)
             if len(M) < grid.n**2:
                 log(f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
                     "step B cannot map targets (no results for this stage)")
@@ -249,12 +253,13 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         truth, radii = particles.centres[which], particles.radii[which]
         directions, distances = _push_goals(cfg, targets, which, len(particles.radii), box)
         keys = jax.random.split(key_trials, len(targets))
+        seen = jax.vmap(lambda p: _near(sample, p))(truth)
         scan_s = prep_s + (calib_s if with_a else 0.0)
         for j, (suffix, frame) in enumerate(maps.items()):
             with_c = with_a and with_b and j == 0
             start = time.perf_counter()
             r = jax.tree_util.tree_map(np.asarray, trials(
-                Positioner(afm, pos.model, frame), sample, stand, jnp.asarray(targets), truth, radii,
+                Positioner(afm, pos.model, frame), seen, stand, jnp.asarray(targets), truth, radii,
                 jnp.asarray(directions), jnp.asarray(distances), keys, local if with_c else None,
                 Push(speed=cfg.push.speed_nm_per_s) if with_c else None))
             label = name + suffix
@@ -271,7 +276,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                 figures["trials"] = (r, np.asarray(truth), np.asarray(radii))
     for label, s, scan_s in rows:
         if s is not None:
-            metrics |= {f"{_key(label)}_error_{k}": v for k, v in s.items()} | {f"{_key(label)}_scan_time_s": scan_s}
+            metrics |= {f"{stage_key(label)}_error_{k}": v for k, v in s.items()} | {f"{stage_key(label)}_scan_time_s": scan_s}
     log(_table(rows, metrics))
     _figures(figures, work, out)
     plots.stage_errors(errors, out / "errors.png")

@@ -416,6 +416,35 @@ def test_dilate_sphere_closed_form():
     assert errs[1] < errs[0] / 10
 
 
+def test_particles_imaged_closed_form_against_brute_force():
+    """Particles.imaged (closed form, ball and flank contact) against the dilation's
+    definition max_q [z(p + q) - tip(q)] evaluated by brute force over a dense (0.25 nm)
+    grid of offsets q in NumPy: the brute force lies below the exact value by at most the
+    grid's reach, and the closed form is never below it. Profiles through two touching
+    particles, out to where the image meets the substrate."""
+    tip = Tip()
+    centres, radii = np.array([[0.0, 0.0], [70.0, 10.0]]), np.array([20.0, 8.0])
+    parts = Particles(jnp.asarray(centres), jnp.asarray(radii))
+    g = np.arange(-120.0, 120.01, 0.25)
+    q = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    lift = np.asarray(tip.profile(jnp.asarray(np.hypot(q[:, 0], q[:, 1]))))
+
+    def height(p):  # spheres on z = 0, in NumPy
+        d2 = np.sum((p[:, None] - centres) ** 2, -1)
+        top = np.where(d2 < radii**2, radii + np.sqrt(np.clip(radii**2 - d2, 0, None)), -np.inf)
+        return np.maximum(0.0, top.max(-1))
+
+    xs = np.linspace(-80.0, 110.0, 39)
+    for y in (0.0, 6.0):
+        pts = np.stack([xs, np.full_like(xs, y)], -1)
+        brute = np.array([np.max(height(p + q) - lift) for p in pts])
+        exact = np.asarray(jax.jit(lambda t, p: parts.imaged(t, p))(tip, jnp.asarray(pts)))
+        assert np.all(exact >= brute - 1e-9)
+        assert np.max(exact - brute) < 0.05  # measured 0.0042 and 0.0052 nm
+        assert exact.min() == 0.0  # out on the substrate
+    assert np.max(exact) < 2 * radii[0] and exact.max() > 2 * radii[1]  # y = 6 nm passes below the top
+
+
 def test_dilate_sharp_step_cone_flank():
     """A 50 nm step with a 1e-3 nm edge: beside it the exact image is the tip's profile hung
     from the top corner, depth - profile(d) at distance d (the cone flank, slope
@@ -483,10 +512,14 @@ def test_dilate_gradient_and_surface():
         g = np.asarray(dD(tip, part, jnp.asarray(p)))
         np.testing.assert_allclose(g, fd(f, p, h=1e-6), rtol=1e-5)
         assert g @ p < 0  # downhill away from the particle's top
-    # surface(): the bare sample without a tip, its dilation with one
+    # surface(): the bare sample without a tip; with one, particles in closed form (above the
+    # stencil's value, which takes the max over fewer offsets), anything else over the stencil
     assert surface(part, None) == part.height
     p = jnp.array([7.3, 2.1])
-    assert float(jax.jit(surface(part, tip))(p)) == pytest.approx(float(f(p)), rel=1e-13)
+    assert float(jax.jit(surface(part, tip))(p)) == pytest.approx(float(part.imaged(tip, p)), rel=1e-13)
+    assert float(part.imaged(tip, p)) > float(f(p))
+    plane = Plane(jnp.asarray(1.0), jnp.array([0.1, 0.0]))
+    assert float(jax.jit(surface(plane, tip))(p)) == pytest.approx(float(D(tip, plane, p)), rel=1e-13)
 
 
 # ----------------------------------------------------------------------------- Indented

@@ -1,0 +1,388 @@
+"""Monte-Carlo positioning studies: ``jaxafm study CONFIG``.
+
+Every trial is one particle of a drawn radius at a random place inside a landmark
+cell (in its middle half, so the nearest indent is over a third of a cell away),
+on a scanner drawn from the config's distributions. Consecutive trials share a
+scanner (``trials_per_scanner``): its calibration scan, step A's identification
+and one survey per stage (press the landmarks for B, image the workspace) run
+once for them all. A trial's target is where its particle appears in that
+stage's survey image (the wanted position at which the mean of the true trace
+and retrace paths passes over the particle's centre: a particle finder without
+error); the trial then goes there (open loop, A, B, A+B), and for A+B+C runs
+the local scan from there, moves to the centre it found and pushes.
+
+Trials run in jitted, vmapped batches of ``chunk`` trials, sharded over every
+JAX device (``jax.sharding``; one mesh axis ``trials``). Each trial's random
+key is ``fold_in(seed, trial)``, and its draws are fixed before any runs, so the
+results do not depend on the chunk size or the device count. Each chunk's
+results are written atomically to ``chunks/``; a resumed study reuses them and
+the identified models in ``scanners/``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import yaml
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from . import plots
+from .afm import Raster, default_afm
+from .config import STUDY_PARAMETERS, StudyConfig
+from .io import load_model, save_model
+from .landmarks import LandmarkGrid, LandmarkMap
+from .positioning import LocalScan, Positioner, Push
+from .samples import Indented, Particles, Plane
+from .step_a import run_cycle, simulate_calibration, twin_state
+from .strategy import find_landmarks, identify_scanner, stage_key, survey, trials
+
+#: survey stages: name -> (step A, step B); A+B+C and the push go on from A+B's survey
+SURVEYS = {"open_loop": (False, False), "A": (True, False), "B": (False, True), "A+B": (True, True)}
+
+
+def scanner_draws(cfg: StudyConfig) -> list:
+    """``default_afm`` arguments for each of the study's scanners (drawn before any trial)."""
+    rng = np.random.default_rng([cfg.seed, 1])
+    columns = {}
+    for effect, params in STUDY_PARAMETERS.items():
+        for name, (arg, _, default) in params.items():
+            dist = cfg.scanner.get(effect, {}).get(name)
+            columns[arg] = dist.draw(rng, cfg.scanners) if dist is not None else np.full(cfg.scanners, default)
+    draws = []
+    for s in range(cfg.scanners):
+        d = {k: float(v[s]) for k, v in columns.items()}
+        d["drift_nm_per_min"] = (d.pop("drift_x"), d.pop("drift_y"))
+        draws.append(d)
+    return draws
+
+
+def trial_draws(cfg: StudyConfig, D: np.ndarray) -> dict:
+    """Every trial's particle (centre (T, 2) nm, radius (T,) nm) and push (unit direction (T, 2),
+    distance (T,) nm); directions whose goal would leave the landmark grid are reversed."""
+    rng = np.random.default_rng([cfg.seed, 2])
+    n, T = cfg.landmarks.n, cfg.trials
+    lo, hi = D.min(0), D.max(0)
+    cell = (hi - lo) / (n - 1)
+    corner = lo + rng.integers(0, n - 1, (T, 2)) * cell
+    centre = corner + rng.uniform(0.25, 0.75, (T, 2)) * cell
+    radius = cfg.particle_radius_nm.draw(rng, T)
+    angle = rng.uniform(0, 2 * np.pi, T)
+    distance = rng.uniform(*cfg.push.distance_nm, T)
+    direction = np.stack([np.cos(angle), np.sin(angle)], -1)
+    goal = centre + distance[:, None] * direction
+    direction[np.any((goal < lo) | (goal > hi), axis=1)] *= -1
+    return {"trial": np.arange(T), "scanner": np.arange(T) // cfg.trials_per_scanner, "x_nm": centre[:, 0],
+            "y_nm": centre[:, 1], "radius_nm": radius, "push_dx": direction[:, 0], "push_dy": direction[:, 1],
+            "push_distance_nm": distance}
+
+
+@jax.jit
+def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, centre: jax.Array) -> jax.Array:
+    """Where a particle at ``centre`` (2,) nm appears in a survey image: the wanted position
+    (2,) nm at which ``mean_path`` (rows, cols, 2) nm, the mean of the true trace and retrace
+    paths, passes over it; the nearest pixel, then one Newton step on the local Jacobian."""
+    rows, cols = mean_path.shape[:2]
+    i, j = jnp.divmod(jnp.argmin(jnp.sum((mean_path - centre) ** 2, -1)), cols)
+    i, j = jnp.clip(i, 1, rows - 2), jnp.clip(j, 1, cols - 2)
+    J = jnp.stack([mean_path[i, j + 1] - mean_path[i, j - 1], mean_path[i + 1, j] - mean_path[i - 1, j]], -1) / 2
+    step = jnp.linalg.solve(J, centre - mean_path[i, j])
+    return origin + (jnp.stack([j, i]) + step) * pixel
+
+
+def _layout(cfg: StudyConfig) -> tuple:
+    ws = cfg.workspace
+    work = Raster(ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm),
+                  overscan=0.05)
+    grid = LandmarkGrid(cfg.landmarks.n, cfg.landmarks.start_px, cfg.landmarks.step_px, ws.pixels)
+    return work, grid, grid.positions(work)
+
+
+def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, out: Path, log) -> tuple:
+    """Scanner ``s``: its calibration scan, step A's model (identified, or read from ``scanners/``
+    when a resumed study saved it, or from ``calibration.model_file``) and one survey per stage.
+    Returns ``{stage: (positioner, stand, mean path (rows, cols, 2) nm) or None}`` (``None``: the
+    survey did not find every landmark) and what is worth keeping about it."""
+    work, grid, D = _layout(cfg)
+    afm = default_afm(**params)
+    scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
+    start = run_cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    stages = [st for st in SURVEYS if st in cfg.stages or (st == "A+B" and "A+B+C" in cfg.stages)]
+    info = {"scanner": s, **params, "step_a_fit_s": 0.0}
+    model = twin = None
+    if any(SURVEYS[st][0] for st in stages):
+        saved = out / "scanners" / f"model_{s:05d}.json"
+        if saved.is_file():
+            model = load_model(saved)
+        else:
+            model, info["step_a_fit_s"] = identify_scanner(cfg, scan, config_path, lambda m: None)
+            _atomic(saved, lambda f: save_model(model, f))
+        twin = twin_state(model, scan, sim.cycle).scanner
+    contexts = {}
+    for i, st in enumerate(stages):
+        with_a, with_b = SURVEYS[st]
+        pos = Positioner(afm, model if with_a else None)
+        images, _, stand, info[f"{stage_key(st)}_survey_s"] = survey(
+            cfg, pos, pos.start(start, twin if with_a else None), Indented.empty(Plane(), afm.tip, grid.n**2),
+            work, grid, D, with_b, jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), 1 + s), i))
+        if with_b:
+            M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
+            info[f"{stage_key(st)}_landmarks_found"] = len(M)
+            if len(M) < grid.n**2:
+                log(f"scanner {s}, {st}: {len(M)} of the {grid.n**2} landmarks found: its trials fail")
+                contexts[st] = None
+                continue
+            lm = cfg.landmarks
+            pos = Positioner(afm, pos.model, LandmarkMap(M, D, lm.interpolation[0], lm.m, lm.degree))
+        mean_path = (images["path_trace"] + images["path_retrace"]) / 2
+        contexts[st] = (pos, stand, mean_path)
+    return contexts, info
+
+
+def _shard(arrays: dict, mesh: Mesh, size: int) -> dict:
+    """``arrays`` (leading axis: trials) padded to ``size`` trials, a multiple of the device count
+    (repeating the last trial), and split over the mesh's devices."""
+    sharding = NamedSharding(mesh, PartitionSpec("trials"))
+
+    def put(a):
+        a = np.concatenate([a, np.repeat(a[-1:], size - len(a), 0)])
+        return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
+
+    return {k: put(v) for k, v in arrays.items()}
+
+
+def _replicate(tree, mesh: Mesh):
+    """Every array of ``tree`` copied to each of the mesh's devices."""
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(jax.device_put(arrays, NamedSharding(mesh, PartitionSpec())), rest)
+
+
+def _gather(tree, n: int) -> dict:
+    if jax.process_count() > 1:  # pragma: no cover - several hosts
+        from jax.experimental import multihost_utils
+
+        tree = multihost_utils.process_allgather(tree, tiled=True)
+    return jax.tree_util.tree_map(lambda a: np.array(a)[:n], tree)
+
+
+#: A vmapped local scan runs as many lines as its slowest trial, and most end within 3-4 lines:
+#: every trial first runs with at most this many, then those still searching run again, alone.
+FIRST_PASS_LINES = 6
+
+
+def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Mesh, local=None,
+                 push_spec=None) -> dict:
+    """:func:`~jaxafm.strategy.trials` for the trials ``x`` (NumPy columns) on one stage's survey
+    ``context``, split over the mesh. With ``local``, in two passes (:data:`FIRST_PASS_LINES`);
+    each trial's key is ``fold_in(fold_in(seed, trial), stage)``, so the second pass gives what one
+    pass with every line would. Returns NumPy columns (trials first)."""
+    pos, stand, mean_path = _replicate(context, mesh)
+    work = _layout(cfg)[0]
+    x = x | {"target": np.asarray(jax.vmap(image_position, (None, None, None, 0))(
+        mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"])))}
+    root = jax.random.fold_in(jax.random.key(cfg.seed), 0)
+
+    def call(idx, spec, size):
+        a = _shard({k: v[idx] for k, v in x.items()}, mesh, size)
+        seen = jax.vmap(lambda c, R: Particles(c[None], R[None]))(a["centre"], a["radius"])  # a particle per trial
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(root, i), stage))(a["trial"])
+        return _gather(trials(pos, seen, stand, a["target"], a["centre"], a["radius"], a["direction"], a["distance"],
+                              keys, spec, push_spec if spec else None), len(idx))
+
+    every = np.arange(len(x["trial"]))
+    first = -(-every.size // mesh.size) * mesh.size
+    if local is None or local.max_lines <= FIRST_PASS_LINES:
+        return call(every, local, first)
+    r = call(every, dataclasses.replace(local, max_lines=FIRST_PASS_LINES), first)
+    again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
+    size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
+    for start in range(0, again.size, size):
+        idx = again[start:start + size]
+        r2 = call(idx, local, size)
+        r = {k: v for k, v in r.items() if v.shape[1:] == r2[k].shape[1:]}  # drops the per-line records
+        for k in r:
+            r[k][idx] = r2[k]
+    return r
+
+
+def run_chunk(cfg: StudyConfig, contexts: dict, draws: dict, mesh: Mesh) -> dict:
+    """The results of the trials in ``draws`` (one scanner's), columns keyed by stage, run as one
+    batch split over the ``mesh``'s devices (``contexts`` replicated on them)."""
+    ls = cfg.local_scan
+    local = LocalScan(ls.points, ls.line_time_s, margin=ls.margin_nm, max_lines=ls.max_lines,
+                      width_tolerance=ls.width_tolerance)
+    push_spec = Push(speed=cfg.push.speed_nm_per_s) if "push" in cfg.stages else None
+    x = {"trial": draws["trial"], "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1), "radius": draws["radius_nm"],
+         "direction": np.stack([draws["push_dx"], draws["push_dy"]], -1), "distance": draws["push_distance_nm"]}
+    n = len(x["trial"])
+    out = {}
+    for j, (st, ctx) in enumerate(contexts.items()):
+        with_c = st == "A+B" and "A+B+C" in cfg.stages
+        if ctx is None:  # the survey missed landmarks: every trial of this scanner fails the stage
+            r = {"error_nm": np.full(n, np.nan), "c_error_nm": np.full(n, np.nan), "c_found": np.zeros(n, bool),
+                 "c_lines": np.zeros(n, int), "c_seconds": np.full(n, np.nan), "push_error_nm": np.full(n, np.nan),
+                 "push_contact": np.zeros(n, bool)}
+        else:
+            r = stage_trials(cfg, ctx, x, j, mesh, local if with_c else None, push_spec)
+            if with_c and push_spec:
+                r["push_error_nm"] = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1)
+        out[f"{stage_key(st)}_error_nm"] = r["error_nm"]
+        if with_c:
+            out |= {"ABC_error_nm": r["c_error_nm"], "ABC_found": r["c_found"], "ABC_lines": r["c_lines"],
+                    "ABC_local_scan_s": r["c_seconds"]}
+        if with_c and push_spec:
+            out |= {"push_error_nm": r["push_error_nm"], "push_contact": r["push_contact"]}
+    return out
+
+
+def _atomic(path: Path, write) -> None:
+    """``write(tmp)`` then rename onto ``path``: a reader sees the old file or the whole new one."""
+    if jax.process_index() != 0:  # pragma: no cover - several hosts: one writer
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")  # same suffix: np.savez adds none
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _chunks(cfg: StudyConfig) -> list:
+    """``(scanner, first trial, end)`` of every chunk: a chunk never spans two scanners."""
+    out = []
+    for s in range(cfg.scanners):
+        a, b = s * cfg.trials_per_scanner, min((s + 1) * cfg.trials_per_scanner, cfg.trials)
+        out += [(s, i, min(i + cfg.chunk, b)) for i in range(a, b, cfg.chunk)]
+    return out
+
+
+def chunk_path(out: Path, a: int, b: int) -> Path:
+    return out / "chunks" / f"trials_{a:08d}_{b:08d}.npz"
+
+
+def _check_resume(cfg: StudyConfig, out: Path) -> None:
+    saved = out / "study.yaml"
+    if not saved.is_file():
+        raise ValueError(f"--resume: {out} holds no study (no study.yaml): start it without --resume")
+    before = yaml.safe_load(saved.read_text())
+    now = cfg.model_dump(mode="json")
+    changed = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
+    if changed:
+        raise ValueError(f"--resume: the config differs from the one the study in {out} started with "
+                         f"(keys: {', '.join(changed)}); restore them, or start a new study with --out")
+
+
+def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, log=print, resume: bool = False,
+        devices=None) -> dict:
+    """The whole study into ``out``; returns the metrics (see the module docstring)."""
+    from tqdm.auto import tqdm
+
+    work, grid, D = _layout(cfg)
+    default_afm().check_range(default_afm().nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
+    draws = trial_draws(cfg, D)
+    scanners = scanner_draws(cfg)
+    mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
+    if resume:
+        _check_resume(cfg, out)
+    else:
+        prepare()
+        _atomic(out / "study.yaml", lambda f: f.write_text(yaml.safe_dump(cfg.model_dump(mode="json"))))
+    todo = [c for c in _chunks(cfg) if not chunk_path(out, c[1], c[2]).is_file()]
+    done = cfg.trials - sum(b - a for _, a, b in todo)
+    info = _read_json(out / "scanners.json")
+    log(f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s), chunks of {cfg.chunk}"
+        + (f"; resuming: {done} done" if done else ""))
+    start = time.perf_counter()
+    with tqdm(total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1) as bar:
+        for s in sorted({c[0] for c in todo}):
+            bar.set_postfix_str(f"scanner {s}: step A and surveys")
+            contexts, info[str(s)] = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
+            _atomic(out / "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
+            bar.set_postfix_str(f"scanner {s}: trials")
+            for _, a, b in (c for c in todo if c[0] == s):
+                r = run_chunk(cfg, contexts, {k: v[a:b] for k, v in draws.items()}, mesh)
+                _atomic(chunk_path(out, a, b), lambda f: np.savez(f, **r))
+                bar.update(b - a)
+    return summarise(cfg, out, draws, info, time.perf_counter() - start, log)
+
+
+def _read_json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def load_results(cfg: StudyConfig, out: Path, draws: dict) -> dict:
+    """Every trial's draws and results, columns (trials,), from the chunk files."""
+    parts = [dict(np.load(chunk_path(out, a, b))) for _, a, b in _chunks(cfg)]
+    return draws | {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC": "A+B+C", "push": "push"}
+
+
+def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dict:
+    """Error quantiles (nm) over the trials that ran (a failed survey's are NaN) and the success
+    rate over all trials."""
+    e = errors[np.isfinite(errors)]
+    q = np.percentile(e, [50, 95, 99]) if e.size else np.full(3, np.nan)
+    return {"error_median_nm": float(q[0]), "error_p95_nm": float(q[1]), "error_p99_nm": float(q[2]),
+            "error_max_nm": float(e.max()) if e.size else float("nan"), "success_pct": 100 * float(np.mean(success)),
+            "scan_time_s": float(scan_s), "trials": int(errors.size)}
+
+
+def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: float, log) -> dict:
+    """``trials.csv``, ``trials.npz``, ``metrics.json``, the table and the figures."""
+    r = load_results(cfg, out, draws)
+    calib_s = cfg.calibration.simulate.pixels / cfg.calibration.simulate.line_rate_hz
+    tol = cfg.push.tolerance_radii
+    rows = {}
+    for key, label in STAGE_LABELS.items():
+        if f"{key}_error_nm" not in r:
+            continue
+        e = r[f"{key}_error_nm"]
+        survey = "AB" if key in ("ABC", "push") else key
+        with_a = key in ("A", "AB", "ABC", "push")
+        scan_s = np.mean([v.get(f"{survey}_survey_s", np.nan) for v in info.values()]) + (calib_s if with_a else 0)
+        if key in ("ABC", "push"):
+            scan_s += float(np.nanmean(r["ABC_local_scan_s"]))
+        success = (r["push_contact"] & (e <= tol * r["radius_nm"])) if key == "push" else e <= 0.1 * r["radius_nm"]
+        rows[label] = stage_summary(e, success, scan_s)
+    metrics = {"trials": cfg.trials, "scanners": cfg.scanners, "trials_per_scanner": cfg.trials_per_scanner,
+               "wall_s": seconds, "push_tolerance_radii": tol}
+    for label, s in rows.items():
+        metrics |= {f"{stage_key(label.replace('open loop', 'open_loop'))}_{k}": v for k, v in s.items()}
+    if "ABC_found" in r:
+        metrics |= {"ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
+                    "ABC_lines_mean": float(np.mean(r["ABC_lines"]))}
+    _atomic(out / "trials.npz", lambda f: np.savez_compressed(f, **r))
+    _atomic(out / "trials.csv", lambda f: _write_csv(f, r))
+    _atomic(out / "metrics.json", lambda f: f.write_text(json.dumps(metrics, indent=1)))
+    errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
+    plots.study_errors(errors, r["radius_nm"], out / "errors.png")
+    log(table(rows, tol))
+    return metrics
+
+
+def _write_csv(path: Path, columns: dict) -> None:
+    names = list(columns)
+    data = np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
+    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+
+
+def table(rows: dict, tolerance_radii: float) -> str:
+    head = (f"{'stage':10s} {'trials':>7s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
+            f"{'success':>8s} {'scanning':>9s}")
+    lines = [head, "-" * len(head)]
+    for label, s in rows.items():
+        lines.append(f"{label:10s} {s['trials']:7d} {s['error_median_nm']:7.1f}nm {s['error_p95_nm']:7.1f}nm "
+                     f"{s['error_p99_nm']:7.1f}nm {s['error_max_nm']:7.1f}nm {s['success_pct']:7.1f}% "
+                     f"{s['scan_time_s']:8.0f}s")
+    lines.append(f"error: true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
+                 f"centre to its goal); success: error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
+                 "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
+                 "workspace image; A+B+C: plus the mean local scan)")
+    return "\n".join(lines)
