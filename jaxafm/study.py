@@ -36,7 +36,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from . import plots
 from .afm import Raster, default_afm
-from .config import STUDY_PARAMETERS, StudyConfig
+from .config import STUDY_PARAMETERS, StudyConfig, resolve_data_path
 from .io import load_model, save_model
 from .landmarks import LandmarkGrid, LandmarkMap
 from .positioning import LocalScan, Positioner, Push
@@ -85,16 +85,19 @@ def trial_draws(cfg: StudyConfig, D: np.ndarray) -> dict:
 
 
 @jax.jit
-def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, centre: jax.Array) -> jax.Array:
+def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, centre: jax.Array) -> tuple:
     """Where a particle at ``centre`` (2,) nm appears in a survey image: the wanted position
     (2,) nm at which ``mean_path`` (rows, cols, 2) nm, the mean of the true trace and retrace
-    paths, passes over it; the nearest pixel, then one Newton step on the local Jacobian."""
+    paths, passes over it (the nearest pixel, then one Newton step on the local Jacobian), and
+    whether it does so inside the image (else the particle is not in it)."""
     rows, cols = mean_path.shape[:2]
-    i, j = jnp.divmod(jnp.argmin(jnp.sum((mean_path - centre) ** 2, -1)), cols)
-    i, j = jnp.clip(i, 1, rows - 2), jnp.clip(j, 1, cols - 2)
+    i0, j0 = jnp.divmod(jnp.argmin(jnp.sum((mean_path - centre) ** 2, -1)), cols)
+    i, j = jnp.clip(i0, 1, rows - 2), jnp.clip(j0, 1, cols - 2)
     J = jnp.stack([mean_path[i, j + 1] - mean_path[i, j - 1], mean_path[i + 1, j] - mean_path[i - 1, j]], -1) / 2
     step = jnp.linalg.solve(J, centre - mean_path[i, j])
-    return origin + (jnp.stack([j, i]) + step) * pixel
+    pix = jnp.stack([j, i]) + step
+    inside = jnp.all((pix >= 0) & (pix <= jnp.array([cols - 1, rows - 1])))
+    return origin + pix * pixel, inside
 
 
 def _layout(cfg: StudyConfig) -> tuple:
@@ -185,8 +188,9 @@ def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Me
     pass with every line would. Returns NumPy columns (trials first)."""
     pos, stand, mean_path = _replicate(context, mesh)
     work = _layout(cfg)[0]
-    x = x | {"target": np.asarray(jax.vmap(image_position, (None, None, None, 0))(
-        mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"])))}
+    target, seen = jax.vmap(image_position, (None, None, None, 0))(
+        mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"]))
+    x = x | {"target": np.asarray(target)}
     root = jax.random.fold_in(jax.random.key(cfg.seed), 0)
 
     def call(idx, spec, size):
@@ -199,7 +203,7 @@ def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Me
     every = np.arange(len(x["trial"]))
     first = -(-every.size // mesh.size) * mesh.size
     if local is None or local.max_lines <= FIRST_PASS_LINES:
-        return call(every, local, first)
+        return _unseen(call(every, local, first), np.asarray(seen))
     r = call(every, dataclasses.replace(local, max_lines=FIRST_PASS_LINES), first)
     again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
     size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
@@ -209,6 +213,17 @@ def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Me
         r = {k: v for k, v in r.items() if v.shape[1:] == r2[k].shape[1:]}  # drops the per-line records
         for k in r:
             r[k][idx] = r2[k]
+    return _unseen(r, np.asarray(seen))
+
+
+def _unseen(r: dict, seen: np.ndarray) -> dict:
+    """Trials whose particle lies outside the survey image have no target: their errors are NaN
+    and nothing of theirs counts as found or pushed."""
+    for k, v in r.items():
+        if v.dtype == bool:
+            v[~seen] = False
+        elif k.endswith("error_nm") or k.startswith("push_final"):
+            v[~seen] = np.nan
     return r
 
 
@@ -287,6 +302,9 @@ def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, lo
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
+    if cfg.calibration.model_file is not None and not resolve_data_path(cfg.calibration.model_file, config_path).is_file():
+        raise ValueError(f"calibration.model_file: {resolve_data_path(cfg.calibration.model_file, config_path)} "
+                         "does not exist")
     if resume:
         _check_resume(cfg, out)
     else:
@@ -301,7 +319,9 @@ def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, lo
     with tqdm(total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1) as bar:
         for s in sorted({c[0] for c in todo}):
             bar.set_postfix_str(f"scanner {s}: step A and surveys")
-            contexts, info[str(s)] = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
+            contexts, now = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
+            info[str(s)] = info.get(str(s), {}) | now | {  # a resumed scanner keeps its identification time
+                "step_a_fit_s": max(now["step_a_fit_s"], info.get(str(s), {}).get("step_a_fit_s", 0.0))}
             _atomic(out / "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             for _, a, b in (c for c in todo if c[0] == s):
@@ -325,13 +345,13 @@ STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC"
 
 
 def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dict:
-    """Error quantiles (nm) over the trials that ran (a failed survey's are NaN) and the success
-    rate over all trials."""
+    """Error quantiles (nm) over the trials that ran (NaN: the survey missed landmarks, or the
+    particle lay outside its image), the share that ran, and the success rate over all trials."""
     e = errors[np.isfinite(errors)]
     q = np.percentile(e, [50, 95, 99]) if e.size else np.full(3, np.nan)
     return {"error_median_nm": float(q[0]), "error_p95_nm": float(q[1]), "error_p99_nm": float(q[2]),
             "error_max_nm": float(e.max()) if e.size else float("nan"), "success_pct": 100 * float(np.mean(success)),
-            "scan_time_s": float(scan_s), "trials": int(errors.size)}
+            "scan_time_s": float(scan_s), "trials": int(errors.size), "ran_pct": 100 * e.size / max(errors.size, 1)}
 
 
 def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: float, log) -> dict:
@@ -374,15 +394,16 @@ def _write_csv(path: Path, columns: dict) -> None:
 
 
 def table(rows: dict, tolerance_radii: float) -> str:
-    head = (f"{'stage':10s} {'trials':>7s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
+    head = (f"{'stage':10s} {'trials':>7s} {'ran':>6s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
             f"{'success':>8s} {'scanning':>9s}")
     lines = [head, "-" * len(head)]
     for label, s in rows.items():
-        lines.append(f"{label:10s} {s['trials']:7d} {s['error_median_nm']:7.1f}nm {s['error_p95_nm']:7.1f}nm "
+        lines.append(f"{label:10s} {s['trials']:7d} {s['ran_pct']:5.1f}% {s['error_median_nm']:7.1f}nm {s['error_p95_nm']:7.1f}nm "
                      f"{s['error_p99_nm']:7.1f}nm {s['error_max_nm']:7.1f}nm {s['success_pct']:7.1f}% "
                      f"{s['scan_time_s']:8.0f}s")
-    lines.append(f"error: true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
-                 f"centre to its goal); success: error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
+    lines.append(f"ran: trials whose survey found every landmark and imaged their particle; error (over those): "
+                 f"true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
+                 f"centre to its goal); success (over all): error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
                  "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
                  "workspace image; A+B+C: plus the mean local scan)")
     return "\n".join(lines)
