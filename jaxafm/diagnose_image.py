@@ -151,15 +151,8 @@ def figure(res: dict, dec: dict, test: dict, path) -> None:
     a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band (white)")
     a.set(xlabel="lag [rows]", ylabel="autocorrelation", title="whiteness of the per-row mean residual")
     a.legend(fontsize=8)
-    a = ax[1, 1]
-    cand = res["candidates"]
-    if cand:
-        a.barh([c["effect"] for c in cand], [c["heldout_gap_after_nm"] for c in cand],
-               color=["tab:red" if c["significant"] else "tab:gray" for c in cand])
-        a.axvline(res["nominal"]["heldout_gap_nm"], color="k", ls="--", lw=1, label="nominal")
-        a.invert_yaxis()
-        a.legend(fontsize=8)
-    a.set(xlabel="held-out gap (rms edge residual) [nm]", title="nominal + candidate (red: significant)")
+    gap_report.candidate_bars(ax[1, 1], res["candidates"], res["nominal"]["heldout_gap_nm"],
+                              "held-out gap (rms edge residual) [nm]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

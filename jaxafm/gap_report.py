@@ -175,19 +175,21 @@ def figure(t, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, r
     a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band")
     a.set(xlabel="lag [samples]", ylabel="cross-correlation", title="residual against the input")
     a.legend(fontsize=7)
-    a = ax[1, 2]
-    if rows:
-        names = [r["effect"] for r in rows]
-        after = [r["heldout_gap_after_nm"] for r in rows]
-        colors = ["tab:red" if r["significant"] else "tab:gray" for r in rows]
-        a.barh(names, after, color=colors)
-        a.axvline(rows[0]["heldout_gap_before_nm"], color="k", ls="--", lw=1, label="nominal")
-        a.invert_yaxis()
-        a.legend(fontsize=8)
-    a.set(xlabel="held-out gap (rms) [nm]", title="nominal + candidate (red: significant)")
+    candidate_bars(ax[1, 2], rows, rows[0]["heldout_gap_before_nm"] if rows else None, "held-out gap (rms) [nm]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def candidate_bars(a, candidates: list, nominal_gap_nm, xlabel: str) -> None:
+    """Each candidate's held-out gap after refitting (red: significant), against the nominal's."""
+    if candidates:
+        a.barh([c["effect"] for c in candidates], [c["heldout_gap_after_nm"] for c in candidates],
+               color=["tab:red" if c["significant"] else "tab:gray" for c in candidates])
+        a.axvline(nominal_gap_nm, color="k", ls="--", lw=1, label="nominal")
+        a.invert_yaxis()
+        a.legend(fontsize=8)
+    a.set(xlabel=xlabel, title="nominal + candidate (red: significant)")
 
 
 def markdown_head(doc: dict) -> list:
