@@ -44,7 +44,7 @@ import numpy as np
 
 from benchutil import machine_info, time_jax
 from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.reference import numpy_height, raster_normals, raster_scan_numpy
+from jaxafm.reference import numpy_height, numpy_grating_image, raster_normals, raster_scan_numpy
 from jaxafm.samples import Grating
 
 SIZE_NM, PITCH_NM, DEPTH_NM, LINE_RATE_HZ, OVERSCAN, SEED = 9000.0, 3000.0, 550.0, 1.0, 0.05, 0
@@ -56,10 +56,10 @@ def peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # ru_maxrss is KiB on Linux
 
 
-def run_numpy(afm, height, raster, normals, lines):
+def run_numpy(afm, height, raster, normals, lines, tip_image):
     t0 = time.perf_counter()
     out = raster_scan_numpy(afm, height, raster, *normals, history=HISTORY, move_samples=MOVE_SAMPLES,
-                            lines=lines)
+                            lines=lines, probe=tip_image)
     return time.perf_counter() - t0, out
 
 
@@ -113,18 +113,19 @@ def main():
     rss_jax = peak_rss_gib()
 
     height, normals = numpy_height(sample), raster_normals(key, raster, MOVE_SAMPLES)
-    run_numpy(afm, height, raster, normals, 0)  # warm-up: the move only (converts the parameters once)
+    tip_image = numpy_grating_image(sample, afm.tip)
+    run_numpy(afm, height, raster, normals, 0, tip_image)  # warm-up: the move only (converts the parameters once)
     probe = None
     if args.numpy_lines is not None:
         np_lines, how = min(args.numpy_lines, lines), "--numpy-lines"
     else:
         k = min(lines, 2)
-        probe_s, _ = run_numpy(afm, height, raster, normals, k)
+        probe_s, _ = run_numpy(afm, height, raster, normals, k, tip_image)
         projected = probe_s * lines / k
         probe = {"lines": k, "s": probe_s, "projected_full_s": projected}
         np_lines = lines if projected <= args.numpy_budget else max(k, int(args.numpy_budget / probe_s * k))
         np_lines, how = min(np_lines, lines), f"probe of {k} lines projected {projected:.0f} s"
-    np_s, ref = run_numpy(afm, height, raster, normals, np_lines)
+    np_s, ref = run_numpy(afm, height, raster, normals, np_lines, tip_image)
     scaled = np_lines < lines
     np_image_s = np_s * (lines * per_line + MOVE_SAMPLES) / (np_lines * per_line + MOVE_SAMPLES)
     print(f"(c) NumPy reference   {np_image_s:9.3f} s  " + (

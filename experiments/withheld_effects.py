@@ -1,14 +1,17 @@
-"""Blind check of the sim-to-real diagnosis on simulated records with one withheld effect.
+"""Blind check of the sim-to-real diagnosis on simulated data with one withheld effect.
 
-Each case: a two-axis record of the simulated symmetric-PI scanner (2 nm noise, 20 s at
-100 Hz, jaxafm.diagnose.simulate_record) with one effect the nominal model (symmetric PI,
-20 plays per axis) lacks, at three magnitudes, several seeds each, plus controls with no
-extra effect. The diagnosis sees only the record. Writes, into
-experiments/results/withheld_effects/: cases.json (one row per case, written as it goes),
-summary.json (confusion matrix, top-1 accuracy per magnitude, false alarms, shrink) and
-confusion.png.
+Records: a two-axis record of the simulated symmetric-PI scanner (2 nm noise, 20 s at
+100 Hz, jaxafm.withheld.simulate_record) with one effect the nominal model (symmetric PI,
+20 plays per axis) lacks. Scans: trace/retrace images of a 1-D grating at 1 and 4 lines/s
+(jaxafm.withheld.simulate_scans, 0.5 nm lateral noise) with an imaging effect the
+nominal model (hysteresis only, ideal tip and feedback) lacks. Each effect at three
+magnitudes, several seeds each, plus controls with no extra effect. The diagnosis sees
+only the data. Writes, into experiments/results/withheld_effects/: cases.json (one row
+per case, written as it goes), summary.json (confusion matrix, top-1 accuracy per
+magnitude, false alarms, shrink; overall and per kind of data) and confusion.png.
 
-    python experiments/withheld_effects.py                 # 6 effects x 3 magnitudes x 5 seeds + 20 controls
+    python experiments/withheld_effects.py                      # records and scans
+    python experiments/withheld_effects.py --kind scans         # re-run the scans, keep the records' cases
     python experiments/withheld_effects.py --seeds 1 --controls 2   # a quick look
 """
 
@@ -26,55 +29,85 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from jaxafm import diagnose as D  # noqa: E402
+from jaxafm import diagnose_scans as S  # noqa: E402
+from jaxafm import withheld as W  # noqa: E402
 
 OUT = Path(__file__).parent / "results" / "withheld_effects"
-#: low, middle, high; units in jaxafm.diagnose.MAGNITUDE_UNITS. Middle: a typical value of design.md
-#: section 4 (creep 1 %/decade, coupling 1 %, the default scanner's bow and asymmetry x 0.5); drift is
-#: larger than a real one (1-6 nm/min), which would stay under the 2 nm noise in a 20 s record.
+#: low, middle, high, per kind of data; units in jaxafm.withheld.RECORD_UNITS and
+#: jaxafm.withheld.SCAN_UNITS. Records' middle: a typical value of design.md section 4
+#: (creep 1 %/decade, coupling 1 %, the default scanner's bow and asymmetry x 0.5); drift is larger
+#: than a real one (1-6 nm/min), which would stay under the 2 nm noise in a 20 s record. Scans: a
+#: feedback lag of 0.1-1 ms (a 0.2-2 kHz loop), tips of 10 nm (new) to 50 nm (worn), and the
+#: records' scanner lag, which shifts edges as a feedback lag does.
 MAGNITUDES = {
-    "asymmetry": (0.25, 0.5, 1.0),
-    "rate_dependence": (0.001, 0.003, 0.01),
-    "creep": (0.003, 0.01, 0.02),
-    "drift": (0.5, 1.5, 5.0),
-    "coupling": (0.003, 0.01, 0.03),
-    "bow": (5e-7, 2e-6, 5e-6),
+    "record": {
+        "asymmetry": (0.25, 0.5, 1.0),
+        "rate_dependence": (0.001, 0.003, 0.01),
+        "creep": (0.003, 0.01, 0.02),
+        "drift": (0.5, 1.5, 5.0),
+        "coupling": (0.003, 0.01, 0.03),
+        "bow": (5e-7, 2e-6, 5e-6),
+    },
+    "scans": {
+        "feedback_lag": (1e-4, 3e-4, 1e-3),
+        "tip": (10.0, 25.0, 50.0),
+        "rate_dependence": (0.001, 0.003, 0.01),
+    },
 }
 LEVELS = ("low", "middle", "high")
+LABELS = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "feedback_lag", "tip", "none")
 
 
-def cases(seeds: int, controls: int) -> list:
-    """(effect, magnitude, level, seed), seed-round by seed-round, so a partial run stays balanced."""
+def cases(kind: str, seeds: int, controls: int) -> list:
+    """(kind, effect, magnitude, level, seed), seed-round by seed-round, so a partial run stays balanced."""
     rounds = max(seeds, -(-controls // 4))
     out = []
     for s in range(rounds):
-        out += [(None, 0.0, "control", 10_000 + c) for c in range(4 * s, min(4 * s + 4, controls))]
+        out += [(kind, None, 0.0, "control", 10_000 + c) for c in range(4 * s, min(4 * s + 4, controls))]
         if s < seeds:
-            out += [(e, m, lv, 1000 * i + 10 * j + s) for i, (e, mags) in enumerate(MAGNITUDES.items())
+            out += [(kind, e, m, lv, 1000 * i + 10 * j + s) for i, (e, mags) in enumerate(MAGNITUDES[kind].items())
                     for j, (lv, m) in enumerate(zip(LEVELS, mags))]
     return out
 
 
-def run_case(effect, magnitude, seed) -> dict:
-    record = D.simulate_record(effect, magnitude, seed)
+def run_case(kind, effect, magnitude, seed) -> dict:
     start = time.perf_counter()
-    res = D.diagnose_record(record, D.Nominal(), D.RECORD_CANDIDATES, log=lambda s: None)
+    if kind == "record":
+        res = D.diagnose_record(W.simulate_record(effect, magnitude, seed), D.Nominal(), D.RECORD_CANDIDATES,
+                                log=lambda s: None)
+    else:
+        res = S.diagnose_scans(W.simulate_scans(effect, magnitude, seed), W.SIM_GRATING, S.CANDIDATES, 0.6,
+                               D.Rules())
     rows = {r["effect"]: r for r in res["candidates"]}
     verdict = res["verdict"]
-    return {"truth": effect, "magnitude": magnitude, "seed": seed, "verdict": verdict,
+    return {"data": kind, "truth": effect, "magnitude": magnitude, "seed": seed, "verdict": verdict,
             "seconds": time.perf_counter() - start,
             "heldout_gap_before_nm": res["nominal"]["heldout_gap_nm"],
             "verdict_shrink_pct": rows[verdict]["shrink_pct"] if verdict else 0.0,
             "truth_shrink_pct": rows[effect]["shrink_pct"] if effect else None,
+            **({"verdict_rms_shrink_pct": 100 * (1 - rows[verdict]["fit"]["heldout_rms_nm"]
+                                                 / res["nominal"]["heldout_rms_nm"]) if verdict else 0.0,
+                "heldout_rms_before_nm": res["nominal"]["heldout_rms_nm"]} if kind == "scans" else {}),
             "ranking": [[r["effect"], r["shrink_pct"], r["delta_bic"], r["significant"]] for r in res["candidates"]]}
 
 
 def summarise(rows: list) -> dict:
-    labels = list(MAGNITUDES) + ["none"]
+    """Confusion matrices and the goals' figures over all cases, then per kind of data."""
+    out = _scores(rows)
+    for kind in MAGNITUDES:
+        sel = [r for r in rows if r.get("data", "record") == kind]
+        if sel:
+            out[kind] = {k: v for k, v in _scores(sel).items() if k not in ("labels", "confusion")}
+    return out
+
+
+def _scores(rows: list) -> dict:
+    labels = list(LABELS)
     name = lambda v: v or "none"  # noqa: E731
     matrix = {lv: np.zeros((len(labels), len(labels)), int) for lv in LEVELS + ("control",)}
     for r in rows:
         matrix[r["level"]][labels.index(name(r["truth"])), labels.index(name(r["verdict"]))] += 1
-    out = {"labels": labels, "confusion": {k: v.tolist() for k, v in matrix.items()}}
+    out = {"labels": labels, "confusion": {k: v.tolist() for k, v in matrix.items()}, "cases": len(rows)}
     for lv in LEVELS:
         sel = [r for r in rows if r["level"] == lv]
         if sel:
@@ -91,6 +124,8 @@ def summarise(rows: list) -> dict:
                     "controls_flagged_le_1_in_20": bool(out["controls_flagged"] <= max(1, len(ctrl) // 20)),
                     "median_shrink_ge_80_pct": bool((out["median_shrink_pct"] or 0) >= 80),
                     "median_shrink_middle_ge_80_pct": bool(out.get("median_shrink_middle_pct", 0) >= 80)}
+    if all("verdict_rms_shrink_pct" in r for r in withheld) and withheld:  # scans: per crossing, noise included
+        out["median_rms_shrink_pct"] = float(np.median([r["verdict_rms_shrink_pct"] for r in withheld]))
     out["seconds_per_case_median"] = float(np.median([r["seconds"] for r in rows]))
     return out
 
@@ -108,7 +143,8 @@ def figure(summary: dict, path: Path) -> None:
         ax.set_xticks(range(len(labels)), labels, rotation=45, ha="right")
         ax.set_yticks(range(len(labels)), labels)
         acc = summary.get(f"top1_accuracy_{lv}_pct", float("nan"))
-        ax.set(xlabel="verdict", ylabel="withheld effect (truth)",
+        both = [e for e in MAGNITUDES["record"] if e in MAGNITUDES["scans"]]
+        ax.set(xlabel="verdict", ylabel=f"withheld effect (truth; {', '.join(both)}: records and scan sets)",
                title=f"{lv} magnitude (+ controls): top-1 {acc:.0f} %")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -117,21 +153,28 @@ def figure(summary: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kind", choices=("all", *MAGNITUDES), default="all",
+                    help="which data to run; the other kind's cases in cases.json are kept")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = json.loads((args.out / "cases.json").read_text()) if args.summarise else []
-    todo = [] if args.summarise else cases(args.seeds, args.controls)
-    for i, (effect, m, level, seed) in enumerate(todo):
-        row = run_case(effect, m, seed) | {"level": level}
-        rows.append(row)
-        print(f"[{i + 1}/{len(todo)}] {effect or 'control'} {m:g} seed {seed}: verdict {row['verdict']} "
-              f"(shrink {row['verdict_shrink_pct']:.1f} %, {row['seconds']:.0f} s)", flush=True)
-        (args.out / "cases.json").write_text(json.dumps(rows, indent=1))
-    summary = summarise(rows) | {"magnitudes": MAGNITUDES, "units": D.MAGNITUDE_UNITS}
+    kinds = list(MAGNITUDES) if args.kind == "all" else [args.kind]
+    saved = args.out / "cases.json"
+    rows = json.loads(saved.read_text()) if saved.exists() else []
+    if not args.summarise:
+        rows = [r for r in rows if r.get("data", "record") not in kinds]
+        todo = [c for k in kinds for c in cases(k, args.seeds, args.controls)]
+        for i, (kind, effect, m, level, seed) in enumerate(todo):
+            row = run_case(kind, effect, m, seed) | {"level": level}
+            rows.append(row)
+            print(f"[{i + 1}/{len(todo)}] {kind}: {effect or 'control'} {m:g} seed {seed}: verdict {row['verdict']} "
+                  f"(shrink {row['verdict_shrink_pct']:.1f} %, {row['seconds']:.0f} s)", flush=True)
+            saved.write_text(json.dumps(rows, indent=1))
+    summary = summarise(rows) | {"magnitudes": MAGNITUDES,
+                                 "units": {"record": W.RECORD_UNITS, "scans": W.SCAN_UNITS}}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     figure(summary, args.out / "confusion.png")
     print(json.dumps({k: v for k, v in summary.items() if k not in ("confusion", "labels")}, indent=1))

@@ -403,7 +403,7 @@ class DiagnoseNominal(_Strict):
 
 class DiagnoseSimulation(_Strict):
     """A two-axis record of the simulated PI scanner with one effect the nominal model lacks
-    (``jaxafm.diagnose.simulate_record``; ``magnitude`` in ``diagnose.MAGNITUDE_UNITS``)."""
+    (``jaxafm.withheld.simulate_record``; ``magnitude`` in ``withheld.RECORD_UNITS``)."""
 
     withheld: Optional[str] = Field(None, description="the effect switched on; none: a control")
     magnitude: float = 0.0
@@ -426,6 +426,63 @@ class DiagnoseImage(_Strict):
     path: str = Field(description="image file, relative to the config file, or builtin:NAME")
 
 
+class ScanGrating(_Strict):
+    """The calibration grating a scan set images (its datasheet) and the tip's cone."""
+
+    pitch_nm: float = Field(gt=0)
+    edge_width_nm: float = Field(gt=0, description="width of an edge's linear ramp (nm)")
+    tip_half_angle_deg: float = Field(20.0, gt=0, lt=90)
+
+
+class ScanFiles(_Strict):
+    """One trace/retrace pair (any format ``jaxafm.images.read_image`` reads), both left to right,
+    row 0 scanned first, and how fast it was scanned."""
+
+    trace: str = Field(description="image file, relative to the config file")
+    retrace: str = Field(description="image file, relative to the config file")
+    line_rate_hz: float = Field(gt=0, description="lines (trace + retrace) per second")
+    overscan: float = Field(0.0, ge=0, le=1, description="fraction of the width scanned beyond each end")
+
+
+class ScanSimulation(_Strict):
+    """Trace/retrace pairs of the simulated AFM (``jaxafm.withheld.simulate_scans``)."""
+
+    withheld: Optional[Literal["feedback_lag", "tip", "rate_dependence"]] = Field(
+        None, description="the effect switched on; none: a control")
+    magnitude: float = Field(0.0, ge=0, description="units: jaxafm.withheld.SCAN_UNITS")
+    line_rates_hz: List[float] = Field([1.0, 4.0], min_length=2)
+    lines: int = Field(24, ge=8, le=4096)
+    pixels: int = Field(512, ge=64, le=8192)
+    noise_nm: float = Field(0.5, ge=0)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _valid(self):
+        if min(self.line_rates_hz) <= 0 or len(set(self.line_rates_hz)) < 2:
+            raise ValueError(f"line_rates_hz needs two or more different rates > 0 Hz, got {self.line_rates_hz}")
+        if self.withheld is not None and not self.magnitude > 0:
+            raise ValueError(f"magnitude must be > 0 for withheld {self.withheld!r}, got {self.magnitude}")
+        return self
+
+
+class DiagnoseScans(_Strict):
+    """Trace/retrace images of a 1-D grating at two or more scan speeds (``jaxafm.diagnose_scans``):
+    ``pairs`` from files, or ``simulate``; ``grating`` is required with files."""
+
+    grating: Optional[ScanGrating] = None
+    pairs: Optional[List[ScanFiles]] = Field(None, min_length=2)
+    simulate: Optional[ScanSimulation] = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.pairs is None) == (self.simulate is None):
+            raise ValueError("scans: give exactly one of 'pairs' (files) and 'simulate'")
+        if self.pairs is not None and self.grating is None:
+            raise ValueError("scans.grating is required with scans.pairs: the grating's pitch_nm and edge_width_nm "
+                             "from its datasheet")
+        return self
+
+
 class DiagnoseConfig(_Strict):
     """Sim-to-real gap diagnosis: fit the nominal model, then nominal + each candidate effect on the
     training part; compare the gaps on the held-out part (``jaxafm.diagnose``)."""
@@ -433,6 +490,7 @@ class DiagnoseConfig(_Strict):
     data: Optional[RecordData] = None
     simulate: Optional[DiagnoseSimulation] = None
     image: Optional[DiagnoseImage] = None
+    scans: Optional[DiagnoseScans] = None
     nominal: DiagnoseNominal = DiagnoseNominal()
     candidates: List[str] = Field(["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow",
                                    "feedback_lag", "tip"], min_length=1)
@@ -447,8 +505,8 @@ class DiagnoseConfig(_Strict):
 
     @model_validator(mode="after")
     def _one_source(self):
-        if sum(s is not None for s in (self.data, self.simulate, self.image)) != 1:
-            raise ValueError("give exactly one of 'data' (an actuator record), 'simulate' and 'image'")
+        if sum(s is not None for s in (self.data, self.simulate, self.image, self.scans)) != 1:
+            raise ValueError("give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'")
         check_effect_names(self.candidates, "candidates")
         if self.history_v is not None and not all(np.isfinite(self.history_v)):
             raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")

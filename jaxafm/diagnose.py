@@ -40,20 +40,17 @@ from scipy.optimize import nnls
 from jax.flatten_util import ravel_pytree
 
 
-from . import diagnose_image, gap_report
+from . import diagnose_image, gap_report, withheld
 from .effects import Bow, Coupling, Creep, Drift, RateDependence, check_effect_names
 from .fit import _softplus_inv, evaluator, free_parameters, initial_model
 from .hysteresis import Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii, play
 from .records import Record, read_record
-from .scanner import Axis, Scanner, default_scanner
+from .scanner import Axis
 
 Array = jax.Array
 #: Candidates for actuator records; the last two need two axes.
 RECORD_CANDIDATES = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow")
 TWO_AXIS = ("coupling", "bow")
-#: Unit of the ``magnitude`` of a withheld effect in :func:`simulate_record`.
-MAGNITUDE_UNITS = {"asymmetry": "x default dead zones", "rate_dependence": "s", "creep": "per decade",
-                   "drift": "nm/s", "coupling": "dimensionless", "bow": "1/nm"}
 CREEP_TAUS = (0.1, 100.0)  # s, the creep stage a candidate adds (2 lags per decade)
 LAG0_S = 1e-3  # the rate-dependence lag a candidate starts from
 GAMMA0 = 1e-4  # the creep rate (per decade) a candidate starts from
@@ -292,52 +289,6 @@ def _add(plant: Plant, name: str, u, d) -> Plant:
     return dataclasses.replace(plant, **{name: module})
 
 
-def simulated_scanner(withheld: Optional[str], magnitude: float, noise_nm: float) -> Scanner:
-    """:func:`default_scanner` with symmetric PI hysteresis and white noise only, plus ``withheld``
-    at ``magnitude`` (unit: :data:`MAGNITUDE_UNITS`)."""
-    full = default_scanner(noise_std=noise_nm, creep_gamma=0.0)
-    base = full.without("asymmetry", "creep", "coupling", "bow", "drift")
-    if withheld is None:
-        return base
-    if withheld not in MAGNITUDE_UNITS:
-        raise ValueError(f"simulate.withheld: {withheld!r} cannot be simulated in an actuator record; "
-                         f"one of {', '.join(MAGNITUDE_UNITS)}")
-    m = jnp.asarray(float(magnitude))
-    if withheld == "asymmetry":
-        scaled = full.without("creep", "coupling", "bow", "drift")
-        for ax in ("x", "y"):
-            for side in ("upper_weights", "lower_weights"):
-                get = lambda s, ax=ax, side=side: getattr(getattr(s, ax).hysteresis.deadzone, side)  # noqa: E731
-                scaled = eqx.tree_at(get, scaled, m * get(scaled))
-        return scaled
-    if withheld in ("rate_dependence", "creep"):
-        stage = RateDependence(m) if withheld == "rate_dependence" else Creep.logarithmic(float(magnitude))
-        return eqx.tree_at(lambda s: (getattr(s.x, withheld), getattr(s.y, withheld)), base, (stage, stage),
-                           is_leaf=lambda v: v is None)
-    module = {"coupling": lambda: Coupling(m, -0.6 * m), "bow": lambda: Bow(m, -0.5 * m),
-              "drift": lambda: Drift(jnp.stack([m, -0.6 * m]), jnp.full(2, 0.05), jnp.asarray(1e-3))}[withheld]()
-    return eqx.tree_at(lambda s: getattr(s, withheld), base, module, is_leaf=lambda v: v is None)
-
-
-def simulate_record(withheld: Optional[str] = None, magnitude: float = 0.0, seed: int = 0,
-                    duration_s: float = 20.0, sample_rate_hz: float = 100.0, noise_nm: float = 2.0,
-                    amplitude_v: float = 9.0) -> Record:
-    """A two-axis record of :func:`simulated_scanner`, each axis driven by
-    ``u = A e(t) sin(phi(t))``, ``e(t) = 0.55 + 0.45 cos(2 pi t / 10 s)``, at a frequency
-    ``phi'/2 pi`` swept between 0.2 and 1.8 Hz (x) and 0.3 and 1.3 Hz (y), so that
-    loops of many sizes and speeds appear."""
-    t = np.arange(int(round(duration_s * sample_rate_hz))) / sample_rate_hz
-    env = lambda s: 0.55 + 0.45 * np.cos(2 * np.pi * s / 10.0)  # noqa: E731
-    phase = lambda f0, df, period: 2 * np.pi * (f0 * t + df * period / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / period)))  # noqa: E501,E731
-    u = amplitude_v * np.stack([env(t) * np.sin(phase(1.0, 0.8, 7.0)), env(t + 5.0) * np.sin(phase(0.8, 0.5, 9.0))], -1)
-    truth = simulated_scanner(withheld, magnitude, noise_nm)
-    d = np.asarray(truth(jnp.asarray(u), jnp.asarray(t), key=jax.random.key(seed)))
-    unit = MAGNITUDE_UNITS.get(withheld, "")
-    meta = {"source": f"simulated: PI scanner + noise {noise_nm} nm"
-                      + (f" + {withheld} {magnitude:g} {unit}" if withheld else ""), "samples": len(t)}
-    return Record(t, u, d, meta)
-
-
 @dataclasses.dataclass(frozen=True)
 class Rules:
     """When a candidate counts: held-out gap shrinks by ``min_shrink_pct`` % and the training
@@ -392,24 +343,12 @@ def diagnose_record(record: Record, spec: Nominal, candidates, train_fraction: f
             skipped[name] = why
             continue
         fit = _fit_report(_add(nominal["plant"], name, u[:split], d[:split]), record, train, split, hist, rules)
-        rows.append(_row(name, nominal, fit, rules))
-        log(f"  + {name:16s} held-out gap {fit['heldout_gap_nm']:8.3g} nm ({rows[-1]['shrink_pct']:+6.1f} %), "
-            f"delta BIC {rows[-1]['delta_bic']:+9.1f}" + ("  significant" if rows[-1]["significant"] else ""))
+        rows.append(gap_report.candidate_row(name, nominal, fit, rules, solver_steps=fit["steps"]))
+        log(gap_report.candidate_line(rows[-1]))
     rows.sort(key=lambda r: -r["shrink_pct"])
     verdict = next((r["effect"] for r in rows if r["significant"]), None)
     return {"nominal": nominal, "candidates": rows, "skipped": skipped, "verdict": verdict, "split": split,
             "train": train}
-
-
-def _row(name: str, nominal: dict, fit: dict, rules: Rules) -> dict:
-    before, after = nominal["heldout_gap_nm"], fit["heldout_gap_nm"]
-    shrink = 100 * (1 - after / before)
-    dbic = fit["bic"] - nominal["bic"]
-    return {"effect": name, "heldout_gap_before_nm": before, "heldout_gap_after_nm": after, "shrink_pct": shrink,
-            "train_rms_after_nm": fit["train_rms_nm"], "delta_bic": float(dbic),
-            "extra_parameters": fit["parameters"] - nominal["parameters"], "solver_steps": fit["steps"],
-            "significant": bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic),
-            "fit": fit}
 
 
 def _check_fitted(nominal: dict, d: np.ndarray, train: np.ndarray, spec: Nominal) -> None:
@@ -429,13 +368,14 @@ def _load(cfg, config_path: Path) -> Record:
 
     if cfg.data is None:
         s = cfg.simulate
-        return simulate_record(s.withheld, s.magnitude, s.seed, s.duration_s, s.sample_rate_hz, s.noise_nm)
+        return withheld.simulate_record(s.withheld, s.magnitude, s.seed, s.duration_s, s.sample_rate_hz, s.noise_nm)
     spec = cfg.data.model_dump(exclude={"path"})
     path = resolve_data_path(cfg.data.path, config_path)
     if spec["output_unit"] is None and spec["output_columns"] is not None:
         raise ValueError(f"{path}: the record's output unit is missing: set data.output_unit in {config_path} "
                          "(e.g. output_unit: um)")
-    return read_record(path, **spec)
+    record = read_record(path, **spec)
+    return dataclasses.replace(record, meta=record.meta | {"source": cfg.data.path})  # as the config gives it
 
 
 def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
@@ -444,6 +384,8 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
     rules = Rules(cfg.min_shrink_pct, cfg.min_delta_bic, cfg.max_steps)
     if cfg.image is not None:
         return _run_image(cfg, Path(config_path), Path(out), rules, prepare, log)
+    if cfg.scans is not None:
+        return _run_scans(cfg, Path(config_path), Path(out), rules, prepare, log)
     record = _load(cfg, Path(config_path))
     try:
         split = record.split(cfg.train_fraction)
@@ -470,14 +412,51 @@ def _run_image(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) ->
 
     check_effect_names(cfg.candidates, "candidates")
     image = read_image(resolve_data_path(cfg.image.path, config_path))
+    image = dataclasses.replace(image, meta=image.meta | {"source": cfg.image.path})  # as the config gives it
     log(f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
         "scanner (fast-axis nonlinearity)")
     res = diagnose_image.diagnose_image(image, cfg.candidates, cfg.train_fraction, rules)
     for c in res["candidates"]:
-        log(f"  + {c['effect']:16s} held-out gap {c['heldout_gap_after_nm']:8.3g} nm ({c['shrink_pct']:+6.1f} %), "
-            f"delta BIC {c['delta_bic']:+9.1f}" + ("  significant" if c["significant"] else ""))
+        log(gap_report.candidate_line(c))
     prepare()
     return diagnose_image.write_outputs(res, image, rules, out, log)
+
+
+def _run_scans(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) -> dict:
+    from . import diagnose_scans as S
+
+    sc = cfg.scans
+    grating = withheld.SIM_GRATING if sc.grating is None else S.GratingSpec(**sc.grating.model_dump())
+    res = S.diagnose_scans(_scan_pairs(sc, config_path, log), grating, cfg.candidates, cfg.train_fraction, rules)
+    n = res["nominal"]
+    log(f"nominal: train rms {n['train_rms_nm']:.3g} nm, held-out gap {n['heldout_gap_nm']:.3g} nm")
+    for c in res["candidates"]:
+        log(gap_report.candidate_line(c))
+    prepare()
+    return S.write_outputs(res, rules, out, log)
+
+
+def _scan_pairs(sc, config_path: Path, log) -> list:
+    """The configured trace/retrace pairs: simulated, or read from files."""
+    from .config import resolve_data_path
+    from .diagnose_scans import ScanPair
+    from .images import read_image
+
+    if sc.simulate is not None:
+        s = sc.simulate
+        what = f" with {s.withheld} {s.magnitude:g} {withheld.SCAN_UNITS[s.withheld]}" if s.withheld else " (a control)"
+        log(f"simulating trace/retrace pairs at {', '.join(f'{r:g}' for r in s.line_rates_hz)} Hz{what}")
+        return withheld.simulate_scans(s.withheld, s.magnitude, s.seed, s.line_rates_hz, s.lines, s.pixels,
+                                       noise_nm=s.noise_nm)
+    pairs = []
+    for i, p in enumerate(sc.pairs):
+        tr, re = (read_image(resolve_data_path(f, config_path)) for f in (p.trace, p.retrace))
+        if tr.shape != re.shape:
+            raise ValueError(f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
+                             "images differ in size")
+        dt = 1.0 / (2 * p.line_rate_hz * tr.shape[1] * (1 + 2 * p.overscan))  # s between two pixels
+        pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace))
+    return pairs
 
 
 def _model_name(spec: Nominal) -> str:

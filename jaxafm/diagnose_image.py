@@ -12,7 +12,6 @@ significance as in :mod:`jaxafm.diagnose`.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -71,7 +70,7 @@ def diagnose_image(image, candidates, train_fraction: float, rules) -> dict:
             continue
         fit = _fit(a, e.x_nm, names, list(NOMINAL) + [COLUMN[c]], train)
         fit["heldout_gap_nm"] = _gap(fit["residual"], ~train)
-        out.append(_row(c, nominal, fit, rules))
+        out.append(gap_report.candidate_row(c, nominal, fit, rules, fitted=fit["theta"]))
     out.sort(key=lambda r: -r["shrink_pct"])
     verdict = next((r["effect"] for r in out if r["significant"]), None)
     return {"edges": e, "train": train, "first_heldout_row": int(cut), "nominal": nominal, "candidates": out,
@@ -80,15 +79,6 @@ def diagnose_image(image, candidates, train_fraction: float, rules) -> dict:
 
 def _gap(r, sel) -> float:
     return float(np.sqrt(np.mean(r[sel] ** 2)))
-
-
-def _row(name, nominal, fit, rules) -> dict:
-    before, after = nominal["heldout_gap_nm"], fit["heldout_gap_nm"]
-    shrink, dbic = 100 * (1 - after / before), fit["bic"] - nominal["bic"]
-    return {"effect": name, "heldout_gap_before_nm": before, "heldout_gap_after_nm": after, "shrink_pct": shrink,
-            "train_rms_after_nm": fit["train_rms_nm"], "delta_bic": float(dbic),
-            "extra_parameters": fit["parameters"] - nominal["parameters"], "fitted": fit["theta"],
-            "significant": bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic), "fit": fit}
 
 
 def decompose(res: dict) -> dict:
@@ -164,18 +154,9 @@ def write_outputs(res: dict, image, rules, out: Path, log=print) -> dict:
 
     nominal, rows = res["nominal"], res["candidates"]
     dec, test = decompose(res), row_tests(res)
-    top = next((c for c in rows if c["effect"] == res["verdict"]), None)
-    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
-               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
+    verdict, metrics = gap_report.summary(res, nominal, rows)
     n_train = int(res["train"].sum())
-    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
-               "nominal_parameters": nominal["parameters"], "train_edges": n_train,
-               "heldout_edges": int((~res["train"]).sum()), "verdict": verdict["text"],
-               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
-               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
-    for c in rows:
-        for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
-            metrics[f"{c['effect']}_{k}"] = c[k]
+    metrics |= {"train_edges": n_train, "heldout_edges": int((~res["train"]).sum())}
     metrics |= test["metrics"] | {"residual_rms_nm": dec["overall_rms_nm"],
                                   "residual_rising_nm": dec["rms_nm"]["rising"],
                                   "residual_falling_nm": dec["rms_nm"]["falling"]}
@@ -190,11 +171,7 @@ def write_outputs(res: dict, image, rules, out: Path, log=print) -> dict:
            "skipped": res["skipped"], "rules": dataclasses.asdict(rules),
            "where": where(dec, res["first_heldout_row"]), "decomposition": dec}
     figure(res, dec, test, out / "residuals.png")
-    (out / "diagnosis.json").write_text(json.dumps(doc, indent=1))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    (out / "report.md").write_text(_markdown(doc, metrics))
-    log(f"verdict: {verdict['text']}" + (f" (held-out gap {top['heldout_gap_before_nm']:.3g} -> "
-                                         f"{top['heldout_gap_after_nm']:.3g} nm, {top['shrink_pct']:.1f} %)" if top else ""))
+    gap_report.save(doc, metrics, out, _markdown(doc, metrics), log)
     return metrics
 
 

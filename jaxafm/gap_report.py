@@ -181,6 +181,23 @@ def figure(t, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, r
     plt.close(fig)
 
 
+def candidate_row(name: str, nominal: dict, fit: dict, rules, **extra) -> dict:
+    """One ranked candidate: held-out gaps before and after (nm), shrink (%), training BIC change and
+    whether it is significant (``rules.min_shrink_pct``, ``rules.min_delta_bic``); ``fit`` is kept."""
+    before, after = nominal["heldout_gap_nm"], fit["heldout_gap_nm"]
+    shrink, dbic = 100 * (1 - after / before), float(fit["bic"] - nominal["bic"])
+    return {"effect": name, "heldout_gap_before_nm": before, "heldout_gap_after_nm": after, "shrink_pct": shrink,
+            "train_rms_after_nm": fit["train_rms_nm"], "delta_bic": dbic,
+            "extra_parameters": fit["parameters"] - nominal["parameters"], **extra,
+            "significant": bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic), "fit": fit}
+
+
+def candidate_line(row: dict) -> str:
+    """One candidate's result, for the log."""
+    return (f"  + {row['effect']:16s} held-out gap {row['heldout_gap_after_nm']:8.3g} nm ({row['shrink_pct']:+6.1f} %), "
+            f"delta BIC {row['delta_bic']:+9.1f}" + ("  significant" if row["significant"] else ""))
+
+
 def candidate_bars(a, candidates: list, nominal_gap_nm, xlabel: str) -> None:
     """Each candidate's held-out gap after refitting (red: significant), against the nominal's."""
     if candidates:
@@ -234,17 +251,8 @@ def write_outputs(res: dict, record, model: str, rules, settle: int, out: Path, 
     r = nominal["residual"][settle:]
     test = tests(r, u[settle:], record.t[settle:])
     dec = decompose(r, u[settle:], record.t[settle:])
-    top = next((row for row in rows if row["effect"] == res["verdict"]), None)
-    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
-               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
-    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
-               "nominal_parameters": nominal["parameters"], "train_samples": int(split - settle),
-               "heldout_samples": int(len(record) - split), "verdict": verdict["text"],
-               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
-               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
-    for row in rows:
-        for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
-            metrics[f"{row['effect']}_{k}"] = row[k]
+    verdict, metrics = summary(res, nominal, rows)
+    metrics |= {"train_samples": int(split - settle), "heldout_samples": int(len(record) - split)}
     metrics |= test["metrics"] | concentration(dec)
     doc = {"data": {"source": record.meta["source"], "samples": len(record), "outputs": d.shape[1],
                     "train_samples": int(split - settle), "heldout_samples": int(len(record) - split),
@@ -254,12 +262,34 @@ def write_outputs(res: dict, record, model: str, rules, settle: int, out: Path, 
            "verdict": verdict, "candidates": [{k: v for k, v in row.items() if k != "fit"} for row in rows],
            "skipped": res["skipped"], "rules": dataclasses.asdict(rules),
            "where": where(dec, float(record.t[split])), "decomposition": dec}
+    top = next((row for row in rows if row["effect"] == res["verdict"]), None)
     best = top["fit"]["residual"][settle:] if top else None
     figure(record.t[settle:], nominal["residual"][settle:], best, res["verdict"], split - settle, test, dec, rows,
            out / "residuals.png")
+    save(doc, metrics, out, markdown(doc, metrics), log)
+    return metrics
+
+
+def summary(res: dict, nominal: dict, rows: list) -> tuple:
+    """The verdict (effect, text, gaps) and the metrics every diagnosis writes."""
+    top = next((row for row in rows if row["effect"] == res["verdict"]), None)
+    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
+               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
+    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
+               "nominal_parameters": nominal["parameters"], "verdict": verdict["text"],
+               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
+               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
+    for row in rows:
+        for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
+            metrics[f"{row['effect']}_{k}"] = row[k]
+    return verdict, metrics
+
+
+def save(doc: dict, metrics: dict, out: Path, report, log=print) -> None:
+    """Write ``diagnosis.json``, ``metrics.json`` and ``report.md`` (text, or its lines) and log the verdict."""
     (out / "diagnosis.json").write_text(json.dumps(doc, indent=1))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    (out / "report.md").write_text(markdown(doc, metrics))
-    log(f"verdict: {verdict['text']}" + (f" (held-out gap {top['heldout_gap_before_nm']:.3g} -> "
-                                         f"{top['heldout_gap_after_nm']:.3g} nm, {top['shrink_pct']:.1f} %)" if top else ""))
-    return metrics
+    (out / "report.md").write_text(report if isinstance(report, str) else "\n".join(report))
+    v = doc["verdict"]
+    log(f"verdict: {v['text']}" + (f" (held-out gap {v['heldout_gap_before_nm']:.3g} -> {v['heldout_gap_after_nm']:.3g} nm, "
+                                   f"{v['shrink_pct']:.1f} %)" if v["effect"] else ""))

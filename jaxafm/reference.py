@@ -77,6 +77,42 @@ def numpy_height(sample):
     return height
 
 
+def numpy_grating_image(sample, tip):
+    """A NumPy ``image(p)`` for a point ``(2,)`` nm: the exact tip image of a jaxafm ``Grating``
+    (``Grating.imaged``), written again from its description: the best of the nearer top corner,
+    the top plateau and the tangent contact of the apex sphere inside a wall, over the nearest
+    line and its neighbours."""
+    pitch, depth, duty, w, angle, phase = (_np(getattr(sample, f)) for f in (
+        "pitch", "depth", "duty", "edge_width", "angle", "phase"))
+    radius, theta = _np(tip.radius), _np(tip.half_angle)
+    if depth < 0:  # grooves: lines of |depth| in between, lowered by |depth|
+        duty, phase, low, depth = 1 - duty, phase + pitch / 2, depth, -depth
+    else:
+        low = 0.0
+    foot, top = duty * pitch / 2 + w / 2, max(duty * pitch / 2 - w / 2, 0.0)
+    peak, m = depth * min(max(foot / w, 0.0), 1.0), depth / w
+    r_star, lift = radius * m / np.sqrt(1 + m**2), radius * (np.sqrt(1 + m**2) - 1)
+    rt = radius * np.cos(theta)
+
+    def profile(r):  # Tip.profile: the apex sphere up to rt, then the cone
+        return radius - np.sqrt(max(radius**2 - min(r, rt) ** 2, 1e-12)) + max(r - rt, 0.0) / np.tan(theta)
+
+    def image(p):
+        u = np.cos(angle) * p[0] + np.sin(angle) * p[1]
+        k = np.round((u - phase) / pitch)
+        best = 0.0
+        for j in (k - 1, k, k + 1):
+            s = abs(u - phase - j * pitch)
+            best = max(best, peak - profile(abs(s - top)))
+            if s <= top:
+                best = max(best, peak)
+            if top <= s - r_star <= min(foot, pitch / 2) and m * np.tan(theta) <= 1:
+                best = max(best, depth * (foot - s) / w + lift)
+        return best + low
+
+    return image
+
+
 def _axis_numpy(axis):
     """One axis's parameters as NumPy: play radii, PI weights and offset, dead zone, lags."""
     from .hysteresis import GeneralizedPI, PrandtlIshlinskii
@@ -107,7 +143,7 @@ def _readout(a, plays):
 
 
 def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0.0, 0.0), t0=0.0,
-                history=None, z0=0.0):
+                history=None, z0=0.0, probe=None):
     """The true tip path and the recorded height of the drive ``u`` (T, 2) V at times ``t`` (T,) s.
 
     A naive instrument simulation: a Python loop over samples, NumPy inside a
@@ -118,8 +154,9 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
     dead-zone readout, the rate-dependence lag, the creep lags (from the rest
     level); then coupling, bow, drift (velocity plus the exact Ornstein-Uhlenbeck
     step driven by ``drift_normals`` (T, 2)), noise (``std * noise_normals``
-    (T, 2)), the probe height ``max_q height(p + q) - lift_q`` over
-    ``afm.tip.stencil()`` (or ``height(p)`` when ``afm.dilate`` is off) and the
+    (T, 2)), the probe height ``probe(p)`` (default ``max_q height(p + q) - lift_q`` over
+    ``afm.tip.stencil()``, e.g. :func:`numpy_grating_image` for a grating), or ``height(p)``
+    when ``afm.dilate`` is off, and the
     feedback lag. The lags hold each input over ``(t[n-1], t[n]]``, as
     :func:`jaxafm.effects.lowpass` does. ``height`` is a NumPy function of points
     (..., 2) nm, e.g. :func:`numpy_height` of the sample. The normals must be
@@ -135,7 +172,11 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
     if drift:
         vel, sigma, theta = _np(sc.drift.velocity), _np(sc.drift.sigma), np.maximum(_np(sc.drift.theta), 1e-12)
     noise_std = None if sc.noise is None else _np(sc.noise.std)
-    q, lift = (_np(a) for a in afm.tip.stencil()) if afm.dilate else (np.zeros((1, 2)), np.zeros(1))
+    q, lift = (_np(a) for a in afm.tip.stencil())
+    if not afm.dilate:
+        probe = height
+    elif probe is None:
+        probe = lambda p: np.max(height(p + q) - lift)  # noqa: E731
     fb_tau = None if afm.feedback is None else _np(afm.feedback.tau)
 
     # the state afm.initial_state(u0, t0, history) builds
@@ -180,7 +221,7 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
             p = p + vel * (t[n] - t0) + wander
         if noise_std is not None:
             p = p + noise_std * noise_normals[n]
-        surf = np.max(height(p + q) - lift)
+        surf = probe(p)
         if fb_tau is not None:
             e = np.exp(-dt / fb_tau)
             surf = z = e * z + (1 - e) * surf
@@ -216,21 +257,21 @@ def raster_normals(key, raster, move_samples=32):
 
 
 def raster_scan_numpy(afm, height, raster, drift_normals=None, noise_normals=None, u0=(0.0, 0.0),
-                      t0=0.0, history=None, move_time=0.1, move_samples=32, lines=None):
+                      t0=0.0, history=None, move_time=0.1, move_samples=32, lines=None, probe=None):
     """:func:`drive_numpy` over :func:`raster_drive`: the NumPy counterpart of ``raster_scan``
     from ``afm.initial_state(u0, t0, history)`` with nominal volts.
 
     Returns ``trace``, ``retrace`` (lines, pixels) nm, ``path_trace``, ``path_retrace``
     (lines, pixels, 2) nm, and the whole drive's ``path`` (T, 2), ``recorded`` (T,)
     and ``t`` (T,). ``lines`` runs only the move and the first ``lines`` lines
-    (a prefix of the same scan, e.g. for timing).
+    (a prefix of the same scan, e.g. for timing); ``probe`` as for :func:`drive_numpy`.
     """
     u, t = raster_drive(afm, raster, u0, t0, move_time, move_samples)
     L, n = raster.lines if lines is None else lines, 2 * (raster.pixels + 2 * raster.margin)
     T = move_samples + L * n
     cut = (lambda a: None if a is None else a[:T])  # noqa: E731
     path, rec = drive_numpy(afm, height, u[:T], t[:T], cut(drift_normals), cut(noise_normals),
-                            u0, t0, history)
+                            u0, t0, history, probe=probe)
     out = {"path": path, "recorded": rec, "t": t[:T]}
     P, m = raster.pixels, raster.margin
     for i, name in enumerate(("trace", "retrace")):

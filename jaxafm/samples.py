@@ -82,6 +82,36 @@ class Grating(eqx.Module):
         d = jnp.abs(_nearest_offset(_rotate(xy, self.angle)[..., 0], self.pitch, self.phase))
         return self.depth * _ramp(self.duty * self.pitch / 2 - d, self.edge_width)
 
+    def imaged(self, tip: "Tip", xy: Array) -> Array:
+        """The exact tip image at ``xy`` (..., 2) nm, ``max_q [h(xy + q) - tip(|q|)]``.
+
+        The grating is the same along its lines and its profile across them is piecewise
+        linear, so the maximum is attained on a top corner, ``H - tip(|s - t|)``, on a top
+        plateau, ``H``, or inside a wall where the apex sphere touches it tangentially:
+        for a wall of slope ``m <= cot(theta)`` the sphere touches ``r* = R m / sqrt(1 + m^2)``
+        uphill and the image is the wall lifted by ``R (sqrt(1 + m^2) - 1)`` (steeper walls
+        meet the tip only at their corners). ``s`` is the distance from a line's centre,
+        ``t`` the top's half width, ``H`` its height; the nearest line and its two neighbours
+        are taken. Grooves (``depth < 0``) are lines of ``|depth|`` between them, lowered.
+        """
+        neg = self.depth < 0
+        depth, duty = jnp.abs(self.depth), jnp.where(neg, 1 - self.duty, self.duty)
+        phase = jnp.where(neg, self.phase + self.pitch / 2, self.phase)
+        p, w = self.pitch, self.edge_width
+        half, top = duty * p / 2 + w / 2, jnp.maximum(duty * p / 2 - w / 2, 0.0)  # wall foot, top edge
+        height = depth * jnp.clip(half / w, 0.0, 1.0)
+        m = depth / w
+        u = _rotate(xy, self.angle)[..., 0]
+        k = jnp.round((u - phase) / p)[..., None] + jnp.array([-1.0, 0.0, 1.0])
+        s = jnp.abs(u[..., None] - phase - k * p)  # (..., 3)
+        corner = height - tip.profile(jnp.abs(s - top))
+        plateau = jnp.where(s <= top, height, -jnp.inf)
+        r_star = tip.radius * m / jnp.sqrt(1 + m**2)
+        inside = (s - r_star >= top) & (s - r_star <= jnp.minimum(half, p / 2)) & (m * jnp.tan(tip.half_angle) <= 1)
+        wall = jnp.where(inside, depth * (half - s) / w + tip.radius * (jnp.sqrt(1 + m**2) - 1), -jnp.inf)
+        best = jnp.max(jnp.maximum(jnp.maximum(corner, plateau), wall), axis=-1)
+        return jnp.maximum(best, 0.0) + jnp.where(neg, self.depth, 0.0)
+
 
 class Lattice(eqx.Module):
     """A 2-D calibration grating: round pits or pillars of ``radius`` on a square or
@@ -274,9 +304,10 @@ class Indented(eqx.Module):
 
 def surface(sample, tip: Optional[Tip]):
     """The height the AFM's probe follows: the sample dilated by ``tip`` (in closed form for
-    :class:`Particles`, over the tip's stencil otherwise), or the bare sample."""
+    :class:`Particles`, across the lines for a :class:`Grating`, over the tip's stencil
+    otherwise), or the bare sample."""
     if tip is None:
         return sample.height
-    if isinstance(sample, Particles):
+    if isinstance(sample, (Particles, Grating)):
         return lambda xy: sample.imaged(tip, xy)
     return lambda xy: tip.dilate(sample.height, xy)

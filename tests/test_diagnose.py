@@ -8,6 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from jaxafm import diagnose as D
+from jaxafm.withheld import simulate_record
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, DiagnoseConfig, load_config
 from jaxafm.images import AFMImage
@@ -19,7 +20,7 @@ SHORT = dict(duration_s=20.0, sample_rate_hz=50.0)  # 1000 samples per axis
 
 
 def record(effect=None, magnitude=0.0, seed=7):
-    return D.simulate_record(effect, magnitude, seed, **SHORT)
+    return simulate_record(effect, magnitude, seed, **SHORT)
 
 
 def quiet(*_):

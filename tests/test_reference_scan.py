@@ -13,7 +13,7 @@ import numpy as np
 
 from jaxafm import RateDependence
 from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.reference import numpy_height, raster_normals, raster_scan_numpy
+from jaxafm.reference import numpy_height, numpy_grating_image, raster_normals, raster_scan_numpy
 from jaxafm.samples import Grating
 
 RASTER = Raster(size=(8000.0, 8000.0), pixels=16, lines=4, line_rate=2.0, centre=(100.0, -200.0))
@@ -38,7 +38,8 @@ def test_raster_scan_matches_numpy_reference():
     state = afm.initial_state(U0, t0=T0, history=HISTORY)
     out = eqx.filter_jit(raster_scan)(afm, SAMPLE, state, RASTER, key=key)
     drift, noise = raster_normals(key, RASTER)
-    ref = raster_scan_numpy(afm, numpy_height(SAMPLE), RASTER, drift, noise, U0, T0, HISTORY)
+    probe = numpy_grating_image(SAMPLE, afm.tip)
+    ref = raster_scan_numpy(afm, numpy_height(SAMPLE), RASTER, drift, noise, U0, T0, HISTORY, probe=probe)
 
     for name in ("trace", "retrace", "path_trace", "path_retrace"):
         got, want = np.asarray(out[name]), ref[name]
@@ -51,5 +52,5 @@ def test_raster_scan_matches_numpy_reference():
     # not vacuous: the scan crosses the grating's lines, and the random draws move the tip
     assert np.ptp(ref["trace"]) > 100.0
     still = raster_scan_numpy(afm.without("drift", "noise"), numpy_height(SAMPLE), RASTER, None, None,
-                              U0, T0, HISTORY)
+                              U0, T0, HISTORY, probe=probe)
     assert np.max(np.abs(still["path_trace"] - ref["path_trace"])) > 1.0

@@ -1,0 +1,452 @@
+"""Gap diagnosis on trace/retrace images of a 1-D grating at two or more scan speeds.
+
+What an actuator record cannot show -- the z-feedback's lag and the tip's shape --
+an image set can: both change the *shape* of every edge. For each edge of each
+row, the sub-pixel positions where the profile crosses the levels ``LEVELS`` of
+its step (fractions of the row's 10-90 % contrast) are the data (nm). They are
+modelled as
+
+    x_nom = X - D_d(x_nom) + o [retrace] + (k / g_d(x_nom)) S_l(theta; kind, d, dt) + [linear candidate terms],
+
+``X = phase_kind + n p`` the edge's place on the grating (pitch ``p``, nominal nm),
+``D_d = sum_{j=2,3} c_{j,d} P_j(s)`` the fast-axis nonlinearity of the trace or
+retrace branch ``d`` and ``o`` the loop's offset between them (the nominal
+scanner: rate-independent hysteresis, the same at every speed), ``k = p /
+pitch_nm`` the calibration scale, ``g_d = 1 + D_d'`` the local gain, and
+``S_l`` where the grating's known edge (a ramp ``edge_width_nm`` wide, depth
+from the image) crosses level ``l`` once imaged: dilated by the tip
+(candidate ``tip``: a sphere-capped cone of fitted apex radius and known half
+angle), sampled at the pixel pitch, recorded through a first-order lag along
+the scan direction (candidate ``feedback_lag``: time constant ``tau``, one way
+in trace, the other in retrace, ``tau / dt`` samples at sample time ``dt``),
+averaged over where the pixels fall on the edge. The nominal model has an
+ideal tip and feedback. Linear candidates: ``rate_dependence`` (the scanner's
+position lag, ``+- v tau_r``, ``v`` the nominal scan speed), ``coupling`` (skew
+``x += s y``) and ``bow`` (``x += b P_2(t)``).
+
+Training: the first ``train_fraction`` of every pair's rows; held out: the later
+rows (a later time window; the speed dependence needs every speed in training).
+Gap: the systematic misfit on the held-out rows, the rms over the cells (pair,
+trace or retrace, rising or falling, level) of the cell's mean crossing residual
+(nm), what is the same for every edge of a kind, with the white noise averaged
+out; the per-crossing rms is reported beside it. Tip radius and lag are fitted
+by a scalar search (log grid, then bounded refinement), the rest by linear least
+squares; BIC and significance as in :mod:`jaxafm.diagnose`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import jax.numpy as jnp
+import numpy as np
+from numpy.polynomial import legendre
+from scipy.optimize import minimize_scalar
+from scipy.signal import lfilter
+
+from . import gap_report
+from .line_grating import grating_edges
+from .samples import Tip
+
+LEVELS = (0.1, 0.3, 0.5, 0.7, 0.9)
+CANDIDATES = ("rate_dependence", "feedback_lag", "tip", "coupling", "bow")
+NOT_IN_SCANS = {
+    "asymmetry": "the nominal model fits the trace and retrace branches apart, asymmetric or not",
+    "creep": "needs an actuator record or images repeated over minutes",
+    "drift": "needs an actuator record or images repeated over minutes",
+    "noise": "white noise is what the residual should be; it is no candidate",
+    "hysteresis": "already in the nominal model",
+}
+PHASES = 8  # where the pixels fall on an edge, averaged
+FINE_NM = 0.25  # grid of the modelled edge profile
+TIP_RADII_NM = (0.5, 500.0)  # the tip search's bounds
+LAG_SAMPLES = (0.01, 200.0)  # the feedback-lag search's bounds, in samples of the fastest pair
+
+
+@dataclasses.dataclass(frozen=True)
+class ScanPair:
+    """Trace and retrace (lines, pixels) nm of a 1-D grating, both left to right, row 0 first
+    in time; ``pixel_size`` (dx, dy) nm; ``sample_time_s`` between two pixels of a line."""
+
+    trace: np.ndarray
+    retrace: np.ndarray
+    pixel_size: tuple
+    sample_time_s: float
+    name: str = "scan"
+
+    @property
+    def speed_nm_s(self) -> float:
+        return self.pixel_size[0] / self.sample_time_s
+
+
+@dataclasses.dataclass(frozen=True)
+class GratingSpec:
+    """What is known of the calibration grating: ``pitch_nm``, ``edge_width_nm`` (a linear
+    ramp), and of the tip: ``tip_half_angle_deg``."""
+
+    pitch_nm: float
+    edge_width_nm: float
+    tip_half_angle_deg: float = 20.0
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def crossings(pairs, levels=LEVELS) -> dict:
+    """Level crossings of every edge: flat arrays (one entry per edge and level) of ``x``
+    (nominal nm), ``level``, ``pair``, ``retrace``, ``row``, ``y`` nm, ``index``, ``rising``.
+
+    A line keeps its index across the images: each image's indices are shifted by the whole
+    periods that bring its edges nearest to the reference image's -- the trace of the same pair
+    for a retrace, the same direction of the pair before (``pairs`` slowest first) otherwise.
+    An image shifted by more than half a period against its reference is misindexed.
+    """
+    edges = {}
+    for p, pair in enumerate(pairs):
+        for retrace, z in ((False, pair.trace), (True, pair.retrace)):
+            e = grating_edges(z, pair.pixel_size, f"{pair.name} ({'retrace' if retrace else 'trace'})")
+            ref = edges.get((p - 1, retrace) if p else (0, False))
+            edges[p, retrace] = e if ref is None else _align(e, ref)
+    cols = {k: [] for k in ("x", "level", "pair", "retrace", "row", "y", "index", "rising")}
+    for (p, retrace), e in edges.items():
+        z = pairs[p].retrace if retrace else pairs[p].trace
+        x = _edge_levels(np.asarray(z, float), e, levels) * e.pixel_size[0]
+        ok = np.isfinite(x)
+        for k, v in (("row", e.row), ("y", e.y_nm), ("index", e.index), ("rising", e.rising)):
+            cols[k].append(np.repeat(v, len(levels))[ok.ravel()])
+        cols["x"].append(x[ok])
+        cols["level"].append(np.tile(levels, len(e.row))[ok.ravel()])
+        cols["pair"].append(np.full(ok.sum(), p))
+        cols["retrace"].append(np.full(ok.sum(), retrace))
+    return {k: np.concatenate(v) for k, v in cols.items()}
+
+
+def _align(e, ref):
+    """``e`` with each kind's line indices shifted to match ``ref``'s (see :func:`crossings`)."""
+    index = e.index.copy()
+    for rising in (True, False):
+        a, b = e.rising == rising, ref.rising == rising
+        pitch = np.median(np.diff(np.sort(ref.x_nm[b & (ref.row == ref.row[b][0])])))
+        phase = lambda g, s: np.median(g.x_nm[s] - g.index[s] * pitch)  # noqa: E731
+        index[a] += int(np.round((phase(e, a) - phase(ref, b)) / pitch))
+    return dataclasses.replace(e, index=index)
+
+
+def _edge_levels(z: np.ndarray, e, levels) -> np.ndarray:
+    """(edges, levels) px: per edge, the mean crossing of each level within a quarter period."""
+    out = np.full((len(e.row), len(levels)), np.nan)
+    centre = e.x_nm / e.pixel_size[0]
+    half = 0.25 * np.median(np.diff(np.sort(centre[(e.row == e.row[0]) & e.rising]))) if len(e.row) else 1
+    for r in np.unique(e.row):
+        row = z[r]
+        lo, hi = np.percentile(row, [10, 90])
+        for i in np.flatnonzero(e.row == r):
+            a, b = int(max(np.floor(centre[i] - half), 0)), int(min(np.ceil(centre[i] + half), len(row) - 1))
+            seg = row[a:b + 1]
+            for j, lv in enumerate(levels):
+                s = seg - (lo + lv * (hi - lo))
+                k = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
+                if k.size:
+                    out[i, j] = np.mean(a + k + s[k] / (s[k] - s[k + 1]))
+    return out
+
+
+# ----------------------------------------------------------------------------- edge shape
+
+
+def edge_shape(grating: GratingSpec, depth: float, dx: float, levels, radius: Optional[float] = None,
+               lag_samples: float = 0.0) -> np.ndarray:
+    """Crossings (2 kinds, 2 directions, levels) nm of the imaged ramp edge relative to its centre.
+
+    Kinds: rising, falling; directions: trace (samples taken with x rising), retrace. The ramp
+    is dilated by the tip (``radius`` nm, or none), sampled every ``dx`` nm, passed through
+    ``z_n = a z_{n-1} + (1 - a) h_n`` (``a = exp(-1 / lag_samples)``, as ``effects.lowpass``)
+    in the scan direction, and its linear-interpolation crossings averaged over :data:`PHASES`.
+    """
+    w = grating.edge_width_nm
+    reach = 0.0 if radius is None else min(3 * radius + depth * np.tan(np.deg2rad(grating.tip_half_angle_deg)), 400.0)
+    span = w / 2 + reach + 12 * lag_samples * dx + 4 * dx + 20
+    xi = FINE_NM * np.arange(-int(span / FINE_NM), int(span / FINE_NM) + 1)  # 0 on the grid
+    out = np.empty((2, 2, len(levels)))
+    for kind, sign in ((0, 1.0), (1, -1.0)):
+        h = depth * np.clip(sign * xi / w + 0.5, 0.0, 1.0)
+        if radius is not None:
+            h = _dilate(h, radius, np.deg2rad(grating.tip_half_angle_deg), reach)
+        for d in (0, 1):
+            out[kind, d] = np.mean([_crossings(xi, h, depth, dx, (m + 0.5) / PHASES * dx, lag_samples, d, levels)
+                                    for m in range(PHASES)], axis=0)
+    return out
+
+
+def _dilate(h: np.ndarray, radius: float, half_angle: float, reach: float) -> np.ndarray:
+    """``max_q [h(xi + q) - tip(|q|)]`` on the fine grid (a grating is the same along y)."""
+    q = np.arange(-int(reach / FINE_NM), int(reach / FINE_NM) + 1)
+    lift = np.asarray(Tip(jnp.asarray(radius), jnp.asarray(half_angle)).profile(jnp.asarray(np.abs(q) * FINE_NM)))
+    pad = np.pad(h, len(q) // 2, mode="edge")
+    out = np.full_like(h, -np.inf)
+    for j, lj in zip(q, lift):
+        np.maximum(out, pad[len(q) // 2 + j: len(q) // 2 + j + len(h)] - lj, out=out)
+    return out
+
+
+def _crossings(xi, h, depth, dx, phase, lag_samples, retrace, levels) -> np.ndarray:
+    xs = np.arange(xi[0] + phase, xi[-1], dx)
+    v = np.interp(xs, xi, h)
+    if lag_samples > 0:
+        a = np.exp(-1.0 / lag_samples)
+        seq = v[::-1] if retrace else v
+        z = lfilter([1 - a], [1, -a], seq, zi=[a * seq[0]])[0]
+        v = z[::-1] if retrace else z
+    out = np.empty(len(levels))
+    for j, lv in enumerate(levels):
+        s = v - lv * depth
+        k = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
+        out[j] = np.mean(xs[k] + dx * s[k] / (s[k] - s[k + 1])) if k.size else np.nan
+    return out
+
+
+# ----------------------------------------------------------------------------- fits
+
+
+@dataclasses.dataclass
+class _Data:
+    """The crossings and what the model needs of them, flat over edges and levels."""
+
+    f: dict
+    pairs: list
+    grating: GratingSpec
+    depth: float
+    train: np.ndarray
+
+    @property
+    def sign(self) -> np.ndarray:  # +1 trace, -1 retrace
+        return np.where(self.f["retrace"], -1.0, 1.0)
+
+    def field(self) -> tuple:
+        """Legendre coordinate ``s`` in [-1, 1] of each crossing across its pair's field, and ds/dx."""
+        width = np.array([(p.trace.shape[1] - 1) * p.pixel_size[0] for p in self.pairs])[self.f["pair"]]
+        return 2 * self.f["x"] / width - 1, 2 / width
+
+    def linear_columns(self) -> dict:
+        """Nominal and linear-candidate columns (the model's right side, without the edge shape)."""
+        s, _ = self.field()
+        f, re = self.f, self.f["retrace"].astype(float)
+        p2, p3 = (legendre.legval(s, np.eye(4)[j]) for j in (2, 3))
+        rows = np.array([p.trace.shape[0] - 1 for p in self.pairs])[f["pair"]]
+        t = 2 * f["row"] / np.maximum(rows, 1) - 1
+        speed = np.array([p.speed_nm_s for p in self.pairs])[f["pair"]]
+        return {"phase_rise": f["rising"].astype(float), "phase_fall": (~f["rising"]).astype(float),
+                "pitch": f["index"].astype(float), "c2_trace": -p2 * (1 - re), "c3_trace": -p3 * (1 - re),
+                "c2_retrace": -p2 * re, "c3_retrace": -p3 * re, "offset_retrace": re,
+                "rate_dependence": self.sign * speed, "coupling": -f["y"], "bow": -0.5 * (3 * t**2 - 1)}
+
+
+NOMINAL = ("phase_rise", "phase_fall", "pitch", "c2_trace", "c3_trace", "c2_retrace", "c3_retrace", "offset_retrace")
+
+
+def _shape(data: _Data, scale: float, radius=None, tau_s: float = 0.0) -> np.ndarray:
+    """The edge-shape term ``S_l`` (true nm) of every crossing."""
+    f, out = data.f, np.empty(len(data.f["x"]))
+    li = np.searchsorted(LEVELS, f["level"])
+    for p, pair in enumerate(data.pairs):
+        table = edge_shape(data.grating, data.depth, pair.pixel_size[0] / scale, LEVELS, radius,
+                           tau_s / pair.sample_time_s)
+        sel = f["pair"] == p
+        out[sel] = table[(~f["rising"][sel]).astype(int), f["retrace"][sel].astype(int), li[sel]]
+    return out
+
+
+def _solve(data: _Data, cols: list, shape: np.ndarray, scale: float, searched: int = 0) -> dict:
+    """Linear least squares on the training crossings with the shape term moved to the left,
+    converted to nominal nm by ``k / g`` (two passes: the gain comes from the first);
+    ``searched``: parameters of ``shape`` found by a search, counted in the BIC."""
+    table = data.linear_columns()
+    a = np.stack([table[c] for c in cols], -1)
+    s, ds = data.field()
+    gain = np.ones_like(s)
+    for _ in range(2):
+        b = data.f["x"] - shape * scale / gain
+        theta = np.linalg.lstsq(a[data.train], b[data.train], rcond=None)[0]
+        th = dict(zip(cols, theta))
+        for d, sel in (("trace", ~data.f["retrace"]), ("retrace", data.f["retrace"])):
+            c = np.array([0, 0, th[f"c2_{d}"], th[f"c3_{d}"]])
+            gain[sel] = 1 + legendre.legval(s[sel], legendre.legder(c)) * ds[sel]
+    r = b - a @ theta
+    n, k = int(data.train.sum()), len(cols) + searched
+    rss = float(r[data.train] @ r[data.train])
+    return {"residual": r, "theta": th, "parameters": k, "rss": rss,
+            "train_rms_nm": float(np.sqrt(rss / n)), "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
+            "heldout_gap_nm": _systematic(data, r), "heldout_rms_nm": float(np.sqrt(np.mean(r[~data.train] ** 2)))}
+
+
+def _systematic(data: _Data, r: np.ndarray) -> float:
+    """rms over the cells (pair, direction, edge kind, level) of the cell's mean held-out residual."""
+    return float(np.sqrt(np.nanmean(_cell_means(data, r, ~data.train) ** 2)))
+
+
+def _cell_means(data: _Data, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """Mean residual (pairs, direction [trace, retrace], kind [rising, falling], levels) nm over
+    the crossings ``sel``; NaN where a cell has none."""
+    f, shape = data.f, (len(data.pairs), 2, 2, len(LEVELS))
+    cell = np.ravel_multi_index((f["pair"], f["retrace"].astype(int), (~f["rising"]).astype(int),
+                                 np.searchsorted(LEVELS, f["level"])), shape)
+    sums = np.bincount(cell[sel], r[sel], minlength=np.prod(shape))
+    counts = np.bincount(cell[sel], minlength=np.prod(shape))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (sums / counts).reshape(shape)
+
+
+def _search(fit_at, lo: float, hi: float) -> tuple:
+    """Minimise ``fit_at(v)['rss']`` over ``v`` in [lo, hi]: a log grid, then bounded refinement."""
+    grid = np.geomspace(lo, hi, 17)
+    rss = [fit_at(v)["rss"] for v in grid]
+    i = int(np.argmin(rss))
+    a, b = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, len(grid) - 1)])
+    best = minimize_scalar(lambda lv: fit_at(np.exp(lv))["rss"], bounds=(a, b), method="bounded",
+                           options={"xatol": 0.01})
+    v = float(np.exp(best.x)) if best.fun <= rss[i] else float(grid[i])
+    return v, fit_at(v)
+
+
+def fit_candidate(data: _Data, name: Optional[str], scale: float) -> dict:
+    """The nominal model (``name=None``) or nominal + ``name``, fitted to the training crossings;
+    ``fitted`` holds the candidate's parameter."""
+    cols = list(NOMINAL)
+    if name == "tip":
+        radius, fit = _search(lambda r: _solve(data, cols, _shape(data, scale, radius=r), scale, 1), *TIP_RADII_NM)
+        return fit | {"fitted": {"tip_radius_nm": radius}}
+    if name == "feedback_lag":
+        dt = min(p.sample_time_s for p in data.pairs)
+        tau, fit = _search(lambda v: _solve(data, cols, _shape(data, scale, tau_s=v), scale, 1),
+                           LAG_SAMPLES[0] * dt, LAG_SAMPLES[1] * dt)
+        return fit | {"fitted": {"tau_s": tau}}
+    fit = _solve(data, cols + ([name] if name else []), _shape(data, scale), scale)
+    key = "tau_s" if name == "rate_dependence" else name
+    return fit | {"fitted": {} if name is None else {key: fit["theta"][name]}}
+
+
+def diagnose_scans(pairs, grating: GratingSpec, candidates, train_fraction: float, rules) -> dict:
+    """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs`` (ScanPair);
+    the first ``train_fraction`` of every pair's rows train, its later rows are held out."""
+    if len(pairs) < 2:
+        raise ValueError(f"a scan-set diagnosis needs trace/retrace pairs at two or more scan speeds, got "
+                         f"{len(pairs)}: add a pair scanned at another line rate")
+    pairs = sorted(pairs, key=lambda p: p.speed_nm_s)
+    speeds = [p.speed_nm_s for p in pairs]
+    if len(set(np.round(speeds, 6))) < 2:
+        raise ValueError(f"all pairs have the scan speed {speeds[0]:.4g} nm/s; the held-out pair must be faster: "
+                         "give another line rate")
+    f = crossings(pairs)
+    rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
+    train = f["row"] < np.round(train_fraction * rows)
+    if train.sum() < 50 or (~train).sum() < 50:
+        raise ValueError(f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
+                         f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction")
+    depth = float(np.median([np.subtract(*np.percentile(p.trace, [90, 10], axis=1)) for p in pairs]))
+    data = _Data(f, list(pairs), grating, depth, train)
+    scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0)["theta"]["pitch"] / grating.pitch_nm
+    nominal = fit_candidate(data, None, scale)
+    rows, skipped = [], {}
+    for c in candidates:
+        if c not in CANDIDATES:
+            skipped[c] = NOT_IN_SCANS[c]
+            continue
+        fit = fit_candidate(data, c, scale)
+        rows.append(gap_report.candidate_row(c, nominal, fit, rules, fitted=fit["fitted"]))
+    rows.sort(key=lambda r: -r["shrink_pct"])
+    verdict = next((r["effect"] for r in rows if r["significant"]), None)
+    return {"data": data, "scale": scale, "nominal": nominal, "candidates": rows,
+            "skipped": skipped, "verdict": verdict}
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+def where(res: dict) -> list:
+    """Sentences: which levels, directions and speeds the nominal model misses."""
+    data, r = res["data"], res["nominal"]["residual"]
+    cells = _cell_means(data, r, ~data.train)
+    speeds = [p.speed_nm_s for p in data.pairs]
+    by_level = np.sqrt(np.nanmean(cells**2, axis=(0, 1, 2)))
+    by_pair = np.sqrt(np.nanmean(cells**2, axis=(1, 2, 3)))
+    # trace minus retrace, rising edges at mid level: a lag moves the two apart in proportion to the speed
+    split = cells[:, 0, 0, LEVELS.index(0.5)] - cells[:, 1, 0, LEVELS.index(0.5)]
+    spread = np.moveaxis((cells[..., -1] - cells[..., 0]) * [1, -1], -1, 0)  # (kind, pair, direction); > 0: wider
+    return [f"By level, the systematic misfit is {', '.join(f'{v:.2g}' for v in by_level)} nm at "
+            f"{', '.join(f'{100 * lv:.0f} %' for lv in LEVELS)} of the step (an edge shape the model lacks "
+            "shows at some levels more than others).",
+            f"By scan speed ({', '.join(f'{v / 1e3:.3g}' for v in speeds)} um/s): "
+            f"{', '.join(f'{v:.2g}' for v in by_pair)} nm"
+            f"; trace minus retrace at mid level (rising edges): {', '.join(f'{v:+.2g}' for v in split)} nm "
+            "(a lag grows it with the speed, hysteresis does not).",
+            f"Edges wider than modelled (10 % to 90 % crossing), rising / falling, trace: "
+            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 0], spread[1, :, 0]))} nm; retrace: "
+            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 1], spread[1, :, 1]))} nm per speed "
+            "(a tip widens every edge alike; a feedback lag widens them more at higher speed)."]
+
+
+def figure(res: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data, nominal = res["data"], res["nominal"]
+    top = next((c for c in res["candidates"] if c["effect"] == res["verdict"]), None)
+    fig, ax = plt.subplots(2, 2, figsize=(12, 8.5))
+    for a, (label, r) in zip(ax[0], [("nominal", nominal["residual"])]
+                             + ([(f"with {top['effect']}", top["fit"]["residual"])] if top else [])):
+        cells = _cell_means(data, r, ~data.train)
+        for p, pair in enumerate(data.pairs):
+            for d, ls in ((0, "-"), (1, "--")):
+                for k, marker in ((0, "^"), (1, "v")):
+                    a.plot(100 * np.array(LEVELS), cells[p, d, k], ls, marker=marker, color=f"C{p}", lw=1,
+                           label=f"{pair.speed_nm_s / 1e3:.3g} um/s" if d == k == 0 else None)
+        a.axhline(0, color="k", lw=0.5)
+        a.set(xlabel="level [% of the step]", ylabel="mean held-out crossing residual [nm]",
+              title=f"{label}: - trace, -- retrace; ^ rising, v falling edges")
+        a.legend(fontsize=8)
+    if top is None:
+        ax[0, 1].axis("off")
+    a = ax[1, 0]
+    f, r = data.f, nominal["residual"]
+    for d, name in ((False, "trace"), (True, "retrace")):
+        sel = ~data.train & (f["retrace"] == d) & (f["level"] == 0.5)
+        a.plot(f["x"][sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
+    a.set(xlabel="x (nominal) [um]", ylabel="residual at mid level [nm]",
+          title="nominal, held-out rows, across the field")
+    a.legend(fontsize=8, markerscale=4)
+    gap_report.candidate_bars(ax[1, 1], res["candidates"], nominal["heldout_gap_nm"],
+                              "held-out systematic gap [nm]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_outputs(res: dict, rules, out, log=print) -> dict:
+    """``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md``; returns the metrics."""
+    data, nominal, rows = res["data"], res["nominal"], res["candidates"]
+    verdict, metrics = gap_report.summary(res, nominal, rows)
+    metrics |= {"nominal_heldout_rms_nm": nominal["heldout_rms_nm"], "train_crossings": int(data.train.sum()),
+                "heldout_crossings": int((~data.train).sum()), "calibration_scale": res["scale"],
+                "edge_depth_nm": data.depth}
+    pairs = [{"name": p.name, "pixels": list(p.trace.shape), "pixel_size_nm": list(p.pixel_size),
+              "sample_time_s": p.sample_time_s, "speed_nm_s": p.speed_nm_s} for p in data.pairs]
+    doc = {"data": {"source": f"{len(pairs)} trace/retrace pairs of a 1-D grating", "kind": "scan set", "pairs": pairs,
+                    "grating": dataclasses.asdict(data.grating), "levels": list(LEVELS),
+                    "train_samples": int(data.train.sum()), "heldout_samples": int((~data.train).sum()),
+                    "counts": "edge-level crossings", "units": "nm (crossings, gaps), s"},
+           "nominal": {"model": "hysteresis-only scanner (a nonlinearity per branch and the loop offset), ideal tip "
+                                "and feedback, the grating's known edge",
+                       "train_rms_nm": nominal["train_rms_nm"], "heldout_gap_nm": nominal["heldout_gap_nm"],
+                       "heldout_rms_nm": nominal["heldout_rms_nm"], "parameters": nominal["parameters"],
+                       "fitted": nominal["theta"]},
+           "verdict": verdict, "candidates": [{k: v for k, v in c.items() if k != "fit"} for c in rows],
+           "skipped": res["skipped"], "rules": dataclasses.asdict(rules), "where": where(res)}
+    figure(res, out / "residuals.png")
+    gap_report.save(doc, metrics, out, gap_report.markdown_head(doc) + [
+        "- The gap is systematic: per (pair, direction, edge kind, level) the mean held-out residual, then their "
+        f"rms; the nominal's per-crossing rms is {nominal['heldout_rms_nm']:.3g} nm.", "",
+        "![residuals](residuals.png)", ""], log)
+    return metrics
