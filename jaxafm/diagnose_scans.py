@@ -335,8 +335,8 @@ def diagnose_scans(pairs, grating: GratingSpec, candidates, train_fraction: floa
     pairs = sorted(pairs, key=lambda p: p.speed_nm_s)
     speeds = [p.speed_nm_s for p in pairs]
     if len(set(np.round(speeds, 6))) < 2:
-        raise ValueError(f"all pairs have the scan speed {speeds[0]:.4g} nm/s; the held-out pair must be faster: "
-                         "give another line rate")
+        raise ValueError(f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
+                         "two speeds: give a pair scanned at another line rate")
     f = crossings(pairs)
     rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
     train = f["row"] < np.round(train_fraction * rows)
