@@ -1,5 +1,8 @@
 """Steps B and C and the push: landmark interpolation, landmark detection, the local scan, the push."""
 
+import subprocess
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -133,17 +136,30 @@ def find_and_go(pos, sample, stand, guess, radius, key):
     return res, xy
 
 
-def test_local_scan_finds_particles_at_known_positions_under_drift(drifting):
+# particles at known positions, over 300 nm apart: beyond the reach of each other's local scans
+CENTRES = jnp.array([[300.0, -200.0], [-250.0, 400.0], [200.0, 100.0]])
+RADII = jnp.array([5.0, 30.0, 20.0])
+
+
+@pytest.fixture(scope="module")
+def found(drifting):
+    """``find_and_go`` from a guess beside each particle, all three in one vmap (one compiled
+    program): the first two for the local scan's test, the third for the push's."""
     pos, stand = drifting
-    centres = jnp.array([[300.0, -200.0], [-250.0, 400.0]])
-    radii = jnp.array([5.0, 30.0])
-    sample = Particles(centres, radii)
+    guesses = CENTRES + jnp.array([[12.0, -9.0], [12.0, -9.0], [10.0, 10.0]])
+    keys = jnp.concatenate([jax.random.split(jax.random.key(2), 2), jax.random.key(4)[None]])
+    return jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k))(guesses, RADII, keys)
+
+
+def test_local_scan_finds_particles_at_known_positions_under_drift(drifting, found):
+    pos, stand = drifting
+    centres, radii = CENTRES[:2], RADII[:2]
     # the software believes the particles lie at their nominal places: the drift has moved the
     # tip's frame by about (30, -20) nm since, and the guesses are off by a further (12, -9) nm
-    guesses = centres + jnp.array([12.0, -9.0])
-    keys = jax.random.split(jax.random.key(2), 2)
-    without_c = jax.vmap(lambda g, k: goto(pos, sample, stand, g, k)[0])(centres, keys)
-    res, xy = jax.vmap(lambda g, r, k: find_and_go(pos, sample, stand, g, r, k))(guesses, radii, keys)
+    keys = jax.random.split(jax.random.key(2), 2)  # those of the first two in `found`
+    go = jax.jit(jax.vmap(lambda g, k: goto(pos, Particles(CENTRES, RADII), stand, g, k)[0]))  # faster than op by op
+    without_c = go(centres, keys)
+    res, xy = jax.tree.map(lambda a: a[:2], found)
     before = np.linalg.norm(np.asarray(without_c - centres), axis=1)
     after = np.linalg.norm(np.asarray(xy - centres), axis=1)
     assert np.all(before > 25.0)  # the drift alone misplaces the tip
@@ -154,7 +170,8 @@ def test_local_scan_finds_particles_at_known_positions_under_drift(drifting):
 def test_local_scan_gives_up_cleanly_without_a_particle(drifting):
     pos, stand = drifting
     spec = LocalScan(max_lines=24)
-    res, _ = local_scan(pos, Plane(), stand, jnp.array([100.0, 100.0]), jnp.asarray(10.0), jax.random.key(3), spec)
+    res, _ = eqx.filter_jit(local_scan)(pos, Plane(), stand, jnp.array([100.0, 100.0]), jnp.asarray(10.0),
+                                        jax.random.key(3), spec)  # compiled: faster than op by op
     n_search = 2 * int(np.ceil(spec.margin / 7.5)) + 1  # lines 0.75 R apart over +-margin
     assert not bool(res.found)
     assert int(res.lines) == n_search <= spec.max_lines
@@ -172,17 +189,18 @@ def test_local_scan_rejects_a_radius_that_is_not_positive(drifting):
 # The push
 
 
-def test_push_carries_the_particle_to_the_goal_and_misses_when_off_centre(drifting):
+def test_push_carries_the_particle_to_the_goal_and_misses_when_off_centre(drifting, found):
     pos, stand = drifting
-    p, R = jnp.array([200.0, 100.0]), jnp.asarray(20.0)
+    p, R = CENTRES[2], RADII[2]
     d, dist = jnp.array([0.6, 0.8]), jnp.asarray(150.0)
-    res, xy = find_and_go(pos, Particles(p[None], R[None]), stand, p + 10.0, R, jax.random.key(4))
-    final, moved, path, _ = push(pos, Plane(), stand, res.centre, p, R, d, dist, jax.random.key(5))
+    res = jax.tree.map(lambda a: a[2], found[0])  # the local scan from p + (10, 10) nm
+    push_once = eqx.filter_jit(push)  # compiled once for both pushes
+    final, moved, path, _ = push_once(pos, Plane(), stand, res.centre, p, R, d, dist, jax.random.key(5))
     assert bool(moved)
     assert float(jnp.linalg.norm(final - (p + dist * d))) < 2.0  # nm
     # aimed 2 (R + tip radius) to the side, the tip passes the particle by: it stays put
     side = jnp.array([-0.8, 0.6]) * 2 * (R + pos.afm.tip.radius)
-    final, moved, _, _ = push(pos, Plane(), stand, res.centre + side, p, R, d, dist, jax.random.key(5))
+    final, moved, _, _ = push_once(pos, Plane(), stand, res.centre + side, p, R, d, dist, jax.random.key(5))
     assert not bool(moved)
     np.testing.assert_allclose(final, p)
 
@@ -221,20 +239,40 @@ output: {out}
 """
 
 
-def test_cli_run_positions_on_particles_and_pushes_them(tmp_path):
+@pytest.fixture(scope="module", autouse=True)
+def cli_run(request, tmp_path_factory):
+    """``jaxafm run`` on SMALL_RUN with the true scanner as step A's model, in a process of its
+    own that starts with this module's first test, to run while the others do (when the test
+    below is selected)."""
+    if not any(item.name == test_cli_run_positions_on_particles_and_pushes_them.__name__
+               for item in request.session.items):
+        yield None
+        return
+    from jaxafm.io import save_model
+
+    tmp = tmp_path_factory.mktemp("run")
+    save_model(default_afm().scanner.without("drift", "noise"), tmp / "true.json")
+    cfg = tmp / "run.yaml"
+    cfg.write_text(SMALL_RUN.format(model=tmp / "true.json", out=tmp / "run"))
+    with open(tmp / "log.txt", "w") as log:
+        proc = subprocess.Popen([sys.executable, "-c", "from jaxafm.cli import main; main()", "run", str(cfg)],
+                                stdout=log, stderr=subprocess.STDOUT)
+    yield cfg, tmp / "run", proc, tmp / "log.txt"
+    proc.kill()  # only if its test did not wait for it
+    proc.wait()
+
+
+def test_cli_run_positions_on_particles_and_pushes_them(cli_run):
     import json
 
     from typer.testing import CliRunner
 
     from jaxafm.cli import app
-    from jaxafm.io import save_model
 
-    save_model(default_afm().scanner.without("drift", "noise"), tmp_path / "true.json")
-    out = tmp_path / "run"
-    cfg = tmp_path / "run.yaml"
-    cfg.write_text(SMALL_RUN.format(model=tmp_path / "true.json", out=out))
-    result = CliRunner().invoke(app, ["run", str(cfg)])
-    assert result.exit_code == 0, result.output
+    cfg, out, proc, log = cli_run
+    proc.wait()
+    output = log.read_text()
+    assert proc.returncode == 0, output[-3000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["AB_landmarks_found"] == 9
     # with the true scanner as the model, what is left after A and B is drift and feature error
@@ -242,6 +280,6 @@ def test_cli_run_positions_on_particles_and_pushes_them(tmp_path):
     assert m["ABC_within_0p1R_pct"] == 100.0 and m["push_success_pct"] == 100.0
     for f in ("landmarks.png", "local_scan.png", "push.png", "errors.png"):
         assert (out / f).stat().st_size > 0
-    assert "A+B+C" in result.output
+    assert "A+B+C" in output
     again = CliRunner().invoke(app, ["run", str(cfg)])
     assert again.exit_code == 2 and "--overwrite" in again.output
