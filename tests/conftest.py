@@ -1,0 +1,33 @@
+"""The test session's compilation cache.
+
+JAX compiles again whatever it runs op by op that holds a loop (a ``lax.scan``: every
+eager call of a scanner, a move, a press), and the tests of one session compile many
+programs more than once (the same scan in several tests, the same study in this process
+and in the ``jaxafm study`` processes test_study starts). A persistent compilation cache
+in a folder of this session's own turns each repeat into a read: the same executable,
+so nothing a test computes or checks changes. The folder starts empty (no result of an
+earlier run is reused) and is removed when the session ends.
+"""
+
+import os
+import shutil
+import tempfile
+
+import jax
+
+_CACHE = tempfile.mkdtemp(prefix="jaxafm-tests-xla-")
+_SETTINGS = {"JAX_COMPILATION_CACHE_DIR": _CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+_BEFORE = {k: os.environ.get(k) for k in _SETTINGS}
+
+jax.config.update("jax_compilation_cache_dir", _CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+os.environ.update(_SETTINGS)  # the processes the tests start share it
+
+
+def pytest_unconfigure(config):
+    for k, v in _BEFORE.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    shutil.rmtree(_CACHE, ignore_errors=True)
