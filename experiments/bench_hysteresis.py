@@ -6,8 +6,8 @@ multi-cycle signal plus a filtered random walk, squashed into [0, 3.6] V):
 1. Preisach, planes of n = 50 and 100 levels (n(n+1)/2 = 1275 / 5050 hysterons,
    random non-negative lower-triangular density): jitted JAX forward and
    forward+gradient of a squared-error loss w.r.t. the fitted arrays (density
-   and offset; the grids stay fixed, as in a fit) and w.r.t. every array, smooth=False (same model as the relay grid, used
-   for the speed-up) and smooth=True (the default); vs the NumPy loop
+   and offset; the grids stay fixed, as in a fit) and w.r.t. every array, smooth=False (same
+   model as the relay grid, used for the speed-up) and smooth=True (the default); vs the NumPy loop
    ``jaxafm.reference.preisach_relay_grid`` timed once on the full input.
    The JAX/NumPy agreement (smooth=False) is checked and reported.
 2. Prandtl-Ishlinskii with 50 plays and random positive weights vs ``pi_loop``.
@@ -37,11 +37,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from benchutil import machine_info, time_jax
+from reference import pi_loop, preisach_relay_grid
 
 import jaxafm  # noqa: F401  (enables float64)
-from benchutil import machine_info, time_jax
-from jaxafm import Preisach, PrandtlIshlinskii
-from jaxafm.reference import pi_loop, preisach_relay_grid
+from jaxafm import PrandtlIshlinskii, Preisach
 
 U_MIN, U_MAX, SEED = 0.0, 3.6, 0
 GOAL_SPEEDUP, GOAL_GRAD_RATIO = 50.0, 4.0
@@ -76,7 +76,7 @@ def fitted(m):
 
 
 def value_and_grad_fitted(m, u, target):  # w.r.t. the fitted arrays only
-    loss = lambda leaves: jnp.sum((eqx.tree_at(fitted, m, leaves)(u) - target) ** 2)  # noqa: E731
+    loss = lambda leaves: jnp.sum((eqx.tree_at(fitted, m, leaves)(u) - target) ** 2)
     return jax.value_and_grad(loss)(fitted(m))
 
 
@@ -90,8 +90,15 @@ def bench_model(name, n, hyst, variants, np_fn, np_args, u, target, repeats):
     t0 = time.perf_counter()
     y_np = np_fn(u, *np_args)  # timed once on the full input: no extrapolation
     np_s = time.perf_counter() - t0
-    row = {"model": name, "samples": T, "plays_updated_per_sample": n, "plane_size": hyst,
-           "hysterons": hyst, "numpy_s": np_s, "numpy": rates(np_s, T, hyst)}
+    row = {
+        "model": name,
+        "samples": T,
+        "plays_updated_per_sample": n,
+        "plane_size": hyst,
+        "hysterons": hyst,
+        "numpy_s": np_s,
+        "numpy": rates(np_s, T, hyst),
+    }
     for key, m in variants.items():
         row[f"fwd_{key}"], y = time_jax(forward, m, uj, repeats=repeats)
         row[f"grad_{key}"], _ = time_jax(value_and_grad_fitted, m, uj, target, repeats=repeats)
@@ -111,14 +118,19 @@ def bench_preisach(u, n, rng, repeats):
     dens = np.tril(rng.random((n, n)))
     dens *= 10.0 / dens.sum()  # 10 nm total relay weight
     hyst = n * (n + 1) // 2
-    variants = {key: Preisach(jnp.asarray(dens), jnp.asarray(U_MIN), jnp.asarray(U_MAX), jnp.asarray(0.0),
-                              smooth) for key, smooth in (("hard", False), ("smooth", True))}
+    variants = {
+        key: Preisach(jnp.asarray(dens), jnp.asarray(U_MIN), jnp.asarray(U_MAX), jnp.asarray(0.0), smooth)
+        for key, smooth in (("hard", False), ("smooth", True))
+    }
     target = 10.0 * (u - U_MIN) / (U_MAX - U_MIN) - 5.0
-    row = bench_model(f"Preisach n={n}", n, hyst, variants, preisach_relay_grid, (dens, U_MIN, U_MAX),
-                      u, target, repeats)
-    row["note"] = (f"hysteron-updates/s counts all n(n+1)/2={hyst} relays per sample for both JAX and "
-                   f"NumPy, but the JAX model (Krejci play representation) updates only n={n} plays "
-                   "per sample; the relay grid really updates every relay.")
+    row = bench_model(
+        f"Preisach n={n}", n, hyst, variants, preisach_relay_grid, (dens, U_MIN, U_MAX), u, target, repeats
+    )
+    row["note"] = (
+        f"hysteron-updates/s counts all n(n+1)/2={hyst} relays per sample for both JAX and "
+        f"NumPy, but the JAX model (Krejci play representation) updates only n={n} plays "
+        "per sample; the relay grid really updates every relay."
+    )
     return row
 
 
@@ -141,17 +153,26 @@ def main():
     args = ap.parse_args()
     u, rng = make_input(args.samples), np.random.default_rng(SEED + 1)
     info = machine_info()
-    print(f"jax {info['jax']} on {info['devices']}, {info['cpu_count']} CPUs, {info['platform']}, "
-          f"load avg {info['loadavg_at_start'][0]:.1f}")
+    print(
+        f"jax {info['jax']} on {info['devices']}, {info['cpu_count']} CPUs, {info['platform']}, "
+        f"load avg {info['loadavg_at_start'][0]:.1f}"
+    )
     print(f"input: {args.samples} samples in [{u.min():.2f}, {u.max():.2f}] V; JAX median of {args.repeats}")
 
-    models = [bench_preisach(u, 50, rng, args.repeats), bench_preisach(u, 100, rng, args.repeats),
-              bench_pi(u, 50, rng, args.repeats)]
-    print("\n== models (times in ms; JAX fwd/grad = smooth=False unless marked; grad = value+grad w.r.t. the "
-          "fitted arrays; g_all = w.r.t. every array, default model) ==")
-    print(f"{'model':14}{'plays/smp':>10}{'plane':>7}{'numpy':>10}{'jax fwd':>10}{'compile':>9}"
-          f"{'speedup':>9}{'fwd smth':>10}{'speedup':>9}{'grad':>10}{'grad smth':>10}{'g/f':>6}{'g/f smth':>9}"
-          f"{'g_all/f':>8}{'max|diff|':>10}")
+    models = [
+        bench_preisach(u, 50, rng, args.repeats),
+        bench_preisach(u, 100, rng, args.repeats),
+        bench_pi(u, 50, rng, args.repeats),
+    ]
+    print(
+        "\n== models (times in ms; JAX fwd/grad = smooth=False unless marked; grad = value+grad w.r.t. the "
+        "fitted arrays; g_all = w.r.t. every array, default model) =="
+    )
+    print(
+        f"{'model':14}{'plays/smp':>10}{'plane':>7}{'numpy':>10}{'jax fwd':>10}{'compile':>9}"
+        f"{'speedup':>9}{'fwd smth':>10}{'speedup':>9}{'grad':>10}{'grad smth':>10}{'g/f':>6}{'g/f smth':>9}"
+        f"{'g_all/f':>8}{'max|diff|':>10}"
+    )
     for r in models:
         sm = "fwd_smooth" in r  # Preisach only
         fs = ms(r["fwd_smooth"]["median_s"]) if sm else "-"
@@ -159,24 +180,32 @@ def main():
         gs = ms(r["grad_smooth"]["median_s"]) if sm else "-"
         gfs = f"{r['grad_over_fwd_smooth']:9.2f}" if sm else "-"
         gall = r.get("grad_all_over_fwd_smooth", r["grad_all_over_fwd_hard"])
-        print(f"{r['model']:14}{r['plays_updated_per_sample']:>10}{r['plane_size']:>7}{ms(r['numpy_s']):>10}"
-              f"{ms(r['fwd_hard']['median_s'])}{ms(r['fwd_hard']['compile_s'])}{r['speedup_hard_vs_numpy']:8.1f}x"
-              f"{fs:>10}{ss:>9}{ms(r['grad_hard']['median_s']):>10}{gs:>10}"
-              f"{r['grad_over_fwd_hard']:6.2f}{gfs:>9}{gall:8.2f}{r['max_abs_diff_hard_vs_numpy']:10.1e}")
+        print(
+            f"{r['model']:14}{r['plays_updated_per_sample']:>10}{r['plane_size']:>7}{ms(r['numpy_s']):>10}"
+            f"{ms(r['fwd_hard']['median_s'])}{ms(r['fwd_hard']['compile_s'])}{r['speedup_hard_vs_numpy']:8.1f}x"
+            f"{fs:>10}{ss:>9}{ms(r['grad_hard']['median_s']):>10}{gs:>10}"
+            f"{r['grad_over_fwd_hard']:6.2f}{gfs:>9}{gall:8.2f}{r['max_abs_diff_hard_vs_numpy']:10.1e}"
+        )
     print("\n   rates (JAX smooth=False fwd / NumPy):")
     for r in models:
         j, n_ = r["fwd_hard"], r["numpy"]
-        print(f"   {r['model']:14} samples/s {j['samples_per_s']:10.3g} / {n_['samples_per_s']:9.3g}   "
-              f"hysteron-updates/s {j['hysteron_updates_per_s']:10.3g} / {n_['hysteron_updates_per_s']:9.3g}")
+        print(
+            f"   {r['model']:14} samples/s {j['samples_per_s']:10.3g} / {n_['samples_per_s']:9.3g}   "
+            f"hysteron-updates/s {j['hysteron_updates_per_s']:10.3g} / {n_['hysteron_updates_per_s']:9.3g}"
+        )
     print("   note: Preisach hysteron-updates/s counts n(n+1)/2 relays per sample; JAX updates only n plays.")
 
     goals = {}
     for r in models:
         if r["model"].startswith("Preisach"):
             goals[f"{r['model']}: JAX fwd >= {GOAL_SPEEDUP:g}x NumPy"] = (
-                r["speedup_hard_vs_numpy"], r["speedup_hard_vs_numpy"] >= GOAL_SPEEDUP)
+                r["speedup_hard_vs_numpy"],
+                r["speedup_hard_vs_numpy"] >= GOAL_SPEEDUP,
+            )
         goals[f"{r['model']}: value+grad <= {GOAL_GRAD_RATIO:g}x fwd"] = (
-            r["grad_over_fwd"], r["grad_over_fwd"] <= GOAL_GRAD_RATIO)
+            r["grad_over_fwd"],
+            r["grad_over_fwd"] <= GOAL_GRAD_RATIO,
+        )
     diff = max(r["max_abs_diff_hard_vs_numpy"] for r in models[:2])
     goals["Preisach smooth=False matches relay grid to 1e-12"] = (diff, diff <= 1e-12)
     print("\n== goals ==  (grad ratio: fitted arrays, default smooth=True model)")
@@ -185,14 +214,22 @@ def main():
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = {"machine": info, "samples": args.samples, "repeats": args.repeats, "seed": SEED,
-              "u_range_V": [U_MIN, U_MAX], "models": models,
-              "goals": {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in goals.items()},
-              "numpy_timing": "each NumPy baseline timed once on the full input (no extrapolation)"}
+    result = {
+        "machine": info,
+        "samples": args.samples,
+        "repeats": args.repeats,
+        "seed": SEED,
+        "u_range_V": [U_MIN, U_MAX],
+        "models": models,
+        "goals": {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in goals.items()},
+        "numpy_timing": "each NumPy baseline timed once on the full input (no extrapolation)",
+    }
     result["machine"]["loadavg_at_end"] = load = os.getloadavg()
     if max(info["loadavg_at_start"][0], load[0]) > (os.cpu_count() or 1):
-        print(f"\nWARNING: load average {info['loadavg_at_start'][0]:.1f} -> {load[0]:.1f} exceeds the "
-              f"{os.cpu_count()} CPUs: other processes share the machine, timings are noisy")
+        print(
+            f"\nWARNING: load average {info['loadavg_at_start'][0]:.1f} -> {load[0]:.1f} exceeds the "
+            f"{os.cpu_count()} CPUs: other processes share the machine, timings are noisy"
+        )
     out.write_text(json.dumps(result, indent=2))
     print(f"\nsaved {out}")
 

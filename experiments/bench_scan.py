@@ -8,7 +8,7 @@ over 9000 x 9000 nm, ``--pixels`` x ``--lines`` (trace and retrace), line rate
 the width at each end (``Raster``'s default 10 % would need 10800 nm, beyond the
 scanner's +-5000 nm). One image includes the 32-sample move to its first point.
 
-(a) JAX forward: ``jaxafm.afm.raster_scan`` jitted; compile time separate,
+(a) JAX forward: ``jaxafm.instrument.afm.raster_scan`` jitted; compile time separate,
     one warm-up call, then the median of ``--repeats`` calls.
 (b) JAX forward+gradient: value and gradient of ``mean(trace^2 + retrace^2) / 2``
     with respect to every float array of the AFM (scanner, tip, calibration,
@@ -41,11 +41,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from benchutil import machine_info, time_jax
-from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.reference import numpy_height, numpy_grating_image, raster_normals, raster_scan_numpy
-from jaxafm.samples import Grating
+from reference import (
+    numpy_grating_image,
+    numpy_height,
+    raster_normals,
+    raster_scan_numpy,
+)
+
+from jaxafm.instrument.afm import Raster, default_afm, raster_scan
+from jaxafm.instrument.samples import Grating
 
 SIZE_NM, PITCH_NM, DEPTH_NM, LINE_RATE_HZ, OVERSCAN, SEED = 9000.0, 3000.0, 550.0, 1.0, 0.05, 0
 HISTORY = [[-10.0, -10.0], [10.0, 10.0]]  # the initialisation cycle; the scan starts at rest at 0 V
@@ -58,8 +63,16 @@ def peak_rss_gib() -> float:
 
 def run_numpy(afm, height, raster, normals, lines, tip_image):
     t0 = time.perf_counter()
-    out = raster_scan_numpy(afm, height, raster, *normals, history=HISTORY, move_samples=MOVE_SAMPLES,
-                            lines=lines, probe=tip_image)
+    out = raster_scan_numpy(
+        afm,
+        height,
+        raster,
+        *normals,
+        history=HISTORY,
+        move_samples=MOVE_SAMPLES,
+        lines=lines,
+        probe=tip_image,
+    )
     return time.perf_counter() - t0, out
 
 
@@ -68,28 +81,41 @@ def main():
     ap.add_argument("--pixels", type=int, default=512)
     ap.add_argument("--lines", type=int, default=None, help="default: --pixels")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--numpy-lines", type=int, default=None,
-                    help="time NumPy on only the first N lines and scale up (default: decide from a probe)")
-    ap.add_argument("--numpy-budget", type=float, default=180.0,
-                    help="s: without --numpy-lines, run NumPy on the whole image if it projects under this")
+    ap.add_argument(
+        "--numpy-lines",
+        type=int,
+        default=None,
+        help="time NumPy on only the first N lines and scale up (default: decide from a probe)",
+    )
+    ap.add_argument(
+        "--numpy-budget",
+        type=float,
+        default=180.0,
+        help="s: without --numpy-lines, run NumPy on the whole image if it projects under this",
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "bench_scan.json"))
     args = ap.parse_args()
     lines = args.pixels if args.lines is None else args.lines
 
     afm = default_afm()
     sample = Grating(jnp.asarray(PITCH_NM), jnp.asarray(DEPTH_NM))
-    raster = Raster(size=(SIZE_NM, SIZE_NM), pixels=args.pixels, lines=lines, line_rate=LINE_RATE_HZ,
-                    overscan=OVERSCAN)
+    raster = Raster(
+        size=(SIZE_NM, SIZE_NM), pixels=args.pixels, lines=lines, line_rate=LINE_RATE_HZ, overscan=OVERSCAN
+    )
     state = afm.initial_state(history=HISTORY)
     key = jax.random.key(SEED)
     per_line = 2 * (raster.pixels + 2 * raster.margin)
     samples = MOVE_SAMPLES + lines * per_line
 
     info = machine_info()
-    print(f"jax {info['jax']} on {info['devices']}, {info['cpu_count']} CPUs, {info['platform']}, "
-          f"load avg {info['loadavg_at_start'][0]:.1f}")
-    print(f"scan: {args.pixels} x {lines} px (trace + retrace), {SIZE_NM:g} nm, {LINE_RATE_HZ:g} Hz lines, "
-          f"{samples} samples ({MOVE_SAMPLES} move + {lines} x {per_line}); effects {sorted(afm.effects)}")
+    print(
+        f"jax {info['jax']} on {info['devices']}, {info['cpu_count']} CPUs, {info['platform']}, "
+        f"load avg {info['loadavg_at_start'][0]:.1f}"
+    )
+    print(
+        f"scan: {args.pixels} x {lines} px (trace + retrace), {SIZE_NM:g} nm, {LINE_RATE_HZ:g} Hz lines, "
+        f"{samples} samples ({MOVE_SAMPLES} move + {lines} x {per_line}); effects {sorted(afm.effects)}"
+    )
 
     def forward(afm, sample, state, key):
         out = raster_scan(afm, sample, state, raster, key=key)
@@ -102,19 +128,26 @@ def main():
     def value_and_grad(afm, sample, state, key):
         return eqx.filter_value_and_grad(loss)(afm, sample, state, key)
 
-    fwd, (trace, retrace, path_trace, path_retrace) = time_jax(forward, afm, sample, state, key,
-                                                             repeats=args.repeats)
+    fwd, (trace, retrace, path_trace, path_retrace) = time_jax(
+        forward, afm, sample, state, key, repeats=args.repeats
+    )
     print(f"(a) JAX forward       {fwd['median_s']:9.3f} s  (compile {fwd['compile_s']:.1f} s)")
     grad, (value, g) = time_jax(value_and_grad, afm, sample, state, key, repeats=args.repeats)
-    grad_norm = float(jnp.sqrt(sum(jnp.sum(x**2) for x in jax.tree.leaves(eqx.filter(g, eqx.is_inexact_array)))))
+    grad_norm = float(
+        jnp.sqrt(sum(jnp.sum(x**2) for x in jax.tree.leaves(eqx.filter(g, eqx.is_inexact_array))))
+    )
     n_params = sum(x.size for x in jax.tree.leaves(eqx.filter(afm, eqx.is_inexact_array)))
-    print(f"(b) JAX forward+grad  {grad['median_s']:9.3f} s  (compile {grad['compile_s']:.1f} s; "
-          f"loss {float(value):.4g} nm^2, |grad| {grad_norm:.3g} over {n_params} parameters)")
+    print(
+        f"(b) JAX forward+grad  {grad['median_s']:9.3f} s  (compile {grad['compile_s']:.1f} s; "
+        f"loss {float(value):.4g} nm^2, |grad| {grad_norm:.3g} over {n_params} parameters)"
+    )
     rss_jax = peak_rss_gib()
 
     height, normals = numpy_height(sample), raster_normals(key, raster, MOVE_SAMPLES)
     tip_image = numpy_grating_image(sample, afm.tip)
-    run_numpy(afm, height, raster, normals, 0, tip_image)  # warm-up: the move only (converts the parameters once)
+    run_numpy(
+        afm, height, raster, normals, 0, tip_image
+    )  # warm-up: the move only (converts the parameters once)
     probe = None
     if args.numpy_lines is not None:
         np_lines, how = min(args.numpy_lines, lines), "--numpy-lines"
@@ -128,46 +161,93 @@ def main():
     np_s, ref = run_numpy(afm, height, raster, normals, np_lines, tip_image)
     scaled = np_lines < lines
     np_image_s = np_s * (lines * per_line + MOVE_SAMPLES) / (np_lines * per_line + MOVE_SAMPLES)
-    print(f"(c) NumPy reference   {np_image_s:9.3f} s  " + (
-        f"SCALED UP from {np_lines} of {lines} lines timed ({np_s:.1f} s; {how})" if scaled
-        else f"(whole image timed; {how})"))
+    print(
+        f"(c) NumPy reference   {np_image_s:9.3f} s  "
+        + (
+            f"SCALED UP from {np_lines} of {lines} lines timed ({np_s:.1f} s; {how})"
+            if scaled
+            else f"(whole image timed; {how})"
+        )
+    )
 
-    diff = {name: float(np.max(np.abs(np.asarray(a)[:np_lines] - ref[name])))
-            for name, a in (("trace", trace), ("retrace", retrace), ("path_trace", path_trace),
-                            ("path_retrace", path_retrace))}
+    diff = {
+        name: float(np.max(np.abs(np.asarray(a)[:np_lines] - ref[name])))
+        for name, a in (
+            ("trace", trace),
+            ("retrace", retrace),
+            ("path_trace", path_trace),
+            ("path_retrace", path_retrace),
+        )
+    }
     speedup, grad_ratio = np_image_s / fwd["median_s"], grad["median_s"] / fwd["median_s"]
-    print("\n== per image (times in s; JAX: median of {}) ==".format(args.repeats))
+    print(f"\n== per image (times in s; JAX: median of {args.repeats}) ==")
     print(f"{'':22}{'time':>10}{'us/sample':>11}{'compile':>9}")
-    for name, s, c in (("JAX forward", fwd["median_s"], fwd["compile_s"]),
-                       ("JAX forward+grad", grad["median_s"], grad["compile_s"]),
-                       ("NumPy" + (" (scaled)" if scaled else ""), np_image_s, None)):
+    for name, s, c in (
+        ("JAX forward", fwd["median_s"], fwd["compile_s"]),
+        ("JAX forward+grad", grad["median_s"], grad["compile_s"]),
+        ("NumPy" + (" (scaled)" if scaled else ""), np_image_s, None),
+    ):
         print(f"{name:22}{s:10.3f}{1e6 * s / samples:11.2f}{'-' if c is None else f'{c:.1f}':>9}")
     print(f"\nNumPy / JAX forward      {speedup:8.1f}x")
     print(f"JAX grad / JAX forward   {grad_ratio:8.2f}x")
-    print(f"max |JAX - NumPy| over the {np_lines} lines: " + ", ".join(f"{k} {v:.1e} nm" for k, v in diff.items()))
+    print(
+        f"max |JAX - NumPy| over the {np_lines} lines: "
+        + ", ".join(f"{k} {v:.1e} nm" for k, v in diff.items())
+    )
     print(f"peak RSS {peak_rss_gib():.2f} GiB (after JAX: {rss_jax:.2f} GiB)")
 
-    result = {"machine": info, "pixels": args.pixels, "lines": lines, "repeats": args.repeats, "seed": SEED,
-              "scan": {"size_nm": SIZE_NM, "line_rate_hz": LINE_RATE_HZ, "overscan": OVERSCAN,
-                       "margin_samples": raster.margin, "samples_per_image": samples,
-                       "move_samples": MOVE_SAMPLES, "sample": {"grating_pitch_nm": PITCH_NM,
-                                                                "grating_depth_nm": DEPTH_NM},
-                       "effects": sorted(afm.effects), "history": HISTORY, "dtype": "float64"},
-              "jax_forward": fwd, "jax_forward_grad": grad,
-              "grad": {"loss": "mean(trace^2 + retrace^2) / 2 nm^2", "wrt": "every float array of the AFM",
-                       "parameters": int(n_params), "loss_value": float(value), "grad_norm": grad_norm},
-              "numpy": {"image_s": np_image_s, "timed_s": np_s, "lines_timed": np_lines,
-                        "scaled_up": scaled, "how": how, "probe": probe,
-                        "timing": ("timed once on the first {} of {} lines (plus the move) and scaled up by "
-                                   "samples".format(np_lines, lines) if scaled
-                                   else "timed once on the whole image (no extrapolation)")},
-              "numpy_over_jax_forward": speedup, "grad_over_forward": grad_ratio,
-              "max_abs_diff_jax_vs_numpy_nm": diff,
-              "peak_rss_gib": peak_rss_gib(), "peak_rss_gib_after_jax": rss_jax}
+    result = {
+        "machine": info,
+        "pixels": args.pixels,
+        "lines": lines,
+        "repeats": args.repeats,
+        "seed": SEED,
+        "scan": {
+            "size_nm": SIZE_NM,
+            "line_rate_hz": LINE_RATE_HZ,
+            "overscan": OVERSCAN,
+            "margin_samples": raster.margin,
+            "samples_per_image": samples,
+            "move_samples": MOVE_SAMPLES,
+            "sample": {"grating_pitch_nm": PITCH_NM, "grating_depth_nm": DEPTH_NM},
+            "effects": sorted(afm.effects),
+            "history": HISTORY,
+            "dtype": "float64",
+        },
+        "jax_forward": fwd,
+        "jax_forward_grad": grad,
+        "grad": {
+            "loss": "mean(trace^2 + retrace^2) / 2 nm^2",
+            "wrt": "every float array of the AFM",
+            "parameters": int(n_params),
+            "loss_value": float(value),
+            "grad_norm": grad_norm,
+        },
+        "numpy": {
+            "image_s": np_image_s,
+            "timed_s": np_s,
+            "lines_timed": np_lines,
+            "scaled_up": scaled,
+            "how": how,
+            "probe": probe,
+            "timing": (
+                f"timed once on the first {np_lines} of {lines} lines (plus the move) and scaled up by samples"
+                if scaled
+                else "timed once on the whole image (no extrapolation)"
+            ),
+        },
+        "numpy_over_jax_forward": speedup,
+        "grad_over_forward": grad_ratio,
+        "max_abs_diff_jax_vs_numpy_nm": diff,
+        "peak_rss_gib": peak_rss_gib(),
+        "peak_rss_gib_after_jax": rss_jax,
+    }
     result["machine"]["loadavg_at_end"] = load = os.getloadavg()
     if max(info["loadavg_at_start"][0], load[0]) > (os.cpu_count() or 1):
-        print(f"\nWARNING: load average {info['loadavg_at_start'][0]:.1f} -> {load[0]:.1f} exceeds the "
-              f"{os.cpu_count()} CPUs: other processes share the machine, timings are noisy")
+        print(
+            f"\nWARNING: load average {info['loadavg_at_start'][0]:.1f} -> {load[0]:.1f} exceeds the "
+            f"{os.cpu_count()} CPUs: other processes share the machine, timings are noisy"
+        )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))

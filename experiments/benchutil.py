@@ -1,4 +1,8 @@
-"""What the benchmarks share: timing a jitted function and the machine they ran on."""
+"""What the benchmarks share: timing a jitted function and the machine they ran on.
+
+Importing it also puts ``tests/`` on the path: the NumPy reference implementations the
+benchmarks time (``tests/reference.py``) are test code, not part of the installed package.
+"""
 
 from __future__ import annotations
 
@@ -7,10 +11,13 @@ import platform
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def time_jax(fn, *args, repeats: int):
@@ -24,14 +31,30 @@ def time_jax(fn, *args, repeats: int):
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
-    return {"compile_s": compile_s, "median_s": statistics.median(times), "min_s": min(times),
-            "max_s": max(times), "repeats": repeats}, out
+    return {
+        "compile_s": compile_s,
+        "median_s": statistics.median(times),
+        "min_s": min(times),
+        "max_s": max(times),
+        "repeats": repeats,
+    }, out
 
 
 def machine_info():
     import jaxlib
-    return {"jax": jax.__version__, "jaxlib": jaxlib.__version__, "equinox": eqx.__version__,
-            "numpy": np.__version__, "python": sys.version.split()[0], "devices": str(jax.devices()),
-            "cpu_count": os.cpu_count(), "platform": platform.platform(), "machine": platform.machine(),
-            "processor": platform.processor(), "x64": bool(jax.config.jax_enable_x64),
-            "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "loadavg_at_start": os.getloadavg()}
+
+    return {
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "equinox": eqx.__version__,
+        "numpy": np.__version__,
+        "python": sys.version.split()[0],
+        "devices": str(jax.devices()),
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "x64": bool(jax.config.jax_enable_x64),
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+        "loadavg_at_start": os.getloadavg(),
+    }

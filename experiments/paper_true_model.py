@@ -14,10 +14,10 @@ from pathlib import Path
 import yaml
 
 import jaxafm
-from jaxafm import strategy
 from jaxafm.cli import RUN_OUTPUTS, prepare_output
 from jaxafm.config import RunConfig
-from jaxafm.io import save_model
+from jaxafm.model.io import save_model
+from jaxafm.position import strategy
 
 ROOT = Path(__file__).resolve().parents[1]
 

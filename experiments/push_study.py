@@ -17,9 +17,9 @@ from pathlib import Path
 
 import yaml
 
-from jaxafm import strategy
 from jaxafm.cli import RUN_OUTPUTS, prepare_output
 from jaxafm.config import RunConfig
+from jaxafm.position import strategy
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,7 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", type=Path, default=ROOT / "configs" / "paper.yaml")
-    ap.add_argument("--model", type=Path, default=ROOT / "experiments" / "results" / "paper" / "model_scanner.json")
+    ap.add_argument(
+        "--model", type=Path, default=ROOT / "experiments" / "results" / "paper" / "model_scanner.json"
+    )
     ap.add_argument("--fields", type=int, default=3)
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "push_study")
     ap.add_argument("--overwrite", action="store_true")
@@ -42,17 +44,24 @@ def main() -> None:
         cfg = RunConfig.model_validate(raw)
         out = args.out / f"field_{field}"
         print(f"--- field {field} (particle seed {cfg.particles.seed})")
-        m = strategy.run(cfg, args.config, out, prepare=lambda: prepare_output(out, args.overwrite, RUN_OUTPUTS))
+        m = strategy.run(
+            cfg, args.config, out, prepare=lambda: prepare_output(out, args.overwrite, RUN_OUTPUTS)
+        )
         results.append(m)
     n = sum(m["push_trials"] for m in results)
     success = sum(round(m["push_success_pct"] * m["push_trials"] / 100) for m in results)
     within = sum(round(m["ABC_within_0p1R_pct"] * m["push_trials"] / 100) for m in results)
-    summary = {"fields": args.fields, "push_trials": n, "push_successes": success,
-               "push_success_pct": 100 * success / n, "ABC_within_0p1R_pct": 100 * within / n,
-               "ABC_error_over_radius_max": max(m["ABC_error_over_radius_max"] for m in results),
-               "AB_polynomial_error_max_nm": max(m["AB_polynomial_error_max_nm"] for m in results),
-               "AB_polynomial_error_median_nm_per_field": [m["AB_polynomial_error_median_nm"] for m in results],
-               "push_error_max_nm": max(m["push_error_max_nm"] for m in results)}
+    summary = {
+        "fields": args.fields,
+        "push_trials": n,
+        "push_successes": success,
+        "push_success_pct": 100 * success / n,
+        "ABC_within_0p1R_pct": 100 * within / n,
+        "ABC_error_over_radius_max": max(m["ABC_error_over_radius_max"] for m in results),
+        "AB_polynomial_error_max_nm": max(m["AB_polynomial_error_max_nm"] for m in results),
+        "AB_polynomial_error_median_nm_per_field": [m["AB_polynomial_error_median_nm"] for m in results],
+        "push_error_max_nm": max(m["push_error_max_nm"] for m in results),
+    }
     (args.out / "metrics.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary, indent=1))
 

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxafm import plots
-from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.images import from_scan, save_image
-from jaxafm.samples import Lattice
+from jaxafm.instrument.afm import Raster, default_afm, raster_scan
+from jaxafm.instrument.images import from_scan, save_image
+from jaxafm.instrument.samples import Lattice
 
 
 def main() -> None:
@@ -32,13 +32,20 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     afm = default_afm()
-    sample = Lattice(jnp.full(2, 2000.0), jnp.asarray(600.0), jnp.asarray(100.0), edge_width=jnp.asarray(80.0),
-                     phase=jnp.full(2, 1000.0))
+    sample = Lattice(
+        jnp.full(2, 2000.0),
+        jnp.asarray(600.0),
+        jnp.asarray(100.0),
+        edge_width=jnp.asarray(80.0),
+        phase=jnp.full(2, 1000.0),
+    )
     raster = Raster((8000.0, 8000.0), args.pixels, args.pixels, line_rate=args.line_rate)
     cycle = [[-afm.u_max, -afm.u_max], [afm.u_max, afm.u_max]]  # the paper's initialisation cycle
     state = afm.initial_state(u0=(afm.u_max, afm.u_max), history=cycle)
     start = time.perf_counter()
-    scan = raster_scan(afm, sample, state, raster, key=jax.random.key(0))  # checks the range, compiles the drive
+    scan = raster_scan(
+        afm, sample, state, raster, key=jax.random.key(0)
+    )  # checks the range, compiles the drive
     jax.block_until_ready(scan)
     seconds = time.perf_counter() - start
 
@@ -50,21 +57,34 @@ def main() -> None:
     err = path - nominal
     diff = trace.z - retrace.z
     metrics = {
-        "pixels": args.pixels, "scan_size_nm": 8000.0, "line_rate_hz": args.line_rate,
+        "pixels": args.pixels,
+        "scan_size_nm": 8000.0,
+        "line_rate_hz": args.line_rate,
         "frame_time_s": float(scan["t_retrace"].max() - scan["t_trace"].min()),
         "simulate_seconds_incl_compile": seconds,
         "position_error_rms_nm": float(np.sqrt(np.mean(np.sum(err**2, axis=-1)))),
         "position_error_max_nm": float(np.max(np.linalg.norm(err, axis=-1))),
         "x_error_range_nm": [float(err[..., 0].min()), float(err[..., 0].max())],
         "y_error_range_nm": [float(err[..., 1].min()), float(err[..., 1].max())],
-        "trace_retrace_offset_rms_nm": float(np.sqrt(np.mean(np.sum(
-            (np.asarray(scan["path_trace"]) - np.asarray(scan["path_retrace"])) ** 2, axis=-1)))),
+        "trace_retrace_offset_rms_nm": float(
+            np.sqrt(
+                np.mean(
+                    np.sum((np.asarray(scan["path_trace"]) - np.asarray(scan["path_retrace"])) ** 2, axis=-1)
+                )
+            )
+        ),
         "trace_minus_retrace_rms_nm": float(np.sqrt(np.mean(diff**2))),
     }
     (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    plots.raster_scan(trace, retrace, path, raster, args.out / "scan.png",
-                      title=f"Simulated {args.pixels} x {args.pixels} scan of a 2 µm-pitch pillar grating, "
-                            f"default scanner, {args.line_rate:g} Hz lines, after the {{-10 V, +10 V}} cycle")
+    plots.raster_scan(
+        trace,
+        retrace,
+        path,
+        raster,
+        args.out / "scan.png",
+        title=f"Simulated {args.pixels} x {args.pixels} scan of a 2 µm-pitch pillar grating, "
+        f"default scanner, {args.line_rate:g} Hz lines, after the {{-10 V, +10 V}} cycle",
+    )
     for k, v in metrics.items():
         print(f"{k:34s} {v}")
     print(f"wrote {args.out}/scan.png")

@@ -1,9 +1,9 @@
 """Blind check of the sim-to-real diagnosis on simulated data with one withheld effect.
 
 Records: a two-axis record of the simulated symmetric-PI scanner (2 nm noise, 20 s at
-100 Hz, jaxafm.withheld.simulate_record) with one effect the nominal model (symmetric PI,
+100 Hz, jaxafm.diagnose.withheld.simulate_record) with one effect the nominal model (symmetric PI,
 20 plays per axis) lacks. Scans: trace/retrace images of a 1-D grating at 1 and 4 lines/s
-(jaxafm.withheld.simulate_scans, 0.5 nm lateral noise) with an imaging effect the
+(jaxafm.diagnose.withheld.simulate_scans, 0.5 nm lateral noise) with an imaging effect the
 nominal model (hysteresis only, ideal tip and feedback) lacks. Each effect at three
 magnitudes, several seeds each, plus controls with no extra effect. The diagnosis sees
 only the data. Writes, into experiments/results/withheld_effects/: cases.json (one row
@@ -26,15 +26,15 @@ import matplotlib
 import numpy as np
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from jaxafm import diagnose as D  # noqa: E402
-from jaxafm import diagnose_scans as S  # noqa: E402
-from jaxafm import withheld as W  # noqa: E402
+from jaxafm.diagnose import record as D
+from jaxafm.diagnose import scans as S
+from jaxafm.diagnose import withheld as W
 
 OUT = Path(__file__).parent / "results" / "withheld_effects"
-#: low, middle, high, per kind of data; units in jaxafm.withheld.RECORD_UNITS and
-#: jaxafm.withheld.SCAN_UNITS. Records' middle: a typical value of design.md section 4
+#: low, middle, high, per kind of data; units in jaxafm.diagnose.withheld.RECORD_UNITS and
+#: jaxafm.diagnose.withheld.SCAN_UNITS. Records' middle: a typical value of design.md section 4
 #: (creep 1 %/decade, coupling 1 %, the default scanner's bow and asymmetry x 0.5); drift is larger
 #: than a real one (1-6 nm/min), which would stay under the 2 nm noise in a 20 s record. Scans: a
 #: feedback lag of 0.1-1 ms (a 0.2-2 kHz loop), tips of 10 nm (new) to 50 nm (worn), and the
@@ -65,30 +65,51 @@ def cases(kind: str, seeds: int, controls: int) -> list:
     for s in range(rounds):
         out += [(kind, None, 0.0, "control", 10_000 + c) for c in range(4 * s, min(4 * s + 4, controls))]
         if s < seeds:
-            out += [(kind, e, m, lv, 1000 * i + 10 * j + s) for i, (e, mags) in enumerate(MAGNITUDES[kind].items())
-                    for j, (lv, m) in enumerate(zip(LEVELS, mags))]
+            out += [
+                (kind, e, m, lv, 1000 * i + 10 * j + s)
+                for i, (e, mags) in enumerate(MAGNITUDES[kind].items())
+                for j, (lv, m) in enumerate(zip(LEVELS, mags))
+            ]
     return out
 
 
 def run_case(kind, effect, magnitude, seed) -> dict:
     start = time.perf_counter()
     if kind == "record":
-        res = D.diagnose_record(W.simulate_record(effect, magnitude, seed), D.Nominal(), D.RECORD_CANDIDATES,
-                                log=lambda s: None)
+        res = D.diagnose_record(
+            W.simulate_record(effect, magnitude, seed), D.Nominal(), D.RECORD_CANDIDATES, log=lambda s: None
+        )
     else:
-        res = S.diagnose_scans(W.simulate_scans(effect, magnitude, seed), W.SIM_GRATING, S.CANDIDATES, 0.6,
-                               D.Rules())
+        res = S.diagnose_scans(
+            W.simulate_scans(effect, magnitude, seed), W.SIM_GRATING, S.CANDIDATES, 0.6, D.Rules()
+        )
     rows = {r["effect"]: r for r in res["candidates"]}
     verdict = res["verdict"]
-    return {"data": kind, "truth": effect, "magnitude": magnitude, "seed": seed, "verdict": verdict,
-            "seconds": time.perf_counter() - start,
-            "heldout_gap_before_nm": res["nominal"]["heldout_gap_nm"],
-            "verdict_shrink_pct": rows[verdict]["shrink_pct"] if verdict else 0.0,
-            "truth_shrink_pct": rows[effect]["shrink_pct"] if effect else None,
-            **({"verdict_rms_shrink_pct": 100 * (1 - rows[verdict]["fit"]["heldout_rms_nm"]
-                                                 / res["nominal"]["heldout_rms_nm"]) if verdict else 0.0,
-                "heldout_rms_before_nm": res["nominal"]["heldout_rms_nm"]} if kind == "scans" else {}),
-            "ranking": [[r["effect"], r["shrink_pct"], r["delta_bic"], r["significant"]] for r in res["candidates"]]}
+    return {
+        "data": kind,
+        "truth": effect,
+        "magnitude": magnitude,
+        "seed": seed,
+        "verdict": verdict,
+        "seconds": time.perf_counter() - start,
+        "heldout_gap_before_nm": res["nominal"]["heldout_gap_nm"],
+        "verdict_shrink_pct": rows[verdict]["shrink_pct"] if verdict else 0.0,
+        "truth_shrink_pct": rows[effect]["shrink_pct"] if effect else None,
+        **(
+            {
+                "verdict_rms_shrink_pct": 100
+                * (1 - rows[verdict]["fit"]["heldout_rms_nm"] / res["nominal"]["heldout_rms_nm"])
+                if verdict
+                else 0.0,
+                "heldout_rms_before_nm": res["nominal"]["heldout_rms_nm"],
+            }
+            if kind == "scans"
+            else {}
+        ),
+        "ranking": [
+            [r["effect"], r["shrink_pct"], r["delta_bic"], r["significant"]] for r in res["candidates"]
+        ],
+    }
 
 
 def summarise(rows: list) -> dict:
@@ -103,7 +124,7 @@ def summarise(rows: list) -> dict:
 
 def _scores(rows: list) -> dict:
     labels = list(LABELS)
-    name = lambda v: v or "none"  # noqa: E731
+    name = lambda v: v or "none"
     matrix = {lv: np.zeros((len(labels), len(labels)), int) for lv in LEVELS + ("control",)}
     for r in rows:
         matrix[r["level"]][labels.index(name(r["truth"])), labels.index(name(r["verdict"]))] += 1
@@ -117,14 +138,24 @@ def _scores(rows: list) -> dict:
     out["controls"] = len(ctrl)
     out["controls_flagged"] = int(sum(r["verdict"] is not None for r in ctrl))
     withheld = [r for r in rows if r["truth"] is not None]
-    out["median_shrink_pct"] = float(np.median([r["verdict_shrink_pct"] for r in withheld])) if withheld else None
-    out["median_truth_shrink_pct"] = float(np.median([r["truth_shrink_pct"] for r in withheld])) if withheld else None
-    out["top1_accuracy_all_pct"] = float(100 * np.mean([r["verdict"] == r["truth"] for r in withheld])) if withheld else None
-    out["goals"] = {"top1_middle_ge_90_pct": bool(out.get("top1_accuracy_middle_pct", 0) >= 90),
-                    "controls_flagged_le_1_in_20": bool(out["controls_flagged"] <= max(1, len(ctrl) // 20)),
-                    "median_shrink_ge_80_pct": bool((out["median_shrink_pct"] or 0) >= 80),
-                    "median_shrink_middle_ge_80_pct": bool(out.get("median_shrink_middle_pct", 0) >= 80)}
-    if all("verdict_rms_shrink_pct" in r for r in withheld) and withheld:  # scans: per crossing, noise included
+    out["median_shrink_pct"] = (
+        float(np.median([r["verdict_shrink_pct"] for r in withheld])) if withheld else None
+    )
+    out["median_truth_shrink_pct"] = (
+        float(np.median([r["truth_shrink_pct"] for r in withheld])) if withheld else None
+    )
+    out["top1_accuracy_all_pct"] = (
+        float(100 * np.mean([r["verdict"] == r["truth"] for r in withheld])) if withheld else None
+    )
+    out["goals"] = {
+        "top1_middle_ge_90_pct": bool(out.get("top1_accuracy_middle_pct", 0) >= 90),
+        "controls_flagged_le_1_in_20": bool(out["controls_flagged"] <= max(1, len(ctrl) // 20)),
+        "median_shrink_ge_80_pct": bool((out["median_shrink_pct"] or 0) >= 80),
+        "median_shrink_middle_ge_80_pct": bool(out.get("median_shrink_middle_pct", 0) >= 80),
+    }
+    if (
+        all("verdict_rms_shrink_pct" in r for r in withheld) and withheld
+    ):  # scans: per crossing, noise included
         out["median_rms_shrink_pct"] = float(np.median([r["verdict_rms_shrink_pct"] for r in withheld]))
     out["seconds_per_case_median"] = float(np.median([r["seconds"] for r in rows]))
     return out
@@ -144,8 +175,11 @@ def figure(summary: dict, path: Path) -> None:
         ax.set_yticks(range(len(labels)), labels)
         acc = summary.get(f"top1_accuracy_{lv}_pct", float("nan"))
         both = [e for e in MAGNITUDES["record"] if e in MAGNITUDES["scans"]]
-        ax.set(xlabel="verdict", ylabel=f"withheld effect (truth; {', '.join(both)}: records and scan sets)",
-               title=f"{lv} magnitude (+ controls): top-1 {acc:.0f} %")
+        ax.set(
+            xlabel="verdict",
+            ylabel=f"withheld effect (truth; {', '.join(both)}: records and scan sets)",
+            title=f"{lv} magnitude (+ controls): top-1 {acc:.0f} %",
+        )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -153,12 +187,18 @@ def figure(summary: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kind", choices=("all", *MAGNITUDES), default="all",
-                    help="which data to run; the other kind's cases in cases.json are kept")
+    ap.add_argument(
+        "--kind",
+        choices=("all", *MAGNITUDES),
+        default="all",
+        help="which data to run; the other kind's cases in cases.json are kept",
+    )
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--out", type=Path, default=OUT)
-    ap.add_argument("--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json")
+    ap.add_argument(
+        "--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json"
+    )
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     kinds = list(MAGNITUDES) if args.kind == "all" else [args.kind]
@@ -170,11 +210,16 @@ def main() -> None:
         for i, (kind, effect, m, level, seed) in enumerate(todo):
             row = run_case(kind, effect, m, seed) | {"level": level}
             rows.append(row)
-            print(f"[{i + 1}/{len(todo)}] {kind}: {effect or 'control'} {m:g} seed {seed}: verdict {row['verdict']} "
-                  f"(shrink {row['verdict_shrink_pct']:.1f} %, {row['seconds']:.0f} s)", flush=True)
+            print(
+                f"[{i + 1}/{len(todo)}] {kind}: {effect or 'control'} {m:g} seed {seed}: verdict {row['verdict']} "
+                f"(shrink {row['verdict_shrink_pct']:.1f} %, {row['seconds']:.0f} s)",
+                flush=True,
+            )
             saved.write_text(json.dumps(rows, indent=1))
-    summary = summarise(rows) | {"magnitudes": MAGNITUDES,
-                                 "units": {"record": W.RECORD_UNITS, "scans": W.SCAN_UNITS}}
+    summary = summarise(rows) | {
+        "magnitudes": MAGNITUDES,
+        "units": {"record": W.RECORD_UNITS, "scans": W.SCAN_UNITS},
+    }
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     figure(summary, args.out / "confusion.png")
     print(json.dumps({k: v for k, v in summary.items() if k not in ("confusion", "labels")}, indent=1))

@@ -6,16 +6,16 @@ Errors name the file, the key and the value, and say what is allowed.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Union
+from typing import Literal, Optional, Union
 
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from .calibration import MODEL_EFFECTS
-from .effects import EFFECTS, check_effect_names
-from .fit import SOLVERS
-from .records import LENGTH_TO_NM, VOLTAGE_TO_V
+from .identify.calibration import MODEL_EFFECTS
+from .identify.fit import SOLVERS
+from .instrument.records import LENGTH_TO_NM, VOLTAGE_TO_V
+from .model.effects import EFFECTS, check_effect_names
 
 Solver = Literal[SOLVERS]  # type: ignore[valid-type]
 
@@ -32,8 +32,8 @@ class RecordData(_Strict):
     """A measured time-series record (design.md, section 3); columns are 1-based or header names."""
 
     path: str = Field(description="file path, relative to the config file, or builtin:NAME")
-    input_columns: Optional[List[Union[int, str]]] = None
-    output_columns: Optional[List[Union[int, str]]] = None
+    input_columns: Optional[list[Union[int, str]]] = None
+    output_columns: Optional[list[Union[int, str]]] = None
     time_column: Optional[Union[int, str]] = None
     sample_rate_hz: Optional[float] = Field(None, gt=0)
     input_unit: Literal[tuple(VOLTAGE_TO_V)] = "V"  # type: ignore[valid-type]
@@ -48,7 +48,7 @@ class SimulatedData(_Strict):
     an amplitude-modulated sine whose shrinking and growing cycles make minor loops.
     """
 
-    effects: List[str] = ["hysteresis", "asymmetry", "creep"]
+    effects: list[str] = ["hysteresis", "asymmetry", "creep"]
     amplitude_v: float = Field(10.0, gt=0, le=10.0)
     frequency_hz: float = Field(1.0, gt=0)
     modulation_period_s: float = Field(10.0, gt=0)
@@ -93,11 +93,12 @@ class ActuatorFitConfig(_Strict):
 
     data: Optional[RecordData] = None
     simulate: Optional[SimulatedData] = None
-    history_v: Optional[List[float]] = Field(
-        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]")
+    history_v: Optional[list[float]] = Field(
+        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]"
+    )
     settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
     train_fraction: float = Field(0.6, gt=0, lt=1)
-    models: List[ModelSpec] = Field(min_length=1)
+    models: list[ModelSpec] = Field(min_length=1)
     output: str = "runs/actuator_fit"
 
     @model_validator(mode="after")
@@ -126,7 +127,7 @@ class SimulatedCalibration(_Strict):
     pixels: int = Field(128, ge=32, le=1024, description="pixels per line = lines")
     size_nm: float = Field(8000.0, gt=0, le=9000.0, description="scan width = height, nm")
     line_rate_hz: float = Field(1.0, gt=0, le=50.0)
-    withheld: List[str] = Field([], description="effects the simulated instrument does not have")
+    withheld: list[str] = Field([], description="effects the simulated instrument does not have")
     seed: int = 0
 
     @model_validator(mode="after")
@@ -141,11 +142,15 @@ class CalibrationImages(_Strict):
 
     trace: str = Field(description="image file, relative to the config file")
     retrace: str = Field(description="image file, relative to the config file")
-    sensitivity_nm_per_v: List[float] = Field(min_length=2, max_length=2, description="nominal x, y calibration")
+    sensitivity_nm_per_v: list[float] = Field(
+        min_length=2, max_length=2, description="nominal x, y calibration"
+    )
     u_max_v: float = Field(10.0, gt=0)
     line_rate_hz: float = Field(gt=0)
-    history_v: Optional[List[List[float]]] = Field(
-        None, description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]")
+    history_v: Optional[list[list[float]]] = Field(
+        None,
+        description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]",
+    )
 
 
 class CalibrationModel(_Strict):
@@ -156,25 +161,32 @@ class CalibrationModel(_Strict):
     operators: int = Field(16, ge=2, le=200)
     deadzones: int = Field(3, ge=1, le=20)
     levels: int = Field(20, ge=2, le=100)
-    effects: List[str] = Field(["asymmetry", "creep", "coupling", "bow", "feedback_lag"],
-                               description="effects besides hysteresis")
+    effects: list[str] = Field(
+        ["asymmetry", "creep", "coupling", "bow", "feedback_lag"], description="effects besides hysteresis"
+    )
 
 
 class CalibrationSolver(_Strict):
     name: Solver = "optimistix.levenberg_marquardt"  # type: ignore[valid-type]
     max_steps: int = Field(100, ge=1, le=10_000, description="per stage")
-    blur_px: List[float] = Field([2.0, 1.0], description="image stages, coarse to fine (px)")
+    blur_px: list[float] = Field([2.0, 1.0], description="image stages, coarse to fine (px)")
 
 
 class Compensation(_Strict):
     """Re-image the grating with compensated drives (simulated instrument only)."""
 
-    scan_fraction: float = Field(0.85, gt=0, le=1.0, description="compensated scan size / calibration scan size: "
-                               "below 1, as the tip's true travel over the calibration image falls short "
-                               "of its nominal size")
-    overscan: float = Field(0.05, ge=0, le=0.5, description="over-scan of the compensated scans, fraction of "
-                            "the width each side")
-    inverses: List[Literal["analytic", "numerical"]] = ["analytic", "numerical"]
+    scan_fraction: float = Field(
+        0.85,
+        gt=0,
+        le=1.0,
+        description="compensated scan size / calibration scan size: "
+        "below 1, as the tip's true travel over the calibration image falls short "
+        "of its nominal size",
+    )
+    overscan: float = Field(
+        0.05, ge=0, le=0.5, description="over-scan of the compensated scans, fraction of the width each side"
+    )
+    inverses: list[Literal["analytic", "numerical"]] = ["analytic", "numerical"]
     paper_baseline: bool = Field(True, description="also the paper's polynomial + neural-network inverse")
 
 
@@ -184,7 +196,7 @@ class CalibrateConfig(_Strict):
     data: Optional[CalibrationImages] = None
     simulate: Optional[SimulatedCalibration] = None
     grating: Grating = Grating()
-    models: List[CalibrationModel] = Field([CalibrationModel(name="gpi")], min_length=1)
+    models: list[CalibrationModel] = Field([CalibrationModel(name="gpi")], min_length=1)
     solver: CalibrationSolver = CalibrationSolver()
     compensate: Optional[Compensation] = Compensation()
     output: str = "runs/calibrate"
@@ -199,8 +211,10 @@ class CalibrateConfig(_Strict):
         for m in self.models:
             for e in m.effects:
                 if e not in MODEL_EFFECTS:
-                    raise ValueError(f"model {m.name!r}: effect {e!r} cannot be fitted from grating images; "
-                                     f"choose from {', '.join(MODEL_EFFECTS)}")
+                    raise ValueError(
+                        f"model {m.name!r}: effect {e!r} cannot be fitted from grating images; "
+                        f"choose from {', '.join(MODEL_EFFECTS)}"
+                    )
         return self
 
 
@@ -221,8 +235,10 @@ class StepA(_Strict):
             raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
         for e in self.model.effects:
             if e not in MODEL_EFFECTS:
-                raise ValueError(f"model.effects: {e!r} cannot be fitted from grating images; "
-                                 f"choose from {', '.join(MODEL_EFFECTS)}")
+                raise ValueError(
+                    f"model.effects: {e!r} cannot be fitted from grating images; "
+                    f"choose from {', '.join(MODEL_EFFECTS)}"
+                )
         return self
 
 
@@ -230,7 +246,7 @@ class Workspace(_Strict):
     """The area of the task: re-scanned after the landmarks are pressed (step B)."""
 
     size_nm: float = Field(3000.0, gt=0, description="width = height, nm")
-    centre_nm: List[float] = Field([0.0, 0.0], min_length=2, max_length=2)
+    centre_nm: list[float] = Field([0.0, 0.0], min_length=2, max_length=2)
     pixels: int = Field(256, ge=32, le=1024, description="pixels per line = lines (n of eq. 3)")
     line_rate_hz: float = Field(2.0, gt=0, le=50.0)
 
@@ -240,7 +256,7 @@ class ParticleField(_Strict):
     each jittered by up to 1/8 of their spacing, radii uniform in ``radius_nm``; none sits on an
     indent."""
 
-    radius_nm: List[float] = Field([5.0, 50.0], min_length=2, max_length=2, description="[min, max], nm")
+    radius_nm: list[float] = Field([5.0, 50.0], min_length=2, max_length=2, description="[min, max], nm")
     per_cell: int = Field(2, ge=1, le=10, description="particles per landmark cell, each way")
     seed: int = 1
 
@@ -261,8 +277,11 @@ class LandmarkSpec(_Strict):
     start_px: float = Field(16.0, ge=0, description="P")
     step_px: float = Field(56.0, gt=0, description="S")
     depth_nm: float = Field(50.0, gt=0, description="deep enough that the pit spans a few pixels")
-    interpolation: List[Literal["polynomial", "pairwise"]] = Field(
-        ["polynomial", "pairwise"], min_length=1, description="compared; the first one drives step C and the push")
+    interpolation: list[Literal["polynomial", "pairwise"]] = Field(
+        ["polynomial", "pairwise"],
+        min_length=1,
+        description="compared; the first one drives step C and the push",
+    )
     m: int = Field(4, ge=2, description="nearest landmarks in the pairwise interpolation")
     degree: int = Field(3, ge=1, le=6, description="polynomial surface degree")
 
@@ -281,7 +300,7 @@ class PushSpec(_Strict):
     """The pushing task: each particle pushed by a distance uniform in ``distance_nm`` in a
     random direction; success when it ends within ``tolerance_radii`` x R of the goal."""
 
-    distance_nm: List[float] = Field([100.0, 300.0], min_length=2, max_length=2)
+    distance_nm: list[float] = Field([100.0, 300.0], min_length=2, max_length=2)
     speed_nm_per_s: float = Field(200.0, gt=0)
     tolerance_radii: float = Field(1.0, gt=0)
 
@@ -298,14 +317,15 @@ class RunConfig(_Strict):
     A, B, A+B and A+B+C over every particle of the workspace, and the push."""
 
     calibration: StepA = StepA()
-    drift_nm_per_min: List[float] = Field([3.0, -1.8], min_length=2, max_length=2)
+    drift_nm_per_min: list[float] = Field([3.0, -1.8], min_length=2, max_length=2)
     workspace: Workspace = Workspace()
     particles: ParticleField = ParticleField()
     landmarks: LandmarkSpec = LandmarkSpec()
     local_scan: LocalScanSpec = LocalScanSpec()
     push: PushSpec = PushSpec()
-    stages: List[Literal["open_loop", "A", "B", "A+B"]] = Field(
-        ["open_loop", "A", "B", "A+B"], min_length=1, description="A+B goes on to step C and the push")
+    stages: list[Literal["open_loop", "A", "B", "A+B"]] = Field(
+        ["open_loop", "A", "B", "A+B"], min_length=1, description="A+B goes on to step C and the push"
+    )
     seed: int = 0
     output: str = "runs/paper"
 
@@ -320,16 +340,18 @@ class RunConfig(_Strict):
         _check_layout(self)
         spacing = self.particle_spacing_nm
         if spacing < 4 * self.particles.radius_nm[1]:
-            raise ValueError(f"particles.per_cell = {self.particles.per_cell} puts particles {spacing:.0f} nm apart, "
-                             f"too close for radii up to {self.particles.radius_nm[1]:g} nm: at least 4 x the "
-                             "largest radius is needed; use fewer per cell or a larger landmark step")
+            raise ValueError(
+                f"particles.per_cell = {self.particles.per_cell} puts particles {spacing:.0f} nm apart, "
+                f"too close for radii up to {self.particles.radius_nm[1]:g} nm: at least 4 x the "
+                "largest radius is needed; use fewer per cell or a larger landmark step"
+            )
         return self
 
 
 def _check_layout(cfg) -> None:
     """The landmark grid fits the workspace image (eq. 3), and the workspace lies where step A's
     calibration scan covers the scanner reliably."""
-    from .landmarks import LandmarkGrid
+    from .position.landmarks import LandmarkGrid
 
     lm = cfg.landmarks
     try:
@@ -341,10 +363,12 @@ def _check_layout(cfg) -> None:
     reach = max(abs(c) for c in cfg.workspace.centre_nm) + cfg.workspace.size_nm / 2
     calibrated = Compensation().scan_fraction * cfg.calibration.simulate.size_nm / 2
     if reach > calibrated:
-        raise ValueError(f"workspace: it reaches {reach:.0f} nm from the scanner's centre, beyond the "
-                         f"{calibrated:.0f} nm that step A's calibration scan covers reliably "
-                         f"({Compensation().scan_fraction:g} x half its size): make the workspace "
-                         "smaller, move it inward, or calibrate over a larger scan")
+        raise ValueError(
+            f"workspace: it reaches {reach:.0f} nm from the scanner's centre, beyond the "
+            f"{calibrated:.0f} nm that step A's calibration scan covers reliably "
+            f"({Compensation().scan_fraction:g} x half its size): make the workspace "
+            "smaller, move it inward, or calibrate over a larger scan"
+        )
 
 
 def _format(error: ValidationError, path: Path) -> str:
@@ -352,7 +376,9 @@ def _format(error: ValidationError, path: Path) -> str:
     for e in error.errors():
         key = ".".join(str(p) for p in e["loc"])
         value = "" if e["type"] == "missing" or not key else f" (got {e.get('input')!r})"
-        msg = e["msg"].replace("Extra inputs are not permitted", "unknown key: remove it or check its spelling")
+        msg = e["msg"].replace(
+            "Extra inputs are not permitted", "unknown key: remove it or check its spelling"
+        )
         msg = msg.removeprefix("Value error, ")
         lines.append(f"  {key}: {msg}{value}" if key else f"  {msg}")
     return "\n".join(lines)
@@ -388,7 +414,7 @@ class DiagnoseNominal(_Strict):
     """The nominal model ``jaxafm diagnose`` starts from: its hysteresis and its other effects."""
 
     kind: Literal["pi", "gpi", "preisach"] = Field("pi", description="pi: the classical symmetric PI model")
-    effects: List[str] = Field(["hysteresis"], description="effects the nominal model has")
+    effects: list[str] = Field(["hysteresis"], description="effects the nominal model has")
     operators: int = Field(20, ge=2, le=200, description="play operators (pi, gpi)")
     deadzones: int = Field(3, ge=1, le=20, description="dead zones each side (gpi)")
     levels: int = Field(20, ge=2, le=100, description="Preisach plane levels")
@@ -448,9 +474,10 @@ class ScanSimulation(_Strict):
     """Trace/retrace pairs of the simulated AFM (``jaxafm.withheld.simulate_scans``)."""
 
     withheld: Optional[Literal["feedback_lag", "tip", "rate_dependence"]] = Field(
-        None, description="the effect switched on; none: a control")
+        None, description="the effect switched on; none: a control"
+    )
     magnitude: float = Field(0.0, ge=0, description="units: jaxafm.withheld.SCAN_UNITS")
-    line_rates_hz: List[float] = Field([1.0, 4.0], min_length=2)
+    line_rates_hz: list[float] = Field([1.0, 4.0], min_length=2)
     lines: int = Field(24, ge=8, le=4096)
     pixels: int = Field(512, ge=64, le=8192)
     noise_nm: float = Field(0.5, ge=0)
@@ -459,7 +486,9 @@ class ScanSimulation(_Strict):
     @model_validator(mode="after")
     def _valid(self):
         if min(self.line_rates_hz) <= 0 or len(set(self.line_rates_hz)) < 2:
-            raise ValueError(f"line_rates_hz needs two or more different rates > 0 Hz, got {self.line_rates_hz}")
+            raise ValueError(
+                f"line_rates_hz needs two or more different rates > 0 Hz, got {self.line_rates_hz}"
+            )
         if self.withheld is not None and not self.magnitude > 0:
             raise ValueError(f"magnitude must be > 0 for withheld {self.withheld!r}, got {self.magnitude}")
         return self
@@ -470,7 +499,7 @@ class DiagnoseScans(_Strict):
     ``pairs`` from files, or ``simulate``; ``grating`` is required with files."""
 
     grating: Optional[ScanGrating] = None
-    pairs: Optional[List[ScanFiles]] = Field(None, min_length=2)
+    pairs: Optional[list[ScanFiles]] = Field(None, min_length=2)
     simulate: Optional[ScanSimulation] = None
 
     @model_validator(mode="after")
@@ -478,8 +507,10 @@ class DiagnoseScans(_Strict):
         if (self.pairs is None) == (self.simulate is None):
             raise ValueError("scans: give exactly one of 'pairs' (files) and 'simulate'")
         if self.pairs is not None and self.grating is None:
-            raise ValueError("scans.grating is required with scans.pairs: the grating's pitch_nm and edge_width_nm "
-                             "from its datasheet")
+            raise ValueError(
+                "scans.grating is required with scans.pairs: the grating's pitch_nm and edge_width_nm "
+                "from its datasheet"
+            )
         return self
 
 
@@ -492,13 +523,20 @@ class DiagnoseConfig(_Strict):
     image: Optional[DiagnoseImage] = None
     scans: Optional[DiagnoseScans] = None
     nominal: DiagnoseNominal = DiagnoseNominal()
-    candidates: List[str] = Field(["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow",
-                                   "feedback_lag", "tip"], min_length=1)
-    history_v: Optional[List[float]] = Field(
-        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]")
+    candidates: list[str] = Field(
+        ["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "feedback_lag", "tip"],
+        min_length=1,
+    )
+    history_v: Optional[list[float]] = Field(
+        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]"
+    )
     settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
-    train_fraction: float = Field(0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows")
-    min_shrink_pct: float = Field(5.0, ge=0, description="held-out gap shrink a significant candidate needs, %")
+    train_fraction: float = Field(
+        0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows"
+    )
+    min_shrink_pct: float = Field(
+        5.0, ge=0, description="held-out gap shrink a significant candidate needs, %"
+    )
     min_delta_bic: float = Field(10.0, ge=0, description="training BIC drop a significant candidate needs")
     max_steps: int = Field(300, ge=1, le=100_000, description="Levenberg-Marquardt steps per fit")
     output: str = "runs/diagnose"
@@ -506,7 +544,9 @@ class DiagnoseConfig(_Strict):
     @model_validator(mode="after")
     def _one_source(self):
         if sum(s is not None for s in (self.data, self.simulate, self.image, self.scans)) != 1:
-            raise ValueError("give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'")
+            raise ValueError(
+                "give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'"
+            )
         check_effect_names(self.candidates, "candidates")
         if self.history_v is not None and not all(np.isfinite(self.history_v)):
             raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
@@ -522,9 +562,9 @@ class Distribution(_Strict):
     ``loguniform: [min, max]`` (min > 0), ``normal: [mean, std]`` or ``fixed: value``;
     a bare number in the YAML is ``fixed``."""
 
-    uniform: Optional[List[float]] = Field(None, min_length=2, max_length=2)
-    loguniform: Optional[List[float]] = Field(None, min_length=2, max_length=2)
-    normal: Optional[List[float]] = Field(None, min_length=2, max_length=2)
+    uniform: Optional[list[float]] = Field(None, min_length=2, max_length=2)
+    loguniform: Optional[list[float]] = Field(None, min_length=2, max_length=2)
+    normal: Optional[list[float]] = Field(None, min_length=2, max_length=2)
     fixed: Optional[float] = None
 
     @model_validator(mode="before")
@@ -554,7 +594,7 @@ class Distribution(_Strict):
         if self.normal is not None:
             mean, std = self.normal
             return (mean, mean) if std == 0 else (-np.inf, np.inf)
-        return tuple((self.uniform or self.loguniform))
+        return tuple(self.uniform or self.loguniform)
 
     def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
         if self.fixed is not None:
@@ -572,9 +612,11 @@ STUDY_PARAMETERS = {
     "creep": {"gamma": ("creep_gamma", (0.0, 0.1), 0.01)},
     "coupling": {"strength": ("coupling", (-0.2, 0.2), 0.02)},
     "bow": {"per_nm": ("bow", (-2e-5, 2e-5), 2e-6)},
-    "drift": {"x_nm_per_min": ("drift_x", (-np.inf, np.inf), 3.0),
-              "y_nm_per_min": ("drift_y", (-np.inf, np.inf), -1.8),
-              "wander_nm_per_sqrt_s": ("drift_sigma", (0.0, 10.0), 0.05)},
+    "drift": {
+        "x_nm_per_min": ("drift_x", (-np.inf, np.inf), 3.0),
+        "y_nm_per_min": ("drift_y", (-np.inf, np.inf), -1.8),
+        "wander_nm_per_sqrt_s": ("drift_sigma", (0.0, 10.0), 0.05),
+    },
     "noise": {"std_nm": ("noise_std", (0.0, 20.0), 0.2)},
     "feedback_lag": {"tau_s": ("feedback_tau", (0.0, 0.05), 1e-3)},
     "tip": {"radius_nm": ("tip_radius", (0.5, 100.0), 10.0)},
@@ -590,10 +632,12 @@ class StudyConfig(_Strict):
     trials: int = Field(256, ge=1, le=10_000_000)
     trials_per_scanner: int = Field(256, ge=1, description="1: step A per trial")
     chunk: int = Field(256, ge=1, le=1_000_000, description="trials per batch and per results file")
-    stages: List[Literal["open_loop", "A", "B", "A+B", "A+B+C", "push"]] = Field(
-        ["open_loop", "A", "A+B", "A+B+C", "push"], min_length=1)
-    scanner: Dict[str, Dict[str, Distribution]] = Field(
-        default_factory=dict, description="effect -> parameter -> distribution (see STUDY_PARAMETERS)")
+    stages: list[Literal["open_loop", "A", "B", "A+B", "A+B+C", "push"]] = Field(
+        ["open_loop", "A", "A+B", "A+B+C", "push"], min_length=1
+    )
+    scanner: dict[str, dict[str, Distribution]] = Field(
+        default_factory=dict, description="effect -> parameter -> distribution (see STUDY_PARAMETERS)"
+    )
     particle_radius_nm: Distribution = Distribution(uniform=[5.0, 50.0])
     calibration: StepA = StepA()
     workspace: Workspace = Workspace()
@@ -608,20 +652,25 @@ class StudyConfig(_Strict):
         for effect, params in self.scanner.items():
             check_effect_names([effect], "scanner")
             if effect not in STUDY_PARAMETERS:
-                raise ValueError(f"scanner.{effect}: a study cannot vary this effect; vary "
-                                 f"{', '.join(STUDY_PARAMETERS)}")
+                raise ValueError(
+                    f"scanner.{effect}: a study cannot vary this effect; vary {', '.join(STUDY_PARAMETERS)}"
+                )
             for name, dist in params.items():
                 if name not in STUDY_PARAMETERS[effect]:
-                    raise ValueError(f"scanner.{effect}.{name}: unknown parameter; {effect} has "
-                                     f"{', '.join(STUDY_PARAMETERS[effect])}")
+                    raise ValueError(
+                        f"scanner.{effect}.{name}: unknown parameter; {effect} has "
+                        f"{', '.join(STUDY_PARAMETERS[effect])}"
+                    )
                 _inside(f"scanner.{effect}.{name}", dist, *STUDY_PARAMETERS[effect][name][1])
         _inside("particle_radius_nm", self.particle_radius_nm, 1.0, 200.0)
         _check_layout(self)
         lm = self.landmarks
         cell = lm.step_px * self.workspace.size_nm / self.workspace.pixels
         if cell < 8 * self.particle_radius_nm.support[1]:
-            raise ValueError(f"particle_radius_nm: radii up to {self.particle_radius_nm.support[1]:g} nm need "
-                             f"landmark cells of at least 8 R; they are {cell:.0f} nm: use a larger landmark step")
+            raise ValueError(
+                f"particle_radius_nm: radii up to {self.particle_radius_nm.support[1]:g} nm need "
+                f"landmark cells of at least 8 R; they are {cell:.0f} nm: use a larger landmark step"
+            )
         needs = {"A+B+C": "A+B", "push": "A+B+C"}
         for stage, before in needs.items():
             if stage in self.stages and before not in self.stages:
@@ -637,5 +686,7 @@ class StudyConfig(_Strict):
 def _inside(key: str, dist: Distribution, lo: float, hi: float) -> None:
     a, b = dist.support
     if a < lo or b > hi:
-        raise ValueError(f"{key}: the distribution reaches [{a:g}, {b:g}], outside the allowed [{lo:g}, {hi:g}]"
-                         + ("; a normal distribution is unbounded: use uniform" if np.isinf([a, b]).any() else ""))
+        raise ValueError(
+            f"{key}: the distribution reaches [{a:g}, {b:g}], outside the allowed [{lo:g}, {hi:g}]"
+            + ("; a normal distribution is unbounded: use uniform" if np.isinf([a, b]).any() else "")
+        )

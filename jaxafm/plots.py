@@ -5,8 +5,8 @@ from __future__ import annotations
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 
 def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -> None:
@@ -27,11 +27,15 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
         e = 100 * (pred - d) / d_range
         held = float(np.sqrt(np.mean(e[split:] ** 2)))
         rolling = np.sqrt(np.convolve(e**2, np.ones(window) / window, mode="valid"))
-        ax_err.plot(t[window - 1:], rolling, lw=1, label=f"{name}: held-out rms {held:.2f} %")
+        ax_err.plot(t[window - 1 :], rolling, lw=1, label=f"{name}: held-out rms {held:.2f} %")
     ax_err.axvline(t[split], color="k", ls="--", lw=1)
     ax_err.text(t[split], 0.97, "  train | held out", transform=ax_err.get_xaxis_transform(), va="top")
-    ax_err.set(xlabel="time [s]", ylabel="rms error over the last 1 s [% of output range]", yscale="log",
-               title=f"model - measured (output range {d_range / 1e3:.1f} µm)")
+    ax_err.set(
+        xlabel="time [s]",
+        ylabel="rms error over the last 1 s [% of output range]",
+        yscale="log",
+        title=f"model - measured (output range {d_range / 1e3:.1f} µm)",
+    )
     ax_err.grid(True, which="both", alpha=0.3)
     ax_err.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=3)
     fig.suptitle(title)
@@ -54,12 +58,14 @@ def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every:
     lim = float(np.max(np.abs(diff))) or 1.0
     im = axes[2].imshow(diff, origin="lower", extent=um, cmap="RdBu_r", vmin=-lim, vmax=lim)
     fig.colorbar(im, ax=axes[2], label="trace - retrace (nm)", shrink=0.85)
-    axes[2].set_title(f"difference (rms {np.sqrt(np.mean(diff ** 2)):.0f} nm)")
+    axes[2].set_title(f"difference (rms {np.sqrt(np.mean(diff**2)):.0f} nm)")
     ax = axes[3]
     nx, ny = np.meshgrid(trace.x, trace.y)
     for pick in (np.s_[::every, :], np.s_[:, ::every]):
-        for a, b, style in ((nx, ny, dict(color="k", lw=0.6, ls=":")), (path[..., 0], path[..., 1],
-                                                                   dict(color="C3", lw=1.0))):
+        for a, b, style in (
+            (nx, ny, dict(color="k", lw=0.6, ls=":")),
+            (path[..., 0], path[..., 1], dict(color="C3", lw=1.0)),
+        ):
             seg_a, seg_b = a[pick] / 1e3, b[pick] / 1e3
             lines = zip(seg_a, seg_b) if pick[1] == slice(None) else zip(seg_a.T, seg_b.T)
             for xa, yb in lines:
@@ -83,13 +89,20 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
     pixel positions (the paper's Fig. 6 and 7), and the fast-axis error of the tip (true
     minus wanted x, nm; its mean over the image removed) along every ``every``-th line."""
     names = list(images)
-    fig, axes = plt.subplots(3, len(names), figsize=(3.3 * len(names), 10), constrained_layout=True,
-                             squeeze=False)
-    ext = [raster.origin[0] / 1e3, (raster.origin[0] + raster.size[0]) / 1e3,
-           raster.origin[1] / 1e3, (raster.origin[1] + raster.size[1]) / 1e3]
-    x = (raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels))
-    errors = {n: np.stack([np.asarray(images[n][f"path_{k}"])[..., 0] - x for k in ("trace", "retrace")])
-              for n in names}
+    fig, axes = plt.subplots(
+        3, len(names), figsize=(3.3 * len(names), 10), constrained_layout=True, squeeze=False
+    )
+    ext = [
+        raster.origin[0] / 1e3,
+        (raster.origin[0] + raster.size[0]) / 1e3,
+        raster.origin[1] / 1e3,
+        (raster.origin[1] + raster.size[1]) / 1e3,
+    ]
+    x = raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels)
+    errors = {
+        n: np.stack([np.asarray(images[n][f"path_{k}"])[..., 0] - x for k in ("trace", "retrace")])
+        for n in names
+    }
     lim = max(float(np.abs(e - e.mean()).max()) for e in errors.values())
     for j, n in enumerate(names):
         for i, k in enumerate(("trace", "retrace")):
@@ -104,8 +117,11 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
         for i, (k, c) in enumerate((("trace", "C0"), ("retrace", "C3"))):
             ax.plot(x / 1e3, e[i, ::every].T, color=c, lw=0.6, alpha=0.7)
             ax.plot([], [], color=c, label=k)
-        ax.set(xlabel="x nominal (µm)", ylim=(-1.05 * lim, 1.05 * lim),
-               title=f"max |error| {100 * np.abs(e).max() / raster.size[0]:.2f} % of width")
+        ax.set(
+            xlabel="x nominal (µm)",
+            ylim=(-1.05 * lim, 1.05 * lim),
+            title=f"max |error| {100 * np.abs(e).max() / raster.size[0]:.2f} % of width",
+        )
         if j == 0:
             ax.set_ylabel("true - wanted x (nm)")
             ax.legend(fontsize=8)
@@ -124,7 +140,9 @@ def landmarks(panels: dict, raster, path) -> None:
     fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
     x0, y0 = raster.origin
     dx, dy = raster.pixel_size
-    extent = np.array([x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)])
+    extent = np.array(
+        [x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)]
+    )
     for ax, (title, (images, D, M)) in zip(axes[0], panels.items()):
         z = np.asarray(images["trace"])
         lo, hi = np.percentile(z, [1, 99.5])
@@ -135,8 +153,18 @@ def landmarks(panels: dict, raster, path) -> None:
             err = np.linalg.norm(M - D, axis=1)
             spacing = np.median(np.linalg.norm(np.diff(D, axis=0), axis=1))
             gain = float(np.clip(0.4 * spacing / max(err.max(), 1e-9), 1, 20)) // 1
-            ax.quiver(D[:, 0] / 1e3, D[:, 1] / 1e3, (M - D)[:, 0] / 1e3, (M - D)[:, 1] / 1e3, angles="xy",
-                      scale_units="xy", scale=1 / gain, color="w", width=0.004, label=f"M - D (x{gain:g})")
+            ax.quiver(
+                D[:, 0] / 1e3,
+                D[:, 1] / 1e3,
+                (M - D)[:, 0] / 1e3,
+                (M - D)[:, 1] / 1e3,
+                angles="xy",
+                scale_units="xy",
+                scale=1 / gain,
+                color="w",
+                width=0.004,
+                label=f"M - D (x{gain:g})",
+            )
             title += f"\n|M - D|: rms {np.sqrt(np.mean(err**2)):.0f} nm, max {err.max():.0f} nm"
         else:
             title += f"\nonly {len(M)} of {len(D)} landmarks in the image"
@@ -167,16 +195,26 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
             phase = int(r["c_phases"][i, j])
             a, b = r["c_starts"][i, j] - c, r["c_ends"][i, j] - c
             label, colour = names[phase]
-            ax.plot([a[0], b[0]], [a[1], b[1]], color=colour, lw=1.5, alpha=0.8,
-                    label=label if j == min(k for k in range(n) if int(r["c_phases"][i, k]) == phase) else None)
+            ax.plot(
+                [a[0], b[0]],
+                [a[1], b[1]],
+                color=colour,
+                lw=1.5,
+                alpha=0.8,
+                label=label if j == min(k for k in range(n) if int(r["c_phases"][i, k]) == phase) else None,
+            )
         p = truth[i] - r["c_tip"][i]
         ax.add_patch(plt.Circle(p, radii[i], fill=False, color="k", lw=1.5, label="particle (true, vs tip)"))
         guess = r["c_starts"][i, 0] * 0.5 + r["c_ends"][i, 0] * 0.5 - c
         ax.plot(*guess, "x", color="tab:orange", ms=10, mew=2, label="target after A+B")
         ax.plot(0, 0, "k+", ms=14, mew=1.5, label="centre found")
-        ax.set(title=f"R = {radii[i]:.1f} nm: {n} lines, error {r['c_error_nm'][i]:.2f} nm "
-               f"({r['c_error_nm'][i] / radii[i]:.3f} R)", xlabel="x - centre found [nm]",
-               ylabel="y - centre found [nm]", aspect="equal")
+        ax.set(
+            title=f"R = {radii[i]:.1f} nm: {n} lines, error {r['c_error_nm'][i]:.2f} nm "
+            f"({r['c_error_nm'][i] / radii[i]:.3f} R)",
+            xlabel="x - centre found [nm]",
+            ylabel="y - centre found [nm]",
+            aspect="equal",
+        )
         ax.legend(fontsize=7, loc="lower left")
     fig.suptitle("Step C: local scans (each line scanned there and back) on particles of three sizes")
     fig.tight_layout()
@@ -193,18 +231,32 @@ def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
         o = truth[i]
         tip = r["push_path"][i] - o
         ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true)")
-        ax.add_patch(plt.Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before"))
-        ax.add_patch(plt.Circle(r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5,
-                                label="particle after"))
+        ax.add_patch(
+            plt.Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before")
+        )
+        ax.add_patch(
+            plt.Circle(
+                r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5, label="particle after"
+            )
+        )
         g = r["push_goal"][i] - o
         ax.plot(*g, "*", color="tab:red", ms=12, label="goal")
         miss = np.linalg.norm(r["push_final"][i] - r["push_goal"][i])
-        ax.set(title=f"R = {radii[i]:.1f} nm: miss {miss:.2f} nm", xlabel="x [nm]", ylabel="y [nm]", aspect="equal")
+        ax.set(
+            title=f"R = {radii[i]:.1f} nm: miss {miss:.2f} nm",
+            xlabel="x [nm]",
+            ylabel="y [nm]",
+            aspect="equal",
+        )
         ax.legend(fontsize=7, loc="best")
     miss = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1) / radii
     ax = axes[-1]
     ax.hist(miss, bins=40, color="tab:blue")
-    ax.set(xlabel="miss / R", ylabel="particles", title=f"all {len(miss)} pushes: median miss {np.median(miss):.3f} R")
+    ax.set(
+        xlabel="miss / R",
+        ylabel="particles",
+        title=f"all {len(miss)} pushes: median miss {np.median(miss):.3f} R",
+    )
     fig.suptitle("The pushing task after A+B+C (particle carried by the tip from contact on)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -216,11 +268,17 @@ def stage_errors(errors: dict, path) -> None:
     fig, ax = plt.subplots(figsize=(8, 5))
     for name, e in errors.items():
         e = np.sort(np.asarray(e))
-        ax.step(e, np.arange(1, e.size + 1) / e.size, where="post", label=f"{name} (median {np.median(e):.1f} nm)")
+        ax.step(
+            e, np.arange(1, e.size + 1) / e.size, where="post", label=f"{name} (median {np.median(e):.1f} nm)"
+        )
     ax.axvline(20.0, color="k", ls=":", lw=1)
     ax.text(20.0, 0.02, " 20 nm", fontsize=8)
-    ax.set(xscale="log", xlabel="error at the target [nm] (true tip to true particle centre)",
-           ylabel="fraction of targets", title="Positioning error after each stage (one run, simulated AFM)")
+    ax.set(
+        xscale="log",
+        xlabel="error at the target [nm] (true tip to true particle centre)",
+        ylabel="fraction of targets",
+        title="Positioning error after each stage (one run, simulated AFM)",
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
@@ -233,21 +291,37 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.8))
     rel = {name: e / radii for name, e in errors.items()}
     finite = np.concatenate([r[np.isfinite(r)] for r in rel.values()])
-    bins = np.logspace(np.log10(max(finite.min(), 1e-4)), np.log10(finite.max() * 1.01), 50) if finite.size else 10
+    bins = (
+        np.logspace(np.log10(max(finite.min(), 1e-4)), np.log10(finite.max() * 1.01), 50)
+        if finite.size
+        else 10
+    )
     for name, e in errors.items():
         ok = np.isfinite(e)
         if not ok.any():
             continue
         s = np.sort(e[ok])
-        ax.step(s, np.arange(1, s.size + 1) / e.size, where="post",
-                label=f"{name} (median {np.median(s):.2g} nm, {ok.mean():.0%} ran)")
+        ax.step(
+            s,
+            np.arange(1, s.size + 1) / e.size,
+            where="post",
+            label=f"{name} (median {np.median(s):.2g} nm, {ok.mean():.0%} ran)",
+        )
         bx.hist(rel[name][ok], bins=bins, histtype="step", lw=1.5, label=name)
-    ax.set(xscale="log", xlabel="error at the target [nm] (true tip to true particle centre)",
-           ylabel="fraction of trials", title="Cumulative distribution per stage")
+    ax.set(
+        xscale="log",
+        xlabel="error at the target [nm] (true tip to true particle centre)",
+        ylabel="fraction of trials",
+        title="Cumulative distribution per stage",
+    )
     bx.axvline(0.1, color="k", ls=":", lw=1)
     bx.text(0.1, 0.97, " 0.1 R", fontsize=8, transform=bx.get_xaxis_transform(), va="top")
-    bx.set(xscale="log", xlabel="error / particle radius R (push: miss / R)", ylabel="trials",
-           title="Histogram of the error relative to the particle's radius")
+    bx.set(
+        xscale="log",
+        xlabel="error / particle radius R (push: miss / R)",
+        ylabel="trials",
+        title="Histogram of the error relative to the particle's radius",
+    )
     for a in (ax, bx):
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=8, loc="upper left")

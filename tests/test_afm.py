@@ -10,11 +10,19 @@ import numpy as np
 import pytest
 
 import jaxafm  # noqa: F401  (float64)
-from jaxafm.afm import AFM, Raster, default_afm, line_scan, move, press, raster_scan
-from jaxafm.effects import Drift, FeedbackLag
-from jaxafm.hysteresis import Linear
-from jaxafm.samples import Grating, Indented, Particles, Plane, Tip
-from jaxafm.scanner import Axis, Scanner, default_scanner
+from jaxafm.instrument.afm import (
+    AFM,
+    Raster,
+    default_afm,
+    line_scan,
+    move,
+    press,
+    raster_scan,
+)
+from jaxafm.instrument.samples import Grating, Indented, Particles, Plane, Tip
+from jaxafm.model.effects import Drift, FeedbackLag
+from jaxafm.model.hysteresis import Linear
+from jaxafm.model.scanner import Axis, Scanner, default_scanner
 
 SENS = 500.0  # nm/V
 
@@ -31,7 +39,9 @@ GRATING = Grating(jnp.asarray(1000.0), jnp.asarray(100.0), edge_width=jnp.asarra
 
 def test_scanner_run_in_two_halves_equals_one_run():
     scanner = default_scanner().without("noise")
-    scanner = eqx.tree_at(lambda s: s.drift, scanner, Drift(jnp.array([0.05, -0.03]), jnp.zeros(2), jnp.zeros(())))
+    scanner = eqx.tree_at(
+        lambda s: s.drift, scanner, Drift(jnp.array([0.05, -0.03]), jnp.zeros(2), jnp.zeros(()))
+    )
     t = jnp.linspace(0.0, 4.0, 401)
     u = 9 * jnp.stack([jnp.sin(2 * jnp.pi * t), jnp.cos(3 * jnp.pi * t) * jnp.exp(-t / 3)], axis=-1)
     history = jnp.array([[-10.0, -10.0], [10.0, 10.0]])
@@ -115,8 +125,12 @@ def test_feedback_lag_shifts_edges_by_speed_times_delay_in_opposite_directions()
 def test_drift_acts_in_real_time_between_scans():
     v = np.array([0.4, -0.2])  # nm/s
     afm = ideal_afm()
-    afm = eqx.tree_at(lambda a: a.scanner.drift, afm, Drift(jnp.asarray(v), jnp.zeros(2), jnp.zeros(())),
-                      is_leaf=lambda n: n is None)
+    afm = eqx.tree_at(
+        lambda a: a.scanner.drift,
+        afm,
+        Drift(jnp.asarray(v), jnp.zeros(2), jnp.zeros(())),
+        is_leaf=lambda n: n is None,
+    )
     raster = Raster((2000.0, 2000.0), 16, 4, line_rate=2.0)
     first = raster_scan(afm, GRATING, afm.initial_state(), raster, key=jax.random.key(0))
     _, later = move(afm, GRATING, first["state"], first["state"].u, duration=100.0, key=jax.random.key(1))
@@ -137,8 +151,15 @@ def test_press_leaves_an_indent_where_the_tip_really_is_and_a_rescan_finds_it():
     assert 10 < np.linalg.norm(np.asarray(xy) - nominal) < 2000  # the scanner's error, not the wanted spot
     # a perfect instrument scanning a line through the true spot finds the pit there, 30 nm deep
     ideal = ideal_afm()
-    h, path, _ = line_scan(ideal, sample, ideal.initial_state(), jnp.array([xy[0] - 100, xy[1]]),
-                           jnp.array([xy[0] + 100, xy[1]]), 201, 400.0)
+    h, path, _ = line_scan(
+        ideal,
+        sample,
+        ideal.initial_state(),
+        jnp.array([xy[0] - 100, xy[1]]),
+        jnp.array([xy[0] + 100, xy[1]]),
+        201,
+        400.0,
+    )
     i = int(np.argmin(np.asarray(h)))
     assert abs(float(path[i, 0] - xy[0])) <= 0.5 and np.isclose(h[i], -30.0, atol=0.1)
 
@@ -153,15 +174,23 @@ def test_line_scan_over_a_particle_without_tip_gives_its_diameter():
     afm = ideal_afm()
     R = 40.0
     sample = Particles(jnp.array([[100.0, 50.0]]), jnp.array([R]))
-    h, path, state = line_scan(afm, sample, afm.initial_state(), jnp.array([-200.0, 50.0]),
-                               jnp.array([400.0, 50.0]), 601, 1000.0)
+    h, path, state = line_scan(
+        afm, sample, afm.initial_state(), jnp.array([-200.0, 50.0]), jnp.array([400.0, 50.0]), 601, 1000.0
+    )
     width = np.ptp(np.asarray(path[np.asarray(h) > 1e-9, 0]))
     assert abs(width - 2 * R) <= 2.0 + 1e-9  # 1 nm sampling, the ends at r = R are at zero height
     assert np.isclose(float(jnp.max(h)), 2 * R)
     assert np.allclose(state.u, afm.nominal_volts(jnp.array([400.0, 50.0])))
     # with the tip on, the particle looks wider (dilation) but no taller
-    h_tip, _, _ = line_scan(dataclasses.replace(afm, dilate=True), sample, afm.initial_state(),
-                            jnp.array([-200.0, 50.0]), jnp.array([400.0, 50.0]), 601, 1000.0)
+    h_tip, _, _ = line_scan(
+        dataclasses.replace(afm, dilate=True),
+        sample,
+        afm.initial_state(),
+        jnp.array([-200.0, 50.0]),
+        jnp.array([400.0, 50.0]),
+        601,
+        1000.0,
+    )
     assert np.count_nonzero(np.asarray(h_tip) > 1e-6) > np.count_nonzero(np.asarray(h) > 1e-9) + 20
     assert float(jnp.max(h_tip)) <= 2 * R + 1e-6
 
@@ -174,13 +203,16 @@ def test_scan_outside_the_drive_range_is_refused():
         line_scan(afm, GRATING, afm.initial_state(), jnp.zeros(2), jnp.array([0.0, 6000.0]), 10, 100.0)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(size=(0.0, 100.0)), "size must be > 0"),
-    (dict(pixels=1), "pixels >= 2"),
-    (dict(line_rate=0.0), "line_rate must be > 0"),
-    (dict(overscan=-0.1), "overscan"),
-    (dict(direction="left"), "direction"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(size=(0.0, 100.0)), "size must be > 0"),
+        (dict(pixels=1), "pixels >= 2"),
+        (dict(line_rate=0.0), "line_rate must be > 0"),
+        (dict(overscan=-0.1), "overscan"),
+        (dict(direction="left"), "direction"),
+    ],
+)
 def test_bad_raster_settings_are_named(kwargs, match):
     settings = dict(size=(100.0, 100.0), pixels=8, lines=2)
     with pytest.raises(ValueError, match=match):
@@ -213,7 +245,8 @@ def test_raster_is_jittable_vmappable_and_its_gradient_matches_finite_difference
     assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-6 and abs(float(fd)) > 1e-2
 
     phases = jnp.array([0.0, 250.0])
-    batch = jax.vmap(lambda p: raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, p), state,
-                                           raster)["trace"])(phases)
+    batch = jax.vmap(
+        lambda p: raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, p), state, raster)["trace"]
+    )(phases)
     one = raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, phases[1]), state, raster)["trace"]
     np.testing.assert_allclose(batch[1], one, atol=1e-9)

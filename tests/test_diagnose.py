@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from jaxafm import diagnose as D
-from jaxafm.withheld import simulate_record
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, DiagnoseConfig, load_config
-from jaxafm.images import AFMImage
-from jaxafm.records import Record
+from jaxafm.diagnose import record as D
+from jaxafm.diagnose.withheld import simulate_record
+from jaxafm.instrument.images import AFMImage
+from jaxafm.instrument.records import Record
 
 runner = CliRunner()
 CANDIDATES = ["creep", "coupling", "drift"]  # one compile each, shared by every record test
@@ -37,8 +37,9 @@ def test_withheld_effect_is_found_with_its_size(effect, magnitude):
     if effect == "creep":  # Creep.logarithmic(gamma) puts gamma / 2 on each lag
         np.testing.assert_allclose([2 * float(a.creep.weights[0]) for a in plant.axes], magnitude, rtol=0.3)
     else:  # the simulator couples y into x by m, x into y by -0.6 m
-        np.testing.assert_allclose([float(plant.coupling.xy), float(plant.coupling.yx)],
-                                   [magnitude, -0.6 * magnitude], rtol=0.1)
+        np.testing.assert_allclose(
+            [float(plant.coupling.xy), float(plant.coupling.yx)], [magnitude, -0.6 * magnitude], rtol=0.1
+        )
 
 
 def test_control_gives_no_significant_effect():
@@ -123,8 +124,10 @@ def test_record_with_missing_units(tmp_path):
 
 def test_cli_writes_the_diagnosis_once(tmp_path):
     cfg = tmp_path / "d.yaml"
-    cfg.write_text("simulate: {withheld: coupling, magnitude: 0.01, duration_s: 20, sample_rate_hz: 50, seed: 9}\n"
-                   f"candidates: {CANDIDATES + ['tip']}\n")
+    cfg.write_text(
+        "simulate: {withheld: coupling, magnitude: 0.01, duration_s: 20, sample_rate_hz: 50, seed: 9}\n"
+        f"candidates: {CANDIDATES + ['tip']}\n"
+    )
     out = tmp_path / "out"
     result = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
     assert result.exit_code == 0, result.output

@@ -10,30 +10,38 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from jaxafm import diagnose_scans as S
-from jaxafm import withheld as W
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, DiagnoseConfig, load_config
-from jaxafm.diagnose import Rules
-from jaxafm.images import AFMImage, save_image
-from jaxafm.samples import Grating, Tip
+from jaxafm.diagnose import scans as S
+from jaxafm.diagnose import withheld as W
+from jaxafm.diagnose.record import Rules
+from jaxafm.instrument.images import AFMImage, save_image
+from jaxafm.instrument.samples import Grating, Tip
 
 runner = CliRunner()
 SMALL = dict(lines=12)  # 12 lines of 512 pixels over 2 um per image
 
 
-@pytest.mark.parametrize("depth, edge, radius, half_angle_deg", [
-    (30.0, 17.0, 12.0, 20.0),  # walls less steep than the cone: the apex sphere slides along them
-    (30.0, 2.0, 12.0, 20.0),  # near-vertical walls: the cone's flank hangs on the top corner
-    (-30.0, 40.0, 25.0, 30.0),  # grooves with gentle walls and a blunt tip
-])
+@pytest.mark.parametrize(
+    "depth, edge, radius, half_angle_deg",
+    [
+        (30.0, 17.0, 12.0, 20.0),  # walls less steep than the cone: the apex sphere slides along them
+        (30.0, 2.0, 12.0, 20.0),  # near-vertical walls: the cone's flank hangs on the top corner
+        (-30.0, 40.0, 25.0, 30.0),  # grooves with gentle walls and a blunt tip
+    ],
+)
 def test_grating_tip_image_against_brute_force(depth, edge, radius, half_angle_deg):
     """Grating.imaged (closed form) against max_q [z(p + q) - tip(|q|)] over a dense (0.2 nm) 2-D
     grid of offsets in NumPy, on a grating turned by 0.3 rad: the brute force lies below the
     exact value by at most what its grid misses, never above it."""
     tip = Tip(jnp.asarray(radius), jnp.asarray(np.deg2rad(half_angle_deg)))
-    g = Grating(jnp.asarray(400.0), jnp.asarray(depth), edge_width=jnp.asarray(edge), angle=jnp.asarray(0.3),
-                phase=jnp.asarray(11.0))
+    g = Grating(
+        jnp.asarray(400.0),
+        jnp.asarray(depth),
+        edge_width=jnp.asarray(edge),
+        angle=jnp.asarray(0.3),
+        phase=jnp.asarray(11.0),
+    )
     grid = np.arange(-90.0, 90.01, 0.2)
     q = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
     lift = np.asarray(tip.profile(jnp.asarray(np.hypot(q[:, 0], q[:, 1]))))
@@ -49,6 +57,7 @@ def test_grating_tip_image_against_brute_force(depth, edge, radius, half_angle_d
 def test_grating_tip_image_gradient_matches_finite_differences():
     """The closed-form image's gradient against central differences, in the tip radius, the
     grating's depth and phase, and the position."""
+
     def image(p):
         tip = Tip(p[0], jnp.asarray(np.deg2rad(20.0)))
         g = Grating(jnp.asarray(400.0), p[1], edge_width=jnp.asarray(17.0), phase=p[2])
@@ -75,17 +84,23 @@ def test_edge_shape_closed_forms():
     np.testing.assert_allclose(ramp[1, 1], -(np.array(levels) - 0.5) * w, atol=1e-3)  # falling, retrace
     tipped = S.edge_shape(S.GratingSpec(400.0, w), depth, 0.5, levels, radius=radius)
     a = np.arctan(depth / w)
-    np.testing.assert_allclose(tipped[0, 0] - ramp[0, 0], -radius * (1 / np.cos(a) - 1) / np.tan(a), atol=0.02)
+    np.testing.assert_allclose(
+        tipped[0, 0] - ramp[0, 0], -radius * (1 / np.cos(a) - 1) / np.tan(a), atol=0.02
+    )
     dx, lag = 0.05, 100.0
     step = S.edge_shape(S.GratingSpec(400.0, 0.01), depth, dx, levels, lag_samples=lag)
     expect = lag * dx * np.log(1 / (1 - np.array(levels)))
     np.testing.assert_allclose(step[0, 0], expect, atol=2 * dx)  # trace: lag to the right
-    np.testing.assert_allclose(step[0, 1], -lag * dx * np.log(1 / np.array(levels)), atol=2 * dx)  # retrace: left
+    np.testing.assert_allclose(
+        step[0, 1], -lag * dx * np.log(1 / np.array(levels)), atol=2 * dx
+    )  # retrace: left
 
 
 @pytest.fixture(scope="module")
 def control():
-    return S.diagnose_scans(W.simulate_scans(None, 0.0, 3, **SMALL), W.SIM_GRATING, S.CANDIDATES, 0.6, Rules())
+    return S.diagnose_scans(
+        W.simulate_scans(None, 0.0, 3, **SMALL), W.SIM_GRATING, S.CANDIDATES, 0.6, Rules()
+    )
 
 
 def test_control_gives_no_significant_effect(control):
@@ -95,13 +110,18 @@ def test_control_gives_no_significant_effect(control):
     assert 1.1 < control["scale"] < 1.5
 
 
-@pytest.mark.parametrize("effect, magnitude, fitted, key, rtol", [
-    ("feedback_lag", 3e-4, 3e-4, "tau_s", 0.1),
-    ("tip", 25.0, 25.0, "tip_radius_nm", 0.25),
-    ("rate_dependence", 3e-3, 3e-3, "tau_s", 0.1),
-])
+@pytest.mark.parametrize(
+    "effect, magnitude, fitted, key, rtol",
+    [
+        ("feedback_lag", 3e-4, 3e-4, "tau_s", 0.1),
+        ("tip", 25.0, 25.0, "tip_radius_nm", 0.25),
+        ("rate_dependence", 3e-3, 3e-3, "tau_s", 0.1),
+    ],
+)
 def test_withheld_imaging_effect_is_found_with_its_size(effect, magnitude, fitted, key, rtol):
-    res = S.diagnose_scans(W.simulate_scans(effect, magnitude, 5, **SMALL), W.SIM_GRATING, S.CANDIDATES, 0.6, Rules())
+    res = S.diagnose_scans(
+        W.simulate_scans(effect, magnitude, 5, **SMALL), W.SIM_GRATING, S.CANDIDATES, 0.6, Rules()
+    )
     assert res["verdict"] == effect
     top = res["candidates"][0]
     assert top["effect"] == effect and top["shrink_pct"] > 60
@@ -118,8 +138,10 @@ def test_scan_set_needs_two_speeds():
 
 def test_scan_config_errors(tmp_path):
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("scans:\n  pairs:\n    - {trace: a.txt, retrace: b.txt, line_rate_hz: 1}\n"
-                   "    - {trace: c.txt, retrace: d.txt, line_rate_hz: 4}\n")
+    cfg.write_text(
+        "scans:\n  pairs:\n    - {trace: a.txt, retrace: b.txt, line_rate_hz: 1}\n"
+        "    - {trace: c.txt, retrace: d.txt, line_rate_hz: 4}\n"
+    )
     with pytest.raises(ConfigError, match="scans.grating is required"):
         load_config(cfg, DiagnoseConfig)
     cfg.write_text("scans:\n  simulate: {withheld: creep, magnitude: 0.01}\n")
@@ -137,9 +159,13 @@ def test_cli_diagnoses_scan_files(tmp_path):
     for i, (p, rate) in enumerate(zip(pairs, (1.0, 4.0))):
         for side in ("trace", "retrace"):
             save_image(AFMImage(getattr(p, side), p.pixel_size), tmp_path / f"{side}{i}.npz")
-        entries.append(f"    - {{trace: trace{i}.npz, retrace: retrace{i}.npz, line_rate_hz: {rate}, overscan: 0.1}}")
+        entries.append(
+            f"    - {{trace: trace{i}.npz, retrace: retrace{i}.npz, line_rate_hz: {rate}, overscan: 0.1}}"
+        )
     cfg = tmp_path / "d.yaml"
-    cfg.write_text("scans:\n  grating: {pitch_nm: 400, edge_width_nm: 17.32}\n  pairs:\n" + "\n".join(entries) + "\n")
+    cfg.write_text(
+        "scans:\n  grating: {pitch_nm: 400, edge_width_nm: 17.32}\n  pairs:\n" + "\n".join(entries) + "\n"
+    )
     out = tmp_path / "out"
     result = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
     assert result.exit_code == 0, result.output

@@ -1,15 +1,24 @@
 """Fitting with gradient solvers: parameters recovered from data simulated with known
 values, the real piezo record against the facts in its README, and honest failure reports."""
 
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm import Axis, Creep, Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii, RateDependence
-from jaxafm.fit import error_metrics, fit_operator, initial_model
-from jaxafm.records import read_record
-from pathlib import Path
+from jaxafm import (
+    Axis,
+    Creep,
+    Deadzone,
+    GeneralizedPI,
+    PrandtlIshlinskii,
+    Preisach,
+    RateDependence,
+)
+from jaxafm.identify.fit import error_metrics, fit_operator, initial_model
+from jaxafm.instrument.records import read_record
 
 REAL = Path(__file__).parents[1] / "jaxafm" / "data" / "real" / "piezo_sine_1hz.dat"
 T = 1500
@@ -49,8 +58,14 @@ def test_generalized_pi_recovered_on_heldout_data():
     u, _ = drive()
     grid = PrandtlIshlinskii.uniform(6, (u.max() - u.min()) / 2).thresholds
     pi = PrandtlIshlinskii(grid, jnp.array([2.0, 0.4, 0.25, 0.6, 0.1, 0.3]), jnp.asarray(0.0))
-    dz = Deadzone(jnp.asarray(1.0), jnp.array([1.5, 3.0]), jnp.array([-0.2, -0.3]),
-                  jnp.array([-1.5, -3.0]), jnp.array([0.15, 0.1]), jnp.asarray(4.0))
+    dz = Deadzone(
+        jnp.asarray(1.0),
+        jnp.array([1.5, 3.0]),
+        jnp.array([-0.2, -0.3]),
+        jnp.array([-1.5, -3.0]),
+        jnp.array([0.15, 0.1]),
+        jnp.asarray(4.0),
+    )
     clean = np.asarray(GeneralizedPI(pi, dz)(jnp.asarray(u)))
     d = noisy(clean, 0.02)
     n = int(0.6 * T)
@@ -93,7 +108,11 @@ def test_creep_recovered_with_hysteresis():
     axis reproduces the slow creep tail, which the hysteresis-only fit cannot."""
     t = np.linspace(0, 60, 1200)
     u = np.where(t < 20, 1.0, np.where(t < 40, 3.0, 2.0)) + 0.3 * np.sin(2 * np.pi * t)
-    pi = PrandtlIshlinskii(PrandtlIshlinskii.uniform(4, (u.max() - u.min()) / 2).thresholds, jnp.array([3.0, 0.5, 0.3, 0.2]), jnp.asarray(0.0))
+    pi = PrandtlIshlinskii(
+        PrandtlIshlinskii.uniform(4, (u.max() - u.min()) / 2).thresholds,
+        jnp.array([3.0, 0.5, 0.3, 0.2]),
+        jnp.asarray(0.0),
+    )
     truth = Axis(pi, creep=Creep.logarithmic(0.02, 0.1, 100.0))
     clean = np.asarray(truth(jnp.asarray(u), jnp.asarray(t)))
     d = noisy(clean, 0.002)
@@ -113,8 +132,11 @@ def test_rate_dependence_lag_recovered():
     (tau within 5 %) and predicts the output to the noise level."""
     t = np.arange(2000) / 500.0
     u = 1.8 + 1.0 * np.sin(2 * np.pi * t) + 0.6 * np.sin(2 * np.pi * 7 * t)
-    pi = PrandtlIshlinskii(PrandtlIshlinskii.uniform(4, (u.max() - u.min()) / 2).thresholds,
-                           jnp.array([3.0, 0.5, 0.3, 0.2]), jnp.asarray(0.0))
+    pi = PrandtlIshlinskii(
+        PrandtlIshlinskii.uniform(4, (u.max() - u.min()) / 2).thresholds,
+        jnp.array([3.0, 0.5, 0.3, 0.2]),
+        jnp.asarray(0.0),
+    )
     truth = Axis(pi, rate_dependence=RateDependence(jnp.asarray(0.03)))
     clean = np.asarray(truth(jnp.asarray(u), jnp.asarray(t)))
     d = noisy(clean, 0.002)
@@ -141,8 +163,9 @@ def test_pi_on_real_record_heldout_under_one_percent():
     rms under 1 % of range (published: 0.75-1.4 % discrete backlash, 4.3 % Preisach test)."""
     r = read_record(REAL, input_columns=[1], output_columns=[5], sample_rate_hz=200, output_unit="um")
     n = r.split(0.6)
-    res = fit_operator(initial_model("pi", r.u[:n], r.d[:n], operators=20), r.u[:n], r.d[:n],
-                       history=(0.0,), settle=20)
+    res = fit_operator(
+        initial_model("pi", r.u[:n], r.d[:n], operators=20), r.u[:n], r.d[:n], history=(0.0,), settle=20
+    )
     pred = np.asarray(res.model(jnp.asarray(r.u), (0.0,)))
     held = error_metrics(pred[n:], r.d[n:], float(r.d.max() - r.d.min()))
     assert held["rms_error_pct"] < 1.0

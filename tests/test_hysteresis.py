@@ -16,10 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference
 
 import jaxafm
-from jaxafm import Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii
-from jaxafm import reference
+from jaxafm import Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
 
 T = 600  # samples in every input sequence
 N_PI = 8  # plays of every PI operator
@@ -31,8 +31,7 @@ GRID = 0.05  # V, step of the turning-point paths
 def strong(tree):
     """Every float array as a strongly typed float64 array, so jitted calls do not recompile
     for weak types (``jnp.asarray(1.0)``, ``jnp.full(T, 1.0)``)."""
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.float64) if eqx.is_inexact_array(x) else x,
-                        tree)
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.float64) if eqx.is_inexact_array(x) else x, tree)
 
 
 @eqx.filter_jit
@@ -72,8 +71,7 @@ def random_density(seed, n=N_LEVELS):
 
 
 def preisach(density, smooth, offset=0.7):
-    return Preisach(jnp.asarray(density), jnp.asarray(U_MIN), jnp.asarray(U_MAX),
-                    jnp.asarray(offset), smooth)
+    return Preisach(jnp.asarray(density), jnp.asarray(U_MIN), jnp.asarray(U_MAX), jnp.asarray(offset), smooth)
 
 
 def random_pi(seed, positive=True, offset=0.4):
@@ -308,7 +306,7 @@ def output_history(op, history):
     """
     h = np.asarray(history, dtype=float)
     padded = np.concatenate([np.full(T - h.size, h[0]), h])
-    return run(op, jnp.asarray(padded))[-h.size:]
+    return run(op, jnp.asarray(padded))[-h.size :]
 
 
 def mixed_sign_pi():
@@ -334,13 +332,20 @@ def test_pi_inverse_round_trip(which, history):
     y_want = jnp.asarray(np.cumsum(rng.normal(0, 0.3, T)))
     y_want = y_want * float(np.ptp(np.asarray(y))) / float(np.ptp(np.asarray(y_want)))
     u_cmd = run(inv, y_want, hy)
-    np.testing.assert_allclose(run(pi, u_cmd, hu), y_want, rtol=0,
-                               atol=1e-9 * float(np.ptp(np.asarray(y_want))))
+    np.testing.assert_allclose(
+        run(pi, u_cmd, hu), y_want, rtol=0, atol=1e-9 * float(np.ptp(np.asarray(y_want)))
+    )
 
 
 def asymmetric_deadzone(centre=0.0):
-    return Deadzone(jnp.asarray(1.0), jnp.array([1.0, 3.0]), jnp.array([-0.2, 0.35]),
-                    jnp.array([-1.0, -2.5]), jnp.array([0.25, -0.3]), jnp.asarray(centre))
+    return Deadzone(
+        jnp.asarray(1.0),
+        jnp.array([1.0, 3.0]),
+        jnp.array([-0.2, 0.35]),
+        jnp.array([-1.0, -2.5]),
+        jnp.array([0.25, -0.3]),
+        jnp.asarray(centre),
+    )
 
 
 def deadzone_numpy(z, slope, upper, uw, lower, lw, c=0.0):
@@ -369,8 +374,11 @@ def test_deadzone_closed_form_and_inverse(centre):
     z = np.linspace(-10.0, 10.0, T)
     s = np.asarray(apply(dz, jnp.asarray(z)))
     np.testing.assert_allclose(
-        s, deadzone_numpy(z, 1.0, [1.0, 3.0], [-0.2, 0.35], [-1.0, -2.5], [0.25, -0.3], centre),
-        rtol=0, atol=1e-12)
+        s,
+        deadzone_numpy(z, 1.0, [1.0, 3.0], [-0.2, 0.35], [-1.0, -2.5], [0.25, -0.3], centre),
+        rtol=0,
+        atol=1e-12,
+    )
     inv = dz.inverse()
     np.testing.assert_allclose(apply(inv, jnp.asarray(s)), z, rtol=0, atol=1e-12 * 20)
     np.testing.assert_allclose(apply(dz, apply(inv, jnp.asarray(z))), z, rtol=0, atol=1e-12 * 20)
@@ -388,16 +396,18 @@ def test_generalized_pi_inverse_round_trip(history, centre):
     assert np.asarray(y).min() < centre - 2.5 and np.asarray(y).max() > centre + 1.0
     np.testing.assert_allclose(run(inv, y, hy), u, rtol=0, atol=1e-9 * np.ptp(np.asarray(u)))
     y_want = 0.9 * y[::-1]
-    np.testing.assert_allclose(run(gpi, run(inv, y_want, hy), hu), y_want, rtol=0,
-                               atol=1e-9 * float(np.ptp(np.asarray(y))))
+    np.testing.assert_allclose(
+        run(gpi, run(inv, y_want, hy), hu), y_want, rtol=0, atol=1e-9 * float(np.ptp(np.asarray(y)))
+    )
 
 
 # ---------------------------------------------------------------- 7. inverse existence
 
 
 def test_pi_inverse_missing_raises_with_index():
-    pi = PrandtlIshlinskii(jnp.array([0.0, 1.0, 2.0, 3.0]), jnp.array([1.0, -0.5, -0.6, 0.2]),
-                           jnp.asarray(0.0))
+    pi = PrandtlIshlinskii(
+        jnp.array([0.0, 1.0, 2.0, 3.0]), jnp.array([1.0, -0.5, -0.6, 0.2]), jnp.asarray(0.0)
+    )
     with pytest.raises(ValueError, match=r"i=2"):  # partial sums 1, 0.5, -0.1, 0.1
         pi.inverse()
     pi = PrandtlIshlinskii(jnp.array([0.0, 1.0]), jnp.array([1.0, -1.0]), jnp.asarray(0.0))
@@ -487,8 +497,9 @@ def test_vmap_pi_over_weight_batch_equals_loop():
 
     batched = jax.jit(jax.vmap(f))(W)
     for i in range(W.shape[0]):
-        ref = reference.pi_loop(np.asarray(u), np.asarray(base.thresholds), np.asarray(W[i]),
-                                float(base.offset))
+        ref = reference.pi_loop(
+            np.asarray(u), np.asarray(base.thresholds), np.asarray(W[i]), float(base.offset)
+        )
         np.testing.assert_allclose(batched[i], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
@@ -529,6 +540,7 @@ def test_preisach_grad_matches_finite_differences():
             density, offset, u_min, u_max = params
             y = Preisach(density, u_min, u_max, offset, True)(u)
             return jnp.sum(c * y) + 0.5 * jnp.mean(y**2)
+
         return jax.grad(loss)(params)
 
     params = tuple(strong(f(base)) for f in fields)
@@ -541,7 +553,7 @@ def test_preisach_grad_matches_finite_differences():
     for _ in range(2):  # random lower-triangular directions
         v = np.tril(rng.normal(0.0, 1.0, (N_LEVELS, N_LEVELS)))
         check_directional(along(0), g[0], d, v, 1e-4)
-    for (i, j) in [(0, 0), (7, 2)]:
+    for i, j in [(0, 0), (7, 2)]:
         v = np.zeros((N_LEVELS, N_LEVELS))
         v[i, j] = 1.0
         check_directional(along(0), g[0], d, v, 1e-4)
@@ -562,6 +574,7 @@ def test_pi_grad_matches_finite_differences():
         def loss(params):
             y = PrandtlIshlinskii(params[0], params[1], base.offset)(u)
             return jnp.sum(c * y) + 0.5 * jnp.mean(y**2)
+
         return jax.grad(loss)(params)
 
     params = (base.thresholds, base.weights)

@@ -9,10 +9,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxafm  # noqa: F401
-from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.images import AFMImage, from_scan, load_image, read_image, save_image
-from jaxafm.samples import Grating
+import jaxafm
+from jaxafm.instrument.afm import Raster, default_afm, raster_scan
+from jaxafm.instrument.images import (
+    AFMImage,
+    from_scan,
+    load_image,
+    read_image,
+    save_image,
+)
+from jaxafm.instrument.samples import Grating
 
 GRATING_FILE = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 
@@ -32,8 +38,12 @@ def test_real_nanosurf_grating_reads_in_nm_with_the_readme_facts():
 
 
 def test_image_format_round_trips_exactly_and_never_overwrites(tmp_path):
-    im = AFMImage(np.random.default_rng(0).normal(size=(5, 7)), (2.5, 4.0), (10.0, -3.0),
-                  {"source": "test", "line_rate_hz": 1.5})
+    im = AFMImage(
+        np.random.default_rng(0).normal(size=(5, 7)),
+        (2.5, 4.0),
+        (10.0, -3.0),
+        {"source": "test", "line_rate_hz": 1.5},
+    )
     path = save_image(im, tmp_path / "a.npz")
     back = load_image(path)
     assert np.array_equal(back.z, im.z) and back.pixel_size == im.pixel_size
@@ -86,8 +96,9 @@ def test_gwyddion_file_reads_non_square_images_in_nm(tmp_path):
     z = np.arange(12.0).reshape(3, 4) * 1e-9  # m, 3 rows x 4 columns
     c = GwyContainer()
     c["/0/data/title"] = "Height"
-    c["/0/data"] = GwyDataField(z, xreal=4e-6, yreal=3e-6, si_unit_xy=GwySIUnit(unitstr="m"),
-                                si_unit_z=GwySIUnit(unitstr="m"))
+    c["/0/data"] = GwyDataField(
+        z, xreal=4e-6, yreal=3e-6, si_unit_xy=GwySIUnit(unitstr="m"), si_unit_z=GwySIUnit(unitstr="m")
+    )
     c.tofile(str(tmp_path / "a.gwy"))
     im = read_image(tmp_path / "a.gwy")
     np.testing.assert_allclose(im.z, np.arange(12.0).reshape(3, 4)[::-1])  # Gwyddion's row 0 is the top line
@@ -112,23 +123,33 @@ def test_topostats_file_reads_through_afmreader(tmp_path):
 def test_scan_becomes_an_image_with_its_metadata(tmp_path):
     afm = default_afm()
     raster = Raster((2000.0, 1000.0), 8, 4, line_rate=2.0)
-    scan = raster_scan(afm, Grating(jnp.asarray(500.0), jnp.asarray(50.0)), afm.initial_state(t0=7.0), raster,
-                       key=jax.random.key(0))
+    scan = raster_scan(
+        afm,
+        Grating(jnp.asarray(500.0), jnp.asarray(50.0)),
+        afm.initial_state(t0=7.0),
+        raster,
+        key=jax.random.key(0),
+    )
     im = from_scan(scan, raster, "retrace")
     assert im.shape == (4, 8) and im.pixel_size == (250.0, 250.0)
-    assert im.meta["direction"] == "retrace" and im.meta["line_rate_hz"] == 2.0 and im.meta["start_time_s"] > 7.0
+    assert (
+        im.meta["direction"] == "retrace" and im.meta["line_rate_hz"] == 2.0 and im.meta["start_time_s"] > 7.0
+    )
     assert np.allclose(im.x, -1000 + 125 + 250 * np.arange(8))
     back = load_image(save_image(im, tmp_path / "scan.npz"))
     assert np.array_equal(back.z, im.z) and back.meta == im.meta
 
 
-@pytest.mark.parametrize("content, suffix, error, match", [
-    (None, ".txt", FileNotFoundError, "no such file"),
-    ("just some notes\n1 2 3\n", ".txt", ValueError, "not a Nanosurf text export"),
-    ("hello", ".png", ValueError, "unknown AFM image format '.png'"),
-    ("not a tiff", ".tif", ValueError, "not a readable TIFF"),
-    ("not a gwyddion file", ".gwy", ValueError, "not a readable Gwyddion file"),
-])
+@pytest.mark.parametrize(
+    "content, suffix, error, match",
+    [
+        (None, ".txt", FileNotFoundError, "no such file"),
+        ("just some notes\n1 2 3\n", ".txt", ValueError, "not a Nanosurf text export"),
+        ("hello", ".png", ValueError, "unknown AFM image format '.png'"),
+        ("not a tiff", ".tif", ValueError, "not a readable TIFF"),
+        ("not a gwyddion file", ".gwy", ValueError, "not a readable Gwyddion file"),
+    ],
+)
 def test_bad_files_are_named(tmp_path, content, suffix, error, match):
     path = tmp_path / f"f{suffix}"
     if content is not None:
@@ -139,8 +160,10 @@ def test_bad_files_are_named(tmp_path, content, suffix, error, match):
 
 
 def _nanosurf(tmp_path, values, width="2.00 μm", z_unit="nm", n=2):
-    text = (f"Name : Topography_Fwd ({n}x{n})\n\nImage Width : {n}\nImage Height : {n}\n\n"
-            f"Real Width : {width}\nReal Height : {width}\nZ Unit : {z_unit}\n\n" + " ".join(values) + "\n")
+    text = (
+        f"Name : Topography_Fwd ({n}x{n})\n\nImage Width : {n}\nImage Height : {n}\n\n"
+        f"Real Width : {width}\nReal Height : {width}\nZ Unit : {z_unit}\n\n" + " ".join(values) + "\n"
+    )
     path = tmp_path / "scan.txt"
     path.write_text(text, encoding="utf-8")
     return path

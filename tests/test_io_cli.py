@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 from jaxafm import default_scanner
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, load_config
-from jaxafm.io import load_model, save_model
-from jaxafm.records import read_record
+from jaxafm.instrument.records import read_record
+from jaxafm.model.io import load_model, save_model
 
 runner = CliRunner()
 
@@ -35,8 +35,9 @@ def test_record_with_header_needs_no_mapping(tmp_path):
 
 def test_record_units_converted_to_nm_and_volts(tmp_path):
     f = write(tmp_path / "r.dat", "500 0 -1.5\n600 0 -1.25\n")
-    r = read_record(f, input_columns=[1], output_columns=[3], sample_rate_hz=10, input_unit="mV",
-                    output_unit="um")
+    r = read_record(
+        f, input_columns=[1], output_columns=[3], sample_rate_hz=10, input_unit="mV", output_unit="um"
+    )
     np.testing.assert_allclose(r.u, [0.5, 0.6])
     np.testing.assert_allclose(r.d, [-1500, -1250])
     np.testing.assert_allclose(r.t, [0, 0.1])
@@ -49,13 +50,19 @@ def test_record_two_axes_by_header(tmp_path):
     assert r.u.shape == (2, 2) and r.d.shape == (2, 2)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10), "output_unit is missing"),
-    (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10, output_unit="furlong"), "furlong"),
-    (dict(input_columns=[1], output_columns=[9], sample_rate_hz=10, output_unit="nm"), "column 9"),
-    (dict(input_columns=[1], output_columns=[2], output_unit="nm"), "time_column or sample_rate_hz|exactly one"),
-    (dict(input_columns=[0], output_columns=[2], sample_rate_hz=10, output_unit="nm"), "1-based"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10), "output_unit is missing"),
+        (dict(input_columns=[1], output_columns=[2], sample_rate_hz=10, output_unit="furlong"), "furlong"),
+        (dict(input_columns=[1], output_columns=[9], sample_rate_hz=10, output_unit="nm"), "column 9"),
+        (
+            dict(input_columns=[1], output_columns=[2], output_unit="nm"),
+            "time_column or sample_rate_hz|exactly one",
+        ),
+        (dict(input_columns=[0], output_columns=[2], sample_rate_hz=10, output_unit="nm"), "1-based"),
+    ],
+)
 def test_record_bad_mapping(tmp_path, kwargs, match):
     f = write(tmp_path / "r.dat", "1 2\n3 4\n")
     with pytest.raises(ValueError, match=match):
@@ -88,16 +95,22 @@ output: {out}
 """
 
 
-@pytest.mark.parametrize("text, match", [
-    ("simulate: {}\nmodels: [{name: a, kind: pi, operatorz: 3}]\n", r"models\.0\.operatorz: unknown key"),
-    ("simulate: {}\nmodels: [{name: a, kind: preisach, levels: 1}]\n", r"models\.0\.levels.*greater than or equal to 2.*got 1"),
-    ("simulate: {effects: [gravity]}\nmodels: [{name: a, kind: pi}]\n", "unknown effect 'gravity'"),
-    ("simulate: {effects: [drift]}\nmodels: [{name: a, kind: pi}]\n", "not one of the simulated axis"),
-    ("models: [{name: a, kind: pi}]\n", "exactly one of 'data'"),
-    ("simulate: {}\nmodels: [{name: a, kind: pi, solver: magic.newton}]\n", r"models\.0\.solver"),
-    ("simulate: {}\ntrain_fraction: 1.5\nmodels: [{name: a, kind: pi}]\n", "train_fraction"),
-    ("- just\n- a list\n", "mapping"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("simulate: {}\nmodels: [{name: a, kind: pi, operatorz: 3}]\n", r"models\.0\.operatorz: unknown key"),
+        (
+            "simulate: {}\nmodels: [{name: a, kind: preisach, levels: 1}]\n",
+            r"models\.0\.levels.*greater than or equal to 2.*got 1",
+        ),
+        ("simulate: {effects: [gravity]}\nmodels: [{name: a, kind: pi}]\n", "unknown effect 'gravity'"),
+        ("simulate: {effects: [drift]}\nmodels: [{name: a, kind: pi}]\n", "not one of the simulated axis"),
+        ("models: [{name: a, kind: pi}]\n", "exactly one of 'data'"),
+        ("simulate: {}\nmodels: [{name: a, kind: pi, solver: magic.newton}]\n", r"models\.0\.solver"),
+        ("simulate: {}\ntrain_fraction: 1.5\nmodels: [{name: a, kind: pi}]\n", "train_fraction"),
+        ("- just\n- a list\n", "mapping"),
+    ],
+)
 def test_config_errors_name_key_and_value(tmp_path, text, match):
     f = write(tmp_path / "c.yaml", text)
     with pytest.raises(ConfigError, match=match) as e:
@@ -205,13 +218,17 @@ def test_commented_header_and_sample_rate(tmp_path):
 def test_fit_refuses_two_axis_record(tmp_path):
     rows = "".join(f"{i * 0.1} {np.sin(i)} {np.cos(i)} {i} {2 * i}\n" for i in range(60))
     write(tmp_path / "xy.txt", "t ux uy x y\n" + rows)
-    cfg = write(tmp_path / "c.yaml", f"data: {{path: xy.txt}}\nmodels: [{{name: a, kind: pi}}]\noutput: {tmp_path / 'o'}\n")
+    cfg = write(
+        tmp_path / "c.yaml",
+        f"data: {{path: xy.txt}}\nmodels: [{{name: a, kind: pi}}]\noutput: {tmp_path / 'o'}\n",
+    )
     result = runner.invoke(app, ["fit", str(cfg)])
     assert result.exit_code == 2 and "one axis" in result.output
 
 
 def test_axis_needs_increasing_times():
     from jaxafm import Axis, Linear
+
     ax = Axis(Linear(jnp.asarray(1.0), jnp.asarray(0.0)))
     with pytest.raises(ValueError, match="times t must be strictly increasing"):
         ax(jnp.zeros(3), jnp.array([0.0, 2.0, 1.0]))

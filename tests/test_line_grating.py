@@ -11,16 +11,29 @@ import pytest
 from numpy.polynomial import legendre
 
 import jaxafm
-from jaxafm import features
-from jaxafm.images import read_image
-from jaxafm.line_grating import fit_line_grating
+from jaxafm.identify import features
+from jaxafm.identify.line_grating import fit_line_grating
+from jaxafm.instrument.images import read_image
 
 REAL = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 PX = (50.0, 60.0)  # nm
 
 
-def draw(shape=(96, 160), pitch=1000.0, coeffs=(40.0, -25.0), skew=0.015, bow=0.0, drift=0.0, phase=300.0,
-         groove=450.0, width_wander=0.0, depth=500.0, ramp=200.0, noise=0.0, seed=0):
+def draw(
+    shape=(96, 160),
+    pitch=1000.0,
+    coeffs=(40.0, -25.0),
+    skew=0.015,
+    bow=0.0,
+    drift=0.0,
+    phase=300.0,
+    groove=450.0,
+    width_wander=0.0,
+    depth=500.0,
+    ramp=200.0,
+    noise=0.0,
+    seed=0,
+):
     """Grooves of ``depth`` nm, ``groove`` nm wide at mid-depth, sides ``ramp`` nm wide, on a pitch of
     ``pitch`` nm, seen through x_true = x + sum c_k P_k(s) + skew y + bow P_2(t) + drift (x - x_mid) t / 2.
     Falling edges (into a groove) at x_true = phase + n pitch, rising ones ``groove`` later; ``width_wander``
@@ -28,8 +41,13 @@ def draw(shape=(96, 160), pitch=1000.0, coeffs=(40.0, -25.0), skew=0.015, bow=0.
     rows, cols = shape
     x, y = np.meshgrid(np.arange(cols) * PX[0], np.arange(rows) * PX[1])
     s, t = 2 * x / x.max() - 1, 2 * y / y.max() - 1
-    xt = (x + legendre.legval(s, [0.0, 0.0, *coeffs]) + skew * y + bow * 0.5 * (3 * t**2 - 1)
-          + drift * (x - x.max() / 2) * t / 2)
+    xt = (
+        x
+        + legendre.legval(s, [0.0, 0.0, *coeffs])
+        + skew * y
+        + bow * 0.5 * (3 * t**2 - 1)
+        + drift * (x - x.max() / 2) * t / 2
+    )
     g = groove + width_wander * np.sin(2 * np.pi * t)  # per row, about a fixed centre
     u = np.mod(xt - phase - groove / 2 + pitch / 2, pitch) - pitch / 2  # from the groove's centre
     inside = np.clip((g / 2 - np.abs(u)) / ramp + 0.5, 0.0, 1.0)
@@ -92,15 +110,23 @@ def test_correction_makes_the_local_pitch_uniform():
     assert abs(u["corrected"]["pitch_mean_nm"] - 1000.0) < 2.0
 
 
-@pytest.mark.parametrize("bad, message", [
-    (lambda z: np.where(z < 100, np.nan, z), "NaN"),
-    (lambda z: np.zeros_like(z), "flat"),
-    (lambda z: z[:, :50], "complete grating period"),  # 2.5 periods
-    (lambda z: z[:5], "scan line"),
-    (lambda z: np.concatenate([z[:48], np.roll(z[48:], 10, axis=1)]), "edge indexing is inconsistent"),  # half
-    (lambda z: np.where((np.arange(96)[:, None] == 40) & (np.abs(np.arange(160) - 80) < 2), 0.0, z),
-     "edge indexing is inconsistent"),  # a pit between two grooves in one row
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (lambda z: np.where(z < 100, np.nan, z), "NaN"),
+        (lambda z: np.zeros_like(z), "flat"),
+        (lambda z: z[:, :50], "complete grating period"),  # 2.5 periods
+        (lambda z: z[:5], "scan line"),
+        (
+            lambda z: np.concatenate([z[:48], np.roll(z[48:], 10, axis=1)]),
+            "edge indexing is inconsistent",
+        ),  # half
+        (
+            lambda z: np.where((np.arange(96)[:, None] == 40) & (np.abs(np.arange(160) - 80) < 2), 0.0, z),
+            "edge indexing is inconsistent",
+        ),  # a pit between two grooves in one row
+    ],
+)
 def test_bad_images_raise_errors_naming_the_problem(bad, message):
     with pytest.raises(ValueError, match=message):
         fit_line_grating(bad(draw()), PX)

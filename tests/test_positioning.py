@@ -9,12 +9,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.afm import AFM, Raster, default_afm
 from jaxafm.config import RunConfig
-from jaxafm.landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
-from jaxafm.positioning import LocalScan, Positioner, goto, local_scan, push
-from jaxafm.samples import Indented, Particles, Plane, Tip, surface
-from jaxafm.step_a import run_cycle
+from jaxafm.identify.step_a import run_cycle
+from jaxafm.instrument.afm import AFM, Raster, default_afm
+from jaxafm.instrument.samples import Indented, Particles, Plane, Tip, surface
+from jaxafm.position.landmarks import (
+    LandmarkGrid,
+    LandmarkMap,
+    find_features,
+    order_grid,
+)
+from jaxafm.position.positioning import LocalScan, Positioner, goto, local_scan, push
 
 CYCLE = np.array([[-10.0, -10.0], [10.0, 10.0]])
 
@@ -52,8 +57,13 @@ def test_pairwise_leaves_out_pairs_in_one_column_and_is_exact_for_a_separable_ma
 def test_polynomial_surface_recovers_a_cubic_map():
     g = np.linspace(-1000, 1000, 5)
     M = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
-    cubic = lambda p: np.stack([p[:, 0] + 2e-4 * p[:, 0] * p[:, 1] + 1e-8 * p[:, 1] ** 3,  # noqa: E731
-                                p[:, 1] - 3e-9 * p[:, 0] ** 3 + 0.02 * p[:, 0]], -1)
+    cubic = lambda p: np.stack(
+        [
+            p[:, 0] + 2e-4 * p[:, 0] * p[:, 1] + 1e-8 * p[:, 1] ** 3,
+            p[:, 1] - 3e-9 * p[:, 0] ** 3 + 0.02 * p[:, 0],
+        ],
+        -1,
+    )
     f = LandmarkMap(M, cubic(M), "polynomial", degree=3)
     x = np.random.default_rng(0).uniform(-900, 900, (20, 2))
     np.testing.assert_allclose(f(x), cubic(x), atol=1e-8)
@@ -70,11 +80,17 @@ def test_landmarks_are_found_at_their_known_positions():
     sample = Indented.empty(Plane(), afm.tip, capacity=16)
     for p in truth:
         sample = sample.press(jnp.asarray(p), 50.0)
-    xy = np.stack(np.meshgrid(raster.origin[0] + raster.pixel_size[0] * np.arange(128),
-                              raster.origin[1] + raster.pixel_size[1] * np.arange(128)), -1)
+    xy = np.stack(
+        np.meshgrid(
+            raster.origin[0] + raster.pixel_size[0] * np.arange(128),
+            raster.origin[1] + raster.pixel_size[1] * np.arange(128),
+        ),
+        -1,
+    )
     z = np.asarray(surface(sample, afm.tip)(jnp.asarray(xy)))
-    found = order_grid(find_features(z, raster, 16, pits=True, min_height=12.0, min_distance_nm=200,
-                                     window_nm=30), 4)
+    found = order_grid(
+        find_features(z, raster, 16, pits=True, min_height=12.0, min_distance_nm=200, window_nm=30), 4
+    )
     assert np.abs(found - truth).max() < 2.0  # nm, with 15.6 nm pixels
 
 
@@ -83,11 +99,14 @@ def test_order_grid_needs_every_landmark():
         order_grid(np.zeros((3, 2)), 2)
 
 
-@pytest.mark.parametrize("n, start, step, match", [
-    (1, 0, 10, "N >= 2"),
-    (4, 16, 40, r"eq. 3, P \+ S\(N-1\) < n.*136 px.*n = 128"),
-    (3, -1, 10, "start P must be >= 0"),
-])
+@pytest.mark.parametrize(
+    "n, start, step, match",
+    [
+        (1, 0, 10, "N >= 2"),
+        (4, 16, 40, r"eq. 3, P \+ S\(N-1\) < n.*136 px.*n = 128"),
+        (3, -1, 10, "start P must be >= 0"),
+    ],
+)
 def test_landmark_grid_rejects_grids_that_do_not_fit(n, start, step, match):
     with pytest.raises(ValueError, match=match):
         LandmarkGrid(n, start, step, 128)
@@ -113,7 +132,9 @@ def test_map_rejects_too_few_landmarks_for_its_degree():
 def twin_after_cycle(afm, model):
     """The model's state after the same initialisation cycle as the instrument's."""
     twin = AFM(model, Tip(), afm.sensitivity, None, dilate=False)
-    return run_cycle(twin, Plane(), twin.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0)).scanner
+    return run_cycle(
+        twin, Plane(), twin.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0)
+    ).scanner
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +169,9 @@ def found(drifting):
     pos, stand = drifting
     guesses = CENTRES + jnp.array([[12.0, -9.0], [12.0, -9.0], [10.0, 10.0]])
     keys = jnp.concatenate([jax.random.split(jax.random.key(2), 2), jax.random.key(4)[None]])
-    return jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k))(guesses, RADII, keys)
+    return jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k))(
+        guesses, RADII, keys
+    )
 
 
 def test_local_scan_finds_particles_at_known_positions_under_drift(drifting, found):
@@ -157,7 +180,9 @@ def test_local_scan_finds_particles_at_known_positions_under_drift(drifting, fou
     # the software believes the particles lie at their nominal places: the drift has moved the
     # tip's frame by about (30, -20) nm since, and the guesses are off by a further (12, -9) nm
     keys = jax.random.split(jax.random.key(2), 2)  # those of the first two in `found`
-    go = jax.jit(jax.vmap(lambda g, k: goto(pos, Particles(CENTRES, RADII), stand, g, k)[0]))  # faster than op by op
+    go = jax.jit(
+        jax.vmap(lambda g, k: goto(pos, Particles(CENTRES, RADII), stand, g, k)[0])
+    )  # faster than op by op
     without_c = go(centres, keys)
     res, xy = jax.tree.map(lambda a: a[:2], found)
     before = np.linalg.norm(np.asarray(without_c - centres), axis=1)
@@ -170,8 +195,9 @@ def test_local_scan_finds_particles_at_known_positions_under_drift(drifting, fou
 def test_local_scan_gives_up_cleanly_without_a_particle(drifting):
     pos, stand = drifting
     spec = LocalScan(max_lines=24)
-    res, _ = eqx.filter_jit(local_scan)(pos, Plane(), stand, jnp.array([100.0, 100.0]), jnp.asarray(10.0),
-                                        jax.random.key(3), spec)  # compiled: faster than op by op
+    res, _ = eqx.filter_jit(local_scan)(
+        pos, Plane(), stand, jnp.array([100.0, 100.0]), jnp.asarray(10.0), jax.random.key(3), spec
+    )  # compiled: faster than op by op
     n_search = 2 * int(np.ceil(spec.margin / 7.5)) + 1  # lines 0.75 R apart over +-margin
     assert not bool(res.found)
     assert int(res.lines) == n_search <= spec.max_lines
@@ -209,14 +235,17 @@ def test_push_carries_the_particle_to_the_goal_and_misses_when_off_centre(drifti
 # The run's configuration
 
 
-@pytest.mark.parametrize("patch, match", [
-    ({"landmarks": {"n": 1}}, "landmarks.n"),
-    ({"landmarks": {"n": 5, "start_px": 40, "step_px": 60}}, r"eq. 3"),
-    ({"particles": {"radius_nm": [0, 20]}}, "radius must be > 0"),
-    ({"particles": {"radius_nm": [30, 20]}}, "min <= max"),
-    ({"workspace": {"size_nm": 9000}}, "beyond the .* nm that step A's calibration scan covers"),
-    ({"calibration": {"model": {"name": "m", "effects": ["tip"]}}}, "cannot be fitted"),
-])
+@pytest.mark.parametrize(
+    "patch, match",
+    [
+        ({"landmarks": {"n": 1}}, "landmarks.n"),
+        ({"landmarks": {"n": 5, "start_px": 40, "step_px": 60}}, r"eq. 3"),
+        ({"particles": {"radius_nm": [0, 20]}}, "radius must be > 0"),
+        ({"particles": {"radius_nm": [30, 20]}}, "min <= max"),
+        ({"workspace": {"size_nm": 9000}}, "beyond the .* nm that step A's calibration scan covers"),
+        ({"calibration": {"model": {"name": "m", "effects": ["tip"]}}}, "cannot be fitted"),
+    ],
+)
 def test_run_config_rejects_impossible_settings(patch, match):
     with pytest.raises(ValueError, match=match):
         RunConfig.model_validate(patch)
@@ -244,19 +273,24 @@ def cli_run(request, tmp_path_factory):
     """``jaxafm run`` on SMALL_RUN with the true scanner as step A's model, in a process of its
     own that starts with this module's first test, to run while the others do (when the test
     below is selected)."""
-    if not any(item.name == test_cli_run_positions_on_particles_and_pushes_them.__name__
-               for item in request.session.items):
+    if not any(
+        item.name == test_cli_run_positions_on_particles_and_pushes_them.__name__
+        for item in request.session.items
+    ):
         yield None
         return
-    from jaxafm.io import save_model
+    from jaxafm.model.io import save_model
 
     tmp = tmp_path_factory.mktemp("run")
     save_model(default_afm().scanner.without("drift", "noise"), tmp / "true.json")
     cfg = tmp / "run.yaml"
     cfg.write_text(SMALL_RUN.format(model=tmp / "true.json", out=tmp / "run"))
     with open(tmp / "log.txt", "w") as log:
-        proc = subprocess.Popen([sys.executable, "-c", "from jaxafm.cli import main; main()", "run", str(cfg)],
-                                stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from jaxafm.cli import main; main()", "run", str(cfg)],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     yield cfg, tmp / "run", proc, tmp / "log.txt"
     proc.kill()  # only if its test did not wait for it
     proc.wait()

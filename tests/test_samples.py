@@ -15,7 +15,16 @@ import numpy as np
 import pytest
 
 # importing jaxafm (the package of jaxafm.samples) switches JAX to float64
-from jaxafm.samples import Grating, HeightMap, Indented, Lattice, Particles, Plane, Tip, surface
+from jaxafm.instrument.samples import (
+    Grating,
+    HeightMap,
+    Indented,
+    Lattice,
+    Particles,
+    Plane,
+    Tip,
+    surface,
+)
 
 RT, THETA = 10.0, np.deg2rad(20.0)  # Tip() defaults
 
@@ -64,8 +73,9 @@ def fd(f, x, h=1e-5):
 def test_plane_is_affine():
     pl = Plane(jnp.asarray(2.5), jnp.array([0.1, -0.3]))
     xy = np.random.default_rng(0).uniform(-100, 100, (4, 3, 2))
-    np.testing.assert_allclose(np.asarray(H(pl, jnp.asarray(xy))),
-                               2.5 + 0.1 * xy[..., 0] - 0.3 * xy[..., 1], rtol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(H(pl, jnp.asarray(xy))), 2.5 + 0.1 * xy[..., 0] - 0.3 * xy[..., 1], rtol=1e-13
+    )
 
 
 # ----------------------------------------------------------------------------- Grating
@@ -97,8 +107,9 @@ def test_grating_profile_closed_form():
         np.testing.assert_allclose(z, [30, 30, 30, 15, 0, 0, 0], atol=1e-10)
     # inside the edge the height is linear: depth * (half_top + w/2 - |du|) / w
     du = np.linspace(half_top - w / 2 + 0.5, half_top + w / 2 - 0.5, 17)
-    np.testing.assert_allclose(np.asarray(H(g, across(37.0 + du))), 30 * (half_top + w / 2 - du) / w,
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(H(g, across(37.0 + du))), 30 * (half_top + w / 2 - du) / w, atol=1e-10
+    )
     # top width at half depth = duty * pitch, whatever the duty
     for duty in (0.2, 0.5, 0.8):
         gd = grating(duty=duty)
@@ -121,12 +132,16 @@ def test_grating_period_orientation_and_phase():
     assert np.abs(shifted - z).max() > 5
     # phase shifts the pattern across the lines
     g0 = grating(phase=0.0)
-    np.testing.assert_allclose(np.asarray(H(g, across(u + 37.0, v))), np.asarray(H(g0, across(u, v))),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(H(g, across(u + 37.0, v))), np.asarray(H(g0, across(u, v))), atol=1e-9
+    )
     # angle 0: lines along y, x crosses them
     ga = grating(angle=0.0, phase=0.0)
-    np.testing.assert_allclose(np.asarray(H(ga, pts([0.0, 0.0], [0.0, 500.0], [200.0, 0.0], [200.0, 77.0]))),
-                               [30, 30, 0, 0], atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(H(ga, pts([0.0, 0.0], [0.0, 500.0], [200.0, 0.0], [200.0, 77.0]))),
+        [30, 30, 0, 0],
+        atol=1e-10,
+    )
 
 
 def test_grating_gradients():
@@ -154,8 +169,14 @@ L_PITCH, L_ANGLE, L_PHASE = np.array([300.0, 450.0]), 0.3, np.array([40.0, -25.0
 
 
 def lattice(depth=20.0):
-    return Lattice(jnp.asarray(L_PITCH), jnp.asarray(80.0), jnp.asarray(depth), edge_width=jnp.asarray(10.0),
-                   angle=jnp.asarray(L_ANGLE), phase=jnp.asarray(L_PHASE))
+    return Lattice(
+        jnp.asarray(L_PITCH),
+        jnp.asarray(80.0),
+        jnp.asarray(depth),
+        edge_width=jnp.asarray(10.0),
+        angle=jnp.asarray(L_ANGLE),
+        phase=jnp.asarray(L_PHASE),
+    )
 
 
 def lab(a, b):
@@ -172,10 +193,10 @@ def test_lattice_features(depth):
     centres = [L_PHASE + lab(i * 300, j * 450) for i, j in [(0, 0), (1, 0), (0, 1), (-2, 3)]]
     np.testing.assert_allclose(np.asarray(H(lt, jnp.asarray(np.array(centres)))), depth, atol=1e-9)
     phis = np.linspace(0, 2 * np.pi, 13)
-    ring = lambda r: jnp.asarray(np.array([L_PHASE + lab(r * np.cos(f), r * np.sin(f)) for f in phis]))  # noqa: E731
+    ring = lambda r: jnp.asarray(np.array([L_PHASE + lab(r * np.cos(f), r * np.sin(f)) for f in phis]))
     np.testing.assert_allclose(np.asarray(H(lt, ring(80.0))), depth / 2, atol=1e-9)
-    np.testing.assert_allclose(np.asarray(H(lt, ring(74.0))), depth, atol=1e-9)   # inside radius - w/2
-    np.testing.assert_allclose(np.asarray(H(lt, ring(86.0))), 0.0, atol=1e-9)     # beyond radius + w/2
+    np.testing.assert_allclose(np.asarray(H(lt, ring(74.0))), depth, atol=1e-9)  # inside radius - w/2
+    np.testing.assert_allclose(np.asarray(H(lt, ring(86.0))), 0.0, atol=1e-9)  # beyond radius + w/2
     np.testing.assert_allclose(np.asarray(H(lt, ring(83.0))), depth * 0.2, atol=1e-9)  # linear edge
     # middle of a cell, between four features: base
     assert float(H(lt, jnp.asarray(L_PHASE + lab(150, 225)))) == pytest.approx(0.0, abs=1e-12)
@@ -225,7 +246,7 @@ def test_particles_on_tilted_substrate_and_several():
     c = np.array([[0.0, 0.0], [40.0, 10.0], [46.0, 10.0]])  # the last two overlap
     R = np.array([5.0, 4.0, 3.0])
     p = Particles(jnp.asarray(c), jnp.asarray(R), sub)
-    s = lambda xy: 2.0 + 0.1 * xy[..., 0] - 0.05 * xy[..., 1]  # noqa: E731
+    s = lambda xy: 2.0 + 0.1 * xy[..., 0] - 0.05 * xy[..., 1]
     # each top is 2R above the substrate under its centre
     np.testing.assert_allclose(np.asarray(H(p, jnp.asarray(c[:2]))), s(c[:2]) + 2 * R[:2], rtol=1e-12)
     xy = np.random.default_rng(3).uniform([-10, -10], [55, 20], (400, 2))
@@ -260,9 +281,11 @@ def test_particles_gradients():
     gs = dH_dsample(p, jnp.asarray(xy))
     gc = gs.centres
     np.testing.assert_allclose(np.asarray(gc)[0], d / root + slope, rtol=1e-10)
-    np.testing.assert_allclose(np.asarray(gc).ravel(),
-                               fd(lambda cc: H(eqx.tree_at(lambda s: s.centres, p, cc.reshape(1, 2)),
-                                              jnp.asarray(xy)), c.ravel()), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(gc).ravel(),
+        fd(lambda cc: H(eqx.tree_at(lambda s: s.centres, p, cc.reshape(1, 2)), jnp.asarray(xy)), c.ravel()),
+        rtol=1e-6,
+    )
     np.testing.assert_allclose(np.asarray(gs.radii), [1 + R[0] / root], rtol=1e-10)
     # off the particle: only the substrate, no NaN from the masked square root
     g_off = np.asarray(dH_dxy(p, pts([30.0, 30.0])))
@@ -287,24 +310,47 @@ def test_heightmap_exact_for_bilinear_function():
     hm = HeightMap(jnp.asarray(z), jnp.array([px, py]), jnp.array([ox, oy]))
     rng = np.random.default_rng(4)
     xy = rng.uniform([X[0], Y[0]], [X[-1], Y[-1]], (200, 2))
-    np.testing.assert_allclose(np.asarray(H(hm, jnp.asarray(xy))), bilinear(xy[:, 0], xy[:, 1]),
-                               rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(H(hm, jnp.asarray(xy.reshape(10, 20, 2)))),
-                               bilinear(xy[:, 0], xy[:, 1]).reshape(10, 20), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(H(hm, jnp.asarray(xy))), bilinear(xy[:, 0], xy[:, 1]), rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(H(hm, jnp.asarray(xy.reshape(10, 20, 2)))),
+        bilinear(xy[:, 0], xy[:, 1]).reshape(10, 20),
+        rtol=1e-12,
+        atol=1e-12,
+    )
     # pixel centres give the pixels exactly
-    np.testing.assert_allclose(np.asarray(H(hm, pts([X[3], Y[2]], [X[0], Y[0]], [X[-1], Y[-1]]))),
-                               [z[2, 3], z[0, 0], z[-1, -1]], rtol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(H(hm, pts([X[3], Y[2]], [X[0], Y[0]], [X[-1], Y[-1]]))),
+        [z[2, 3], z[0, 0], z[-1, -1]],
+        rtol=1e-13,
+    )
     # gradient: dz/dx = 0.2 + 0.03 y, dz/dy = -0.7 + 0.03 x (off the pixel grid lines)
     p = np.array([X[4] + 0.3, Y[3] + 0.1])
-    np.testing.assert_allclose(np.asarray(dH_dxy(hm, jnp.asarray(p))),
-                               [0.2 + 0.03 * p[1], -0.7 + 0.03 * p[0]], rtol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(dH_dxy(hm, jnp.asarray(p))), [0.2 + 0.03 * p[1], -0.7 + 0.03 * p[0]], rtol=1e-10
+    )
     # beyond the image: the nearest edge value
-    out = pts([X[0] - 50, Y[3] + 0.2], [X[-1] + 9, Y[3] + 0.2], [X[5] + 0.5, Y[0] - 4], [X[5] + 0.5, Y[-1] + 40],
-              [X[0] - 1, Y[0] - 1], [X[-1] + 1, Y[-1] + 1])
-    np.testing.assert_allclose(np.asarray(H(hm, out)),
-                               [bilinear(X[0], Y[3] + 0.2), bilinear(X[-1], Y[3] + 0.2),
-                                bilinear(X[5] + 0.5, Y[0]), bilinear(X[5] + 0.5, Y[-1]), z[0, 0], z[-1, -1]],
-                               rtol=1e-12)
+    out = pts(
+        [X[0] - 50, Y[3] + 0.2],
+        [X[-1] + 9, Y[3] + 0.2],
+        [X[5] + 0.5, Y[0] - 4],
+        [X[5] + 0.5, Y[-1] + 40],
+        [X[0] - 1, Y[0] - 1],
+        [X[-1] + 1, Y[-1] + 1],
+    )
+    np.testing.assert_allclose(
+        np.asarray(H(hm, out)),
+        [
+            bilinear(X[0], Y[3] + 0.2),
+            bilinear(X[-1], Y[3] + 0.2),
+            bilinear(X[5] + 0.5, Y[0]),
+            bilinear(X[5] + 0.5, Y[-1]),
+            z[0, 0],
+            z[-1, -1],
+        ],
+        rtol=1e-12,
+    )
 
 
 def test_heightmap_gradient_wrt_pixels():
@@ -316,7 +362,12 @@ def test_heightmap_gradient_wrt_pixels():
     p = jnp.array([2 + fx, 2 * (1 + fy)])
     g = np.asarray(dH_dsample(hm, p).z)
     want = np.zeros_like(z)
-    want[1, 2], want[1, 3], want[2, 2], want[2, 3] = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    want[1, 2], want[1, 3], want[2, 2], want[2, 3] = (
+        (1 - fx) * (1 - fy),
+        fx * (1 - fy),
+        (1 - fx) * fy,
+        fx * fy,
+    )
     np.testing.assert_allclose(g, want, atol=1e-12)
 
 
@@ -337,17 +388,19 @@ def test_tip_profile_closed_form(R, deg):
     tip = Tip(jnp.asarray(R), jnp.asarray(th))
     rt = R * np.cos(th)
     r = np.concatenate([np.linspace(0, rt, 50), np.linspace(rt, 10 * R, 50)])
-    np.testing.assert_allclose(np.asarray(P(tip, jnp.asarray(r))), ref_profile(r, R, th), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(P(tip, jnp.asarray(r))), ref_profile(r, R, th), rtol=1e-9, atol=1e-9
+    )
     assert float(P(tip, jnp.asarray(0.0))) == pytest.approx(0.0, abs=1e-9)
     assert float(P(tip, jnp.asarray(rt))) == pytest.approx(R * (1 - np.sin(th)), rel=1e-9)
     # C1 at the tangent point: slope 1/tan(theta) from both sides; the cone beyond
-    dprof = lambda r: dP(tip, r)[1]  # noqa: E731
+    dprof = lambda r: dP(tip, r)[1]
     for rr in (rt - 1e-7 * R, rt + 1e-7 * R, 2 * rt, 5 * R):
         assert float(dprof(jnp.asarray(rr))) == pytest.approx(1 / np.tan(th), rel=1e-5)
     inside = 0.5 * rt
     assert float(dprof(jnp.asarray(inside))) == pytest.approx(inside / np.sqrt(R**2 - inside**2), rel=1e-8)
     # derivative wrt the apex radius: sphere 1 - R/sqrt(R^2 - r^2), cone 1 - 1/sin(theta)
-    dR = lambda r: dP(tip, r)[0].radius  # noqa: E731
+    dR = lambda r: dP(tip, r)[0].radius
     assert float(dR(jnp.asarray(inside))) == pytest.approx(1 - R / np.sqrt(R**2 - inside**2), rel=1e-8)
     assert float(dR(jnp.asarray(3 * R))) == pytest.approx(1 - 1 / np.sin(th), rel=1e-8)
 
@@ -470,7 +523,7 @@ def test_dilate_sharp_step_cone_flank():
     depth, w = 50.0, 1e-3
     g = Grating(jnp.asarray(1000.0), jnp.asarray(depth), edge_width=jnp.asarray(w))
     corner = 250.0 - w / 2  # top corner of the line's right edge (line centred at 0)
-    exact = lambda d: np.maximum(depth - ref_profile(d), 0.0)  # noqa: E731
+    exact = lambda d: np.maximum(depth - ref_profile(d), 0.0)
     lateral, vertical = [], []
     for kw in (dict(), dict(rings=32, per_ring=64)):
         tip = Tip(**kw)
@@ -521,7 +574,7 @@ def test_dilate_never_lowers_and_keeps_flat_regions():
 def test_dilate_gradient_and_surface():
     part = Particles(jnp.array([[0.0, 0.0]]), jnp.array([20.0]))
     tip = Tip()
-    f = lambda p: D(tip, part, p)  # noqa: E731
+    f = lambda p: D(tip, part, p)
     for p in ([7.3, 2.1], [-12.0, 9.5]):
         p = np.array(p)
         g = np.asarray(dD(tip, part, jnp.asarray(p)))
@@ -555,8 +608,9 @@ def test_indent_shape_and_depth():
     assert int(s.count) == 1
     r = np.linspace(0, 40, 81)
     xy = np.stack([c[0] + r * np.cos(0.4), c[1] + r * np.sin(0.4)], -1)
-    np.testing.assert_allclose(np.asarray(H(s, jnp.asarray(xy))),
-                               np.minimum(z0, z0 - 8.0 + ref_profile(r)), atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(H(s, jnp.asarray(xy))), np.minimum(z0, z0 - 8.0 + ref_profile(r)), atol=1e-6
+    )
     assert float(H(s, jnp.asarray(c))) == pytest.approx(z0 - 8.0, abs=1e-6)
     assert float(H(s, pts([0.0, 0.0]))) == pytest.approx(z0)
 
@@ -566,15 +620,16 @@ def test_indents_sequential_and_relative_to_current_surface():
     pressed included) less the depth; a full sample refuses another press."""
     slope = np.array([0.05, 0.02])
     base = Plane(jnp.asarray(1.0), jnp.asarray(slope))
-    bz = lambda p: 1.0 + np.asarray(p) @ slope  # noqa: E731
+    bz = lambda p: 1.0 + np.asarray(p) @ slope
     s = Indented.empty(base, Tip(), capacity=3)
     a, b = np.array([0.0, 0.0]), np.array([100.0, 50.0])
     s = PRESS(s, jnp.asarray(a), 4.0)
     s = PRESS(s, jnp.asarray(b), 6.0)
     assert int(s.count) == 2
     np.testing.assert_allclose(np.asarray(s.centres)[:2], [a, b])
-    np.testing.assert_allclose(np.asarray(H(s, jnp.asarray(np.stack([a, b])))), [bz(a) - 4, bz(b) - 6],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(H(s, jnp.asarray(np.stack([a, b])))), [bz(a) - 4, bz(b) - 6], atol=1e-6
+    )
     # pressing again at a: 3 nm deeper than the pit's bottom, not than the base
     s = PRESS(s, jnp.asarray(a), 3.0)
     assert int(s.count) == 3
@@ -584,8 +639,17 @@ def test_indents_sequential_and_relative_to_current_surface():
     wall = b + np.array([3.0, 0.0])
     z_wall = bz(b) - 6 + ref_profile(3.0)
     assert float(H(s, jnp.asarray(wall))) == pytest.approx(z_wall, abs=1e-6)
-    s4 = PRESS(Indented(s.base, s.tip, jnp.zeros((4, 2)).at[:3].set(s.centres),
-                        jnp.zeros(4).at[:3].set(s.bottoms), s.count), jnp.asarray(wall), 2.0)
+    s4 = PRESS(
+        Indented(
+            s.base,
+            s.tip,
+            jnp.zeros((4, 2)).at[:3].set(s.centres),
+            jnp.zeros(4).at[:3].set(s.bottoms),
+            s.count,
+        ),
+        jnp.asarray(wall),
+        2.0,
+    )
     assert float(s4.bottoms[3]) == pytest.approx(z_wall - 2, abs=1e-6)
     with pytest.raises(ValueError, match=r"all 3 indent slots are used.*capacity"):
         s.press(jnp.asarray(b), 1.0)
@@ -616,30 +680,33 @@ def test_indent_under_jit_and_grad():
 # ----------------------------------------------------------------------------- bad input
 
 
-@pytest.mark.parametrize("make,match", [
-    (lambda: grating(duty=0.0), "Grating.duty"),
-    (lambda: grating(duty=1.0), "Grating.duty"),
-    (lambda: grating(duty=1.5), "Grating.duty"),
-    (lambda: grating(pitch=-400.0), "Grating.pitch"),
-    (lambda: grating(pitch=0.0), "Grating.pitch"),
-    (lambda: grating(edge_width=0.0), "Grating.edge_width"),
-    (lambda: grating(depth=np.nan), "Grating.depth"),
-    (lambda: Lattice(jnp.array([300.0, 0.0]), jnp.asarray(80.0), jnp.asarray(20.0)), "Lattice.pitch"),
-    (lambda: Lattice(jnp.array([300.0, 300.0]), jnp.asarray(-1.0), jnp.asarray(20.0)), "Lattice.radius"),
-    (lambda: Tip(half_angle=jnp.asarray(0.0)), "half_angle"),
-    (lambda: Tip(half_angle=jnp.asarray(np.pi / 2)), "half_angle"),
-    (lambda: Tip(half_angle=jnp.asarray(20.0)), "half_angle"),  # degrees by mistake
-    (lambda: Tip(radius=jnp.asarray(0.0)), "Tip.radius"),
-    (lambda: Tip(reach=0.0), "reach"),
-    (lambda: Tip(per_ring=3), "per_ring"),
-    (lambda: HeightMap(jnp.array([[1.0, np.nan], [0.0, 0.0]]), jnp.ones(2)), "HeightMap.z"),
-    (lambda: HeightMap(jnp.arange(5.0), jnp.ones(2)), "HeightMap.z"),
-    (lambda: HeightMap(jnp.zeros((3, 3)), jnp.array([1.0, 0.0])), "HeightMap.pixel_size"),
-    (lambda: Particles(jnp.zeros(3), jnp.ones(3)), "Particles.centres"),
-    (lambda: Particles(jnp.zeros((2, 2)), jnp.ones(3)), "Particles.centres"),
-    (lambda: Particles(jnp.zeros((2, 2)), jnp.array([1.0, -1.0])), "Particles.radii"),
-    (lambda: Particles(jnp.array([[0.0, np.inf]]), jnp.ones(1)), "Particles.centres"),
-])
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: grating(duty=0.0), "Grating.duty"),
+        (lambda: grating(duty=1.0), "Grating.duty"),
+        (lambda: grating(duty=1.5), "Grating.duty"),
+        (lambda: grating(pitch=-400.0), "Grating.pitch"),
+        (lambda: grating(pitch=0.0), "Grating.pitch"),
+        (lambda: grating(edge_width=0.0), "Grating.edge_width"),
+        (lambda: grating(depth=np.nan), "Grating.depth"),
+        (lambda: Lattice(jnp.array([300.0, 0.0]), jnp.asarray(80.0), jnp.asarray(20.0)), "Lattice.pitch"),
+        (lambda: Lattice(jnp.array([300.0, 300.0]), jnp.asarray(-1.0), jnp.asarray(20.0)), "Lattice.radius"),
+        (lambda: Tip(half_angle=jnp.asarray(0.0)), "half_angle"),
+        (lambda: Tip(half_angle=jnp.asarray(np.pi / 2)), "half_angle"),
+        (lambda: Tip(half_angle=jnp.asarray(20.0)), "half_angle"),  # degrees by mistake
+        (lambda: Tip(radius=jnp.asarray(0.0)), "Tip.radius"),
+        (lambda: Tip(reach=0.0), "reach"),
+        (lambda: Tip(per_ring=3), "per_ring"),
+        (lambda: HeightMap(jnp.array([[1.0, np.nan], [0.0, 0.0]]), jnp.ones(2)), "HeightMap.z"),
+        (lambda: HeightMap(jnp.arange(5.0), jnp.ones(2)), "HeightMap.z"),
+        (lambda: HeightMap(jnp.zeros((3, 3)), jnp.array([1.0, 0.0])), "HeightMap.pixel_size"),
+        (lambda: Particles(jnp.zeros(3), jnp.ones(3)), "Particles.centres"),
+        (lambda: Particles(jnp.zeros((2, 2)), jnp.ones(3)), "Particles.centres"),
+        (lambda: Particles(jnp.zeros((2, 2)), jnp.array([1.0, -1.0])), "Particles.radii"),
+        (lambda: Particles(jnp.array([[0.0, np.inf]]), jnp.ones(1)), "Particles.centres"),
+    ],
+)
 def test_bad_input_names_the_field(make, match):
     with pytest.raises(ValueError, match=match.replace(".", r"\.")):
         make()

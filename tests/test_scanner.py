@@ -11,13 +11,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference
 
 from jaxafm import (
-    EFFECTS, Axis, Bow, Coupling, Creep, Drift, Linear, Noise, Preisach,
-    RateDependence, Scanner, default_scanner,
+    EFFECTS,
+    Axis,
+    Bow,
+    Coupling,
+    Creep,
+    Drift,
+    Linear,
+    Noise,
+    Preisach,
+    RateDependence,
+    Scanner,
+    default_scanner,
 )
-from jaxafm import reference
-from jaxafm.scanner import pi_with_loop_width
+from jaxafm.model.scanner import pi_with_loop_width
 
 ALL = {"hysteresis", "asymmetry", "creep", "coupling", "bow", "drift", "noise"}
 TS = 256  # samples of every whole-scanner run
@@ -26,8 +36,7 @@ KEY = jax.random.key(0)
 
 def strong(tree):
     """Float arrays as strongly typed float64, so jitted calls do not recompile for weak types."""
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.float64) if eqx.is_inexact_array(x) else x,
-                        tree)
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.float64) if eqx.is_inexact_array(x) else x, tree)
 
 
 @eqx.filter_jit
@@ -173,7 +182,9 @@ def test_hysteresis_loop_widens_with_rate():
 
 
 def test_tiny_tau_is_identity():
-    axis = Axis(Linear(jnp.asarray(1.0), jnp.asarray(0.0)), rate_dependence=RateDependence(jnp.asarray(1e-12)))
+    axis = Axis(
+        Linear(jnp.asarray(1.0), jnp.asarray(0.0)), rate_dependence=RateDependence(jnp.asarray(1e-12))
+    )
     u, t = sine_drive(FREQS[-1])
     np.testing.assert_allclose(call(axis, u, t), u, rtol=0, atol=1e-12)
     # and a real lag is not (the test can fail)
@@ -190,11 +201,13 @@ def test_tiny_tau_is_identity():
 def test_coupling_and_bow_closed_forms():
     p = jnp.array([[1.0, 2.0], [-3.0, 0.5], [100.0, -250.0]])
     c = np.asarray(Coupling(jnp.asarray(0.02), jnp.asarray(-0.012))(p))
-    np.testing.assert_allclose(c, [[1.04, 2.0 - 0.012], [-3.0 + 0.01, 0.5 + 0.036],
-                                   [100.0 - 5.0, -250.0 - 1.2]], rtol=1e-14)
+    np.testing.assert_allclose(
+        c, [[1.04, 2.0 - 0.012], [-3.0 + 0.01, 0.5 + 0.036], [100.0 - 5.0, -250.0 - 1.2]], rtol=1e-14
+    )
     b = np.asarray(Bow(jnp.asarray(2e-3), jnp.asarray(-1e-3))(p))
-    np.testing.assert_allclose(b, [[1.0 + 8e-3, 2.0 - 1e-3], [-3.0 + 5e-4, 0.5 - 9e-3],
-                                   [100.0 + 125.0, -250.0 - 10.0]], rtol=1e-14)
+    np.testing.assert_allclose(
+        b, [[1.0 + 8e-3, 2.0 - 1e-3], [-3.0 + 5e-4, 0.5 - 9e-3], [100.0 + 125.0, -250.0 - 10.0]], rtol=1e-14
+    )
 
 
 N_SEEDS = 4000
@@ -406,8 +419,10 @@ def test_random_part_is_drift_plus_noise():
 
 
 def test_vmap_over_scanners_and_keys_equals_loop():
-    scanners = [default_scanner(coupling=c, creep_gamma=g, loop_width=w)
-                for c, g, w in [(0.0, 0.01, 0.1), (0.02, 0.015, 0.15), (0.05, 0.02, 0.2)]]
+    scanners = [
+        default_scanner(coupling=c, creep_gamma=g, loop_width=w)
+        for c, g, w in [(0.0, 0.01, 0.1), (0.02, 0.015, 0.15), (0.05, 0.02, 0.2)]
+    ]
     stacked = strong(jax.tree.map(lambda *x: jnp.stack(x), *scanners))
     keys = jax.random.split(jax.random.key(5), 3)
     u, t = drive()
@@ -441,6 +456,7 @@ def test_grad_through_default_scanner_matches_finite_differences():
         def loss(params):
             p = build(params)(u, t, KEY)
             return jnp.sum(c * p) / TS + 0.5 * jnp.mean((p / 1000.0) ** 2)
+
         return jax.grad(loss)(params)
 
     params = tuple(strong(w(s0)) for w in where)
@@ -451,7 +467,9 @@ def test_grad_through_default_scanner_matches_finite_differences():
             v = rng.normal(0.0, 1.0, np.shape(params[i]))
 
             def f(x):
-                return loss_np(run_scanner(build(params[:i] + (jnp.asarray(x),) + params[i + 1:]), u, t, KEY))
+                return loss_np(
+                    run_scanner(build(params[:i] + (jnp.asarray(x),) + params[i + 1 :]), u, t, KEY)
+                )
 
             x = np.asarray(params[i])
             want = (f(x + eps * v) - f(x - eps * v)) / (2 * eps)
@@ -468,8 +486,8 @@ def major_loop(axis_hysteresis, u_range=10.0, n=201):
     g = np.linspace(-u_range, u_range, n)
     u = np.concatenate([np.linspace(0.0, u_range, n), g[::-1], g, g[::-1]])
     y = np.asarray(call(axis_hysteresis, jnp.asarray(u)))
-    asc = y[2 * n:3 * n]
-    desc = y[3 * n:][::-1]
+    asc = y[2 * n : 3 * n]
+    desc = y[3 * n :][::-1]
     return g, asc, desc, np.ptp(y)
 
 

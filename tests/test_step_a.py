@@ -10,12 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm import calibration, features
-from jaxafm.afm import Raster, default_afm, raster_scan
-from jaxafm.effects import Drift
-from jaxafm.inverse import Compensator, train_neural_inverse
-from jaxafm.samples import Lattice
-from jaxafm.scanner import default_scanner
+from jaxafm.identify import calibration, features
+from jaxafm.identify.inverse import Compensator, train_neural_inverse
+from jaxafm.instrument.afm import Raster, default_afm, raster_scan
+from jaxafm.instrument.samples import Lattice
+from jaxafm.model.effects import Drift
+from jaxafm.model.scanner import default_scanner
 
 CYCLE = np.array([[-10.0, -10.0], [10.0, 10.0]])
 
@@ -44,11 +44,14 @@ def test_local_pitch_of_a_regular_lattice_is_the_pitch():
     assert abs(spread["pitch_mean_nm"] - 500.0) < 1.0 and spread["pitch_std_pct"] < 0.5
 
 
-@pytest.mark.parametrize("bad, message", [
-    (lambda z: np.where(z > 0.5, np.nan, z), "NaN"),
-    (lambda z: z[:12, :12], "complete features|at least"),
-    (lambda z: np.zeros_like(z), "flat"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (lambda z: np.where(z > 0.5, np.nan, z), "NaN"),
+        (lambda z: z[:12, :12], "complete features|at least"),
+        (lambda z: np.zeros_like(z), "flat"),
+    ],
+)
 def test_feature_errors_name_the_problem(bad, message):
     with pytest.raises(ValueError, match=message):
         features.lattice_features(bad(lattice_image()), (10.0, 10.0))
@@ -79,8 +82,14 @@ def _wanted():
 def test_compensated_drive_puts_the_model_where_wanted(method):
     model, state = _model_and_state()
     xy, t = _wanted()
-    comp = Compensator(model, state, jnp.array([10.0, 10.0]), np.array([[-10.0, 10.0], [-10.0, 10.0]]),
-                       method, history=jnp.asarray(CYCLE))
+    comp = Compensator(
+        model,
+        state,
+        jnp.array([10.0, 10.0]),
+        np.array([[-10.0, 10.0], [-10.0, 10.0]]),
+        method,
+        history=jnp.asarray(CYCLE),
+    )
     u = comp(xy, t)
     p, _ = model.run(u, t, state, jax.random.key(0))
     assert np.abs(np.asarray(p - xy)).max() < 1e-6  # nm, over a 6 um sine with creep, coupling, bow, drift
@@ -129,19 +138,35 @@ def test_branch_polynomials_from_a_hysteretic_scan_are_ordered():
 def _simulated_scan():
     """One simulated calibration scan, shared by the tests that read it (none changes it)."""
     truth = default_afm().without("noise", "drift", "tip", "creep", "bow", "feedback_lag", "asymmetry")
-    lattice = Lattice(jnp.full(2, 1000.0), jnp.asarray(250.0), jnp.asarray(100.0), jnp.asarray(40.0),
-                      jnp.zeros(()), jnp.array([130.0, 70.0]))
+    lattice = Lattice(
+        jnp.full(2, 1000.0),
+        jnp.asarray(250.0),
+        jnp.asarray(100.0),
+        jnp.asarray(40.0),
+        jnp.zeros(()),
+        jnp.array([130.0, 70.0]),
+    )
     raster = Raster(6000.0, 72, 72, line_rate=2.0)
     out = raster_scan(truth, lattice, truth.initial_state((0.0, 0.0), 0.0, CYCLE), raster)
-    scan = calibration.CalibrationScan(out["trace"], out["retrace"], raster, 1000.0, np.asarray(truth.sensitivity),
-                                       truth.u_max, (0.0, 0.0), 0.0, CYCLE)
+    scan = calibration.CalibrationScan(
+        out["trace"],
+        out["retrace"],
+        raster,
+        1000.0,
+        np.asarray(truth.sensitivity),
+        truth.u_max,
+        (0.0, 0.0),
+        0.0,
+        CYCLE,
+    )
     return scan, (truth, out)
 
 
 def test_identification_recovers_coupling_and_the_tip_path():
     scan, (truth, out) = _simulated_scan()
-    ident = calibration.identify(scan, effects=("coupling",), operators=16, max_steps=12, blur_px=(1.5,),
-                                 log=lambda *_: None)
+    ident = calibration.identify(
+        scan, effects=("coupling",), operators=16, max_steps=12, blur_px=(1.5,), log=lambda *_: None
+    )
     model = ident.model
     assert abs(float(model.scanner.coupling.xy) - 0.02) < 0.002
     assert abs(float(model.scanner.coupling.yx) + 0.012) < 0.002
@@ -168,8 +193,12 @@ def test_parameters_rebuild_the_model_they_came_from():
 
 def test_branch_polynomial_continues_along_its_end_tangent():
     """Beyond the drive its features covered, a branch goes on straight, with the end's slope."""
-    poly = calibration.BranchPolynomials(np.array([1.0, 0.0, 2.0, 0.0]), np.array([3.0, 0.0]),
-                                         np.array([3.0, 0.0]), np.array([[-1.0, 2.0], [-1.0, 1.0]]))
+    poly = calibration.BranchPolynomials(
+        np.array([1.0, 0.0, 2.0, 0.0]),
+        np.array([3.0, 0.0]),
+        np.array([3.0, 0.0]),
+        np.array([[-1.0, 2.0], [-1.0, 1.0]]),
+    )
     assert poly.branch("x_up", np.array([1.5]))[0] == pytest.approx(1.5**3 + 2 * 1.5)  # inside: the cubic
     # at u = 4: x(2) + x'(2) (4 - 2) = 12 + 14 * 2
     assert poly.branch("x_up", np.array([4.0]))[0] == pytest.approx(40.0)
@@ -178,11 +207,13 @@ def test_branch_polynomial_continues_along_its_end_tangent():
 
 def test_fitted_dead_zones_stay_monotone_and_invertible():
     """Whatever the solver does to the raw parameters, every partial slope stays > 0."""
-    from jaxafm.fit import free_parameters
-    from jaxafm.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii
+    from jaxafm.identify.fit import free_parameters
+    from jaxafm.model.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii
 
-    g = GeneralizedPI(PrandtlIshlinskii.uniform(5, 10.0, 100.0),
-                      Deadzone.identity(-jnp.array([500.0, 1000.0]), jnp.array([500.0, 1000.0, 1500.0])))
+    g = GeneralizedPI(
+        PrandtlIshlinskii.uniform(5, 10.0, 100.0),
+        Deadzone.identity(-jnp.array([500.0, 1000.0]), jnp.array([500.0, 1000.0, 1500.0])),
+    )
     raw, rebuild = free_parameters(g, 20.0, 1000.0)
     assert np.allclose(rebuild(raw).deadzone.upper_weights, 0.0, atol=1e-9)
     noisy = jax.tree.map(lambda r: r + 5 * jax.random.normal(jax.random.key(1), jnp.shape(r)), raw)
@@ -194,7 +225,7 @@ def test_fitted_dead_zones_stay_monotone_and_invertible():
 
 
 def test_position_errors_of_a_known_path():
-    from jaxafm.step_a import position_errors
+    from jaxafm.identify.step_a import position_errors
 
     raster = Raster(1000.0, 11, 5)
     x0, dx = raster.origin[0], raster.pixel_size[0]
@@ -203,7 +234,9 @@ def test_position_errors_of_a_known_path():
     bend[..., 0] = 30.0 * np.sin(np.pi * np.arange(11) / 10)  # 0 at the ends, 30 nm mid-line
     out = {"path_trace": wanted + bend + 7.0, "path_retrace": wanted - bend + 7.0}  # + an unobservable shift
     e = position_errors(out, raster)
-    assert e["linearity_error_trace_pct"] == pytest.approx(3.0) and e["linearity_error_retrace_pct"] == pytest.approx(3.0)
+    assert e["linearity_error_trace_pct"] == pytest.approx(3.0) and e[
+        "linearity_error_retrace_pct"
+    ] == pytest.approx(3.0)
     assert e["y_max_error_nm"] == pytest.approx(0.0, abs=1e-9)
 
 
@@ -221,16 +254,20 @@ output: {out}
 def cli_calibrate(request, tmp_path_factory):
     """``jaxafm calibrate`` on CALIBRATE in a process of its own that starts with this module's
     first test, to run while the others do (when the test below is selected)."""
-    if not any(item.name == test_cli_calibrate_identifies_and_compensates.__name__
-               for item in request.session.items):
+    if not any(
+        item.name == test_cli_calibrate_identifies_and_compensates.__name__ for item in request.session.items
+    ):
         yield None
         return
     tmp = tmp_path_factory.mktemp("calibrate")
     cfg = tmp / "c.yaml"
     cfg.write_text(CALIBRATE.format(out=tmp / "run"))
     with open(tmp / "log.txt", "w") as log:
-        proc = subprocess.Popen([sys.executable, "-c", "from jaxafm.cli import main; main()", "calibrate", str(cfg)],
-                                stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from jaxafm.cli import main; main()", "calibrate", str(cfg)],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
     yield tmp / "run", proc, tmp / "log.txt"
     proc.kill()  # only if its test did not wait for it
     proc.wait()
@@ -240,7 +277,7 @@ def test_cli_calibrate_identifies_and_compensates(cli_calibrate):
     """A small simulated step A run: files written, errors smaller with the fitted inverse."""
     import json
 
-    from jaxafm.io import load_model
+    from jaxafm.model.io import load_model
 
     out, proc, log = cli_calibrate
     proc.wait()
@@ -255,11 +292,17 @@ def test_cli_calibrate_identifies_and_compensates(cli_calibrate):
     assert "lin. trace" in output
 
 
-@pytest.mark.parametrize("text, match", [
-    ("simulate: {}\nmodels: [{name: a, effects: [tip]}]\n", "effect 'tip' cannot be fitted"),
-    ("simulate: {}\ndata: {trace: a, retrace: b, sensitivity_nm_per_v: [1, 1], line_rate_hz: 1}\n", "exactly one"),
-    ("simulate: {pixels: 8}\n", "simulate.pixels"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("simulate: {}\nmodels: [{name: a, effects: [tip]}]\n", "effect 'tip' cannot be fitted"),
+        (
+            "simulate: {}\ndata: {trace: a, retrace: b, sensitivity_nm_per_v: [1, 1], line_rate_hz: 1}\n",
+            "exactly one",
+        ),
+        ("simulate: {pixels: 8}\n", "simulate.pixels"),
+    ],
+)
 def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
     from jaxafm.config import CalibrateConfig, ConfigError, load_config
 
@@ -272,14 +315,19 @@ def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
 def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     """Trace and retrace files, read back with their size, give the scan the images came from."""
     from jaxafm.config import CalibrationImages, Grating
-    from jaxafm.images import from_scan, save_image
-    from jaxafm.step_a import read_calibration
+    from jaxafm.identify.step_a import read_calibration
+    from jaxafm.instrument.images import from_scan, save_image
 
     scan, (_, out) = _simulated_scan()
     for k in ("trace", "retrace"):
         save_image(from_scan(out, scan.raster, k), tmp_path / f"{k}.npz")
-    spec = CalibrationImages(trace="trace.npz", retrace="retrace.npz", sensitivity_nm_per_v=[500.0, 500.0],
-                             line_rate_hz=2.0, history_v=CYCLE.tolist())
+    spec = CalibrationImages(
+        trace="trace.npz",
+        retrace="retrace.npz",
+        sensitivity_nm_per_v=[500.0, 500.0],
+        line_rate_hz=2.0,
+        history_v=CYCLE.tolist(),
+    )
     back = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
     assert np.array_equal(np.asarray(back.retrace), np.asarray(scan.retrace))
     assert back.raster.pixel_size == pytest.approx(scan.raster.pixel_size)

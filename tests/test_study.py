@@ -19,19 +19,35 @@ from typer.testing import CliRunner
 
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, StudyConfig, load_config
-from jaxafm import study
-from jaxafm.study import image_position, run
+from jaxafm.study import monte_carlo as study
+from jaxafm.study.monte_carlo import image_position, run
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "experiments" / "results" / "paper" / "model_scanner.json"  # step A's model of default_afm
 
 SMALL = {
-    "trials": 6, "trials_per_scanner": 3, "chunk": 2, "stages": ["A+B"],
-    "scanner": {"hysteresis": {"loop_width": {"uniform": [0.1, 0.2]}}, "drift": {"x_nm_per_min": {"normal": [0, 3]}}},
+    "trials": 6,
+    "trials_per_scanner": 3,
+    "chunk": 2,
+    "stages": ["A+B"],
+    "scanner": {
+        "hysteresis": {"loop_width": {"uniform": [0.1, 0.2]}},
+        "drift": {"x_nm_per_min": {"normal": [0, 3]}},
+    },
     "particle_radius_nm": {"uniform": [10, 30]},
-    "calibration": {"simulate": {"pixels": 32, "size_nm": 8000, "line_rate_hz": 2.0}, "model_file": str(MODEL)},
+    "calibration": {
+        "simulate": {"pixels": 32, "size_nm": 8000, "line_rate_hz": 2.0},
+        "model_file": str(MODEL),
+    },
     "workspace": {"size_nm": 1500, "pixels": 96, "line_rate_hz": 8.0},
-    "landmarks": {"n": 3, "start_px": 15, "step_px": 33, "interpolation": ["polynomial"], "m": 4, "degree": 2},
+    "landmarks": {
+        "n": 3,
+        "start_px": 15,
+        "step_px": 33,
+        "interpolation": ["polynomial"],
+        "m": 4,
+        "degree": 2,
+    },
     "local_scan": {"points": 128},
 }
 
@@ -57,22 +73,30 @@ def assert_same(got: dict, want: dict, where: str = "") -> None:
 def cli(*args, devices: int = 1) -> subprocess.Popen:
     """``jaxafm study ARGS`` in a new process with ``devices`` host devices (XLA_FLAGS)."""
     env = os.environ | {"XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
-    return subprocess.Popen([sys.executable, "-c", "from jaxafm.cli import main; main()", "study", *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-c", "from jaxafm.cli import main; main()", "study", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
 
 
 def chunk_files(out: Path) -> list:
     return sorted((out / "chunks").glob("trials_*.npz"))  # not a chunk still being written (.tmp...)
 
 
-@pytest.mark.parametrize("change, key", [
-    ({"particle_radius_nm": {"uniform": [-5, 10]}}, "particle_radius_nm"),
-    ({"particle_radius_nm": {"uniform": [30, 10]}}, "min <= max"),
-    ({"scanner": {"hysterisis": {"loop_width": 0.1}}}, "unknown effect 'hysterisis'"),
-    ({"scanner": {"creep": {"gamma": {"normal": [0.01, 0.01]}}}}, "scanner.creep.gamma"),
-    ({"scanner": {"noise": {"sigma": 1.0}}}, "scanner.noise.sigma"),
-    ({"stages": ["push"]}, "'push' goes on from 'A+B+C'"),
-])
+@pytest.mark.parametrize(
+    "change, key",
+    [
+        ({"particle_radius_nm": {"uniform": [-5, 10]}}, "particle_radius_nm"),
+        ({"particle_radius_nm": {"uniform": [30, 10]}}, "min <= max"),
+        ({"scanner": {"hysterisis": {"loop_width": 0.1}}}, "unknown effect 'hysterisis'"),
+        ({"scanner": {"creep": {"gamma": {"normal": [0.01, 0.01]}}}}, "scanner.creep.gamma"),
+        ({"scanner": {"noise": {"sigma": 1.0}}}, "scanner.noise.sigma"),
+        ({"stages": ["push"]}, "'push' goes on from 'A+B+C'"),
+    ],
+)
 def test_impossible_configs_fail_naming_the_key(tmp_path, change, key):
     path = write(tmp_path, **change)
     with pytest.raises(ConfigError, match=key.replace("+", r"\+").replace("[", r"\[")):
@@ -81,8 +105,9 @@ def test_impossible_configs_fail_naming_the_key(tmp_path, change, key):
 
 def test_bad_config_fails_before_any_trial(tmp_path):
     out = tmp_path / "out"
-    res = CliRunner().invoke(app, ["study", str(write(tmp_path, particle_radius_nm={"uniform": [-1, 5]})),
-                                   "--out", str(out)])
+    res = CliRunner().invoke(
+        app, ["study", str(write(tmp_path, particle_radius_nm={"uniform": [-1, 5]})), "--out", str(out)]
+    )
     assert res.exit_code == 2 and "particle_radius_nm" in res.output and not out.exists()
 
 
@@ -100,7 +125,9 @@ def test_image_position_inverts_a_distorted_raster():
     np.testing.assert_allclose(got, np.linalg.solve(A, c - b), atol=1e-9)
     assert inside
     outside = np.array([-180.0, 900.0])  # beyond the last line: not in the image
-    assert not image_position(jnp.asarray(path), jnp.asarray(origin), jnp.asarray(pixel), jnp.asarray(outside))[1]
+    assert not image_position(
+        jnp.asarray(path), jnp.asarray(origin), jnp.asarray(pixel), jnp.asarray(outside)
+    )[1]
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +189,9 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     """The nominal scanner (the one the stored model was identified on), four trials through A+B,
     the local scan and the push: step C brings the tip within 0.1 R of the true centre, far closer
     than A+B alone, and the push carries the particle to near its goal (100-300 nm away)."""
-    path = write(tmp_path, trials=4, trials_per_scanner=4, chunk=4, stages=["A+B", "A+B+C", "push"], scanner={})
+    path = write(
+        tmp_path, trials=4, trials_per_scanner=4, chunk=4, stages=["A+B", "A+B+C", "push"], scanner={}
+    )
     cfg = load_config(path, StudyConfig)
     contexts, _ = study.prepare_scanner(cfg, path, 0, study.scanner_draws(cfg)[0], tmp_path, lambda m: None)
     draws = study.trial_draws(cfg, study._layout(cfg)[2])
@@ -180,7 +209,9 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     # the two passes give what one pass with every line gives: each trial alone, in one pass
     # (measured: the same to the last bit)
     monkeypatch.setattr(study, "FIRST_PASS_LINES", cfg.local_scan.max_lines)
-    one = [study.run_chunk(cfg, contexts, {k: v[i:i + 1] for k, v in draws.items()}, mesh) for i in range(4)]
+    one = [
+        study.run_chunk(cfg, contexts, {k: v[i : i + 1] for k, v in draws.items()}, mesh) for i in range(4)
+    ]
     assert_same(r, {k: np.concatenate([o[k] for o in one]) for k in r})
 
 

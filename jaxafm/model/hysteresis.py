@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import checks
+from .. import checks
 
 Array = jax.Array
 
@@ -154,7 +154,9 @@ class Anhysteretic(eqx.Module):
 
     def run(self, u: Array, plays: Array):
         u = _checked_input(u)
-        return self.operator.from_plays(jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape)), plays
+        return self.operator.from_plays(
+            jnp.broadcast_to(u[:, None], u.shape + self.operator.radii().shape)
+        ), plays
 
     def step(self, u: Array, plays: Array) -> tuple:
         return self.operator.from_plays(jnp.broadcast_to(u, self.operator.radii().shape)), plays
@@ -182,7 +184,7 @@ class Linear(eqx.Module):
     def __call__(self, u: Array, history=None) -> Array:
         return self.run(u, self.initial_state(None))[0]
 
-    def inverse(self) -> "Linear":
+    def inverse(self) -> Linear:
         checks.positive("Linear.gain", self.gain)
         return Linear(1.0 / self.gain, -self.offset / self.gain)
 
@@ -223,7 +225,7 @@ class PrandtlIshlinskii(PlayOperator):
     def readout(self):
         return lambda P: self.offset + P @ self.weights
 
-    def inverse(self) -> "PrandtlIshlinskii":
+    def inverse(self) -> PrandtlIshlinskii:
         """The analytic inverse, again a PI operator (Kuhnen & Janocha 2001).
 
         ``W_i = sum_{j<=i} w_j``; ``r'_i = sum_{j<=i} w_j (r_i - r_j)``;
@@ -287,8 +289,14 @@ class Deadzone(eqx.Module):
     def identity(cls, lower: Array, upper: Array, centre: float = 0.0):
         """Zero-weight dead zones at the given thresholds: ``S(z) = z``."""
         lower, upper = jnp.asarray(lower, dtype=float), jnp.asarray(upper, dtype=float)
-        return cls(jnp.ones(()), upper, jnp.zeros_like(upper), lower, jnp.zeros_like(lower),
-                   jnp.asarray(centre, dtype=float))
+        return cls(
+            jnp.ones(()),
+            upper,
+            jnp.zeros_like(upper),
+            lower,
+            jnp.zeros_like(lower),
+            jnp.asarray(centre, dtype=float),
+        )
 
     def __call__(self, z: Array) -> Array:
         x = (jnp.asarray(z, dtype=float) - self.centre)[..., None]
@@ -296,7 +304,7 @@ class Deadzone(eqx.Module):
         down = jax.nn.relu(self.lower - x) @ self.lower_weights
         return self.centre + self.slope * x[..., 0] + up - down
 
-    def inverse(self) -> "Deadzone":
+    def inverse(self) -> Deadzone:
         """The analytic inverse, again a dead-zone superposition about the same centre.
 
         Exists iff every partial slope ``g_0 + g_1 + ... + g_i`` is positive on
@@ -332,7 +340,7 @@ class GeneralizedPI(PlayOperator):
         pi = self.pi.readout()
         return lambda P: self.deadzone(pi(P))
 
-    def inverse(self) -> "_InverseGeneralizedPI":
+    def inverse(self) -> _InverseGeneralizedPI:
         return _InverseGeneralizedPI(self.deadzone.inverse(), self.pi.inverse())
 
 
@@ -389,14 +397,20 @@ class Preisach(PlayOperator):
                 )
 
     @classmethod
-    def uniform(cls, n: int, u_min: float, u_max: float, total: float = 1.0, offset: float = 0.0,
-                smooth: bool = True):
+    def uniform(
+        cls, n: int, u_min: float, u_max: float, total: float = 1.0, offset: float = 0.0, smooth: bool = True
+    ):
         """Even density over the ``n(n+1)/2`` hysterons, summing to ``total`` nm."""
         if n < 1:
             raise ValueError(f"number of Preisach levels n must be >= 1, got {n}")
         tri = np.tril(np.ones((n, n)))
-        return cls(jnp.asarray(tri * total / tri.sum()), jnp.asarray(float(u_min)),
-                   jnp.asarray(float(u_max)), jnp.asarray(float(offset)), smooth)
+        return cls(
+            jnp.asarray(tri * total / tri.sum()),
+            jnp.asarray(float(u_min)),
+            jnp.asarray(float(u_max)),
+            jnp.asarray(float(offset)),
+            smooth,
+        )
 
     @property
     def levels(self) -> int:
@@ -443,6 +457,7 @@ class Preisach(PlayOperator):
             def readout(P):
                 i = jnp.arange(n) * (n + 1) + jnp.clip(jnp.floor((P - s0) / D).astype(int) + 1, 0, n)
                 return base + 2 * jnp.sum(Cf[i], axis=-1)
+
         return readout
 
     def relay_states(self, P: Array) -> Array:

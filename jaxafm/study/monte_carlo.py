@@ -34,15 +34,21 @@ import numpy as np
 import yaml
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from . import plots
-from .afm import Raster, default_afm
-from .config import STUDY_PARAMETERS, StudyConfig, resolve_data_path
-from .io import load_model, save_model
-from .landmarks import LandmarkGrid, LandmarkMap
-from .positioning import LocalScan, Positioner, Push
-from .samples import Indented, Particles, Plane
-from .step_a import run_cycle, simulate_calibration, twin_state
-from .strategy import find_landmarks, identify_scanner, stage_key, survey, trials
+from .. import plots
+from ..config import STUDY_PARAMETERS, StudyConfig, resolve_data_path
+from ..identify.step_a import run_cycle, simulate_calibration, twin_state
+from ..instrument.afm import Raster, default_afm
+from ..instrument.samples import Indented, Particles, Plane
+from ..model.io import load_model, save_model
+from ..position.landmarks import LandmarkGrid, LandmarkMap
+from ..position.positioning import LocalScan, Positioner, Push
+from ..position.strategy import (
+    find_landmarks,
+    identify_scanner,
+    stage_key,
+    survey,
+    trials,
+)
 
 #: survey stages: name -> (step A, step B); A+B+C and the push go on from A+B's survey
 SURVEYS = {"open_loop": (False, False), "A": (True, False), "B": (False, True), "A+B": (True, True)}
@@ -55,7 +61,9 @@ def scanner_draws(cfg: StudyConfig) -> list:
     for effect, params in STUDY_PARAMETERS.items():
         for name, (arg, _, default) in params.items():
             dist = cfg.scanner.get(effect, {}).get(name)
-            columns[arg] = dist.draw(rng, cfg.scanners) if dist is not None else np.full(cfg.scanners, default)
+            columns[arg] = (
+                dist.draw(rng, cfg.scanners) if dist is not None else np.full(cfg.scanners, default)
+            )
     draws = []
     for s in range(cfg.scanners):
         d = {k: float(v[s]) for k, v in columns.items()}
@@ -79,9 +87,16 @@ def trial_draws(cfg: StudyConfig, D: np.ndarray) -> dict:
     direction = np.stack([np.cos(angle), np.sin(angle)], -1)
     goal = centre + distance[:, None] * direction
     direction[np.any((goal < lo) | (goal > hi), axis=1)] *= -1
-    return {"trial": np.arange(T), "scanner": np.arange(T) // cfg.trials_per_scanner, "x_nm": centre[:, 0],
-            "y_nm": centre[:, 1], "radius_nm": radius, "push_dx": direction[:, 0], "push_dy": direction[:, 1],
-            "push_distance_nm": distance}
+    return {
+        "trial": np.arange(T),
+        "scanner": np.arange(T) // cfg.trials_per_scanner,
+        "x_nm": centre[:, 0],
+        "y_nm": centre[:, 1],
+        "radius_nm": radius,
+        "push_dx": direction[:, 0],
+        "push_dy": direction[:, 1],
+        "push_distance_nm": distance,
+    }
 
 
 @jax.jit
@@ -93,7 +108,10 @@ def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, ce
     rows, cols = mean_path.shape[:2]
     i0, j0 = jnp.divmod(jnp.argmin(jnp.sum((mean_path - centre) ** 2, -1)), cols)
     i, j = jnp.clip(i0, 1, rows - 2), jnp.clip(j0, 1, cols - 2)
-    J = jnp.stack([mean_path[i, j + 1] - mean_path[i, j - 1], mean_path[i + 1, j] - mean_path[i - 1, j]], -1) / 2
+    J = (
+        jnp.stack([mean_path[i, j + 1] - mean_path[i, j - 1], mean_path[i + 1, j] - mean_path[i - 1, j]], -1)
+        / 2
+    )
     step = jnp.linalg.solve(J, centre - mean_path[i, j])
     pix = jnp.stack([j, i]) + step
     inside = jnp.all((pix >= 0) & (pix <= jnp.array([cols - 1, rows - 1])))
@@ -102,8 +120,9 @@ def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, ce
 
 def _layout(cfg: StudyConfig) -> tuple:
     ws = cfg.workspace
-    work = Raster(ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm),
-                  overscan=0.05)
+    work = Raster(
+        ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm), overscan=0.05
+    )
     grid = LandmarkGrid(cfg.landmarks.n, cfg.landmarks.start_px, cfg.landmarks.step_px, ws.pixels)
     return work, grid, grid.positions(work)
 
@@ -133,8 +152,16 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
         with_a, with_b = SURVEYS[st]
         pos = Positioner(afm, model if with_a else None)
         images, _, stand, info[f"{stage_key(st)}_survey_s"] = survey(
-            cfg, pos, pos.start(start, twin if with_a else None), Indented.empty(Plane(), afm.tip, grid.n**2),
-            work, grid, D, with_b, jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), 1 + s), i))
+            cfg,
+            pos,
+            pos.start(start, twin if with_a else None),
+            Indented.empty(Plane(), afm.tip, grid.n**2),
+            work,
+            grid,
+            D,
+            with_b,
+            jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), 1 + s), i),
+        )
         if with_b:
             M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
             info[f"{stage_key(st)}_landmarks_found"] = len(M)
@@ -180,8 +207,9 @@ def _gather(tree, n: int) -> dict:
 FIRST_PASS_LINES = 6
 
 
-def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Mesh, local=None,
-                 push_spec=None) -> dict:
+def stage_trials(
+    cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Mesh, local=None, push_spec=None
+) -> dict:
     """:func:`~jaxafm.strategy.trials` for the trials ``x`` (NumPy columns) on one stage's survey
     ``context``, split over the mesh. With ``local``, in two passes (:data:`FIRST_PASS_LINES`);
     each trial's key is ``fold_in(fold_in(seed, trial), stage)``, so the second pass gives what one
@@ -189,16 +217,33 @@ def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Me
     pos, stand, mean_path = _replicate(context, mesh)
     work = _layout(cfg)[0]
     target, seen = jax.vmap(image_position, (None, None, None, 0))(
-        mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"]))
+        mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"])
+    )
     x = x | {"target": np.asarray(target)}
     root = jax.random.fold_in(jax.random.key(cfg.seed), 0)
 
     def call(idx, spec, size):
         a = _shard({k: v[idx] for k, v in x.items()}, mesh, size)
-        seen = jax.vmap(lambda c, R: Particles(c[None], R[None]))(a["centre"], a["radius"])  # a particle per trial
+        seen = jax.vmap(lambda c, R: Particles(c[None], R[None]))(
+            a["centre"], a["radius"]
+        )  # a particle per trial
         keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(root, i), stage))(a["trial"])
-        return _gather(trials(pos, seen, stand, a["target"], a["centre"], a["radius"], a["direction"], a["distance"],
-                              keys, spec, push_spec if spec else None), len(idx))
+        return _gather(
+            trials(
+                pos,
+                seen,
+                stand,
+                a["target"],
+                a["centre"],
+                a["radius"],
+                a["direction"],
+                a["distance"],
+                keys,
+                spec,
+                push_spec if spec else None,
+            ),
+            len(idx),
+        )
 
     every = np.arange(len(x["trial"]))
     first = -(-every.size // mesh.size) * mesh.size
@@ -208,7 +253,7 @@ def stage_trials(cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Me
     again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
     size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
     for start in range(0, again.size, size):
-        idx = again[start:start + size]
+        idx = again[start : start + size]
         r2 = call(idx, local, size)
         r = {k: v for k, v in r.items() if v.shape[1:] == r2[k].shape[1:]}  # drops the per-line records
         for k in r:
@@ -231,27 +276,47 @@ def run_chunk(cfg: StudyConfig, contexts: dict, draws: dict, mesh: Mesh) -> dict
     """The results of the trials in ``draws`` (one scanner's), columns keyed by stage, run as one
     batch split over the ``mesh``'s devices (``contexts`` replicated on them)."""
     ls = cfg.local_scan
-    local = LocalScan(ls.points, ls.line_time_s, margin=ls.margin_nm, max_lines=ls.max_lines,
-                      width_tolerance=ls.width_tolerance)
+    local = LocalScan(
+        ls.points,
+        ls.line_time_s,
+        margin=ls.margin_nm,
+        max_lines=ls.max_lines,
+        width_tolerance=ls.width_tolerance,
+    )
     push_spec = Push(speed=cfg.push.speed_nm_per_s) if "push" in cfg.stages else None
-    x = {"trial": draws["trial"], "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1), "radius": draws["radius_nm"],
-         "direction": np.stack([draws["push_dx"], draws["push_dy"]], -1), "distance": draws["push_distance_nm"]}
+    x = {
+        "trial": draws["trial"],
+        "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1),
+        "radius": draws["radius_nm"],
+        "direction": np.stack([draws["push_dx"], draws["push_dy"]], -1),
+        "distance": draws["push_distance_nm"],
+    }
     n = len(x["trial"])
     out = {}
     for j, (st, ctx) in enumerate(contexts.items()):
         with_c = st == "A+B" and "A+B+C" in cfg.stages
         if ctx is None:  # the survey missed landmarks: every trial of this scanner fails the stage
-            r = {"error_nm": np.full(n, np.nan), "c_error_nm": np.full(n, np.nan), "c_found": np.zeros(n, bool),
-                 "c_lines": np.zeros(n, int), "c_seconds": np.full(n, np.nan), "push_error_nm": np.full(n, np.nan),
-                 "push_contact": np.zeros(n, bool)}
+            r = {
+                "error_nm": np.full(n, np.nan),
+                "c_error_nm": np.full(n, np.nan),
+                "c_found": np.zeros(n, bool),
+                "c_lines": np.zeros(n, int),
+                "c_seconds": np.full(n, np.nan),
+                "push_error_nm": np.full(n, np.nan),
+                "push_contact": np.zeros(n, bool),
+            }
         else:
             r = stage_trials(cfg, ctx, x, j, mesh, local if with_c else None, push_spec)
             if with_c and push_spec:
                 r["push_error_nm"] = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1)
         out[f"{stage_key(st)}_error_nm"] = r["error_nm"]
         if with_c:
-            out |= {"ABC_error_nm": r["c_error_nm"], "ABC_found": r["c_found"], "ABC_lines": r["c_lines"],
-                    "ABC_local_scan_s": r["c_seconds"]}
+            out |= {
+                "ABC_error_nm": r["c_error_nm"],
+                "ABC_found": r["c_found"],
+                "ABC_lines": r["c_lines"],
+                "ABC_local_scan_s": r["c_seconds"],
+            }
         if with_c and push_spec:
             out |= {"push_error_nm": r["push_error_nm"], "push_contact": r["push_contact"]}
     return out
@@ -288,12 +353,21 @@ def _check_resume(cfg: StudyConfig, out: Path) -> None:
     now = cfg.model_dump(mode="json")
     changed = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
     if changed:
-        raise ValueError(f"--resume: the config differs from the one the study in {out} started with "
-                         f"(keys: {', '.join(changed)}); restore them, or start a new study with --out")
+        raise ValueError(
+            f"--resume: the config differs from the one the study in {out} started with "
+            f"(keys: {', '.join(changed)}); restore them, or start a new study with --out"
+        )
 
 
-def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, log=print, resume: bool = False,
-        devices=None) -> dict:
+def run(
+    cfg: StudyConfig,
+    config_path: Path,
+    out: Path,
+    prepare=lambda: None,
+    log=print,
+    resume: bool = False,
+    devices=None,
+) -> dict:
     """The whole study into ``out``; returns the metrics (see the module docstring)."""
     from tqdm.auto import tqdm
 
@@ -302,9 +376,14 @@ def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, lo
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
-    if cfg.calibration.model_file is not None and not resolve_data_path(cfg.calibration.model_file, config_path).is_file():
-        raise ValueError(f"calibration.model_file: {resolve_data_path(cfg.calibration.model_file, config_path)} "
-                         "does not exist")
+    if (
+        cfg.calibration.model_file is not None
+        and not resolve_data_path(cfg.calibration.model_file, config_path).is_file()
+    ):
+        raise ValueError(
+            f"calibration.model_file: {resolve_data_path(cfg.calibration.model_file, config_path)} "
+            "does not exist"
+        )
     if resume:
         _check_resume(cfg, out)
     else:
@@ -313,15 +392,22 @@ def run(cfg: StudyConfig, config_path: Path, out: Path, prepare=lambda: None, lo
     todo = [c for c in _chunks(cfg) if not chunk_path(out, c[1], c[2]).is_file()]
     done = cfg.trials - sum(b - a for _, a, b in todo)
     info = _read_json(out / "scanners.json")
-    log(f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s), chunks of {cfg.chunk}"
-        + (f"; resuming: {done} done" if done else ""))
+    log(
+        f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s), chunks of {cfg.chunk}"
+        + (f"; resuming: {done} done" if done else "")
+    )
     start = time.perf_counter()
     with tqdm(total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1) as bar:
         for s in sorted({c[0] for c in todo}):
             bar.set_postfix_str(f"scanner {s}: step A and surveys")
             contexts, now = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
-            info[str(s)] = info.get(str(s), {}) | now | {  # a resumed scanner keeps its identification time
-                "step_a_fit_s": max(now["step_a_fit_s"], info.get(str(s), {}).get("step_a_fit_s", 0.0))}
+            info[str(s)] = (
+                info.get(str(s), {})
+                | now
+                | {  # a resumed scanner keeps its identification time
+                    "step_a_fit_s": max(now["step_a_fit_s"], info.get(str(s), {}).get("step_a_fit_s", 0.0))
+                }
+            )
             _atomic(out / "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             for _, a, b in (c for c in todo if c[0] == s):
@@ -349,9 +435,16 @@ def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dic
     particle lay outside its image), the share that ran, and the success rate over all trials."""
     e = errors[np.isfinite(errors)]
     q = np.percentile(e, [50, 95, 99]) if e.size else np.full(3, np.nan)
-    return {"error_median_nm": float(q[0]), "error_p95_nm": float(q[1]), "error_p99_nm": float(q[2]),
-            "error_max_nm": float(e.max()) if e.size else float("nan"), "success_pct": 100 * float(np.mean(success)),
-            "scan_time_s": float(scan_s), "trials": int(errors.size), "ran_pct": 100 * e.size / max(errors.size, 1)}
+    return {
+        "error_median_nm": float(q[0]),
+        "error_p95_nm": float(q[1]),
+        "error_p99_nm": float(q[2]),
+        "error_max_nm": float(e.max()) if e.size else float("nan"),
+        "success_pct": 100 * float(np.mean(success)),
+        "scan_time_s": float(scan_s),
+        "trials": int(errors.size),
+        "ran_pct": 100 * e.size / max(errors.size, 1),
+    }
 
 
 def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: float, log) -> dict:
@@ -366,18 +459,29 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
         e = r[f"{key}_error_nm"]
         survey = "AB" if key in ("ABC", "push") else key
         with_a = key in ("A", "AB", "ABC", "push")
-        scan_s = np.mean([v.get(f"{survey}_survey_s", np.nan) for v in info.values()]) + (calib_s if with_a else 0)
+        scan_s = np.mean([v.get(f"{survey}_survey_s", np.nan) for v in info.values()]) + (
+            calib_s if with_a else 0
+        )
         if key in ("ABC", "push"):
             scan_s += float(np.nanmean(r["ABC_local_scan_s"]))
-        success = (r["push_contact"] & (e <= tol * r["radius_nm"])) if key == "push" else e <= 0.1 * r["radius_nm"]
+        success = (
+            (r["push_contact"] & (e <= tol * r["radius_nm"])) if key == "push" else e <= 0.1 * r["radius_nm"]
+        )
         rows[label] = stage_summary(e, success, scan_s)
-    metrics = {"trials": cfg.trials, "scanners": cfg.scanners, "trials_per_scanner": cfg.trials_per_scanner,
-               "wall_s": seconds, "push_tolerance_radii": tol}
+    metrics = {
+        "trials": cfg.trials,
+        "scanners": cfg.scanners,
+        "trials_per_scanner": cfg.trials_per_scanner,
+        "wall_s": seconds,
+        "push_tolerance_radii": tol,
+    }
     for label, s in rows.items():
         metrics |= {f"{stage_key(label.replace('open loop', 'open_loop'))}_{k}": v for k, v in s.items()}
     if "ABC_found" in r:
-        metrics |= {"ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
-                    "ABC_lines_mean": float(np.mean(r["ABC_lines"]))}
+        metrics |= {
+            "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
+            "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
+        }
     _atomic(out / "trials.npz", lambda f: np.savez_compressed(f, **r))
     _atomic(out / "trials.csv", lambda f: _write_csv(f, r))
     _atomic(out / "metrics.json", lambda f: f.write_text(json.dumps(metrics, indent=1)))
@@ -394,16 +498,23 @@ def _write_csv(path: Path, columns: dict) -> None:
 
 
 def table(rows: dict, tolerance_radii: float) -> str:
-    head = (f"{'stage':10s} {'trials':>7s} {'ran':>6s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
-            f"{'success':>8s} {'scanning':>9s}")
+    head = (
+        f"{'stage':10s} {'trials':>7s} {'ran':>6s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
+        f"{'success':>8s} {'scanning':>9s}"
+    )
     lines = [head, "-" * len(head)]
     for label, s in rows.items():
-        lines.append(f"{label:10s} {s['trials']:7d} {s['ran_pct']:5.1f}% {s['error_median_nm']:7.1f}nm {s['error_p95_nm']:7.1f}nm "
-                     f"{s['error_p99_nm']:7.1f}nm {s['error_max_nm']:7.1f}nm {s['success_pct']:7.1f}% "
-                     f"{s['scan_time_s']:8.0f}s")
-    lines.append(f"ran: trials whose survey found every landmark and imaged their particle; error (over those): "
-                 f"true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
-                 f"centre to its goal); success (over all): error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
-                 "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
-                 "workspace image; A+B+C: plus the mean local scan)")
+        lines.append(
+            f"{label:10s} {s['trials']:7d} {s['ran_pct']:5.1f}% {s['error_median_nm']:7.1f}nm "
+            f"{s['error_p95_nm']:7.1f}nm "
+            f"{s['error_p99_nm']:7.1f}nm {s['error_max_nm']:7.1f}nm {s['success_pct']:7.1f}% "
+            f"{s['scan_time_s']:8.0f}s"
+        )
+    lines.append(
+        f"ran: trials whose survey found every landmark and imaged their particle; error (over those): "
+        f"true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
+        f"centre to its goal); success (over all): error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
+        "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
+        "workspace image; A+B+C: plus the mean local scan)"
+    )
     return "\n".join(lines)

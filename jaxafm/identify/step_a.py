@@ -14,21 +14,29 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import calibration, features, plots
-from .afm import AFM, Raster, default_afm, move, raster_scan
-from .config import CalibrateConfig, CalibrationImages, Grating, SimulatedCalibration, resolve_data_path
-from .images import read_image
+from .. import plots
+from ..config import (
+    CalibrateConfig,
+    CalibrationImages,
+    Grating,
+    SimulatedCalibration,
+    resolve_data_path,
+)
+from ..instrument.afm import AFM, Raster, default_afm, move, raster_scan
+from ..instrument.images import read_image
+from ..instrument.samples import Lattice, Plane, Tip
+from ..model.io import save_model
+from ..model.scanner import Scanner
+from . import calibration, features
 from .inverse import Compensator, train_neural_inverse
-from .io import save_model
-from .samples import Lattice, Plane, Tip
-from .scanner import Scanner
 
 SETTLE_S = 0.5  # each leg of the initialisation cycle, s
 PAUSE_S = 0.1  # from the end of the cycle to the first sample of a scan, s
@@ -53,33 +61,67 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
     if spec.withheld:
         afm = afm.without(*spec.withheld)
     p = grating.pitch_nm
-    lattice = Lattice(jnp.full(2, p), jnp.asarray(p / 4), jnp.asarray(-100.0 if grating.pits else 100.0),
-                      jnp.asarray(30.0), jnp.zeros(()), jnp.array([0.13, 0.07]) * p)
+    lattice = Lattice(
+        jnp.full(2, p),
+        jnp.asarray(p / 4),
+        jnp.asarray(-100.0 if grating.pits else 100.0),
+        jnp.asarray(30.0),
+        jnp.zeros(()),
+        jnp.array([0.13, 0.07]) * p,
+    )
     raster = Raster(spec.size_nm, spec.pixels, spec.pixels, line_rate=spec.line_rate_hz)
     cycle = np.array([[-afm.u_max, -afm.u_max], [afm.u_max, afm.u_max]])
     key = jax.random.key(spec.seed)
     out = raster_scan(afm, lattice, afm.initial_state((0.0, 0.0), 0.0, cycle), raster, key=key)
-    scan = calibration.CalibrationScan(out["trace"], out["retrace"], raster, p, np.asarray(afm.sensitivity),
-                                       afm.u_max, (0.0, 0.0), 0.0, cycle, pits=grating.pits)
+    scan = calibration.CalibrationScan(
+        out["trace"],
+        out["retrace"],
+        raster,
+        p,
+        np.asarray(afm.sensitivity),
+        afm.u_max,
+        (0.0, 0.0),
+        0.0,
+        cycle,
+        pits=grating.pits,
+    )
     return scan, Simulation(afm, lattice, cycle, out, key)
 
 
-def read_calibration(spec: CalibrationImages, grating: Grating, config_path: Path) -> calibration.CalibrationScan:
+def read_calibration(
+    spec: CalibrationImages, grating: Grating, config_path: Path
+) -> calibration.CalibrationScan:
     """A measured trace/retrace pair as a :class:`~jaxafm.calibration.CalibrationScan`."""
     trace, retrace = (read_image(resolve_data_path(p, config_path)) for p in (spec.trace, spec.retrace))
     if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
-        raise ValueError(f"trace {spec.trace} ({trace.shape} px, {trace.size} nm) and retrace {spec.retrace} "
-                         f"({retrace.shape} px, {retrace.size} nm) must cover the same raster")
+        raise ValueError(
+            f"trace {spec.trace} ({trace.shape} px, {trace.size} nm) and retrace {spec.retrace} "
+            f"({retrace.shape} px, {retrace.size} nm) must cover the same raster"
+        )
     raster = Raster(trace.size, trace.shape[1], trace.shape[0], line_rate=spec.line_rate_hz)
-    return calibration.CalibrationScan(trace.z, retrace.z, raster, grating.pitch_nm, spec.sensitivity_nm_per_v,
-                                       spec.u_max_v, (0.0, 0.0), 0.0, spec.history_v, pits=grating.pits)
+    return calibration.CalibrationScan(
+        trace.z,
+        retrace.z,
+        raster,
+        grating.pitch_nm,
+        spec.sensitivity_nm_per_v,
+        spec.u_max_v,
+        (0.0, 0.0),
+        0.0,
+        spec.history_v,
+        pits=grating.pits,
+    )
 
 
 def drive_range(scan: calibration.CalibrationScan) -> np.ndarray:
     """The drive (2, 2) V [min, max] per axis that the calibration scan covered, over-scan included."""
     r = scan.raster
-    return np.stack([scan.volts(np.array([[0, -r.margin], [0, r.pixels - 1 + r.margin]]))[:, 0],
-                     scan.volts(np.array([[0, 0], [r.lines - 1, 0]]))[:, 1]])
+    return np.stack(
+        [
+            scan.volts(np.array([[0, -r.margin], [0, r.pixels - 1 + r.margin]]))[:, 0],
+            scan.volts(np.array([[0, 0], [r.lines - 1, 0]]))[:, 1],
+        ]
+    )
 
 
 def paper_inverse(poly: calibration.BranchPolynomials, sensitivity, samples: int = 400) -> Callable:
@@ -112,16 +154,24 @@ def position_errors(out: dict, raster: Raster) -> dict:
     errors (nm) of a scan against its wanted pixels, trace and retrace. The one whole-image
     translation that no image observes (the lattice's phase) is removed: errors are about
     the mean error of trace and retrace together."""
-    wanted = np.stack(np.meshgrid(raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels),
-                                  raster.origin[1] + raster.pixel_size[1] * np.arange(raster.lines)), -1)
+    wanted = np.stack(
+        np.meshgrid(
+            raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels),
+            raster.origin[1] + raster.pixel_size[1] * np.arange(raster.lines),
+        ),
+        -1,
+    )
     e = np.stack([np.asarray(out["path_trace"]), np.asarray(out["path_retrace"])]) - wanted
     offset = e.reshape(-1, 2).mean(axis=0)
     e = e - offset
     width = raster.size[0]
-    return {"linearity_error_trace_pct": 100 * float(np.abs(e[0, ..., 0]).max()) / width,
-            "linearity_error_retrace_pct": 100 * float(np.abs(e[1, ..., 0]).max()) / width,
-            "x_rms_error_nm": float(np.sqrt(np.mean(e[..., 0] ** 2))),
-            "y_max_error_nm": float(np.abs(e[..., 1]).max()), "y_rms_error_nm": float(np.sqrt(np.mean(e[..., 1] ** 2)))}
+    return {
+        "linearity_error_trace_pct": 100 * float(np.abs(e[0, ..., 0]).max()) / width,
+        "linearity_error_retrace_pct": 100 * float(np.abs(e[1, ..., 0]).max()) / width,
+        "x_rms_error_nm": float(np.sqrt(np.mean(e[..., 0] ** 2))),
+        "y_max_error_nm": float(np.abs(e[..., 1]).max()),
+        "y_rms_error_nm": float(np.sqrt(np.mean(e[..., 1] ** 2))),
+    }
 
 
 def pitch_uniformity(out: dict, raster: Raster, pitch: float) -> dict:
@@ -131,7 +181,10 @@ def pitch_uniformity(out: dict, raster: Raster, pitch: float) -> dict:
     for k in ("trace", "retrace"):
         f = features.lattice_features(np.asarray(out[k]), px, f"{k} image")
         spread = features.pitch_spread(features.local_pitch(f, raster.pixel_size))
-        result |= {f"pitch_std_{k}_pct": spread["pitch_std_pct"], f"pitch_ptp_{k}_pct": spread["pitch_ptp_pct"]}
+        result |= {
+            f"pitch_std_{k}_pct": spread["pitch_std_pct"],
+            f"pitch_ptp_{k}_pct": spread["pitch_ptp_pct"],
+        }
     return result
 
 
@@ -164,35 +217,53 @@ def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.nd
     """Where a fitted ``scanner`` stands after replaying every drive the instrument saw: the
     calibration scan, then the initialisation ``cycle`` again (an ``AFMState``)."""
     twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
-    s = raster_scan(twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster,
-                    key=calibration.KEY)["state"]
+    s = raster_scan(
+        twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster, key=calibration.KEY
+    )["state"]
     return run_cycle(twin, Plane(), s, cycle, calibration.KEY)
 
 
-def model_compensator(model: calibration.ScanModel, scan: calibration.CalibrationScan, sim: Simulation,
-                      method: str) -> Compensator:
+def model_compensator(
+    model: calibration.ScanModel, scan: calibration.CalibrationScan, sim: Simulation, method: str
+) -> Compensator:
     """The model's inverse from the state its twin reaches (:func:`twin_state`), so it knows
     where its plays and creep stand."""
     s = twin_state(model.scanner, scan, sim.cycle)
-    return Compensator(model.scanner, s.scanner, s.u, drive_range(scan), method,
-                       history=jnp.asarray(sim.cycle), u_max=scan.u_max)
+    return Compensator(
+        model.scanner,
+        s.scanner,
+        s.u,
+        drive_range(scan),
+        method,
+        history=jnp.asarray(sim.cycle),
+        u_max=scan.u_max,
+    )
 
 
 def parameters_vs_truth(afm: AFM, model: calibration.ScanModel) -> dict:
     """Fitted against true values for the parameters both have."""
     t, m, out = afm.scanner, model.scanner, {}
-    pairs = {"coupling_xy": lambda s: s.coupling.xy, "coupling_yx": lambda s: s.coupling.yx,
-             "bow_x_per_nm": lambda s: s.bow.bx, "bow_y_per_nm": lambda s: s.bow.by}
+    pairs = {
+        "coupling_xy": lambda s: s.coupling.xy,
+        "coupling_yx": lambda s: s.coupling.yx,
+        "bow_x_per_nm": lambda s: s.bow.bx,
+        "bow_y_per_nm": lambda s: s.bow.by,
+    }
     for name, get in pairs.items():
         part = name.split("_")[0]
         if getattr(t, part) is not None and getattr(m, part) is not None:
             out |= {f"true_{name}": float(get(t)), f"fit_{name}": float(get(m))}
     if afm.feedback is not None and model.feedback is not None:
-        out |= {"true_feedback_tau_s": float(afm.feedback.tau), "fit_feedback_tau_s": float(model.feedback.tau)}
+        out |= {
+            "true_feedback_tau_s": float(afm.feedback.tau),
+            "fit_feedback_tau_s": float(model.feedback.tau),
+        }
     for a in ("x", "y"):
         if getattr(t, a).creep is not None and getattr(m, a).creep is not None:
-            out |= {f"true_creep_per_decade_{a}": _per_decade(getattr(t, a).creep),
-                    f"fit_creep_per_decade_{a}": _per_decade(getattr(m, a).creep)}
+            out |= {
+                f"true_creep_per_decade_{a}": _per_decade(getattr(t, a).creep),
+                f"fit_creep_per_decade_{a}": _per_decade(getattr(m, a).creep),
+            }
     return out
 
 
@@ -206,20 +277,33 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
     """Identify every configured model; on the simulated AFM also compensate and re-image.
     Writes ``model_NAME.json`` (the fitted scanner), ``metrics.json`` and figures into ``out``."""
     if cfg.simulate is not None:
-        log(f"simulating the calibration scan ({cfg.simulate.pixels}² px, {cfg.simulate.size_nm / 1e3:g} µm) ...")
+        log(
+            f"simulating the calibration scan ({cfg.simulate.pixels}² px, {cfg.simulate.size_nm / 1e3:g} µm) ..."
+        )
         scan, sim = simulate_calibration(cfg.simulate, cfg.grating)
     else:
         scan, sim = read_calibration(cfg.data, cfg.grating, config_path), None
     scan.features()  # bad images fail here, before the output folder is touched
     prepare()
-    metrics: dict = {"pixels": scan.raster.pixels, "calibration_size_nm": scan.raster.size[0],
-                     "pitch_nm": cfg.grating.pitch_nm}
+    metrics: dict = {
+        "pixels": scan.raster.pixels,
+        "calibration_size_nm": scan.raster.size[0],
+        "pitch_nm": cfg.grating.pitch_nm,
+    }
     comp = cfg.compensate if sim is not None else None
     if cfg.compensate is not None and sim is None:
         log("measured images: no instrument to re-image with, so no compensation study")
-    work = None if comp is None else Raster(comp.scan_fraction * scan.raster.size[0], scan.raster.pixels,
-                                            scan.raster.lines, line_rate=scan.raster.line_rate,
-                                            overscan=comp.overscan)
+    work = (
+        None
+        if comp is None
+        else Raster(
+            comp.scan_fraction * scan.raster.size[0],
+            scan.raster.pixels,
+            scan.raster.lines,
+            line_rate=scan.raster.line_rate,
+            overscan=comp.overscan,
+        )
+    )
     rows, images = [], {}
     if comp is not None:
         images["uncompensated"] = _measure(sim, work, None, "uncompensated", 0.0, metrics, rows)
@@ -231,18 +315,32 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
             images["paper (poly + NN)"] = _measure(sim, work, volts, "paper", fit_s, metrics, rows)
     for spec in cfg.models:
         log(f"identifying {spec.name} ({spec.kind}, {', '.join(spec.effects) or 'no other effects'}) ...")
-        ident = calibration.identify(scan, kind=spec.kind, effects=spec.effects, operators=spec.operators,
-                                     deadzones=spec.deadzones, levels=spec.levels, solver=cfg.solver.name,
-                                     blur_px=cfg.solver.blur_px, max_steps=cfg.solver.max_steps, log=log)
+        ident = calibration.identify(
+            scan,
+            kind=spec.kind,
+            effects=spec.effects,
+            operators=spec.operators,
+            deadzones=spec.deadzones,
+            levels=spec.levels,
+            solver=cfg.solver.name,
+            blur_px=cfg.solver.blur_px,
+            max_steps=cfg.solver.max_steps,
+            log=log,
+        )
         if not ident.converged:
             n = sum(not s.converged for s in ident.stages)
-            log(f"  WARNING: {spec.name}: {n} of {len(ident.stages)} stages stopped at max_steps="
+            log(
+                f"  WARNING: {spec.name}: {n} of {len(ident.stages)} stages stopped at max_steps="
                 f"{cfg.solver.max_steps} before converging (last loss {ident.stages[-1].loss:.3e}); "
-                "raise solver.max_steps for a tighter fit")
+                "raise solver.max_steps for a tighter fit"
+            )
         save_model(ident.model.scanner, out / f"model_{spec.name}.json")
-        metrics |= {f"{spec.name}_fit_s": ident.seconds, f"{spec.name}_converged": ident.converged,
-                    f"{spec.name}_stages": [s.message for s in ident.stages],
-                    f"{spec.name}_image_rms_pct": 100 * float(np.sqrt(ident.stages[-1].loss))}
+        metrics |= {
+            f"{spec.name}_fit_s": ident.seconds,
+            f"{spec.name}_converged": ident.converged,
+            f"{spec.name}_stages": [s.message for s in ident.stages],
+            f"{spec.name}_image_rms_pct": 100 * float(np.sqrt(ident.stages[-1].loss)),
+        }
         if sim is not None:
             metrics |= {f"{spec.name}_{k}": v for k, v in parameters_vs_truth(sim.afm, ident.model).items()}
         if comp is not None:
@@ -254,9 +352,13 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
                     images[f"{spec.name} + {method}"] = image
     if rows:
         log(_table(rows, work))
-        plots.compensation(images, work, out / "compensation.png",
-                           f"Step A on the simulated AFM: lattice of pitch {cfg.grating.pitch_nm:g} nm "
-                           "without (paper Fig. 6) and with compensation (Fig. 7)")
+        plots.compensation(
+            images,
+            work,
+            out / "compensation.png",
+            f"Step A on the simulated AFM: lattice of pitch {cfg.grating.pitch_nm:g} nm "
+            "without (paper Fig. 6) and with compensation (Fig. 7)",
+        )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return metrics
 
@@ -265,19 +367,28 @@ def _measure(sim, work, volts, name, fit_s, metrics, rows) -> dict:
     """The compensated scan along ``volts``; its errors go into ``metrics`` and ``rows``."""
     image, inverse_s = compensated_scan(sim, work, volts)
     m = position_errors(image, work) | pitch_uniformity(image, work, float(sim.lattice.pitch[0]))
-    metrics |= {f"{name}_{k}": v for k, v in m.items()} | {f"{name}_fit_s": fit_s, f"{name}_inverse_s": inverse_s}
+    metrics |= {f"{name}_{k}": v for k, v in m.items()} | {
+        f"{name}_fit_s": fit_s,
+        f"{name}_inverse_s": inverse_s,
+    }
     rows.append((name, m, fit_s, inverse_s))
     return image
 
 
 def _table(rows, work: Raster) -> str:
-    head = (f"{'inverse':24s} {'lin. trace':>10s} {'lin. retrace':>12s} {'x rms':>8s} {'y max':>8s} "
-            f"{'pitch std':>9s} {'fit':>7s} {'inverse':>8s}")
+    head = (
+        f"{'inverse':24s} {'lin. trace':>10s} {'lin. retrace':>12s} {'x rms':>8s} {'y max':>8s} "
+        f"{'pitch std':>9s} {'fit':>7s} {'inverse':>8s}"
+    )
     lines = [head, "-" * len(head)]
     for name, m, fit_s, inv_s in rows:
-        lines.append(f"{name:24s} {m['linearity_error_trace_pct']:9.2f}% {m['linearity_error_retrace_pct']:11.2f}% "
-                     f"{m['x_rms_error_nm']:6.1f}nm {m['y_max_error_nm']:6.1f}nm {m['pitch_std_trace_pct']:8.2f}% "
-                     f"{fit_s:6.1f}s {inv_s:7.2f}s")
-    lines.append(f"linearity: max |x error| over the {work.size[0] / 1e3:g} µm image, % of its width; "
-                 "pitch std: spread of the local pitch (trace), % of the pitch")
+        lines.append(
+            f"{name:24s} {m['linearity_error_trace_pct']:9.2f}% {m['linearity_error_retrace_pct']:11.2f}% "
+            f"{m['x_rms_error_nm']:6.1f}nm {m['y_max_error_nm']:6.1f}nm {m['pitch_std_trace_pct']:8.2f}% "
+            f"{fit_s:6.1f}s {inv_s:7.2f}s"
+        )
+    lines.append(
+        f"linearity: max |x error| over the {work.size[0] / 1e3:g} µm image, % of its width; "
+        "pitch std: spread of the local pitch (trace), % of the pitch"
+    )
     return "\n".join(lines)

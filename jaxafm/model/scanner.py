@@ -15,10 +15,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import checks
-from .effects import Bow, Coupling, Creep, Drift, Noise, RateDependence, check_effect_names
+from .. import checks
+from .effects import (
+    Bow,
+    Coupling,
+    Creep,
+    Drift,
+    Noise,
+    RateDependence,
+    check_effect_names,
+)
 from .hysteresis import (
-    Anhysteretic, Deadzone, GeneralizedPI, Linear, PlayOperator, Preisach, PrandtlIshlinskii,
+    Anhysteretic,
+    Deadzone,
+    GeneralizedPI,
+    Linear,
+    PlayOperator,
+    PrandtlIshlinskii,
+    Preisach,
 )
 
 Array = jax.Array
@@ -131,8 +145,9 @@ class Scanner(eqx.Module):
                 raise ValueError(f"history must have shape (H, 2) V, got {history.shape}")
             hx, hy = history[:, 0], history[:, 1]
         t0 = jnp.asarray(t0, dtype=float)
-        return ScannerState(self.x.initial_state(u0[0], hx), self.y.initial_state(u0[1], hy),
-                            jnp.zeros(2), t0, t0)
+        return ScannerState(
+            self.x.initial_state(u0[0], hx), self.y.initial_state(u0[1], hy), jnp.zeros(2), t0, t0
+        )
 
     def run(self, u: Array, t: Array, state: ScannerState, key: Optional[Array] = None) -> tuple:
         """Tip positions (T, 2) nm for drive ``u`` (T, 2) V at times ``t`` (T,) s after
@@ -145,8 +160,10 @@ class Scanner(eqx.Module):
             raise ValueError(f"times t {t.shape} must have one entry per drive sample {u.shape[:1]}")
         checks.increasing("times t", t)
         if checks.is_concrete(t) and checks.is_concrete(state.t) and t[0] < state.t:
-            raise ValueError(f"times t start at {float(t[0])} s, before the state's last sample at "
-                             f"{float(state.t)} s: drive forward in time")
+            raise ValueError(
+                f"times t start at {float(t[0])} s, before the state's last sample at "
+                f"{float(state.t)} s: drive forward in time"
+            )
         random = [n for n in ("drift", "noise") if getattr(self, n) is not None]
         if random and key is None:
             raise ValueError(
@@ -176,10 +193,11 @@ class Scanner(eqx.Module):
         if u.ndim != 2 or u.shape[1] != 2:
             raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
         t = jnp.asarray(t, dtype=float)
-        return self.run(u, t, self.initial_state(u[0], t[0] if t.ndim == 1 and t.size else 0.0, history),
-                        key)[0]
+        return self.run(
+            u, t, self.initial_state(u[0], t[0] if t.ndim == 1 and t.size else 0.0, history), key
+        )[0]
 
-    def without(self, *names: str) -> "Scanner":
+    def without(self, *names: str) -> Scanner:
         """The same scanner with the named effects switched off."""
         check_effect_names(names, "Scanner.without")
         s = self
@@ -247,11 +265,17 @@ def default_scanner(
     position noise ``noise_std`` nm. From a virgin state at 0 V (``history=[[0, 0]]``), ``u = 0``
     is ``x = y = 0``.
     """
+
     def axis(upper_w: tuple, lower_w: tuple) -> Axis:
         pi = pi_with_loop_width(n_operators, 2 * u_range, travel, loop_width)
         half = travel / 2
-        asym = Deadzone(jnp.ones(()), jnp.array([0.2, 0.6]) * half, jnp.array(upper_w),
-                        jnp.array([-0.2, -0.6]) * half, jnp.array(lower_w))
+        asym = Deadzone(
+            jnp.ones(()),
+            jnp.array([0.2, 0.6]) * half,
+            jnp.array(upper_w),
+            jnp.array([-0.2, -0.6]) * half,
+            jnp.array(lower_w),
+        )
         return Axis(GeneralizedPI(pi, asym), creep=Creep.logarithmic(creep_gamma))
 
     return Scanner(
@@ -259,7 +283,8 @@ def default_scanner(
         axis((-0.06, -0.10), (0.04, 0.06)),
         coupling=Coupling(jnp.asarray(coupling), jnp.asarray(-0.6 * coupling)),
         bow=Bow(jnp.asarray(bow), jnp.asarray(-0.5 * bow)),
-        drift=Drift(jnp.asarray(drift_nm_per_min, dtype=float) / 60.0, jnp.full(2, drift_sigma),
-                    jnp.asarray(1e-3)),
+        drift=Drift(
+            jnp.asarray(drift_nm_per_min, dtype=float) / 60.0, jnp.full(2, drift_sigma), jnp.asarray(1e-3)
+        ),
         noise=Noise(jnp.full(2, noise_std)),
     )

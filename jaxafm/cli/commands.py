@@ -8,17 +8,40 @@ from typing import Optional
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="jaxafm: differentiable AFM scanner models and positioning in JAX.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="jaxafm: differentiable AFM scanner models and positioning in JAX.",
+)
 
 
 FIT_OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
 CALIBRATE_OUTPUTS = ("metrics.json", "compensation.png", "model_*.json")  # what `jaxafm calibrate` writes
-RUN_OUTPUTS = ("metrics.json", "trials.npz", "landmarks.png", "local_scan.png", "push.png", "errors.png",
-               "model_scanner.json")  # what `jaxafm run` writes
-STUDY_OUTPUTS = ("metrics.json", "trials.npz", "trials.csv", "errors.png", "study.yaml", "scanners.json",
-                 "chunks/trials_*.npz", "scanners/model_*.json")  # what `jaxafm study` writes
-DIAGNOSE_OUTPUTS = ("metrics.json", "diagnosis.json", "residuals.png", "report.md")  # what `jaxafm diagnose` writes
+RUN_OUTPUTS = (
+    "metrics.json",
+    "trials.npz",
+    "landmarks.png",
+    "local_scan.png",
+    "push.png",
+    "errors.png",
+    "model_scanner.json",
+)  # what `jaxafm run` writes
+STUDY_OUTPUTS = (
+    "metrics.json",
+    "trials.npz",
+    "trials.csv",
+    "errors.png",
+    "study.yaml",
+    "scanners.json",
+    "chunks/trials_*.npz",
+    "scanners/model_*.json",
+)  # what `jaxafm study` writes
+DIAGNOSE_OUTPUTS = (
+    "metrics.json",
+    "diagnosis.json",
+    "residuals.png",
+    "report.md",
+)  # what `jaxafm diagnose` writes
 
 
 def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
@@ -28,8 +51,10 @@ def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
         raise ValueError(f"output {out} exists and is not a folder: choose another with --out")
     if out.exists() and any(out.iterdir()):
         if not overwrite:
-            raise ValueError(f"output folder {out} exists and is not empty: choose another with --out, "
-                             "or pass --overwrite to replace the results in it")
+            raise ValueError(
+                f"output folder {out} exists and is not empty: choose another with --out, "
+                "or pass --overwrite to replace the results in it"
+            )
         for pattern in outputs:
             for f in out.glob(pattern):
                 f.unlink()
@@ -41,20 +66,27 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(code=2)
 
 
-def _launch(config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple,
-            **options) -> None:
+def _launch(
+    config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple, **options
+) -> None:
     """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it (with
     ``options``) into the output folder, prepared only once the inputs have been checked; errors
     become messages."""
     import importlib
 
-    from . import config as configs
+    from .. import config as configs
 
     try:
         cfg = configs.load_config(config, getattr(configs, schema))
         folder = out or Path(cfg.output)
         importlib.import_module(f"jaxafm.{job}").run(
-            cfg, config, folder, prepare=lambda: prepare_output(folder, overwrite, outputs), log=typer.echo, **options)
+            cfg,
+            config,
+            folder,
+            prepare=lambda: prepare_output(folder, overwrite, outputs),
+            log=typer.echo,
+            **options,
+        )
     except (ValueError, OSError, RuntimeError) as e:
         _fail(e)
     typer.echo(f"wrote the results into {folder}")
@@ -68,46 +100,54 @@ OVERWRITE = typer.Option(False, help="replace the output folder's contents")
 @app.command()
 def fit(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
-    _launch(config, out, overwrite, "ActuatorFitConfig", "actuator_fit", FIT_OUTPUTS)
+    _launch(config, out, overwrite, "ActuatorFitConfig", "identify.actuator_fit", FIT_OUTPUTS)
 
 
 @app.command()
 def calibrate(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """Step A: identify the scanner from a grating image pair, invert it and compensate; write
     fitted scanners, metrics.json and compensation.png."""
-    _launch(config, out, overwrite, "CalibrateConfig", "step_a", CALIBRATE_OUTPUTS)
+    _launch(config, out, overwrite, "CalibrateConfig", "identify.step_a", CALIBRATE_OUTPUTS)
 
 
 @app.command()
 def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
     push, with an ablation table; write metrics.json, trials.npz, the fitted scanner and figures."""
-    _launch(config, out, overwrite, "RunConfig", "strategy", RUN_OUTPUTS)
+    _launch(config, out, overwrite, "RunConfig", "position.strategy", RUN_OUTPUTS)
 
 
 @app.command()
 def diagnose(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
     held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
-    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose", DIAGNOSE_OUTPUTS)
+    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose.record", DIAGNOSE_OUTPUTS)
 
 
 @app.command()
-def study(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE,
-          resume: bool = typer.Option(False, help="go on with an interrupted study in the output folder")):
+def study(
+    config: Path = CONFIG,
+    out: Optional[Path] = OUT,
+    overwrite: bool = OVERWRITE,
+    resume: bool = typer.Option(False, help="go on with an interrupted study in the output folder"),
+):
     """A Monte-Carlo positioning study: trials over drawn scanners, particles and targets, in
     vmapped batches over every JAX device; writes per-chunk results, trials.csv/npz, metrics.json
     and errors.png. Interrupted, it resumes with --resume."""
     if resume and overwrite:
-        _fail(ValueError("--resume goes on with the results in the output folder; --overwrite would delete them: "
-                         "pass one of them"))
-    _launch(config, out, overwrite, "StudyConfig", "study", STUDY_OUTPUTS, resume=resume)
+        _fail(
+            ValueError(
+                "--resume goes on with the results in the output folder; --overwrite would delete them: "
+                "pass one of them"
+            )
+        )
+    _launch(config, out, overwrite, "StudyConfig", "study.monte_carlo", STUDY_OUTPUTS, resume=resume)
 
 
 @app.command()
 def effects():
     """List the effect names used in configs and diagnosis."""
-    from .effects import EFFECTS
+    from ..model.effects import EFFECTS
 
     typer.echo("\n".join(EFFECTS))
 

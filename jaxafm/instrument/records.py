@@ -9,8 +9,9 @@ Every conversion made is written into ``Record.meta``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Optional, Union
 
 import numpy as np
 
@@ -116,11 +117,15 @@ def read_record(
     try:
         data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2)
     except ValueError as e:
-        hint = " (set delimiter: ',' for a CSV file)" if delimiter is None and "," in path.read_text()[:200] else ""
+        hint = (
+            " (set delimiter: ',' for a CSV file)"
+            if delimiter is None and "," in path.read_text()[:200]
+            else ""
+        )
         raise ValueError(f"{path}: not a numeric delimited record{hint} ({e})") from None
     if data.size == 0:
         raise ValueError(f"{path}: no data rows")
-    cols = lambda specs, key: [_column(c, header, path, key) for c in specs]  # noqa: E731
+    cols = lambda specs, key: [_column(c, header, path, key) for c in specs]
     i_in, i_out = cols(input_columns, "input_columns"), cols(output_columns, "output_columns")
     for i in i_in + i_out:
         if i >= data.shape[1]:
@@ -140,9 +145,10 @@ def read_record(
     if np.any(np.diff(t) <= 0):
         raise ValueError(f"{path}: time must increase strictly from row to row")
     meta = {
-        "source": str(path), "samples": len(t),
+        "source": str(path),
+        "samples": len(t),
         "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g}), "
-                     f"output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})",
+        f"output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})",
         "time": f"sample rate {sample_rate_hz} Hz" if sample_rate_hz else f"column {time_column}",
     }
     squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)

@@ -22,12 +22,12 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from . import checks
-from .afm import AFM, AFMState, Raster, raster_images, raster_times
-from .inverse import numerical_inverse
+from .. import checks
+from ..identify.inverse import numerical_inverse
+from ..instrument.afm import AFM, AFMState, Raster, raster_images, raster_times
+from ..instrument.samples import Particles, Tip, surface
+from ..model.scanner import Scanner, ScannerState
 from .landmarks import LandmarkMap
-from .samples import Particles, Tip, surface
-from .scanner import Scanner, ScannerState
 
 Array = jax.Array
 
@@ -74,8 +74,16 @@ class Positioner(eqx.Module):
         return path, h, Stand(state, twin, wanted[-1])
 
 
-def goto(pos: Positioner, sample, stand: Stand, target: Array, key: Array, move_time: float = 0.1,
-         dwell: float = 0.2, samples: int = 64) -> tuple:
+def goto(
+    pos: Positioner,
+    sample,
+    stand: Stand,
+    target: Array,
+    key: Array,
+    move_time: float = 0.1,
+    dwell: float = 0.2,
+    samples: int = 64,
+) -> tuple:
     """Move straight to ``target`` (2,) nm over ``move_time`` s and dwell there ``dwell`` s.
 
     Returns the true tip position (2,) nm at the end of the dwell, the true path
@@ -84,21 +92,26 @@ def goto(pos: Positioner, sample, stand: Stand, target: Array, key: Array, move_
     n_move = samples // 2
     frac = jnp.concatenate([jnp.arange(1, n_move + 1) / n_move, jnp.ones(samples - n_move)])
     wanted = stand.wanted + frac[:, None] * (jnp.asarray(target, dtype=float) - stand.wanted)
-    dt = jnp.concatenate([jnp.full(n_move, move_time / n_move), jnp.full(samples - n_move, dwell / (samples - n_move))])
+    dt = jnp.concatenate(
+        [jnp.full(n_move, move_time / n_move), jnp.full(samples - n_move, dwell / (samples - n_move))]
+    )
     t = stand.afm.scanner.t + jnp.cumsum(dt)
     path, _, stand = pos.drive(sample, stand, wanted, t, key)
     return path[-1], path, stand
 
 
-def press_at(pos: Positioner, sample, stand: Stand, target: Array, depth: float, key: Array,
-             dwell: float = 0.2) -> tuple:
+def press_at(
+    pos: Positioner, sample, stand: Stand, target: Array, depth: float, key: Array, dwell: float = 0.2
+) -> tuple:
     """Move to ``target`` (2,) nm, dwell, and indent ``depth`` nm where the tip really is.
     Returns ``(sample with the indent, stand, true xy)``."""
     xy, _, stand = goto(pos, sample, stand, target, key, dwell=dwell)
     return sample.press(xy, depth), stand, xy
 
 
-def raster(pos: Positioner, sample, stand: Stand, raster: Raster, key: Array, move_time: float = 0.1) -> tuple:
+def raster(
+    pos: Positioner, sample, stand: Stand, raster: Raster, key: Array, move_time: float = 0.1
+) -> tuple:
     """Image ``sample`` along ``raster`` (wanted positions); the images as
     :func:`~jaxafm.afm.raster_scan` gives them, and the next stand."""
     wanted = jnp.asarray(raster.wanted().reshape(-1, 2))
@@ -185,8 +198,15 @@ def _offset(k: Array) -> Array:
     return jnp.where(k % 2 == 1, m, -m)
 
 
-def local_scan(pos: Positioner, sample, stand: Stand, guess: Array, radius: Array, key: Array,
-               spec: LocalScan = LocalScan()) -> tuple:
+def local_scan(
+    pos: Positioner,
+    sample,
+    stand: Stand,
+    guess: Array,
+    radius: Array,
+    key: Array,
+    spec: LocalScan = LocalScan(),
+) -> tuple:
     """Find the centre of a particle of ``radius`` nm expected near ``guess`` (2,) nm (paper III-C).
 
     x lines through the guess, shifted by 0.75 R in y until the heights show
@@ -215,11 +235,13 @@ def local_scan(pos: Positioner, sample, stand: Stand, guess: Array, radius: Arra
         """Move to the line's start, scan to its end and back: heights (2, P), new stand."""
         start, end = centre - L * along, centre + L * along
         there = start + (s[:, None] + L) / (2 * L) * (end - start)
-        wanted = jnp.concatenate([stand.wanted + frac_move[:, None] * (start - stand.wanted), there, there[::-1]])
+        wanted = jnp.concatenate(
+            [stand.wanted + frac_move[:, None] * (start - stand.wanted), there, there[::-1]]
+        )
         dt = jnp.concatenate([jnp.full(n_move, spec.move_time / n_move), jnp.full(2 * P, dt_line)])
         t = stand.afm.scanner.t + jnp.cumsum(dt)
         _, h, stand = pos.drive(sample, stand, wanted, t, k)
-        return jnp.stack([h[n_move:n_move + P], h[n_move + P:][::-1]]), start, end, stand
+        return jnp.stack([h[n_move : n_move + P], h[n_move + P :][::-1]]), start, end, stand
 
     def body(c):
         stand, key, phase, k, origin, est, n, _, _, starts, ends, phases = c  # done, verified: outputs only
@@ -241,7 +263,20 @@ def local_scan(pos: Positioner, sample, stand: Stand, guess: Array, radius: Arra
         starts, ends, phases = starts.at[n].set(start), ends.at[n].set(end), phases.at[n].set(phase)
         n = n + 1
         done = verified | exhausted | (n >= spec.max_lines)
-        return (stand, key, next_phase, next_k, next_origin, next_est, n, done, verified, starts, ends, phases)
+        return (
+            stand,
+            key,
+            next_phase,
+            next_k,
+            next_origin,
+            next_est,
+            n,
+            done,
+            verified,
+            starts,
+            ends,
+            phases,
+        )
 
     guess = jnp.asarray(guess, dtype=float)
     t0 = stand.afm.scanner.t
@@ -268,8 +303,18 @@ class Push(eqx.Module):
     samples: int = eqx.field(static=True, default=512)
 
 
-def push(pos: Positioner, sample, stand: Stand, centre: Array, particle: Array, radius: Array,
-         direction: Array, distance: Array, key: Array, spec: Push = Push()) -> tuple:
+def push(
+    pos: Positioner,
+    sample,
+    stand: Stand,
+    centre: Array,
+    particle: Array,
+    radius: Array,
+    direction: Array,
+    distance: Array,
+    key: Array,
+    spec: Push = Push(),
+) -> tuple:
     """Push the particle whose centre the software sees at ``centre`` (2,) nm (truly at
     ``particle``) by ``distance`` nm along the unit ``direction`` (2,): approach behind it
     (lifted), lower, push so that it ends at ``centre + distance * direction``, retract.

@@ -29,8 +29,10 @@ def _check_image(z: np.ndarray, name: str) -> np.ndarray:
     if z.ndim != 2 or min(z.shape) < 8:
         raise ValueError(f"{name} must be a 2-D image of at least 8 x 8 pixels, got shape {z.shape}")
     if not np.isfinite(z).all():
-        raise ValueError(f"{name} has {int((~np.isfinite(z)).sum())} NaN or infinite pixels: "
-                         "fill or crop them before extracting features")
+        raise ValueError(
+            f"{name} has {int((~np.isfinite(z)).sum())} NaN or infinite pixels: "
+            "fill or crop them before extracting features"
+        )
     if np.ptp(z) == 0:
         raise ValueError(f"{name} is flat: no grating features to find")
     return z
@@ -44,14 +46,17 @@ def _indices(coord: np.ndarray, spacing_px: float, axis: str, name: str) -> np.n
     idx[order] = np.concatenate([[0], np.cumsum(gaps)])
     lines = np.array([coord[idx == k].mean() for k in range(idx.max() + 1)])
     if len(lines) < 3:
-        raise ValueError(f"{name}: only {len(lines)} complete feature line(s) along {axis}; the grating must "
-                         "fill the scan with at least 3 pitches each way: scan a larger area or use a finer grating")
+        raise ValueError(
+            f"{name}: only {len(lines)} complete feature line(s) along {axis}; the grating must "
+            "fill the scan with at least 3 pitches each way: scan a larger area or use a finer grating"
+        )
     step = np.median(np.diff(lines))
     if not 0.7 < step / spacing_px < 1.4:
         raise ValueError(
             f"{name}: features repeat every {step:.1f} px along {axis}, but the stated pitch is "
             f"{spacing_px:.1f} px there (ratio {step / spacing_px:.2f}): no periodicity at the stated pitch; "
-            "check the grating pitch and the scan size")
+            "check the grating pitch and the scan size"
+        )
     return idx
 
 
@@ -74,10 +79,14 @@ def lattice_features(z: np.ndarray, pitch_px: tuple, name: str = "image") -> Lat
             continue
         rc.append(region.centroid_weighted)
     if len(rc) < 9:
-        raise ValueError(f"{name}: found {len(rc)} complete features; the grating must fill the scan with "
-                         "at least 3 x 3 pillars or pits (pits: pass the negated image)")
+        raise ValueError(
+            f"{name}: found {len(rc)} complete features; the grating must fill the scan with "
+            "at least 3 x 3 pillars or pits (pits: pass the negated image)"
+        )
     rc = np.asarray(rc)
-    ij = np.stack([_indices(rc[:, 1], pitch_px[0], "x", name), _indices(rc[:, 0], pitch_px[1], "y", name)], -1)
+    ij = np.stack(
+        [_indices(rc[:, 1], pitch_px[0], "x", name), _indices(rc[:, 0], pitch_px[1], "y", name)], -1
+    )
     return LatticeFeatures(rc, ij)
 
 
@@ -114,7 +123,7 @@ def edge_crossings(row: np.ndarray, band: float = 0.2) -> tuple:
     pos = np.empty(len(turns))
     for i, t in enumerate(turns):
         a, b = k[t], k[t + 1]
-        s = row[a:b + 1] - level
+        s = row[a : b + 1] - level
         j = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
         pos[i] = np.mean(a + j + s[j] / (s[j] - s[j + 1]))
     return pos, state[k[turns + 1]] > 0
@@ -124,5 +133,10 @@ def pitch_spread(pitches: np.ndarray) -> dict:
     """Spread of local pitches (nm): mean, std and peak-to-peak, also as % of the mean."""
     p = np.asarray(pitches, dtype=float)
     mean = float(p.mean())
-    return {"pitch_mean_nm": mean, "pitch_std_nm": float(p.std()), "pitch_ptp_nm": float(np.ptp(p)),
-            "pitch_std_pct": 100 * float(p.std()) / mean, "pitch_ptp_pct": 100 * float(np.ptp(p)) / mean}
+    return {
+        "pitch_mean_nm": mean,
+        "pitch_std_nm": float(p.std()),
+        "pitch_ptp_nm": float(np.ptp(p)),
+        "pitch_std_pct": 100 * float(p.std()) / mean,
+        "pitch_ptp_pct": 100 * float(np.ptp(p)) / mean,
+    }

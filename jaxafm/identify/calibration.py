@@ -21,20 +21,21 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Optional, Sequence
+from collections.abc import Callable, Sequence
+from typing import Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .afm import AFM, Raster, raster_scan
-from .effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
+from ..instrument.afm import AFM, Raster, raster_scan
+from ..instrument.samples import Lattice, Plane, Tip
+from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
+from ..model.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
+from ..model.scanner import Axis, Scanner
 from .features import LatticeFeatures, lattice_features
 from .fit import FitResult, _softplus_inv, _solve, free_parameters
-from .hysteresis import Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii
-from .samples import Lattice, Plane, Tip
-from .scanner import Axis, Scanner
 
 Array = jax.Array
 KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key never matters
@@ -59,8 +60,19 @@ class CalibrationScan(eqx.Module):
     pits: bool = eqx.field(static=True)
     depth_scale: float = eqx.field(static=True)
 
-    def __init__(self, trace, retrace, raster: Raster, pitch, sensitivity, u_max: float, u0=(0.0, 0.0),
-                 t0: float = 0.0, history=None, pits: bool = False):
+    def __init__(
+        self,
+        trace,
+        retrace,
+        raster: Raster,
+        pitch,
+        sensitivity,
+        u_max: float,
+        u0=(0.0, 0.0),
+        t0: float = 0.0,
+        history=None,
+        pits: bool = False,
+    ):
         shape = (raster.lines, raster.pixels)
         for name, z in (("trace", trace), ("retrace", retrace)):
             if np.shape(z) != shape:
@@ -72,7 +84,9 @@ class CalibrationScan(eqx.Module):
         if min(self.pitch) <= 0:
             raise ValueError(f"the grating pitch must be > 0 nm, got {self.pitch}")
         self.u_max, self.u0, self.t0 = float(u_max), tuple(float(v) for v in u0), float(t0)
-        self.history = None if history is None else tuple(tuple(float(v) for v in h) for h in np.asarray(history))
+        self.history = (
+            None if history is None else tuple(tuple(float(v) for v in h) for h in np.asarray(history))
+        )
         self.pits = bool(pits)
         self.depth_scale = float(np.ptp(np.asarray(trace))) or 1.0
 
@@ -97,6 +111,7 @@ class CalibrationScan(eqx.Module):
 def _match_indices(ft: LatticeFeatures, fr: LatticeFeatures) -> LatticeFeatures:
     """Shift the retrace's indices onto the trace's: x columns matched at the right edge, where
     the trace turns into the retrace and the tip is continuous; y rows by position (same lines)."""
+
     def line_means(f, axis, col):
         return {k: f.rc[f.ij[:, axis] == k, col].mean() for k in np.unique(f.ij[:, axis])}
 
@@ -118,8 +133,9 @@ class ScanModel(eqx.Module):
 
     def afm(self, scan: CalibrationScan) -> AFM:
         """The simulated AFM with this model as its scanner (tip dilation off)."""
-        return AFM(self.scanner, Tip(), jnp.asarray(scan.sensitivity), self.feedback,
-                   u_max=scan.u_max, dilate=False)
+        return AFM(
+            self.scanner, Tip(), jnp.asarray(scan.sensitivity), self.feedback, u_max=scan.u_max, dilate=False
+        )
 
     def paths(self, scan: CalibrationScan) -> tuple:
         """The tip's path (lines, pixels, 2) nm over the trace and the retrace pixels, along the
@@ -129,7 +145,9 @@ class ScanModel(eqx.Module):
         return out["path_trace"], out["path_retrace"]
 
     def _start(self, afm: AFM, scan: CalibrationScan):
-        return afm.initial_state(scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history))
+        return afm.initial_state(
+            scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history)
+        )
 
     def image(self, scan: CalibrationScan) -> dict:
         """:func:`~jaxafm.afm.raster_scan` of the lattice through this model, along the scan's drive."""
@@ -137,8 +155,14 @@ class ScanModel(eqx.Module):
         return raster_scan(afm, self.lattice, self._start(afm, scan), scan.raster, key=KEY)
 
 
-def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[str] = MODEL_EFFECTS,
-                  operators: int = 20, deadzones: int = 3, levels: int = 20) -> ScanModel:
+def initial_model(
+    scan: CalibrationScan,
+    kind: str = "gpi",
+    effects: Sequence[str] = MODEL_EFFECTS,
+    operators: int = 20,
+    deadzones: int = 3,
+    levels: int = 20,
+) -> ScanModel:
     """The nominal model a fit starts from: the straight calibration line, no other effect yet.
 
     ``kind``: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
@@ -148,8 +172,10 @@ def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[st
     """
     unknown = [e for e in effects if e not in MODEL_EFFECTS]
     if unknown:
-        raise ValueError(f"effect {unknown[0]!r} cannot be fitted from grating images; "
-                         f"choose from {', '.join(MODEL_EFFECTS)}")
+        raise ValueError(
+            f"effect {unknown[0]!r} cannot be fitted from grating images; "
+            f"choose from {', '.join(MODEL_EFFECTS)}"
+        )
     if kind == "gpi" and "asymmetry" not in effects:
         kind = "pi"
 
@@ -166,26 +192,42 @@ def initial_model(scan: CalibrationScan, kind: str = "gpi", effects: Sequence[st
                 h = GeneralizedPI(h, Deadzone.identity(-steps, steps))
             elif kind != "pi":
                 raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
-        return Axis(h, RateDependence(jnp.asarray(5e-3)) if "rate_dependence" in effects else None,
-                    Creep.logarithmic(0.0, per_decade=1) if "creep" in effects else None)
+        return Axis(
+            h,
+            RateDependence(jnp.asarray(5e-3)) if "rate_dependence" in effects else None,
+            Creep.logarithmic(0.0, per_decade=1) if "creep" in effects else None,
+        )
 
-    has = lambda e, module: module if e in effects else None  # noqa: E731
-    scanner = Scanner(axis(scan.sensitivity[0], 0), axis(scan.sensitivity[1], 1),
-                      has("coupling", Coupling(jnp.zeros(()), jnp.zeros(()))),
-                      has("bow", Bow(jnp.zeros(()), jnp.zeros(()))),
-                      has("drift", Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))))
+    has = lambda e, module: module if e in effects else None
+    scanner = Scanner(
+        axis(scan.sensitivity[0], 0),
+        axis(scan.sensitivity[1], 1),
+        has("coupling", Coupling(jnp.zeros(()), jnp.zeros(()))),
+        has("bow", Bow(jnp.zeros(()), jnp.zeros(()))),
+        has("drift", Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))),
+    )
     z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
     depth = float(np.percentile(z, 98) - np.percentile(z, 2))
-    lattice = Lattice(jnp.asarray(scan.pitch), jnp.asarray(0.25 * min(scan.pitch)),
-                      jnp.asarray(-depth if scan.pits else depth), jnp.asarray(50.0), jnp.zeros(()), jnp.zeros(2))
+    lattice = Lattice(
+        jnp.asarray(scan.pitch),
+        jnp.asarray(0.25 * min(scan.pitch)),
+        jnp.asarray(-depth if scan.pits else depth),
+        jnp.asarray(50.0),
+        jnp.zeros(()),
+        jnp.zeros(2),
+    )
     return ScanModel(scanner, has("feedback_lag", FeedbackLag(jnp.asarray(5e-4))), lattice)
 
 
 def _field(get: Callable, scale: float, positive: bool = False, shared: bool = False):
     """One fitted field: its getter, the maps raw (order one) -> value -> raw, and whether one
     raw number is shared by all its elements."""
-    return get, (lambda r: jax.nn.softplus(r) * scale) if positive else (lambda r: r * scale), \
-        (lambda v: _softplus_inv(v / scale)) if positive else (lambda v: v / scale), shared
+    return (
+        get,
+        (lambda r: jax.nn.softplus(r) * scale) if positive else (lambda r: r * scale),
+        (lambda v: _softplus_inv(v / scale)) if positive else (lambda v: v / scale),
+        shared,
+    )
 
 
 def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
@@ -196,12 +238,18 @@ def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
     """
     travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
     pitch = min(scan.pitch)
-    fields = [_field(lambda m: m.lattice.phase, pitch), _field(lambda m: m.lattice.radius, pitch, True),
-              _field(lambda m: m.lattice.depth, scan.depth_scale),
-              _field(lambda m: m.lattice.edge_width, 50.0, True)]
+    fields = [
+        _field(lambda m: m.lattice.phase, pitch),
+        _field(lambda m: m.lattice.radius, pitch, True),
+        _field(lambda m: m.lattice.depth, scan.depth_scale),
+        _field(lambda m: m.lattice.edge_width, 50.0, True),
+    ]
     s = model.scanner
     if s.coupling is not None:
-        fields += [_field(lambda m: m.scanner.coupling.xy, 0.01), _field(lambda m: m.scanner.coupling.yx, 0.01)]
+        fields += [
+            _field(lambda m: m.scanner.coupling.xy, 0.01),
+            _field(lambda m: m.scanner.coupling.yx, 0.01),
+        ]
     if s.bow is not None:
         fields += [_field(lambda m: m.scanner.bow.bx, 1e-6), _field(lambda m: m.scanner.bow.by, 1e-6)]
     if s.drift is not None:
@@ -217,13 +265,18 @@ def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
             fields.append(_field(lambda m, a=a: getattr(m.scanner, a).rate_dependence.tau, 1e-3, True))
     getters = [f[0] for f in fields]
     hysteresis = [free_parameters(getattr(s, a).hysteresis, 2 * scan.u_max, travel) for a in ("x", "y")]
-    raw = ([jnp.mean(f[2](f[0](model))) if f[3] else f[2](f[0](model)) for f in fields],
-           [h[0] for h in hysteresis])
+    raw = (
+        [jnp.mean(f[2](f[0](model))) if f[3] else f[2](f[0](model)) for f in fields],
+        [h[0] for h in hysteresis],
+    )
 
     def rebuild(raw):
         values = [f[1](r) * jnp.ones_like(f[0](model)) for f, r in zip(fields, raw[0])]
         m = eqx.tree_at(lambda m: [g(m) for g in getters], model, values)
-        h = [_zero_offset(rb(r), getattr(s, a).hysteresis) for (_, rb), r, a in zip(hysteresis, raw[1], ("x", "y"))]
+        h = [
+            _zero_offset(rb(r), getattr(s, a).hysteresis)
+            for (_, rb), r, a in zip(hysteresis, raw[1], ("x", "y"))
+        ]
         return eqx.tree_at(lambda m: (m.scanner.x.hysteresis, m.scanner.y.hysteresis), m, tuple(h))
 
     return raw, rebuild
@@ -240,8 +293,12 @@ def _interpolate(a: Array, rc: Array) -> Array:
     r0 = jnp.clip(jnp.floor(rc[:, 0]).astype(int), 0, a.shape[0] - 2)
     c0 = jnp.clip(jnp.floor(rc[:, 1]).astype(int), 0, a.shape[1] - 2)
     fr, fc = (rc[:, 0] - r0)[:, None], (rc[:, 1] - c0)[:, None]
-    return ((1 - fr) * (1 - fc) * a[r0, c0] + (1 - fr) * fc * a[r0, c0 + 1]
-            + fr * (1 - fc) * a[r0 + 1, c0] + fr * fc * a[r0 + 1, c0 + 1])
+    return (
+        (1 - fr) * (1 - fc) * a[r0, c0]
+        + (1 - fr) * fc * a[r0, c0 + 1]
+        + fr * (1 - fc) * a[r0 + 1, c0]
+        + fr * fc * a[r0 + 1, c0 + 1]
+    )
 
 
 def gaussian_kernel(sigma_px: float, radius: int) -> np.ndarray:
@@ -256,8 +313,10 @@ def blur(z: Array, kernel: Array) -> Array:
 
     def along(a, axis):
         padded = jnp.pad(a, [(r, r) if ax == axis else (0, 0) for ax in range(a.ndim)])
-        return sum(kernel[i] * jax.lax.slice_in_dim(padded, i, i + a.shape[axis], axis=axis)
-                   for i in range(kernel.shape[0]))
+        return sum(
+            kernel[i] * jax.lax.slice_in_dim(padded, i, i + a.shape[axis], axis=axis)
+            for i in range(kernel.shape[0])
+        )
 
     return along(along(z, 0), 1) / along(along(jnp.ones_like(z), 0), 1)
 
@@ -282,8 +341,12 @@ def _point_residuals(raw, args) -> Array:
     model = parameters(start, scan)[1](raw)
     paths = model.paths(scan)
     pitch = jnp.asarray(scan.pitch)
-    return jnp.concatenate([((_interpolate(path, rc) - (model.lattice.phase + ij * pitch)) / pitch).ravel()
-                            for (rc, ij), path in zip(features, paths)])
+    return jnp.concatenate(
+        [
+            ((_interpolate(path, rc) - (model.lattice.phase + ij * pitch)) / pitch).ravel()
+            for (rc, ij), path in zip(features, paths)
+        ]
+    )
 
 
 def _image_residuals(raw, args) -> Array:
@@ -291,8 +354,12 @@ def _image_residuals(raw, args) -> Array:
     in fractions of the measured depth."""
     start, scan, kernel = args
     out = parameters(start, scan)[1](raw).image(scan)
-    return jnp.concatenate([((blur(out[k], kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
-                            for k, z in (("trace", scan.trace), ("retrace", scan.retrace))])
+    return jnp.concatenate(
+        [
+            ((blur(out[k], kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
+            for k, z in (("trace", scan.trace), ("retrace", scan.retrace))
+        ]
+    )
 
 
 def _mean_square(residuals: Callable) -> Callable:
@@ -302,10 +369,22 @@ def _mean_square(residuals: Callable) -> Callable:
 _POINT_LOSS, _IMAGE_LOSS = _mean_square(_point_residuals), _mean_square(_image_residuals)
 
 
-def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: str = "gpi",
-             effects: Sequence[str] = MODEL_EFFECTS, operators: int = 20, deadzones: int = 3, levels: int = 20,
-             solver: str = "optimistix.levenberg_marquardt", blur_px: Sequence[float] = (2.0, 1.0),
-             max_steps: int = 100, rtol: float = 1e-5, atol: float = 1e-8, log: Callable = print) -> Identification:
+def identify(
+    scan: CalibrationScan,
+    model: Optional[ScanModel] = None,
+    *,
+    kind: str = "gpi",
+    effects: Sequence[str] = MODEL_EFFECTS,
+    operators: int = 20,
+    deadzones: int = 3,
+    levels: int = 20,
+    solver: str = "optimistix.levenberg_marquardt",
+    blur_px: Sequence[float] = (2.0, 1.0),
+    max_steps: int = 100,
+    rtol: float = 1e-5,
+    atol: float = 1e-8,
+    log: Callable = print,
+) -> Identification:
     """Fit the scanner end to end: to the feature points, then to the images at each blur.
 
     Never returns a silently bad fit: each stage's convergence and last loss
@@ -318,8 +397,10 @@ def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: 
     points = tuple((jnp.asarray(f.rc), jnp.asarray(f.ij)) for f in features)
     plan = [("feature points", _point_residuals, _POINT_LOSS, points)]
     radius = int(np.ceil(3 * max(blur_px, default=0)))
-    plan += [(f"images, blur {b:g} px", _image_residuals, _IMAGE_LOSS, jnp.asarray(gaussian_kernel(b, radius)))
-             for b in blur_px]
+    plan += [
+        (f"images, blur {b:g} px", _image_residuals, _IMAGE_LOSS, jnp.asarray(gaussian_kernel(b, radius)))
+        for b in blur_px
+    ]
     stages = []
     for i, (name, residuals, loss_fn, data) in enumerate(plan):
         model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
@@ -329,10 +410,15 @@ def identify(scan: CalibrationScan, model: Optional[ScanModel] = None, *, kind: 
         raw, steps, ok = _solve(solver, residuals, loss_fn, raw0, max_steps, rtol, atol, args)
         loss = float(2 * jax.jit(loss_fn)(raw, args))  # the mean square residual
         if not np.isfinite(loss):
-            raise RuntimeError(f"step A stage '{name}' diverged with {solver} (loss {loss}); "
-                               "try another solver or a smaller model")
-        message = (f"{solver}: converged in {steps} steps, loss {loss:.3e}" if ok else
-                   f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {loss:.3e}")
+            raise RuntimeError(
+                f"step A stage '{name}' diverged with {solver} (loss {loss}); "
+                "try another solver or a smaller model"
+            )
+        message = (
+            f"{solver}: converged in {steps} steps, loss {loss:.3e}"
+            if ok
+            else f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {loss:.3e}"
+        )
         model = rebuild(raw)
         stages.append(FitResult(model, solver, ok, steps, loss, time.perf_counter() - t0, message))
         log(f"  stage {i + 1}/{len(plan)} {name}: {message}, {stages[-1].seconds:.1f} s")
@@ -343,12 +429,16 @@ def _start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> 
     """Phase from the feature points through the starting model; radius from the pillars' area."""
     ft = features[0]
     path = np.asarray(model.paths(scan)[0])
-    phase = np.mean(np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc))) - ft.ij * np.asarray(scan.pitch), axis=0)
+    phase = np.mean(
+        np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc))) - ft.ij * np.asarray(scan.pitch),
+        axis=0,
+    )
     z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
     area = (z > 0.5 * (z.max() + z.min())).mean() * np.prod(scan.pitch)
     radius = float(np.sqrt(area / np.pi))
-    return eqx.tree_at(lambda m: (m.lattice.phase, m.lattice.radius), model,
-                       (jnp.asarray(phase), jnp.asarray(radius)))
+    return eqx.tree_at(
+        lambda m: (m.lattice.phase, m.lattice.radius), model, (jnp.asarray(phase), jnp.asarray(radius))
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,7 +473,9 @@ class BranchPolynomials:
         return np.stack([x, self.branch("y", u[..., 1])], axis=-1)
 
 
-def fit_polynomials(scan: CalibrationScan, features: Optional[tuple] = None, degree: int = 5) -> BranchPolynomials:
+def fit_polynomials(
+    scan: CalibrationScan, features: Optional[tuple] = None, degree: int = 5
+) -> BranchPolynomials:
     """Least-squares polynomials of ``degree`` from the feature points of trace and retrace.
 
     True positions are ``index * pitch`` plus one offset shared by both branches,
@@ -396,13 +488,22 @@ def fit_polynomials(scan: CalibrationScan, features: Optional[tuple] = None, deg
     sites = np.concatenate([ft.ij, fr.ij]) * pitch
     offset = nominal.mean(axis=0) - sites.mean(axis=0)
     xt, xr = ft.ij * pitch + offset, fr.ij * pitch + offset
-    for name, n in (("trace x", len(np.unique(ft.ij[:, 0]))), ("retrace x", len(np.unique(fr.ij[:, 0]))),
-                    ("y", len(np.unique(ft.ij[:, 1])))):
+    for name, n in (
+        ("trace x", len(np.unique(ft.ij[:, 0]))),
+        ("retrace x", len(np.unique(fr.ij[:, 0]))),
+        ("y", len(np.unique(ft.ij[:, 1]))),
+    ):
         if n <= degree:
-            raise ValueError(f"a degree-{degree} polynomial needs more than {degree} distinct {name} feature "
-                             f"lines, found {n}: lower the degree or use a finer grating")
+            raise ValueError(
+                f"a degree-{degree} polynomial needs more than {degree} distinct {name} feature "
+                f"lines, found {n}: lower the degree or use a finer grating"
+            )
     u_all = np.concatenate([ut, ur])
-    return BranchPolynomials(np.polyfit(ut[:, 0], xt[:, 0], degree), np.polyfit(ur[:, 0], xr[:, 0], degree),
-                             np.polyfit(np.concatenate([ut[:, 1], ur[:, 1]]), np.concatenate([xt[:, 1], xr[:, 1]]),
-                                        min(degree, 3)),
-                             np.stack([u_all.min(axis=0), u_all.max(axis=0)], axis=-1))
+    return BranchPolynomials(
+        np.polyfit(ut[:, 0], xt[:, 0], degree),
+        np.polyfit(ur[:, 0], xr[:, 0], degree),
+        np.polyfit(
+            np.concatenate([ut[:, 1], ur[:, 1]]), np.concatenate([xt[:, 1], xr[:, 1]]), min(degree, 3)
+        ),
+        np.stack([u_all.min(axis=0), u_all.max(axis=0)], axis=-1),
+    )

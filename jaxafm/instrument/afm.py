@@ -19,7 +19,8 @@ instruments or samples, and ``grad`` with respect to scanner parameters work.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Optional
+from collections.abc import Callable
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -27,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import checks
-from .effects import FeedbackLag, check_effect_names
+from .. import checks
+from ..model.effects import FeedbackLag, check_effect_names
+from ..model.scanner import Scanner, ScannerState, default_scanner
 from .samples import Indented, Tip, surface
-from .scanner import Scanner, ScannerState, default_scanner
 
 Array = jax.Array
 
@@ -73,7 +74,7 @@ class AFM(eqx.Module):
             own.add("feedback_lag")
         return frozenset(own) | self.scanner.effects
 
-    def without(self, *names: str) -> "AFM":
+    def without(self, *names: str) -> AFM:
         """The same instrument with the named effects switched off."""
         check_effect_names(names, "AFM.without")
         afm = eqx.tree_at(lambda a: a.scanner, self, self.scanner.without(*names))
@@ -103,9 +104,16 @@ class AFM(eqx.Module):
         """
         self.check_range(u)
         checks.increasing("times t", t)
-        if checks.is_concrete(t) and checks.is_concrete(state.scanner.t) and np.size(t) and t[0] < state.scanner.t:
-            raise ValueError(f"the drive's times start at {float(t[0])} s, before the state's last sample at "
-                             f"{float(state.scanner.t)} s: drive forward in time")
+        if (
+            checks.is_concrete(t)
+            and checks.is_concrete(state.scanner.t)
+            and np.size(t)
+            and t[0] < state.scanner.t
+        ):
+            raise ValueError(
+                f"the drive's times start at {float(t[0])} s, before the state's last sample at "
+                f"{float(state.scanner.t)} s: drive forward in time"
+            )
         return _drive(self, sample, jnp.asarray(u, dtype=float), jnp.asarray(t, dtype=float), state, key)
 
     def check_range(self, u: Array) -> None:
@@ -116,7 +124,8 @@ class AFM(eqx.Module):
             raise ValueError(
                 f"the drive needs {peak:.3g} V, beyond the scanner's range of +-{self.u_max:g} V "
                 f"(about +-{self.u_max * float(np.min(self.sensitivity)):.0f} nm): make the scan smaller, "
-                "move its centre inward or reduce the overscan")
+                "move its centre inward or reduce the overscan"
+            )
 
 
 @eqx.filter_jit
@@ -140,23 +149,36 @@ def render(sample, tip: Optional[Tip], path: Array, batch: int = 2048) -> Array:
     return lax.map(height, path, batch_size=batch)
 
 
-def default_afm(tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3,
-                **scanner_options) -> AFM:
+def default_afm(
+    tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3, **scanner_options
+) -> AFM:
     """The default instrument: ``default_scanner(**scanner_options)``, a 10 nm tip of 20 degrees,
     a 1 ms feedback lag, and the nominal calibration ``travel / (2 u_range)`` nm/V."""
     scanner = default_scanner(**scanner_options)
     u_range = scanner_options.get("u_range", 10.0)
     travel = scanner_options.get("travel", 10_000.0)
-    return AFM(scanner, Tip(jnp.asarray(tip_radius), jnp.asarray(np.deg2rad(tip_half_angle_deg))),
-               jnp.full(2, travel / (2 * u_range)), FeedbackLag(jnp.asarray(feedback_tau)), u_max=u_range)
+    return AFM(
+        scanner,
+        Tip(jnp.asarray(tip_radius), jnp.asarray(np.deg2rad(tip_half_angle_deg))),
+        jnp.full(2, travel / (2 * u_range)),
+        FeedbackLag(jnp.asarray(feedback_tau)),
+        u_max=u_range,
+    )
 
 
 def _times(state: AFMState, n: int, dt: float) -> Array:
     return state.scanner.t + dt * jnp.arange(1, n + 1)
 
 
-def move(afm: AFM, sample, state: AFMState, u_target: Array, duration: float = 0.1, samples: int = 32,
-         key: Optional[Array] = None) -> tuple:
+def move(
+    afm: AFM,
+    sample,
+    state: AFMState,
+    u_target: Array,
+    duration: float = 0.1,
+    samples: int = 32,
+    key: Optional[Array] = None,
+) -> tuple:
     """Ramp the drive straight to ``u_target`` (2,) V over ``duration`` s; returns ``(path, state)``."""
     if not duration > 0 or samples < 1:
         raise ValueError(f"a move needs duration > 0 s and samples >= 1, got {duration} s, {samples}")
@@ -166,22 +188,41 @@ def move(afm: AFM, sample, state: AFMState, u_target: Array, duration: float = 0
     return path, state
 
 
-def press(afm: AFM, sample: Indented, state: AFMState, depth: float, hold: float = 0.2, samples: int = 32,
-          key: Optional[Array] = None) -> tuple:
+def press(
+    afm: AFM,
+    sample: Indented,
+    state: AFMState,
+    depth: float,
+    hold: float = 0.2,
+    samples: int = 32,
+    key: Optional[Array] = None,
+) -> tuple:
     """Hold the drive for ``hold`` s and press the tip ``depth`` nm into the sample where it is.
 
     Returns ``(sample with the indent, state, xy)``; ``xy`` (2,) nm is where the
     tip really was, at the end of the hold.
     """
     if not isinstance(sample, Indented):
-        raise TypeError("press needs a sample that can take indents: wrap it as Indented.empty(sample, afm.tip)")
+        raise TypeError(
+            "press needs a sample that can take indents: wrap it as Indented.empty(sample, afm.tip)"
+        )
     checks.positive("press depth (nm)", depth)
     path, state = move(afm, sample, state, state.u, hold, samples, key)
     return sample.press(path[-1], depth), state, path[-1]
 
 
-def line_scan(afm: AFM, sample, state: AFMState, start: Array, end: Array, points: int, speed: float,
-              volts: Optional[Callable] = None, key: Optional[Array] = None, move_time: float = 0.1) -> tuple:
+def line_scan(
+    afm: AFM,
+    sample,
+    state: AFMState,
+    start: Array,
+    end: Array,
+    points: int,
+    speed: float,
+    volts: Optional[Callable] = None,
+    key: Optional[Array] = None,
+    move_time: float = 0.1,
+) -> tuple:
     """Scan from ``start`` to ``end`` (2,) nm (wanted positions) in ``points`` samples at ``speed`` nm/s.
 
     The tip first moves to the start over ``move_time`` s. Returns the recorded
@@ -230,7 +271,9 @@ class Raster:
         if not all(np.isfinite(size)) or min(size) <= 0:
             raise ValueError(f"Raster.size must be > 0 nm on both axes, got {self.size}")
         if self.pixels != int(self.pixels) or self.lines != int(self.lines):
-            raise ValueError(f"Raster pixels and lines must be whole numbers, got {self.pixels} and {self.lines}")
+            raise ValueError(
+                f"Raster pixels and lines must be whole numbers, got {self.pixels} and {self.lines}"
+            )
         object.__setattr__(self, "pixels", int(self.pixels))
         object.__setattr__(self, "lines", int(self.lines))
         if len(self.centre) != 2:
@@ -276,8 +319,15 @@ class Raster:
         return out
 
 
-def raster_scan(afm: AFM, sample, state: AFMState, raster: Raster, volts: Optional[Callable] = None,
-                key: Optional[Array] = None, move_time: float = 0.1) -> dict:
+def raster_scan(
+    afm: AFM,
+    sample,
+    state: AFMState,
+    raster: Raster,
+    volts: Optional[Callable] = None,
+    key: Optional[Array] = None,
+    move_time: float = 0.1,
+) -> dict:
     """Image ``sample`` with ``raster`` from ``state``: trace and retrace height images (nm).
 
     Returns a dict of arrays: ``trace`` and ``retrace`` (lines, pixels) nm, both
@@ -309,9 +359,9 @@ def raster_images(raster: Raster, path: Array, h: Array, t: Array) -> dict:
     n = P + 2 * m
     out = {}
     for i, name in enumerate(("trace", "retrace")):
-        pick = lambda a: a.reshape((L, 2, n) + a.shape[1:])[:, i, m:m + P]  # noqa: E731
-        flip = (lambda a: a[:, ::-1]) if i == 1 else (lambda a: a)  # noqa: E731
-        rows = (lambda a: a[::-1]) if raster.direction == "down" else (lambda a: a)  # noqa: E731
+        pick = lambda a: a.reshape((L, 2, n) + a.shape[1:])[:, i, m : m + P]
+        flip = (lambda a: a[:, ::-1]) if i == 1 else (lambda a: a)
+        rows = (lambda a: a[::-1]) if raster.direction == "down" else (lambda a: a)
         out[name] = rows(flip(pick(h)))
         out[f"path_{name}"] = rows(flip(pick(path)))
         out[f"t_{name}"] = rows(flip(pick(t)))

@@ -45,9 +45,9 @@ from numpy.polynomial import legendre
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
-from . import gap_report
-from .line_grating import grating_edges
-from .samples import Tip
+from ..identify.line_grating import grating_edges
+from ..instrument.samples import Tip
+from . import report as gap_report
 
 LEVELS = (0.1, 0.3, 0.5, 0.7, 0.9)
 CANDIDATES = ("rate_dependence", "feedback_lag", "tip", "coupling", "bow")
@@ -128,7 +128,7 @@ def _align(e, ref):
     for rising in (True, False):
         a, b = e.rising == rising, ref.rising == rising
         pitch = np.median(np.diff(np.sort(ref.x_nm[b & (ref.row == ref.row[b][0])])))
-        phase = lambda g, s: np.median(g.x_nm[s] - g.index[s] * pitch)  # noqa: E731
+        phase = lambda g, s: np.median(g.x_nm[s] - g.index[s] * pitch)
         index[a] += int(np.round((phase(e, a) - phase(ref, b)) / pitch))
     return dataclasses.replace(e, index=index)
 
@@ -143,7 +143,7 @@ def _edge_levels(z: np.ndarray, e, levels) -> np.ndarray:
         lo, hi = np.percentile(row, [10, 90])
         for i in np.flatnonzero(e.row == r):
             a, b = int(max(np.floor(centre[i] - half), 0)), int(min(np.ceil(centre[i] + half), len(row) - 1))
-            seg = row[a:b + 1]
+            seg = row[a : b + 1]
             for j, lv in enumerate(levels):
                 s = seg - (lo + lv * (hi - lo))
                 k = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
@@ -155,8 +155,14 @@ def _edge_levels(z: np.ndarray, e, levels) -> np.ndarray:
 # ----------------------------------------------------------------------------- edge shape
 
 
-def edge_shape(grating: GratingSpec, depth: float, dx: float, levels, radius: Optional[float] = None,
-               lag_samples: float = 0.0) -> np.ndarray:
+def edge_shape(
+    grating: GratingSpec,
+    depth: float,
+    dx: float,
+    levels,
+    radius: Optional[float] = None,
+    lag_samples: float = 0.0,
+) -> np.ndarray:
     """Crossings (2 kinds, 2 directions, levels) nm of the imaged ramp edge relative to its centre.
 
     Kinds: rising, falling; directions: trace (samples taken with x rising), retrace. The ramp
@@ -165,7 +171,11 @@ def edge_shape(grating: GratingSpec, depth: float, dx: float, levels, radius: Op
     in the scan direction, and its linear-interpolation crossings averaged over :data:`PHASES`.
     """
     w = grating.edge_width_nm
-    reach = 0.0 if radius is None else min(3 * radius + depth * np.tan(np.deg2rad(grating.tip_half_angle_deg)), 400.0)
+    reach = (
+        0.0
+        if radius is None
+        else min(3 * radius + depth * np.tan(np.deg2rad(grating.tip_half_angle_deg)), 400.0)
+    )
     span = w / 2 + reach + 12 * lag_samples * dx + 4 * dx + 20
     xi = FINE_NM * np.arange(-int(span / FINE_NM), int(span / FINE_NM) + 1)  # 0 on the grid
     out = np.empty((2, 2, len(levels)))
@@ -174,19 +184,26 @@ def edge_shape(grating: GratingSpec, depth: float, dx: float, levels, radius: Op
         if radius is not None:
             h = _dilate(h, radius, np.deg2rad(grating.tip_half_angle_deg), reach)
         for d in (0, 1):
-            out[kind, d] = np.mean([_crossings(xi, h, depth, dx, (m + 0.5) / PHASES * dx, lag_samples, d, levels)
-                                    for m in range(PHASES)], axis=0)
+            out[kind, d] = np.mean(
+                [
+                    _crossings(xi, h, depth, dx, (m + 0.5) / PHASES * dx, lag_samples, d, levels)
+                    for m in range(PHASES)
+                ],
+                axis=0,
+            )
     return out
 
 
 def _dilate(h: np.ndarray, radius: float, half_angle: float, reach: float) -> np.ndarray:
     """``max_q [h(xi + q) - tip(|q|)]`` on the fine grid (a grating is the same along y)."""
     q = np.arange(-int(reach / FINE_NM), int(reach / FINE_NM) + 1)
-    lift = np.asarray(Tip(jnp.asarray(radius), jnp.asarray(half_angle)).profile(jnp.asarray(np.abs(q) * FINE_NM)))
+    lift = np.asarray(
+        Tip(jnp.asarray(radius), jnp.asarray(half_angle)).profile(jnp.asarray(np.abs(q) * FINE_NM))
+    )
     pad = np.pad(h, len(q) // 2, mode="edge")
     out = np.full_like(h, -np.inf)
     for j, lj in zip(q, lift):
-        np.maximum(out, pad[len(q) // 2 + j: len(q) // 2 + j + len(h)] - lj, out=out)
+        np.maximum(out, pad[len(q) // 2 + j : len(q) // 2 + j + len(h)] - lj, out=out)
     return out
 
 
@@ -236,13 +253,31 @@ class _Data:
         rows = np.array([p.trace.shape[0] - 1 for p in self.pairs])[f["pair"]]
         t = 2 * f["row"] / np.maximum(rows, 1) - 1
         speed = np.array([p.speed_nm_s for p in self.pairs])[f["pair"]]
-        return {"phase_rise": f["rising"].astype(float), "phase_fall": (~f["rising"]).astype(float),
-                "pitch": f["index"].astype(float), "c2_trace": -p2 * (1 - re), "c3_trace": -p3 * (1 - re),
-                "c2_retrace": -p2 * re, "c3_retrace": -p3 * re, "offset_retrace": re,
-                "rate_dependence": self.sign * speed, "coupling": -f["y"], "bow": -0.5 * (3 * t**2 - 1)}
+        return {
+            "phase_rise": f["rising"].astype(float),
+            "phase_fall": (~f["rising"]).astype(float),
+            "pitch": f["index"].astype(float),
+            "c2_trace": -p2 * (1 - re),
+            "c3_trace": -p3 * (1 - re),
+            "c2_retrace": -p2 * re,
+            "c3_retrace": -p3 * re,
+            "offset_retrace": re,
+            "rate_dependence": self.sign * speed,
+            "coupling": -f["y"],
+            "bow": -0.5 * (3 * t**2 - 1),
+        }
 
 
-NOMINAL = ("phase_rise", "phase_fall", "pitch", "c2_trace", "c3_trace", "c2_retrace", "c3_retrace", "offset_retrace")
+NOMINAL = (
+    "phase_rise",
+    "phase_fall",
+    "pitch",
+    "c2_trace",
+    "c3_trace",
+    "c2_retrace",
+    "c3_retrace",
+    "offset_retrace",
+)
 
 
 def _shape(data: _Data, scale: float, radius=None, tau_s: float = 0.0) -> np.ndarray:
@@ -250,8 +285,9 @@ def _shape(data: _Data, scale: float, radius=None, tau_s: float = 0.0) -> np.nda
     f, out = data.f, np.empty(len(data.f["x"]))
     li = np.searchsorted(LEVELS, f["level"])
     for p, pair in enumerate(data.pairs):
-        table = edge_shape(data.grating, data.depth, pair.pixel_size[0] / scale, LEVELS, radius,
-                           tau_s / pair.sample_time_s)
+        table = edge_shape(
+            data.grating, data.depth, pair.pixel_size[0] / scale, LEVELS, radius, tau_s / pair.sample_time_s
+        )
         sel = f["pair"] == p
         out[sel] = table[(~f["rising"][sel]).astype(int), f["retrace"][sel].astype(int), li[sel]]
     return out
@@ -275,9 +311,16 @@ def _solve(data: _Data, cols: list, shape: np.ndarray, scale: float, searched: i
     r = b - a @ theta
     n, k = int(data.train.sum()), len(cols) + searched
     rss = float(r[data.train] @ r[data.train])
-    return {"residual": r, "theta": th, "parameters": k, "rss": rss,
-            "train_rms_nm": float(np.sqrt(rss / n)), "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
-            "heldout_gap_nm": _systematic(data, r), "heldout_rms_nm": float(np.sqrt(np.mean(r[~data.train] ** 2)))}
+    return {
+        "residual": r,
+        "theta": th,
+        "parameters": k,
+        "rss": rss,
+        "train_rms_nm": float(np.sqrt(rss / n)),
+        "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
+        "heldout_gap_nm": _systematic(data, r),
+        "heldout_rms_nm": float(np.sqrt(np.mean(r[~data.train] ** 2))),
+    }
 
 
 def _systematic(data: _Data, r: np.ndarray) -> float:
@@ -289,8 +332,15 @@ def _cell_means(data: _Data, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
     """Mean residual (pairs, direction [trace, retrace], kind [rising, falling], levels) nm over
     the crossings ``sel``; NaN where a cell has none."""
     f, shape = data.f, (len(data.pairs), 2, 2, len(LEVELS))
-    cell = np.ravel_multi_index((f["pair"], f["retrace"].astype(int), (~f["rising"]).astype(int),
-                                 np.searchsorted(LEVELS, f["level"])), shape)
+    cell = np.ravel_multi_index(
+        (
+            f["pair"],
+            f["retrace"].astype(int),
+            (~f["rising"]).astype(int),
+            np.searchsorted(LEVELS, f["level"]),
+        ),
+        shape,
+    )
     sums = np.bincount(cell[sel], r[sel], minlength=np.prod(shape))
     counts = np.bincount(cell[sel], minlength=np.prod(shape))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -303,8 +353,9 @@ def _search(fit_at, lo: float, hi: float) -> tuple:
     rss = [fit_at(v)["rss"] for v in grid]
     i = int(np.argmin(rss))
     a, b = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, len(grid) - 1)])
-    best = minimize_scalar(lambda lv: fit_at(np.exp(lv))["rss"], bounds=(a, b), method="bounded",
-                           options={"xatol": 0.01})
+    best = minimize_scalar(
+        lambda lv: fit_at(np.exp(lv))["rss"], bounds=(a, b), method="bounded", options={"xatol": 0.01}
+    )
     v = float(np.exp(best.x)) if best.fun <= rss[i] else float(grid[i])
     return v, fit_at(v)
 
@@ -314,12 +365,17 @@ def fit_candidate(data: _Data, name: Optional[str], scale: float) -> dict:
     ``fitted`` holds the candidate's parameter."""
     cols = list(NOMINAL)
     if name == "tip":
-        radius, fit = _search(lambda r: _solve(data, cols, _shape(data, scale, radius=r), scale, 1), *TIP_RADII_NM)
+        radius, fit = _search(
+            lambda r: _solve(data, cols, _shape(data, scale, radius=r), scale, 1), *TIP_RADII_NM
+        )
         return fit | {"fitted": {"tip_radius_nm": radius}}
     if name == "feedback_lag":
         dt = min(p.sample_time_s for p in data.pairs)
-        tau, fit = _search(lambda v: _solve(data, cols, _shape(data, scale, tau_s=v), scale, 1),
-                           LAG_SAMPLES[0] * dt, LAG_SAMPLES[1] * dt)
+        tau, fit = _search(
+            lambda v: _solve(data, cols, _shape(data, scale, tau_s=v), scale, 1),
+            LAG_SAMPLES[0] * dt,
+            LAG_SAMPLES[1] * dt,
+        )
         return fit | {"fitted": {"tau_s": tau}}
     fit = _solve(data, cols + ([name] if name else []), _shape(data, scale), scale)
     key = "tau_s" if name == "rate_dependence" else name
@@ -330,19 +386,25 @@ def diagnose_scans(pairs, grating: GratingSpec, candidates, train_fraction: floa
     """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs`` (ScanPair);
     the first ``train_fraction`` of every pair's rows train, its later rows are held out."""
     if len(pairs) < 2:
-        raise ValueError(f"a scan-set diagnosis needs trace/retrace pairs at two or more scan speeds, got "
-                         f"{len(pairs)}: add a pair scanned at another line rate")
+        raise ValueError(
+            f"a scan-set diagnosis needs trace/retrace pairs at two or more scan speeds, got "
+            f"{len(pairs)}: add a pair scanned at another line rate"
+        )
     pairs = sorted(pairs, key=lambda p: p.speed_nm_s)
     speeds = [p.speed_nm_s for p in pairs]
     if len(set(np.round(speeds, 6))) < 2:
-        raise ValueError(f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
-                         "two speeds: give a pair scanned at another line rate")
+        raise ValueError(
+            f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
+            "two speeds: give a pair scanned at another line rate"
+        )
     f = crossings(pairs)
     rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
     train = f["row"] < np.round(train_fraction * rows)
     if train.sum() < 50 or (~train).sum() < 50:
-        raise ValueError(f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
-                         f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction")
+        raise ValueError(
+            f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
+            f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction"
+        )
     depth = float(np.median([np.subtract(*np.percentile(p.trace, [90, 10], axis=1)) for p in pairs]))
     data = _Data(f, list(pairs), grating, depth, train)
     scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0)["theta"]["pitch"] / grating.pitch_nm
@@ -356,8 +418,14 @@ def diagnose_scans(pairs, grating: GratingSpec, candidates, train_fraction: floa
         rows.append(gap_report.candidate_row(c, nominal, fit, rules, fitted=fit["fitted"]))
     rows.sort(key=lambda r: -r["shrink_pct"])
     verdict = next((r["effect"] for r in rows if r["significant"]), None)
-    return {"data": data, "scale": scale, "nominal": nominal, "candidates": rows,
-            "skipped": skipped, "verdict": verdict}
+    return {
+        "data": data,
+        "scale": scale,
+        "nominal": nominal,
+        "candidates": rows,
+        "skipped": skipped,
+        "verdict": verdict,
+    }
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -372,18 +440,22 @@ def where(res: dict) -> list:
     by_pair = np.sqrt(np.nanmean(cells**2, axis=(1, 2, 3)))
     # trace minus retrace, rising edges at mid level: a lag moves the two apart in proportion to the speed
     split = cells[:, 0, 0, LEVELS.index(0.5)] - cells[:, 1, 0, LEVELS.index(0.5)]
-    spread = np.moveaxis((cells[..., -1] - cells[..., 0]) * [1, -1], -1, 0)  # (kind, pair, direction); > 0: wider
-    return [f"By level, the systematic misfit is {', '.join(f'{v:.2g}' for v in by_level)} nm at "
-            f"{', '.join(f'{100 * lv:.0f} %' for lv in LEVELS)} of the step (an edge shape the model lacks "
-            "shows at some levels more than others).",
-            f"By scan speed ({', '.join(f'{v / 1e3:.3g}' for v in speeds)} um/s): "
-            f"{', '.join(f'{v:.2g}' for v in by_pair)} nm"
-            f"; trace minus retrace at mid level (rising edges): {', '.join(f'{v:+.2g}' for v in split)} nm "
-            "(a lag grows it with the speed, hysteresis does not).",
-            f"Edges wider than modelled (10 % to 90 % crossing), rising / falling, trace: "
-            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 0], spread[1, :, 0]))} nm; retrace: "
-            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 1], spread[1, :, 1]))} nm per speed "
-            "(a tip widens every edge alike; a feedback lag widens them more at higher speed)."]
+    spread = np.moveaxis(
+        (cells[..., -1] - cells[..., 0]) * [1, -1], -1, 0
+    )  # (kind, pair, direction); > 0: wider
+    return [
+        f"By level, the systematic misfit is {', '.join(f'{v:.2g}' for v in by_level)} nm at "
+        f"{', '.join(f'{100 * lv:.0f} %' for lv in LEVELS)} of the step (an edge shape the model lacks "
+        "shows at some levels more than others).",
+        f"By scan speed ({', '.join(f'{v / 1e3:.3g}' for v in speeds)} um/s): "
+        f"{', '.join(f'{v:.2g}' for v in by_pair)} nm"
+        f"; trace minus retrace at mid level (rising edges): {', '.join(f'{v:+.2g}' for v in split)} nm "
+        "(a lag grows it with the speed, hysteresis does not).",
+        f"Edges wider than modelled (10 % to 90 % crossing), rising / falling, trace: "
+        f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 0], spread[1, :, 0]))} nm; retrace: "
+        f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 1], spread[1, :, 1]))} nm per speed "
+        "(a tip widens every edge alike; a feedback lag widens them more at higher speed).",
+    ]
 
 
 def figure(res: dict, path) -> None:
@@ -395,17 +467,30 @@ def figure(res: dict, path) -> None:
     data, nominal = res["data"], res["nominal"]
     top = next((c for c in res["candidates"] if c["effect"] == res["verdict"]), None)
     fig, ax = plt.subplots(2, 2, figsize=(12, 8.5))
-    for a, (label, r) in zip(ax[0], [("nominal", nominal["residual"])]
-                             + ([(f"with {top['effect']}", top["fit"]["residual"])] if top else [])):
+    for a, (label, r) in zip(
+        ax[0],
+        [("nominal", nominal["residual"])]
+        + ([(f"with {top['effect']}", top["fit"]["residual"])] if top else []),
+    ):
         cells = _cell_means(data, r, ~data.train)
         for p, pair in enumerate(data.pairs):
             for d, ls in ((0, "-"), (1, "--")):
                 for k, marker in ((0, "^"), (1, "v")):
-                    a.plot(100 * np.array(LEVELS), cells[p, d, k], ls, marker=marker, color=f"C{p}", lw=1,
-                           label=f"{pair.speed_nm_s / 1e3:.3g} um/s" if d == k == 0 else None)
+                    a.plot(
+                        100 * np.array(LEVELS),
+                        cells[p, d, k],
+                        ls,
+                        marker=marker,
+                        color=f"C{p}",
+                        lw=1,
+                        label=f"{pair.speed_nm_s / 1e3:.3g} um/s" if d == k == 0 else None,
+                    )
         a.axhline(0, color="k", lw=0.5)
-        a.set(xlabel="level [% of the step]", ylabel="mean held-out crossing residual [nm]",
-              title=f"{label}: - trace, -- retrace; ^ rising, v falling edges")
+        a.set(
+            xlabel="level [% of the step]",
+            ylabel="mean held-out crossing residual [nm]",
+            title=f"{label}: - trace, -- retrace; ^ rising, v falling edges",
+        )
         a.legend(fontsize=8)
     if top is None:
         ax[0, 1].axis("off")
@@ -414,11 +499,15 @@ def figure(res: dict, path) -> None:
     for d, name in ((False, "trace"), (True, "retrace")):
         sel = ~data.train & (f["retrace"] == d) & (f["level"] == 0.5)
         a.plot(f["x"][sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
-    a.set(xlabel="x (nominal) [um]", ylabel="residual at mid level [nm]",
-          title="nominal, held-out rows, across the field")
+    a.set(
+        xlabel="x (nominal) [um]",
+        ylabel="residual at mid level [nm]",
+        title="nominal, held-out rows, across the field",
+    )
     a.legend(fontsize=8, markerscale=4)
-    gap_report.candidate_bars(ax[1, 1], res["candidates"], nominal["heldout_gap_nm"],
-                              "held-out systematic gap [nm]")
+    gap_report.candidate_bars(
+        ax[1, 1], res["candidates"], nominal["heldout_gap_nm"], "held-out systematic gap [nm]"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -428,25 +517,63 @@ def write_outputs(res: dict, rules, out, log=print) -> dict:
     """``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md``; returns the metrics."""
     data, nominal, rows = res["data"], res["nominal"], res["candidates"]
     verdict, metrics = gap_report.summary(res, nominal, rows)
-    metrics |= {"nominal_heldout_rms_nm": nominal["heldout_rms_nm"], "train_crossings": int(data.train.sum()),
-                "heldout_crossings": int((~data.train).sum()), "calibration_scale": res["scale"],
-                "edge_depth_nm": data.depth}
-    pairs = [{"name": p.name, "pixels": list(p.trace.shape), "pixel_size_nm": list(p.pixel_size),
-              "sample_time_s": p.sample_time_s, "speed_nm_s": p.speed_nm_s} for p in data.pairs]
-    doc = {"data": {"source": f"{len(pairs)} trace/retrace pairs of a 1-D grating", "kind": "scan set", "pairs": pairs,
-                    "grating": dataclasses.asdict(data.grating), "levels": list(LEVELS),
-                    "train_samples": int(data.train.sum()), "heldout_samples": int((~data.train).sum()),
-                    "counts": "edge-level crossings", "units": "nm (crossings, gaps), s"},
-           "nominal": {"model": "hysteresis-only scanner (a nonlinearity per branch and the loop offset), ideal tip "
-                                "and feedback, the grating's known edge",
-                       "train_rms_nm": nominal["train_rms_nm"], "heldout_gap_nm": nominal["heldout_gap_nm"],
-                       "heldout_rms_nm": nominal["heldout_rms_nm"], "parameters": nominal["parameters"],
-                       "fitted": nominal["theta"]},
-           "verdict": verdict, "candidates": [{k: v for k, v in c.items() if k != "fit"} for c in rows],
-           "skipped": res["skipped"], "rules": dataclasses.asdict(rules), "where": where(res)}
+    metrics |= {
+        "nominal_heldout_rms_nm": nominal["heldout_rms_nm"],
+        "train_crossings": int(data.train.sum()),
+        "heldout_crossings": int((~data.train).sum()),
+        "calibration_scale": res["scale"],
+        "edge_depth_nm": data.depth,
+    }
+    pairs = [
+        {
+            "name": p.name,
+            "pixels": list(p.trace.shape),
+            "pixel_size_nm": list(p.pixel_size),
+            "sample_time_s": p.sample_time_s,
+            "speed_nm_s": p.speed_nm_s,
+        }
+        for p in data.pairs
+    ]
+    doc = {
+        "data": {
+            "source": f"{len(pairs)} trace/retrace pairs of a 1-D grating",
+            "kind": "scan set",
+            "pairs": pairs,
+            "grating": dataclasses.asdict(data.grating),
+            "levels": list(LEVELS),
+            "train_samples": int(data.train.sum()),
+            "heldout_samples": int((~data.train).sum()),
+            "counts": "edge-level crossings",
+            "units": "nm (crossings, gaps), s",
+        },
+        "nominal": {
+            "model": "hysteresis-only scanner (a nonlinearity per branch and the loop offset), ideal tip "
+            "and feedback, the grating's known edge",
+            "train_rms_nm": nominal["train_rms_nm"],
+            "heldout_gap_nm": nominal["heldout_gap_nm"],
+            "heldout_rms_nm": nominal["heldout_rms_nm"],
+            "parameters": nominal["parameters"],
+            "fitted": nominal["theta"],
+        },
+        "verdict": verdict,
+        "candidates": [{k: v for k, v in c.items() if k != "fit"} for c in rows],
+        "skipped": res["skipped"],
+        "rules": dataclasses.asdict(rules),
+        "where": where(res),
+    }
     figure(res, out / "residuals.png")
-    gap_report.save(doc, metrics, out, gap_report.markdown_head(doc) + [
-        "- The gap is systematic: per (pair, direction, edge kind, level) the mean held-out residual, then their "
-        f"rms; the nominal's per-crossing rms is {nominal['heldout_rms_nm']:.3g} nm.", "",
-        "![residuals](residuals.png)", ""], log)
+    gap_report.save(
+        doc,
+        metrics,
+        out,
+        gap_report.markdown_head(doc)
+        + [
+            "- The gap is systematic: per (pair, direction, edge kind, level) the mean held-out residual, then their "
+            f"rms; the nominal's per-crossing rms is {nominal['heldout_rms_nm']:.3g} nm.",
+            "",
+            "![residuals](residuals.png)",
+            "",
+        ],
+        log,
+    )
     return metrics

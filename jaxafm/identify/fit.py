@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -22,15 +23,28 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
-from .effects import Creep, RateDependence
-from .hysteresis import Deadzone, GeneralizedPI, Linear, PlayOperator, Preisach, PrandtlIshlinskii, play
-from .scanner import Axis
+from ..model.effects import Creep, RateDependence
+from ..model.hysteresis import (
+    Deadzone,
+    GeneralizedPI,
+    Linear,
+    PlayOperator,
+    PrandtlIshlinskii,
+    Preisach,
+    play,
+)
+from ..model.scanner import Axis
 
 Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
 SOLVERS = (
-    "optimistix.levenberg_marquardt", "optimistix.gauss_newton", "optimistix.dogleg",
-    "optimistix.bfgs", "jaxopt.levenberg_marquardt", "jaxopt.gauss_newton", "jaxopt.lbfgs",
+    "optimistix.levenberg_marquardt",
+    "optimistix.gauss_newton",
+    "optimistix.dogleg",
+    "optimistix.bfgs",
+    "jaxopt.levenberg_marquardt",
+    "jaxopt.gauss_newton",
+    "jaxopt.lbfgs",
     "scipy.least_squares",
 )
 
@@ -87,11 +101,12 @@ def free_parameters(model, u_span: float, d_range: float):
         dz = model.deadzone
         # each side's partial slopes g_0 + g_1 + ... + g_i stay > 0: the dead zones stay
         # monotone and invertible however far the fit moves them
-        partial = lambda g: _softplus_inv((dz.slope + jnp.cumsum(g)) / dz.slope)  # noqa: E731
-        weights = lambda p: jnp.diff(jax.nn.softplus(p) * dz.slope, prepend=dz.slope)  # noqa: E731
+        partial = lambda g: _softplus_inv((dz.slope + jnp.cumsum(g)) / dz.slope)
+        weights = lambda p: jnp.diff(jax.nn.softplus(p) * dz.slope, prepend=dz.slope)
         raw = (pi_raw, partial(dz.upper_weights), partial(dz.lower_weights))
         return raw, lambda p: GeneralizedPI(
-            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, weights(p[1]), dz.lower, weights(p[2]), dz.centre))
+            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, weights(p[1]), dz.lower, weights(p[2]), dz.centre)
+        )
     if isinstance(model, Preisach):
         tri = np.tril_indices(model.levels)
         scale = d_range / len(tri[0])
@@ -122,12 +137,12 @@ def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Calla
     h = model.hysteresis if isinstance(model, Axis) else model
     if isinstance(h, Preisach):  # linear in the density: one design matrix for the whole fit
         states = h.relay_states(play(u, h.radii(), history))
-        hysteresis = lambda m: m.offset + jnp.einsum("tij,ij->t", states, m.density)  # noqa: E731
+        hysteresis = lambda m: m.offset + jnp.einsum("tij,ij->t", states, m.density)
     elif isinstance(h, PlayOperator):
         P = play(u, h.radii(), history)
-        hysteresis = lambda m: m.from_plays(P)  # noqa: E731
+        hysteresis = lambda m: m.from_plays(P)
     else:
-        hysteresis = lambda m: m(u, history)  # noqa: E731
+        hysteresis = lambda m: m(u, history)
     if isinstance(model, Axis):
         if t is None:
             raise ValueError("fitting an Axis (creep or rate dependence) needs the sample times t (s)")
@@ -149,9 +164,19 @@ class FitResult:
     message: str
 
 
-def fit_operator(model, u, d, *, t=None, solver: str = "optimistix.levenberg_marquardt",
-                 max_steps: int = 2000, rtol: float = 1e-6, atol: float = 1e-9, history=None,
-                 settle: int = 0) -> FitResult:
+def fit_operator(
+    model,
+    u,
+    d,
+    *,
+    t=None,
+    solver: str = "optimistix.levenberg_marquardt",
+    max_steps: int = 2000,
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+    history=None,
+    settle: int = 0,
+) -> FitResult:
     """Least-squares fit of ``model(u, [t,] history) ~ d``; residuals in fractions of the output range.
 
     ``model`` is a hysteresis operator or an :class:`~jaxafm.scanner.Axis`
@@ -182,14 +207,24 @@ def fit_operator(model, u, d, *, t=None, solver: str = "optimistix.levenberg_mar
     raw, steps, ok = _solve(solver, residuals, loss, raw0, max_steps, rtol, atol)
     final = float(2 * loss(raw))
     seconds = time.perf_counter() - start
-    message = (f"{solver}: converged in {steps} steps" if ok else
-               f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); "
-               f"last loss {final:.3e}")
+    message = (
+        f"{solver}: converged in {steps} steps"
+        if ok
+        else f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {final:.3e}"
+    )
     return FitResult(rebuild(raw), solver, ok, steps, final, seconds, message)
 
 
-def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: int, rtol: float, atol: float,
-           args=None):
+def _solve(
+    solver: str,
+    residuals: Callable,
+    loss: Callable,
+    raw0,
+    max_steps: int,
+    rtol: float,
+    atol: float,
+    args=None,
+):
     """Minimise with the named solver; ``residuals(raw, args)`` and ``loss(raw, args)``.
 
     Pass data through ``args``, not closures, with module-level functions: the
@@ -198,11 +233,15 @@ def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: in
     library, method = solver.split(".")
     if library == "optimistix":
         if method == "bfgs":
-            sol = optx.minimise(loss, optx.BFGS(rtol=rtol, atol=atol), raw0, args, max_steps=max_steps,
-                                throw=False)
+            sol = optx.minimise(
+                loss, optx.BFGS(rtol=rtol, atol=atol), raw0, args, max_steps=max_steps, throw=False
+            )
         else:
-            cls = {"levenberg_marquardt": optx.LevenbergMarquardt, "gauss_newton": optx.GaussNewton,
-                   "dogleg": optx.Dogleg}[method]
+            cls = {
+                "levenberg_marquardt": optx.LevenbergMarquardt,
+                "gauss_newton": optx.GaussNewton,
+                "dogleg": optx.Dogleg,
+            }[method]
             # normal equations + Cholesky: the parameters are few, the residuals many (7x faster than QR)
             opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
             sol = optx.least_squares(residuals, opt, raw0, args, max_steps=max_steps, throw=False)
@@ -213,17 +252,31 @@ def _solve(solver: str, residuals: Callable, loss: Callable, raw0, max_steps: in
 
         fun = jax.jit(lambda x, a: residuals(unravel(x), a))
         jac = jax.jit(jax.jacfwd(lambda x, a: residuals(unravel(x), a)))
-        res = least_squares(lambda x: np.asarray(fun(x, args)), np.asarray(flat0),
-                            jac=lambda x: np.asarray(jac(x, args)),
-                            method="trf", max_nfev=max_steps, xtol=rtol, ftol=rtol, gtol=atol)
+        res = least_squares(
+            lambda x: np.asarray(fun(x, args)),
+            np.asarray(flat0),
+            jac=lambda x: np.asarray(jac(x, args)),
+            method="trf",
+            max_nfev=max_steps,
+            xtol=rtol,
+            ftol=rtol,
+            gtol=atol,
+        )
         return unravel(jnp.asarray(res.x)), int(res.nfev), bool(res.status > 0)
     if method == "lbfgs":
         opt = jaxopt.LBFGS(fun=lambda x, a: loss(unravel(x), a), maxiter=max_steps, tol=atol)
     elif method == "levenberg_marquardt":  # relative step or gradient, as optimistix's rtol/atol
-        opt = jaxopt.LevenbergMarquardt(residual_fun=lambda x, a: residuals(unravel(x), a), maxiter=max_steps,
-                                        stop_criterion="madsen-nielsen", xtol=rtol, gtol=atol)
+        opt = jaxopt.LevenbergMarquardt(
+            residual_fun=lambda x, a: residuals(unravel(x), a),
+            maxiter=max_steps,
+            stop_criterion="madsen-nielsen",
+            xtol=rtol,
+            gtol=atol,
+        )
     else:
-        opt = jaxopt.GaussNewton(residual_fun=lambda x, a: residuals(unravel(x), a), maxiter=max_steps, tol=atol)
+        opt = jaxopt.GaussNewton(
+            residual_fun=lambda x, a: residuals(unravel(x), a), maxiter=max_steps, tol=atol
+        )
     flat, state = opt.run(flat0, args)
     steps = int(state.iter_num)
     return unravel(flat), steps, bool(steps < max_steps)
@@ -235,5 +288,9 @@ def error_metrics(pred, d, d_range: Optional[float] = None) -> dict:
     d_range = float(d.max() - d.min()) if d_range is None else d_range
     e = pred - d
     rms, worst = float(np.sqrt(np.mean(e**2))), float(np.max(np.abs(e)))
-    return {"rms_error_nm": rms, "max_error_nm": worst,
-            "rms_error_pct": 100 * rms / d_range, "max_error_pct": 100 * worst / d_range}
+    return {
+        "rms_error_nm": rms,
+        "max_error_nm": worst,
+        "rms_error_pct": 100 * rms / d_range,
+        "max_error_pct": 100 * worst / d_range,
+    }

@@ -21,9 +21,9 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy import stats  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from scipy import stats
 
 MAX_LAG = 50  # samples
 BINS = 8
@@ -46,7 +46,7 @@ def cross_correlation(r: np.ndarray, u: np.ndarray, max_lag: int = MAX_LAG) -> n
     den = np.sqrt(float(r @ r) * float(u @ u))
     out = []
     for k in range(-max_lag, max_lag + 1):
-        a, b = (r[k:], u[:len(u) - k]) if k >= 0 else (r[:k], u[-k:])
+        a, b = (r[k:], u[: len(u) - k]) if k >= 0 else (r[:k], u[-k:])
         out.append(float(a @ b) / den)
     return np.array(out)
 
@@ -87,14 +87,19 @@ def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
     """
     rate = np.gradient(u, t, axis=0)
     tt = np.repeat(t[:, None], u.shape[1], 1)
-    flat = lambda a: np.ravel(a)  # noqa: E731
+    flat = lambda a: np.ravel(a)
     r_, u_, v_, t_ = flat(r), flat(u), flat(rate), flat(tt)
-    out = {"time_s": np.linspace(t[0], t[-1], 11), "input_v": np.linspace(u_.min(), u_.max(), BINS + 1),
-           "input_rate_v_per_s": np.linspace(0, np.abs(v_).max(), BINS + 1)}
+    out = {
+        "time_s": np.linspace(t[0], t[-1], 11),
+        "input_v": np.linspace(u_.min(), u_.max(), BINS + 1),
+        "input_rate_v_per_s": np.linspace(0, np.abs(v_).max(), BINS + 1),
+    }
     idx = np.clip(np.digitize(t_, out["time_s"][1:-1]), 0, 9)
-    table = {"time_s": _binned(t_, r_, out["time_s"]),
-             "time_s_mean": [float(np.mean(r_[idx == b])) for b in range(10)],
-             "input_rate_v_per_s": _binned(np.abs(v_), r_, out["input_rate_v_per_s"])}
+    table = {
+        "time_s": _binned(t_, r_, out["time_s"]),
+        "time_s_mean": [float(np.mean(r_[idx == b])) for b in range(10)],
+        "input_rate_v_per_s": _binned(np.abs(v_), r_, out["input_rate_v_per_s"]),
+    }
     for name, sel in (("ascending", v_ > 0), ("descending", v_ <= 0)):
         table[f"input_v_{name}"] = _binned(u_[sel], r_[sel], out["input_v"])
     return {"edges": {k: v.tolist() for k, v in out.items()}, "rms_nm": table, "overall_rms_nm": _rms(r_)}
@@ -105,9 +110,11 @@ def where(dec: dict, split_s: float) -> list:
     e, tab, overall = dec["edges"], dec["rms_nm"], dec["overall_rms_nm"]
     lines = []
     time = np.array(tab["time_s"])
-    lines.append(f"Over time the rms residual goes from {time[0]:.3g} nm (first tenth) to {time[-1]:.3g} nm "
-                 f"(last tenth), {time[-1] / time[0]:.2f}x, and its mean from {tab['time_s_mean'][0]:+.3g} nm to "
-                 f"{tab['time_s_mean'][-1]:+.3g} nm; the held-out part starts at {split_s:.3g} s.")
+    lines.append(
+        f"Over time the rms residual goes from {time[0]:.3g} nm (first tenth) to {time[-1]:.3g} nm "
+        f"(last tenth), {time[-1] / time[0]:.2f}x, and its mean from {tab['time_s_mean'][0]:+.3g} nm to "
+        f"{tab['time_s_mean'][-1]:+.3g} nm; the held-out part starts at {split_s:.3g} s."
+    )
     best = None
     for branch in ("ascending", "descending"):
         vals = np.array(tab[f"input_v_{branch}"], dtype=float)
@@ -116,12 +123,16 @@ def where(dec: dict, split_s: float) -> list:
         b = int(np.nanargmax(vals))
         if best is None or vals[b] > best[0]:
             best = (vals[b], branch, e["input_v"][b], e["input_v"][b + 1])
-    lines.append(f"By input level, it is largest on the {best[1]} branch between {best[2]:.3g} and {best[3]:.3g} V: "
-                 f"{best[0]:.3g} nm rms against {overall:.3g} nm overall ({best[0] / overall:.2f}x).")
+    lines.append(
+        f"By input level, it is largest on the {best[1]} branch between {best[2]:.3g} and {best[3]:.3g} V: "
+        f"{best[0]:.3g} nm rms against {overall:.3g} nm overall ({best[0] / overall:.2f}x)."
+    )
     rate = np.array(tab["input_rate_v_per_s"], dtype=float)
     lo, hi = rate[0], rate[~np.isnan(rate)][-1]
-    lines.append(f"By input rate, it is {lo:.3g} nm rms at the slowest and {hi:.3g} nm rms at the fastest "
-                 f"({hi / lo:.2f}x).")
+    lines.append(
+        f"By input rate, it is {lo:.3g} nm rms at the slowest and {hi:.3g} nm rms at the fastest "
+        f"({hi / lo:.2f}x)."
+    )
     return lines
 
 
@@ -130,11 +141,15 @@ def concentration(dec: dict) -> dict:
     overall = dec["overall_rms_nm"]
     tab = dec["rms_nm"]
     by_level = np.nanmax(np.r_[tab["input_v_ascending"], tab["input_v_descending"]])
-    return {"residual_rms_nm": overall,
-            "residual_time_last_over_first": tab["time_s"][-1] / tab["time_s"][0],
-            "residual_mean_change_nm": tab["time_s_mean"][-1] - tab["time_s_mean"][0],
-            "residual_level_max_over_overall": float(by_level / overall),
-            "residual_rate_fast_over_slow": float(np.nanmax(tab["input_rate_v_per_s"][-2:]) / tab["input_rate_v_per_s"][0])}
+    return {
+        "residual_rms_nm": overall,
+        "residual_time_last_over_first": tab["time_s"][-1] / tab["time_s"][0],
+        "residual_mean_change_nm": tab["time_s_mean"][-1] - tab["time_s_mean"][0],
+        "residual_level_max_over_overall": float(by_level / overall),
+        "residual_rate_fast_over_slow": float(
+            np.nanmax(tab["input_rate_v_per_s"][-2:]) / tab["input_rate_v_per_s"][0]
+        ),
+    }
 
 
 def figure(t, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, rows: list, path) -> None:
@@ -175,7 +190,9 @@ def figure(t, r_nominal, r_best, best: str, split: int, test: dict, dec: dict, r
     a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band")
     a.set(xlabel="lag [samples]", ylabel="cross-correlation", title="residual against the input")
     a.legend(fontsize=7)
-    candidate_bars(ax[1, 2], rows, rows[0]["heldout_gap_before_nm"] if rows else None, "held-out gap (rms) [nm]")
+    candidate_bars(
+        ax[1, 2], rows, rows[0]["heldout_gap_before_nm"] if rows else None, "held-out gap (rms) [nm]"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -186,23 +203,36 @@ def candidate_row(name: str, nominal: dict, fit: dict, rules, **extra) -> dict:
     whether it is significant (``rules.min_shrink_pct``, ``rules.min_delta_bic``); ``fit`` is kept."""
     before, after = nominal["heldout_gap_nm"], fit["heldout_gap_nm"]
     shrink, dbic = 100 * (1 - after / before), float(fit["bic"] - nominal["bic"])
-    return {"effect": name, "heldout_gap_before_nm": before, "heldout_gap_after_nm": after, "shrink_pct": shrink,
-            "train_rms_after_nm": fit["train_rms_nm"], "delta_bic": dbic,
-            "extra_parameters": fit["parameters"] - nominal["parameters"], **extra,
-            "significant": bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic), "fit": fit}
+    return {
+        "effect": name,
+        "heldout_gap_before_nm": before,
+        "heldout_gap_after_nm": after,
+        "shrink_pct": shrink,
+        "train_rms_after_nm": fit["train_rms_nm"],
+        "delta_bic": dbic,
+        "extra_parameters": fit["parameters"] - nominal["parameters"],
+        **extra,
+        "significant": bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic),
+        "fit": fit,
+    }
 
 
 def candidate_line(row: dict) -> str:
     """One candidate's result, for the log."""
-    return (f"  + {row['effect']:16s} held-out gap {row['heldout_gap_after_nm']:8.3g} nm ({row['shrink_pct']:+6.1f} %), "
-            f"delta BIC {row['delta_bic']:+9.1f}" + ("  significant" if row["significant"] else ""))
+    return (
+        f"  + {row['effect']:16s} held-out gap {row['heldout_gap_after_nm']:8.3g} nm ({row['shrink_pct']:+6.1f} %), "
+        f"delta BIC {row['delta_bic']:+9.1f}" + ("  significant" if row["significant"] else "")
+    )
 
 
 def candidate_bars(a, candidates: list, nominal_gap_nm, xlabel: str) -> None:
     """Each candidate's held-out gap after refitting (red: significant), against the nominal's."""
     if candidates:
-        a.barh([c["effect"] for c in candidates], [c["heldout_gap_after_nm"] for c in candidates],
-               color=["tab:red" if c["significant"] else "tab:gray" for c in candidates])
+        a.barh(
+            [c["effect"] for c in candidates],
+            [c["heldout_gap_after_nm"] for c in candidates],
+            color=["tab:red" if c["significant"] else "tab:gray" for c in candidates],
+        )
         a.axvline(nominal_gap_nm, color="k", ls="--", lw=1, label="nominal")
         a.invert_yaxis()
         a.legend(fontsize=8)
@@ -212,20 +242,32 @@ def candidate_bars(a, candidates: list, nominal_gap_nm, xlabel: str) -> None:
 def markdown_head(doc: dict) -> list:
     """Report lines: title, verdict, candidate table, where the gap is (sentences)."""
     v = doc["verdict"]
-    head = (f"**Verdict: {v['effect']}** - adding it shrinks the held-out gap from "
-            f"{v['heldout_gap_before_nm']:.3g} nm to {v['heldout_gap_after_nm']:.3g} nm rms ({v['shrink_pct']:.1f} %)."
-            if v["effect"] else f"**Verdict: {v['text']}** (held-out gap {doc['nominal']['heldout_gap_nm']:.3g} nm rms).")
-    lines = [f"# Sim-to-real gap diagnosis: {doc['data']['source']}", "", head, "",
-             f"Nominal model: {doc['nominal']['model']}; trained on {doc['data']['train_samples']} {doc['data']['counts']}, "
-             f"held out {doc['data']['heldout_samples']} (later in the scan). A candidate is significant when "
-             f"it shrinks the held-out gap by >= {doc['rules']['min_shrink_pct']:g} % and lowers the training BIC "
-             f"by >= {doc['rules']['min_delta_bic']:g}.", "",
-             "| rank | effect | held-out gap before [nm] | after [nm] | shrink [%] | delta BIC (train) | extra params | significant |",
-             "|---|---|---|---|---|---|---|---|"]
+    head = (
+        f"**Verdict: {v['effect']}** - adding it shrinks the held-out gap from "
+        f"{v['heldout_gap_before_nm']:.3g} nm to {v['heldout_gap_after_nm']:.3g} nm rms ({v['shrink_pct']:.1f} %)."
+        if v["effect"]
+        else f"**Verdict: {v['text']}** (held-out gap {doc['nominal']['heldout_gap_nm']:.3g} nm rms)."
+    )
+    lines = [
+        f"# Sim-to-real gap diagnosis: {doc['data']['source']}",
+        "",
+        head,
+        "",
+        f"Nominal model: {doc['nominal']['model']}; trained on {doc['data']['train_samples']} {doc['data']['counts']}, "
+        f"held out {doc['data']['heldout_samples']} (later in the scan). A candidate is significant when "
+        f"it shrinks the held-out gap by >= {doc['rules']['min_shrink_pct']:g} % and lowers the training BIC "
+        f"by >= {doc['rules']['min_delta_bic']:g}.",
+        "",
+        "| rank | effect | held-out gap before [nm] | after [nm] | shrink [%] | delta BIC (train) "
+        "| extra params | significant |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for i, r in enumerate(doc["candidates"], 1):
-        lines.append(f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
-                     f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | "
-                     f"{'yes' if r['significant'] else 'no'} |")
+        lines.append(
+            f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
+            f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | "
+            f"{'yes' if r['significant'] else 'no'} |"
+        )
     for name, why in doc["skipped"].items():
         lines.append(f"| - | {name} | - | - | - | - | - | not tried: {why} |")
     return lines + ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
@@ -234,12 +276,16 @@ def markdown_head(doc: dict) -> list:
 def markdown(doc: dict, metrics: dict) -> str:
     """The one-minute report of a record: :func:`markdown_head`, the tests, the figure."""
     lines = markdown_head(doc)
-    lines += [f"- Whiteness: lag-1 autocorrelation {metrics['residual_acf_lag1']:.2f}, "
-              f"{metrics['residual_acf_outside_band_pct']:.0f} % of lags 1-{MAX_LAG} outside the 95 % band "
-              f"(+-{metrics['correlation_band_95']:.3f}); Ljung-Box p = {metrics['ljung_box_p']:.2g}.",
-              f"- Input cross-correlation: max |rho| {metrics['input_ccf_max_abs']:.2f} with u, "
-              f"{metrics['input_rate_ccf_max_abs']:.2f} with du/dt (band +-{metrics['correlation_band_95']:.3f}).",
-              "", "![residuals](residuals.png)", ""]
+    lines += [
+        f"- Whiteness: lag-1 autocorrelation {metrics['residual_acf_lag1']:.2f}, "
+        f"{metrics['residual_acf_outside_band_pct']:.0f} % of lags 1-{MAX_LAG} outside the 95 % band "
+        f"(+-{metrics['correlation_band_95']:.3f}); Ljung-Box p = {metrics['ljung_box_p']:.2g}.",
+        f"- Input cross-correlation: max |rho| {metrics['input_ccf_max_abs']:.2f} with u, "
+        f"{metrics['input_rate_ccf_max_abs']:.2f} with du/dt (band +-{metrics['correlation_band_95']:.3f}).",
+        "",
+        "![residuals](residuals.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -254,18 +300,43 @@ def write_outputs(res: dict, record, model: str, rules, settle: int, out: Path, 
     verdict, metrics = summary(res, nominal, rows)
     metrics |= {"train_samples": int(split - settle), "heldout_samples": int(len(record) - split)}
     metrics |= test["metrics"] | concentration(dec)
-    doc = {"data": {"source": record.meta["source"], "samples": len(record), "outputs": d.shape[1],
-                    "train_samples": int(split - settle), "heldout_samples": int(len(record) - split),
-                    "heldout_from_s": float(record.t[split]), "counts": "samples", "units": "nm (gaps, residuals), V, s"},
-           "nominal": {"model": model, "train_rms_nm": nominal["train_rms_nm"],
-                       "heldout_gap_nm": nominal["heldout_gap_nm"], "parameters": nominal["parameters"]},
-           "verdict": verdict, "candidates": [{k: v for k, v in row.items() if k != "fit"} for row in rows],
-           "skipped": res["skipped"], "rules": dataclasses.asdict(rules),
-           "where": where(dec, float(record.t[split])), "decomposition": dec}
+    doc = {
+        "data": {
+            "source": record.meta["source"],
+            "samples": len(record),
+            "outputs": d.shape[1],
+            "train_samples": int(split - settle),
+            "heldout_samples": int(len(record) - split),
+            "heldout_from_s": float(record.t[split]),
+            "counts": "samples",
+            "units": "nm (gaps, residuals), V, s",
+        },
+        "nominal": {
+            "model": model,
+            "train_rms_nm": nominal["train_rms_nm"],
+            "heldout_gap_nm": nominal["heldout_gap_nm"],
+            "parameters": nominal["parameters"],
+        },
+        "verdict": verdict,
+        "candidates": [{k: v for k, v in row.items() if k != "fit"} for row in rows],
+        "skipped": res["skipped"],
+        "rules": dataclasses.asdict(rules),
+        "where": where(dec, float(record.t[split])),
+        "decomposition": dec,
+    }
     top = next((row for row in rows if row["effect"] == res["verdict"]), None)
     best = top["fit"]["residual"][settle:] if top else None
-    figure(record.t[settle:], nominal["residual"][settle:], best, res["verdict"], split - settle, test, dec, rows,
-           out / "residuals.png")
+    figure(
+        record.t[settle:],
+        nominal["residual"][settle:],
+        best,
+        res["verdict"],
+        split - settle,
+        test,
+        dec,
+        rows,
+        out / "residuals.png",
+    )
     save(doc, metrics, out, markdown(doc, metrics), log)
     return metrics
 
@@ -273,12 +344,23 @@ def write_outputs(res: dict, record, model: str, rules, settle: int, out: Path, 
 def summary(res: dict, nominal: dict, rows: list) -> tuple:
     """The verdict (effect, text, gaps) and the metrics every diagnosis writes."""
     top = next((row for row in rows if row["effect"] == res["verdict"]), None)
-    verdict = {"effect": res["verdict"], "text": res["verdict"] or "no significant unmodelled effect",
-               **({k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")} if top else {})}
-    metrics = {"nominal_train_rms_nm": nominal["train_rms_nm"], "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
-               "nominal_parameters": nominal["parameters"], "verdict": verdict["text"],
-               "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
-               "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"]}
+    verdict = {
+        "effect": res["verdict"],
+        "text": res["verdict"] or "no significant unmodelled effect",
+        **(
+            {k: top[k] for k in ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")}
+            if top
+            else {}
+        ),
+    }
+    metrics = {
+        "nominal_train_rms_nm": nominal["train_rms_nm"],
+        "nominal_heldout_gap_nm": nominal["heldout_gap_nm"],
+        "nominal_parameters": nominal["parameters"],
+        "verdict": verdict["text"],
+        "verdict_shrink_pct": top["shrink_pct"] if top else 0.0,
+        "verdict_heldout_gap_after_nm": top["heldout_gap_after_nm"] if top else nominal["heldout_gap_nm"],
+    }
     for row in rows:
         for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
             metrics[f"{row['effect']}_{k}"] = row[k]
@@ -291,5 +373,12 @@ def save(doc: dict, metrics: dict, out: Path, report, log=print) -> None:
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     (out / "report.md").write_text(report if isinstance(report, str) else "\n".join(report))
     v = doc["verdict"]
-    log(f"verdict: {v['text']}" + (f" (held-out gap {v['heldout_gap_before_nm']:.3g} -> {v['heldout_gap_after_nm']:.3g} nm, "
-                                   f"{v['shrink_pct']:.1f} %)" if v["effect"] else ""))
+    log(
+        f"verdict: {v['text']}"
+        + (
+            f" (held-out gap {v['heldout_gap_before_nm']:.3g} -> {v['heldout_gap_after_nm']:.3g} nm, "
+            f"{v['shrink_pct']:.1f} %)"
+            if v["effect"]
+            else ""
+        )
+    )

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import checks
+from .. import checks
 
 Array = jax.Array
 
@@ -76,13 +76,15 @@ class Grating(eqx.Module):
         checks.finite("Grating.depth", self.depth)
         v = np.asarray(self.duty) if checks.is_concrete(self.duty) else None
         if v is not None and not 0 < v < 1:
-            raise ValueError(f"Grating.duty is the fraction of a pitch a line's top covers: 0 < duty < 1, got {v}")
+            raise ValueError(
+                f"Grating.duty is the fraction of a pitch a line's top covers: 0 < duty < 1, got {v}"
+            )
 
     def height(self, xy: Array) -> Array:
         d = jnp.abs(_nearest_offset(_rotate(xy, self.angle)[..., 0], self.pitch, self.phase))
         return self.depth * _ramp(self.duty * self.pitch / 2 - d, self.edge_width)
 
-    def imaged(self, tip: "Tip", xy: Array) -> Array:
+    def imaged(self, tip: Tip, xy: Array) -> Array:
         """The exact tip image at ``xy`` (..., 2) nm, ``max_q [h(xy + q) - tip(|q|)]``.
 
         The grating is the same along its lines and its profile across them is piecewise
@@ -107,7 +109,11 @@ class Grating(eqx.Module):
         corner = height - tip.profile(jnp.abs(s - top))
         plateau = jnp.where(s <= top, height, -jnp.inf)
         r_star = tip.radius * m / jnp.sqrt(1 + m**2)
-        inside = (s - r_star >= top) & (s - r_star <= jnp.minimum(half, p / 2)) & (m * jnp.tan(tip.half_angle) <= 1)
+        inside = (
+            (s - r_star >= top)
+            & (s - r_star <= jnp.minimum(half, p / 2))
+            & (m * jnp.tan(tip.half_angle) <= 1)
+        )
         wall = jnp.where(inside, depth * (half - s) / w + tip.radius * (jnp.sqrt(1 + m**2) - 1), -jnp.inf)
         best = jnp.max(jnp.maximum(jnp.maximum(corner, plateau), wall), axis=-1)
         return jnp.maximum(best, 0.0) + jnp.where(neg, self.depth, 0.0)
@@ -157,8 +163,10 @@ class Particles(eqx.Module):
         if np.size(self.radii) == 0:
             raise ValueError("Particles needs at least one particle; use the substrate alone for none")
         if np.shape(self.centres) != np.shape(self.radii) + (2,):
-            raise ValueError(f"Particles.centres must have shape (K, 2) for K radii, got "
-                             f"{np.shape(self.centres)} for {np.shape(self.radii)} radii")
+            raise ValueError(
+                f"Particles.centres must have shape (K, 2) for K radii, got "
+                f"{np.shape(self.centres)} for {np.shape(self.radii)} radii"
+            )
 
     def height(self, xy: Array) -> Array:
         base = self.substrate.height(xy)
@@ -168,7 +176,7 @@ class Particles(eqx.Module):
         top = self.substrate.height(self.centres) + self.radii + cap
         return jnp.maximum(base, jnp.max(jnp.where(inside, top, -jnp.inf), axis=-1))
 
-    def imaged(self, tip: "Tip", xy: Array) -> Array:
+    def imaged(self, tip: Tip, xy: Array) -> Array:
         """The exact tip image at ``xy`` (..., 2) nm, for a level substrate.
 
         The tip is the ball of radius ``r`` swept by a cone of half-angle ``theta``,
@@ -236,8 +244,10 @@ class Tip(eqx.Module):
         if a is not None and not 0 < a < np.pi / 2:
             raise ValueError(f"Tip.half_angle is in radians, 0 < half_angle < pi/2, got {a}")
         if not self.reach > 0 or self.rings < 1 or self.per_ring < 4:
-            raise ValueError(f"Tip stencil needs reach > 0 nm, rings >= 1 and per_ring >= 4, got "
-                             f"reach={self.reach}, rings={self.rings}, per_ring={self.per_ring}")
+            raise ValueError(
+                f"Tip stencil needs reach > 0 nm, rings >= 1 and per_ring >= 4, got "
+                f"reach={self.reach}, rings={self.rings}, per_ring={self.per_ring}"
+            )
 
     def profile(self, r: Array) -> Array:
         R, th = self.radius, self.half_angle
@@ -249,8 +259,12 @@ class Tip(eqx.Module):
         """Offsets (S, 2) nm and the tip's height at each (S,)."""
         radii = self.reach * (np.arange(1, self.rings + 1) / self.rings) ** 2
         angles = 2 * np.pi * np.arange(self.per_ring) / self.per_ring
-        q = np.concatenate([np.zeros((1, 2)), (radii[:, None, None] * np.stack(
-            [np.cos(angles), np.sin(angles)], axis=-1)).reshape(-1, 2)])
+        q = np.concatenate(
+            [
+                np.zeros((1, 2)),
+                (radii[:, None, None] * np.stack([np.cos(angles), np.sin(angles)], axis=-1)).reshape(-1, 2),
+            ]
+        )
         return jnp.asarray(q), self.profile(jnp.asarray(np.hypot(q[:, 0], q[:, 1])))
 
     def dilate(self, height, xy: Array) -> Array:
@@ -278,22 +292,26 @@ class Indented(eqx.Module):
     count: Array  # () int
 
     @classmethod
-    def empty(cls, base, tip: Tip, capacity: int = 32) -> "Indented":
+    def empty(cls, base, tip: Tip, capacity: int = 32) -> Indented:
         return cls(base, tip, jnp.zeros((capacity, 2)), jnp.zeros(capacity), jnp.zeros((), dtype=int))
 
     @property
     def capacity(self) -> int:
         return self.bottoms.shape[0]
 
-    def press(self, xy: Array, depth) -> "Indented":
+    def press(self, xy: Array, depth) -> Indented:
         """The sample with one more indent at ``xy`` (2,) nm, ``depth`` nm deep."""
         if checks.is_concrete(self.count) and int(self.count) >= self.capacity:
-            raise ValueError(f"all {self.capacity} indent slots are used; make the sample with "
-                             "Indented.empty(base, tip, capacity=...) larger")
+            raise ValueError(
+                f"all {self.capacity} indent slots are used; make the sample with "
+                "Indented.empty(base, tip, capacity=...) larger"
+            )
         bottom = self.height(xy) - depth
-        return eqx.tree_at(lambda s: (s.centres, s.bottoms, s.count), self,
-                           (self.centres.at[self.count].set(xy), self.bottoms.at[self.count].set(bottom),
-                            self.count + 1))
+        return eqx.tree_at(
+            lambda s: (s.centres, s.bottoms, s.count),
+            self,
+            (self.centres.at[self.count].set(xy), self.bottoms.at[self.count].set(bottom), self.count + 1),
+        )
 
     def height(self, xy: Array) -> Array:
         r = jnp.sqrt(jnp.sum((xy[..., None, :] - self.centres) ** 2, axis=-1) + 1e-12)

@@ -32,8 +32,10 @@ from .records import LENGTH_TO_NM
 FORMAT, VERSION = "jaxafm-image", 1
 #: Suffix -> AFMReader module and loader, with the channel it reads by default.
 AFMREADER_FORMATS = {
-    ".spm": ("spm", "load_spm", "Height"), ".ibw": ("ibw", "load_ibw", "HeightTracee"),
-    ".jpk": ("jpk", "load_jpk", "height_trace"), ".topostats": ("topostats", None, "image"),
+    ".spm": ("spm", "load_spm", "Height"),
+    ".ibw": ("ibw", "load_ibw", "HeightTracee"),
+    ".jpk": ("jpk", "load_jpk", "height_trace"),
+    ".topostats": ("topostats", None, "image"),
 }
 FORMATS = (".txt", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
 
@@ -55,8 +57,10 @@ class AFMImage:
         bad = ~np.isfinite(self.z)
         if bad.any():
             r, c = np.argwhere(bad)[0]
-            raise ValueError(f"{where}: {int(bad.sum())} of {self.z.size} pixels are NaN or inf (first at row "
-                             f"{r}, column {c}); fill or crop them before using the image")
+            raise ValueError(
+                f"{where}: {int(bad.sum())} of {self.z.size} pixels are NaN or inf (first at row "
+                f"{r}, column {c}); fill or crop them before using the image"
+            )
         self.pixel_size = tuple(float(p) for p in np.broadcast_to(self.pixel_size, (2,)))
         if not all(np.isfinite(self.pixel_size)) or min(self.pixel_size) <= 0:
             raise ValueError(f"{where}: pixel size must be > 0 nm on both axes, got {self.pixel_size}")
@@ -83,13 +87,19 @@ class AFMImage:
     def extent(self) -> tuple:
         """(left, right, bottom, top) nm of the pixels' edges, for ``imshow(origin="lower")``."""
         (dx, dy), (x0, y0) = self.pixel_size, self.origin
-        return (x0 - dx / 2, x0 + dx * (self.z.shape[1] - 0.5), y0 - dy / 2, y0 + dy * (self.z.shape[0] - 0.5))
+        return (
+            x0 - dx / 2,
+            x0 + dx * (self.z.shape[1] - 0.5),
+            y0 - dy / 2,
+            y0 + dy * (self.z.shape[0] - 0.5),
+        )
 
     def height_map(self):
         """The image as a sample (``samples.HeightMap``) to scan with the simulated AFM."""
         import jax.numpy as jnp
 
         from .samples import HeightMap
+
         return HeightMap(jnp.asarray(self.z), jnp.asarray(self.pixel_size), jnp.asarray(self.origin))
 
 
@@ -97,14 +107,21 @@ def from_scan(scan: dict, raster, direction: str = "trace", meta: Optional[dict]
     """The ``trace`` or ``retrace`` image of a ``raster_scan`` result, with the scan's metadata."""
     if direction not in ("trace", "retrace"):
         raise ValueError(f"direction must be 'trace' or 'retrace', got {direction!r}")
-    info = {"source": "simulated", "direction": direction, "line_rate_hz": raster.line_rate,
-            "scan_direction": raster.direction, "overscan": raster.overscan,
-            "start_time_s": float(np.min(scan[f"t_{direction}"])), **(meta or {})}
+    info = {
+        "source": "simulated",
+        "direction": direction,
+        "line_rate_hz": raster.line_rate,
+        "scan_direction": raster.direction,
+        "overscan": raster.overscan,
+        "start_time_s": float(np.min(scan[f"t_{direction}"])),
+        **(meta or {}),
+    }
     return AFMImage(np.asarray(scan[direction]), raster.pixel_size, raster.origin, info)
 
 
-def read_image(path, channel: Optional[str] = None, size_nm: Optional[tuple] = None,
-               z_unit: str = "nm") -> AFMImage:
+def read_image(
+    path, channel: Optional[str] = None, size_nm: Optional[tuple] = None, z_unit: str = "nm"
+) -> AFMImage:
     """Read an AFM image file into nm, choosing the reader by the file's suffix.
 
     ``channel`` picks the channel of multi-channel files (AFMReader formats);
@@ -130,8 +147,9 @@ def read_image(path, channel: Optional[str] = None, size_nm: Optional[tuple] = N
 def _length_nm(path: Path, key: str, text: str) -> float:
     m = re.fullmatch(r"\s*([-+0-9.eE]+)\s*(\S+)\s*", text)
     if not m or m.group(2) not in LENGTH_TO_NM:
-        raise ValueError(f"{path}: header {key!r} = {text!r} is not a length with a unit of "
-                         f"{', '.join(LENGTH_TO_NM)}")
+        raise ValueError(
+            f"{path}: header {key!r} = {text!r} is not a length with a unit of {', '.join(LENGTH_TO_NM)}"
+        )
     return float(m.group(1)) * LENGTH_TO_NM[m.group(2)]
 
 
@@ -148,13 +166,17 @@ def _read_nanosurf_text(path: Path) -> AFMImage:
     needed = ("Image Width", "Image Height", "Real Width", "Real Height", "Z Unit")
     missing = [k for k in needed if k not in header]
     if missing:
-        raise ValueError(f"{path} is not a Nanosurf text export: header line(s) {missing} missing "
-                         f"(found {sorted(header) or 'no header'})")
+        raise ValueError(
+            f"{path} is not a Nanosurf text export: header line(s) {missing} missing "
+            f"(found {sorted(header) or 'no header'})"
+        )
     try:
         cols, rows = int(header["Image Width"]), int(header["Image Height"])
     except ValueError:
-        raise ValueError(f"{path}: 'Image Width' = {header['Image Width']!r} and 'Image Height' = "
-                         f"{header['Image Height']!r} must be whole numbers of pixels") from None
+        raise ValueError(
+            f"{path}: 'Image Width' = {header['Image Width']!r} and 'Image Height' = "
+            f"{header['Image Height']!r} must be whole numbers of pixels"
+        ) from None
     try:
         z = np.array(" ".join(values).split(), dtype=float)
     except ValueError as e:
@@ -168,10 +190,17 @@ def _read_nanosurf_text(path: Path) -> AFMImage:
     height = _length_nm(path, "Real Height", header["Real Height"])
     name = header.get("Name", "")
     direction = "retrace" if "Bwd" in name else "trace" if "Fwd" in name else "unknown"
-    meta = {"source": str(path), "reader": "nanosurf-text", "channel": name, "direction": direction,
-            "converted": f"x, y from {header['Real Width'].split()[-1]} and z from {z_unit} to nm",
-            "row_order": "as stored (row 0 first in the file)"}
-    return AFMImage(z.reshape(rows, cols) * LENGTH_TO_NM[z_unit], (width / cols, height / rows), (0.0, 0.0), meta)
+    meta = {
+        "source": str(path),
+        "reader": "nanosurf-text",
+        "channel": name,
+        "direction": direction,
+        "converted": f"x, y from {header['Real Width'].split()[-1]} and z from {z_unit} to nm",
+        "row_order": "as stored (row 0 first in the file)",
+    }
+    return AFMImage(
+        z.reshape(rows, cols) * LENGTH_TO_NM[z_unit], (width / cols, height / rows), (0.0, 0.0), meta
+    )
 
 
 def _read_tiff(path: Path, size_nm, z_unit: str) -> AFMImage:
@@ -183,17 +212,27 @@ def _read_tiff(path: Path, size_nm, z_unit: str) -> AFMImage:
         raise ValueError(f"{path} is not a readable TIFF image ({e})") from None
     z = np.squeeze(z)
     if z.ndim != 2 or not np.issubdtype(z.dtype, np.number):
-        raise ValueError(f"{path}: a TIFF height map must be one numeric 2-D channel, got shape {z.shape}, "
-                         f"dtype {z.dtype}")
+        raise ValueError(
+            f"{path}: a TIFF height map must be one numeric 2-D channel, got shape {z.shape}, dtype {z.dtype}"
+        )
     if size_nm is None:
-        raise ValueError(f"{path}: a TIFF does not carry its length calibration; pass "
-                         "size_nm=(width, height) in nm, and z_unit if heights are not in nm")
+        raise ValueError(
+            f"{path}: a TIFF does not carry its length calibration; pass "
+            "size_nm=(width, height) in nm, and z_unit if heights are not in nm"
+        )
     if z_unit not in LENGTH_TO_NM:
         raise ValueError(f"{path}: z_unit={z_unit!r} is not one of {', '.join(LENGTH_TO_NM)}")
     w, h = np.broadcast_to(np.asarray(size_nm, dtype=float), (2,))
-    meta = {"source": str(path), "reader": "tiff", "converted": f"z from {z_unit} to nm",
-            "size_nm_given": [float(w), float(h)], "row_order": "as stored"}
-    return AFMImage(z.astype(float) * LENGTH_TO_NM[z_unit], (w / z.shape[1], h / z.shape[0]), (0.0, 0.0), meta)
+    meta = {
+        "source": str(path),
+        "reader": "tiff",
+        "converted": f"z from {z_unit} to nm",
+        "size_nm_given": [float(w), float(h)],
+        "row_order": "as stored",
+    }
+    return AFMImage(
+        z.astype(float) * LENGTH_TO_NM[z_unit], (w / z.shape[1], h / z.shape[0]), (0.0, 0.0), meta
+    )
 
 
 def _optional(module: str, path: Path):
@@ -202,8 +241,9 @@ def _optional(module: str, path: Path):
     try:
         return importlib.import_module(module)
     except ImportError:
-        raise ImportError(f"{path}: reading {path.suffix} files needs {module.split('.')[0]}: "
-                          "pip install 'jaxafm[formats]'") from None
+        raise ImportError(
+            f"{path}: reading {path.suffix} files needs {module.split('.')[0]}: pip install 'jaxafm[formats]'"
+        ) from None
 
 
 def _read_gwy(path: Path, channel: Optional[str]) -> AFMImage:
@@ -220,18 +260,26 @@ def _read_gwy(path: Path, channel: Optional[str]) -> AFMImage:
     if channel not in titles:
         raise ValueError(f"{path}: no channel {channel!r}; channels: {sorted(titles)}")
     field = container[titles[channel]]
-    units = {"xy": field.si_unit_xy.unitstr if field.si_unit_xy else "m",
-             "z": field.si_unit_z.unitstr if field.si_unit_z else "m"}
+    units = {
+        "xy": field.si_unit_xy.unitstr if field.si_unit_xy else "m",
+        "z": field.si_unit_z.unitstr if field.si_unit_z else "m",
+    }
     for axis, unit in units.items():
         if unit not in LENGTH_TO_NM:
-            raise ValueError(f"{path}: channel {channel!r} has {axis} unit {unit!r}, not a length "
-                             f"({', '.join(LENGTH_TO_NM)})")
+            raise ValueError(
+                f"{path}: channel {channel!r} has {axis} unit {unit!r}, not a length "
+                f"({', '.join(LENGTH_TO_NM)})"
+            )
     z = np.flipud(np.asarray(field.data, dtype=float)) * LENGTH_TO_NM[units["z"]]  # Gwyddion: row 0 on top
     rows, cols = z.shape
     scale = LENGTH_TO_NM[units["xy"]]
-    meta = {"source": str(path), "reader": "gwyfile", "channel": channel,
-            "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
-            "row_order": "flipped: row 0 is the bottom line"}
+    meta = {
+        "source": str(path),
+        "reader": "gwyfile",
+        "channel": channel,
+        "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
+        "row_order": "flipped: row 0 is the bottom line",
+    }
     return AFMImage(z, (field.xreal * scale / cols, field.yreal * scale / rows), (0.0, 0.0), meta)
 
 
@@ -250,8 +298,13 @@ def _read_afmreader(path: Path, channel: Optional[str]) -> AFMImage:
             z, px = getattr(reader, loader)(path, channel)[:2]
     except (KeyError, ValueError, OSError) as e:
         raise ValueError(f"{path}: cannot read channel {channel!r} ({e}); pass channel=...") from None
-    meta = {"source": str(path), "reader": f"AFMReader.{module}", "channel": channel,
-            "converted": "to nm by AFMReader", "row_order": "as AFMReader returns it"}
+    meta = {
+        "source": str(path),
+        "reader": f"AFMReader.{module}",
+        "channel": channel,
+        "converted": "to nm by AFMReader",
+        "row_order": "as AFMReader returns it",
+    }
     return AFMImage(np.asarray(z, dtype=float), (float(px), float(px)), (0.0, 0.0), meta)
 
 
@@ -259,8 +312,9 @@ def _json_number(value):
     """NumPy and JAX numbers in ``meta`` as plain JSON numbers; anything else is refused."""
     a = np.asarray(value)
     if a.dtype.kind not in "biuf":
-        raise TypeError(f"image meta value {value!r} is not a number, string, list or dict; "
-                        "convert it before saving")
+        raise TypeError(
+            f"image meta value {value!r} is not a number, string, list or dict; convert it before saving"
+        )
     return a.tolist()
 
 
@@ -271,8 +325,13 @@ def save_image(image: AFMImage, path, overwrite: bool = False) -> Path:
         raise ValueError(f"{path}: jaxafm images are saved as .npz files")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-    doc = {"format": FORMAT, "version": VERSION, "pixel_size_nm": list(image.pixel_size),
-           "origin_nm": list(image.origin), "meta": image.meta}
+    doc = {
+        "format": FORMAT,
+        "version": VERSION,
+        "pixel_size_nm": list(image.pixel_size),
+        "origin_nm": list(image.origin),
+        "meta": image.meta,
+    }
     text = json.dumps(doc, default=_json_number)
     partial = path.with_name(path.name + ".partial")
     with open(partial, "wb") as f:

@@ -36,16 +36,30 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from scipy.optimize import nnls
 from jax.flatten_util import ravel_pytree
+from scipy.optimize import nnls
 
-
-from . import diagnose_image, gap_report, withheld
-from .effects import Bow, Coupling, Creep, Drift, RateDependence, check_effect_names
-from .fit import _softplus_inv, evaluator, free_parameters, initial_model
-from .hysteresis import Deadzone, GeneralizedPI, Preisach, PrandtlIshlinskii, play
-from .records import Record, read_record
-from .scanner import Axis
+from ..identify.fit import _softplus_inv, evaluator, free_parameters, initial_model
+from ..instrument.records import Record, read_record
+from ..model.effects import (
+    Bow,
+    Coupling,
+    Creep,
+    Drift,
+    RateDependence,
+    check_effect_names,
+)
+from ..model.hysteresis import (
+    Deadzone,
+    GeneralizedPI,
+    PrandtlIshlinskii,
+    Preisach,
+    play,
+)
+from ..model.scanner import Axis
+from . import image as diagnose_image
+from . import report as gap_report
+from . import withheld
 
 Array = jax.Array
 #: Candidates for actuator records; the last two need two axes.
@@ -94,8 +108,9 @@ def _rebuild_extras(plant: Plant, scale: dict):
             b = 0.01 * p["bow"] / scale["half_range"]
             out["bow"] = Bow(b[0], b[1])
         if "drift" in p:
-            out["drift"] = Drift(p["drift"] * 0.01 * scale["range"] / scale["duration"], jnp.zeros(2),
-                                 jnp.asarray(1e-3))
+            out["drift"] = Drift(
+                p["drift"] * 0.01 * scale["range"] / scale["duration"], jnp.zeros(2), jnp.asarray(1e-3)
+            )
         return out
 
     return {n: raw[n] for n in names}, rebuild
@@ -103,8 +118,13 @@ def _rebuild_extras(plant: Plant, scale: dict):
 
 def _scales(u, t, d) -> dict:
     rng = jnp.max(d, 0) - jnp.min(d, 0)
-    return {"span": jnp.max(u, 0) - jnp.min(u, 0), "range_k": rng, "range": jnp.max(rng),
-            "half_range": jnp.max(rng) / 2, "duration": t[-1] - t[0]}
+    return {
+        "span": jnp.max(u, 0) - jnp.min(u, 0),
+        "range_k": rng,
+        "range": jnp.max(rng),
+        "half_range": jnp.max(rng) / 2,
+        "duration": t[-1] - t[0],
+    }
 
 
 def _hysteresis_parameters(h, span, rng):
@@ -116,16 +136,20 @@ def _hysteresis_parameters(h, span, rng):
     """
     ws = rng / span
     if isinstance(h, PrandtlIshlinskii):
-        return (h.weights / ws, h.offset / rng), lambda p: PrandtlIshlinskii(h.thresholds, p[0] * ws, p[1] * rng)
+        return (h.weights / ws, h.offset / rng), lambda p: PrandtlIshlinskii(
+            h.thresholds, p[0] * ws, p[1] * rng
+        )
     if isinstance(h, GeneralizedPI):
         raw, rebuild = _hysteresis_parameters(h.pi, span, rng)
         dz = h.deadzone
         return (raw, dz.upper_weights, dz.lower_weights), lambda p: GeneralizedPI(
-            rebuild(p[0]), Deadzone(dz.slope, dz.upper, p[1], dz.lower, p[2], dz.centre))
+            rebuild(p[0]), Deadzone(dz.slope, dz.upper, p[1], dz.lower, p[2], dz.centre)
+        )
     tri = np.tril_indices(h.levels)
     scale = rng / len(tri[0])
     return (h.density[tri] / scale, h.offset / rng), lambda p: Preisach(
-        jnp.zeros_like(h.density).at[tri].set(p[0] * scale), h.u_min, h.u_max, p[1] * rng, h.smooth)
+        jnp.zeros_like(h.density).at[tri].set(p[0] * scale), h.u_min, h.u_max, p[1] * rng, h.smooth
+    )
 
 
 def _axis_parameters(axis: Axis, span, rng):
@@ -144,7 +168,9 @@ def _model_fn(plant: Plant, u, t, d, history):
     s = _scales(u, t, d)
     inner = [dataclasses.replace(a, creep=None) for a in plant.axes]
     parts = [_axis_parameters(a, s["span"][i], s["range_k"][i]) for i, a in enumerate(inner)]
-    evals = [evaluator(a, u[:, i], t, None if history is None else history[:, i]) for i, a in enumerate(inner)]
+    evals = [
+        evaluator(a, u[:, i], t, None if history is None else history[:, i]) for i, a in enumerate(inner)
+    ]
     creeps = [a.creep for a in plant.axes]
     gamma0 = tuple(_softplus_inv(2 * c.weights[0] / 0.01) for c in creeps if c is not None)
     extras0, rebuild_extras = _rebuild_extras(plant, s)
@@ -152,8 +178,12 @@ def _model_fn(plant: Plant, u, t, d, history):
 
     def axes(raw):
         gammas = iter(0.01 * jax.nn.softplus(g) for g in raw[2])
-        return tuple(dataclasses.replace(rb(r), creep=None if c is None else Creep(c.taus, jnp.full_like(c.taus, next(gammas) / 2)))
-                     for (_, rb), r, c in zip(parts, raw[0], creeps))
+        return tuple(
+            dataclasses.replace(
+                rb(r), creep=None if c is None else Creep(c.taus, jnp.full_like(c.taus, next(gammas) / 2))
+            )
+            for (_, rb), r, c in zip(parts, raw[0], creeps)
+        )
 
     def predict(raw):
         cols = []
@@ -215,10 +245,18 @@ def nominal_plant(spec: Nominal, u: np.ndarray, d: np.ndarray, train: np.ndarray
     axes = []
     for i in range(u.shape[1]):
         try:
-            h = initial_model(kind, u[train, i], d[train, i], operators=spec.operators, levels=spec.levels,
-                              deadzones=spec.deadzones)
+            h = initial_model(
+                kind,
+                u[train, i],
+                d[train, i],
+                operators=spec.operators,
+                levels=spec.levels,
+                deadzones=spec.deadzones,
+            )
         except ValueError as e:
-            raise ValueError(f"the nominal model ({spec.kind}) cannot be fitted to output {i + 1}: {e}") from None
+            raise ValueError(
+                f"the nominal model ({spec.kind}) cannot be fitted to output {i + 1}: {e}"
+            ) from None
         h = _nnls_start(h, u[:, i], d[:, i], train, None if history is None else history[:, i])
         axes.append(_with_stages(Axis(h), spec.effects))
     plant = Plant(tuple(axes))
@@ -284,8 +322,11 @@ def _add(plant: Plant, name: str, u, d) -> Plant:
             axes.append(dataclasses.replace(a, hysteresis=GeneralizedPI(a.hysteresis, dz)))
         return dataclasses.replace(plant, axes=tuple(axes))
     zero = jnp.zeros(())
-    module = {"coupling": lambda: Coupling(zero, zero), "bow": lambda: Bow(zero, zero),
-              "drift": lambda: Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))}[name]()
+    module = {
+        "coupling": lambda: Coupling(zero, zero),
+        "bow": lambda: Bow(zero, zero),
+        "drift": lambda: Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3)),
+    }[name]()
     return dataclasses.replace(plant, **{name: module})
 
 
@@ -307,19 +348,40 @@ def _columns(a) -> np.ndarray:
 def _fit_report(plant: Plant, record: Record, train: np.ndarray, split: int, history, rules: Rules) -> dict:
     """Fit ``plant`` on the ``train`` samples; residuals ``d - model`` (T, k) nm, gaps and BIC."""
     u, d = _columns(record.u), _columns(record.d)
-    fitted, pred, steps = _fit(plant, jnp.asarray(u), jnp.asarray(record.t), jnp.asarray(d),
-                               jnp.asarray(train, dtype=float), history, rules.max_steps)
+    fitted, pred, steps = _fit(
+        plant,
+        jnp.asarray(u),
+        jnp.asarray(record.t),
+        jnp.asarray(d),
+        jnp.asarray(train, dtype=float),
+        history,
+        rules.max_steps,
+    )
     r = d - np.asarray(pred)
     n = int(train.sum()) * d.shape[1]
     rss = float(np.sum(r[train] ** 2))
     k = n_parameters(plant, u, record.t, d)
-    return {"plant": fitted, "residual": r, "steps": int(steps), "parameters": k,
-            "train_rms_nm": float(np.sqrt(rss / n)), "heldout_gap_nm": float(np.sqrt(np.mean(r[split:] ** 2))),
-            "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n)}
+    return {
+        "plant": fitted,
+        "residual": r,
+        "steps": int(steps),
+        "parameters": k,
+        "train_rms_nm": float(np.sqrt(rss / n)),
+        "heldout_gap_nm": float(np.sqrt(np.mean(r[split:] ** 2))),
+        "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
+    }
 
 
-def diagnose_record(record: Record, spec: Nominal, candidates, train_fraction: float = 0.6,
-                    settle: int = 0, history=None, rules: Rules = Rules(), log=print) -> dict:
+def diagnose_record(
+    record: Record,
+    spec: Nominal,
+    candidates,
+    train_fraction: float = 0.6,
+    settle: int = 0,
+    history=None,
+    rules: Rules = Rules(),
+    log=print,
+) -> dict:
     """Fit the nominal model, then nominal + each candidate; rank the candidates (module docstring).
 
     Returns the nominal fit, the candidate rows (best first), the skipped
@@ -330,25 +392,38 @@ def diagnose_record(record: Record, spec: Nominal, candidates, train_fraction: f
     u, d = _columns(record.u), _columns(record.d)
     train = np.zeros(len(record), bool)
     train[settle:split] = True
-    hist = None if history is None else jnp.broadcast_to(jnp.asarray(history, dtype=float)[:, None],
-                                                          (len(history), u.shape[1]))
+    hist = (
+        None
+        if history is None
+        else jnp.broadcast_to(jnp.asarray(history, dtype=float)[:, None], (len(history), u.shape[1]))
+    )
     nominal = _fit_report(nominal_plant(spec, u, d, train, hist), record, train, split, hist, rules)
     _check_fitted(nominal, d, train, spec)
-    log(f"nominal ({spec.kind} + {', '.join(spec.effects)}): train rms {nominal['train_rms_nm']:.3g} nm, "
-        f"held-out gap {nominal['heldout_gap_nm']:.3g} nm")
+    log(
+        f"nominal ({spec.kind} + {', '.join(spec.effects)}): train rms {nominal['train_rms_nm']:.3g} nm, "
+        f"held-out gap {nominal['heldout_gap_nm']:.3g} nm"
+    )
     rows, skipped = [], {}
     for name in candidates:
         why = not_applicable(name, nominal["plant"], spec)
         if why:
             skipped[name] = why
             continue
-        fit = _fit_report(_add(nominal["plant"], name, u[:split], d[:split]), record, train, split, hist, rules)
+        fit = _fit_report(
+            _add(nominal["plant"], name, u[:split], d[:split]), record, train, split, hist, rules
+        )
         rows.append(gap_report.candidate_row(name, nominal, fit, rules, solver_steps=fit["steps"]))
         log(gap_report.candidate_line(rows[-1]))
     rows.sort(key=lambda r: -r["shrink_pct"])
     verdict = next((r["effect"] for r in rows if r["significant"]), None)
-    return {"nominal": nominal, "candidates": rows, "skipped": skipped, "verdict": verdict, "split": split,
-            "train": train}
+    return {
+        "nominal": nominal,
+        "candidates": rows,
+        "skipped": skipped,
+        "verdict": verdict,
+        "split": split,
+        "train": train,
+    }
 
 
 def _check_fitted(nominal: dict, d: np.ndarray, train: np.ndarray, spec: Nominal) -> None:
@@ -360,20 +435,25 @@ def _check_fitted(nominal: dict, d: np.ndarray, train: np.ndarray, spec: Nominal
             f"the nominal model ({spec.kind}) cannot be fitted to this record: it explains {100 * explained:.0f} % "
             f"of the output variance (at least {100 * MIN_EXPLAINED:.0f} % needed); check that the input and "
             "output columns belong together (data.input_columns, data.output_columns) and that the output "
-            "follows the input")
+            "follows the input"
+        )
 
 
 def _load(cfg, config_path: Path) -> Record:
-    from .config import resolve_data_path
+    from ..config import resolve_data_path
 
     if cfg.data is None:
         s = cfg.simulate
-        return withheld.simulate_record(s.withheld, s.magnitude, s.seed, s.duration_s, s.sample_rate_hz, s.noise_nm)
+        return withheld.simulate_record(
+            s.withheld, s.magnitude, s.seed, s.duration_s, s.sample_rate_hz, s.noise_nm
+        )
     spec = cfg.data.model_dump(exclude={"path"})
     path = resolve_data_path(cfg.data.path, config_path)
     if spec["output_unit"] is None and spec["output_columns"] is not None:
-        raise ValueError(f"{path}: the record's output unit is missing: set data.output_unit in {config_path} "
-                         "(e.g. output_unit: um)")
+        raise ValueError(
+            f"{path}: the record's output unit is missing: set data.output_unit in {config_path} "
+            "(e.g. output_unit: um)"
+        )
     record = read_record(path, **spec)
     return dataclasses.replace(record, meta=record.meta | {"source": cfg.data.path})  # as the config gives it
 
@@ -393,28 +473,39 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
         raise ValueError(f"{e}: give a longer record, or change train_fraction in {config_path}") from None
     settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
     if split - settle < 10:
-        raise ValueError(f"settle_s={cfg.settle_s} s leaves {split - settle} training samples: lower settle_s "
-                         f"or raise train_fraction in {config_path}")
-    spec = Nominal(cfg.nominal.kind, tuple(cfg.nominal.effects), cfg.nominal.operators, cfg.nominal.deadzones,
-                   cfg.nominal.levels)
+        raise ValueError(
+            f"settle_s={cfg.settle_s} s leaves {split - settle} training samples: lower settle_s "
+            f"or raise train_fraction in {config_path}"
+        )
+    spec = Nominal(
+        cfg.nominal.kind,
+        tuple(cfg.nominal.effects),
+        cfg.nominal.operators,
+        cfg.nominal.deadzones,
+        cfg.nominal.levels,
+    )
     d = _columns(record.d)
     history = None if cfg.history_v is None else np.asarray(cfg.history_v, dtype=float)
-    log(f"record: {record.meta['source']} - {len(record)} samples x {d.shape[1]} output(s); train "
-        f"{split - settle}, hold out {len(record) - split}")
+    log(
+        f"record: {record.meta['source']} - {len(record)} samples x {d.shape[1]} output(s); train "
+        f"{split - settle}, hold out {len(record) - split}"
+    )
     res = diagnose_record(record, spec, cfg.candidates, cfg.train_fraction, settle, history, rules, log)
     prepare()
     return gap_report.write_outputs(res, record, _model_name(spec), rules, settle, Path(out), log)
 
 
 def _run_image(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) -> dict:
-    from .config import resolve_data_path
-    from .images import read_image
+    from ..config import resolve_data_path
+    from ..instrument.images import read_image
 
     check_effect_names(cfg.candidates, "candidates")
     image = read_image(resolve_data_path(cfg.image.path, config_path))
     image = dataclasses.replace(image, meta=image.meta | {"source": cfg.image.path})  # as the config gives it
-    log(f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
-        "scanner (fast-axis nonlinearity)")
+    log(
+        f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
+        "scanner (fast-axis nonlinearity)"
+    )
     res = diagnose_image.diagnose_image(image, cfg.candidates, cfg.train_fraction, rules)
     for c in res["candidates"]:
         log(gap_report.candidate_line(c))
@@ -423,11 +514,13 @@ def _run_image(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) ->
 
 
 def _run_scans(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) -> dict:
-    from . import diagnose_scans as S
+    from . import scans as S
 
     sc = cfg.scans
     grating = withheld.SIM_GRATING if sc.grating is None else S.GratingSpec(**sc.grating.model_dump())
-    res = S.diagnose_scans(_scan_pairs(sc, config_path, log), grating, cfg.candidates, cfg.train_fraction, rules)
+    res = S.diagnose_scans(
+        _scan_pairs(sc, config_path, log), grating, cfg.candidates, cfg.train_fraction, rules
+    )
     n = res["nominal"]
     log(f"nominal: train rms {n['train_rms_nm']:.3g} nm, held-out gap {n['heldout_gap_nm']:.3g} nm")
     for c in res["candidates"]:
@@ -438,22 +531,29 @@ def _run_scans(cfg, config_path: Path, out: Path, rules: Rules, prepare, log) ->
 
 def _scan_pairs(sc, config_path: Path, log) -> list:
     """The configured trace/retrace pairs: simulated, or read from files."""
-    from .config import resolve_data_path
-    from .diagnose_scans import ScanPair
-    from .images import read_image
+    from ..config import resolve_data_path
+    from ..instrument.images import read_image
+    from .scans import ScanPair
 
     if sc.simulate is not None:
         s = sc.simulate
-        what = f" with {s.withheld} {s.magnitude:g} {withheld.SCAN_UNITS[s.withheld]}" if s.withheld else " (a control)"
+        what = (
+            f" with {s.withheld} {s.magnitude:g} {withheld.SCAN_UNITS[s.withheld]}"
+            if s.withheld
+            else " (a control)"
+        )
         log(f"simulating trace/retrace pairs at {', '.join(f'{r:g}' for r in s.line_rates_hz)} Hz{what}")
-        return withheld.simulate_scans(s.withheld, s.magnitude, s.seed, s.line_rates_hz, s.lines, s.pixels,
-                                       noise_nm=s.noise_nm)
+        return withheld.simulate_scans(
+            s.withheld, s.magnitude, s.seed, s.line_rates_hz, s.lines, s.pixels, noise_nm=s.noise_nm
+        )
     pairs = []
     for i, p in enumerate(sc.pairs):
         tr, re = (read_image(resolve_data_path(f, config_path)) for f in (p.trace, p.retrace))
         if tr.shape != re.shape:
-            raise ValueError(f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
-                             "images differ in size")
+            raise ValueError(
+                f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
+                "images differ in size"
+            )
         dt = 1.0 / (2 * p.line_rate_hz * tr.shape[1] * (1 + 2 * p.overscan))  # s between two pixels
         pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace))
     return pairs
@@ -461,6 +561,10 @@ def _scan_pairs(sc, config_path: Path, log) -> list:
 
 def _model_name(spec: Nominal) -> str:
     extra = [e for e in spec.effects if e != "hysteresis"]
-    return {"pi": "symmetric PI", "gpi": "generalised PI", "preisach": "Preisach"}[spec.kind] + \
-        f" ({spec.operators if spec.kind != 'preisach' else spec.levels} " + \
-        ("plays" if spec.kind != "preisach" else "levels") + ")" + "".join(f" + {e}" for e in extra)
+    return (
+        {"pi": "symmetric PI", "gpi": "generalised PI", "preisach": "Preisach"}[spec.kind]
+        + f" ({spec.operators if spec.kind != 'preisach' else spec.levels} "
+        + ("plays" if spec.kind != "preisach" else "levels")
+        + ")"
+        + "".join(f" + {e}" for e in extra)
+    )

@@ -30,14 +30,24 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import calibration, plots
-from .afm import Raster, default_afm
-from .config import RunConfig, resolve_data_path
-from .io import load_model, save_model
+from .. import plots
+from ..config import RunConfig, resolve_data_path
+from ..identify import calibration
+from ..identify.step_a import run_cycle, simulate_calibration, twin_state
+from ..instrument.afm import Raster, default_afm
+from ..instrument.samples import Indented, Particles
+from ..model.io import load_model, save_model
 from .landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
-from .positioning import LocalScan, Positioner, Push, goto, local_scan, press_at, push, raster
-from .samples import Indented, Particles
-from .step_a import run_cycle, simulate_calibration, twin_state
+from .positioning import (
+    LocalScan,
+    Positioner,
+    Push,
+    goto,
+    local_scan,
+    press_at,
+    push,
+    raster,
+)
 
 STAGES = (("open_loop", False, False), ("A", True, False), ("B", False, True), ("A+B", True, True))
 NEARBY = 8  # particles each trial's local scan sees (the others lie beyond its lines)
@@ -65,12 +75,23 @@ def identify_scanner(cfg: RunConfig, scan, config_path: Path, log) -> tuple:
         return load_model(path), 0.0
     m = spec.model
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
-    ident = calibration.identify(scan, kind=m.kind, effects=m.effects, operators=m.operators,
-                                 deadzones=m.deadzones, levels=m.levels, solver=spec.solver.name,
-                                 blur_px=spec.solver.blur_px, max_steps=spec.solver.max_steps, log=log)
+    ident = calibration.identify(
+        scan,
+        kind=m.kind,
+        effects=m.effects,
+        operators=m.operators,
+        deadzones=m.deadzones,
+        levels=m.levels,
+        solver=spec.solver.name,
+        blur_px=spec.solver.blur_px,
+        max_steps=spec.solver.max_steps,
+        log=log,
+    )
     if not ident.converged:
-        log(f"  WARNING: identification stopped at max_steps={spec.solver.max_steps} (last loss "
-            f"{ident.stages[-1].loss:.3e})")
+        log(
+            f"  WARNING: identification stopped at max_steps={spec.solver.max_steps} (last loss "
+            f"{ident.stages[-1].loss:.3e})"
+        )
     return ident.model.scanner, ident.seconds
 
 
@@ -85,11 +106,23 @@ def _near(sample: Indented, centre: jax.Array) -> Particles:
 
 
 @eqx.filter_jit
-def trials(pos: Positioner, seen: Particles, stand, targets, truth, radii, directions, distances, keys,
-           local: LocalScan = None, push_spec: Push = None) -> dict:
+def trials(
+    pos: Positioner,
+    seen: Particles,
+    stand,
+    targets,
+    truth,
+    radii,
+    directions,
+    distances,
+    keys,
+    local: LocalScan = None,
+    push_spec: Push = None,
+) -> dict:
     """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``), with
     ``seen`` (batched over the trials) the particles each trial's tip meets; with ``local``,
     then step C, and with ``push_spec`` the push. Errors against the true centres ``truth``."""
+
     def one(near, target, p, R, d, dist, key):
         k = jax.random.split(key, 4)
         xy, _, s = goto(pos, near, stand, target, k[0])
@@ -98,14 +131,26 @@ def trials(pos: Positioner, seen: Particles, stand, targets, truth, radii, direc
             return out
         res, s = local_scan(pos, near, s, target, R, k[1], local)
         xy_c, _, s = goto(pos, near, s, res.centre, k[2])
-        out |= {"c_tip": xy_c, "c_error_nm": jnp.linalg.norm(xy_c - p), "c_found": res.found,
-                "c_lines": res.lines, "c_seconds": res.seconds, "c_centre": res.centre,
-                "c_starts": res.starts, "c_ends": res.ends, "c_phases": res.phases}
+        out |= {
+            "c_tip": xy_c,
+            "c_error_nm": jnp.linalg.norm(xy_c - p),
+            "c_found": res.found,
+            "c_lines": res.lines,
+            "c_seconds": res.seconds,
+            "c_centre": res.centre,
+            "c_starts": res.starts,
+            "c_ends": res.ends,
+            "c_phases": res.phases,
+        }
         if push_spec is None:
             return out
         final, moved, path, s = push(pos, near, s, res.centre, p, R, d, dist, k[3], push_spec)
-        return out | {"push_final": final, "push_contact": moved, "push_goal": p + dist * d,
-                      "push_path": path[::8]}
+        return out | {
+            "push_final": final,
+            "push_contact": moved,
+            "push_goal": p + dist * d,
+            "push_path": path[::8],
+        }
 
     return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys)
 
@@ -127,9 +172,19 @@ def find_targets(images: dict, work: Raster, particles: Particles, cfg: RunConfi
     each one is (from the true tip path over its pixel); unmatched finds are dropped."""
     spec = cfg.particles
     spacing = cfg.particle_spacing_nm
-    found = _trace_and_retrace(images, lambda z: find_features(
-        z, work, len(particles.radii) + 16, pits=False, min_height=spec.radius_nm[0],
-        min_distance_nm=spacing / 3, window_nm=spec.radius_nm[1] + 20.0), spacing / 2)
+    found = _trace_and_retrace(
+        images,
+        lambda z: find_features(
+            z,
+            work,
+            len(particles.radii) + 16,
+            pits=False,
+            min_height=spec.radius_nm[0],
+            min_distance_nm=spacing / 3,
+            window_nm=spec.radius_nm[1] + 20.0,
+        ),
+        spacing / 2,
+    )
     px = np.asarray(work.pixel_size)
     col_row = np.clip(np.round((found - np.asarray(work.origin)) / px).astype(int), 0, work.pixels - 1)
     true_xy = np.asarray(images["path_trace"])[col_row[:, 1], col_row[:, 0]]
@@ -142,9 +197,19 @@ def find_targets(images: dict, work: Raster, particles: Particles, cfg: RunConfi
 def find_landmarks(images: dict, work: Raster, grid: LandmarkGrid, depth: float) -> np.ndarray:
     """The indents found in the workspace image (k <= N*N, 2) nm, in pressing order when all are found."""
     spacing = grid.step_px * min(work.pixel_size)
-    found = _trace_and_retrace(images, lambda z: find_features(
-        z, work, grid.n**2, pits=True, min_height=depth / 4, min_distance_nm=spacing / 2,
-        window_nm=max(2.5 * min(work.pixel_size), 30.0)), spacing / 2)
+    found = _trace_and_retrace(
+        images,
+        lambda z: find_features(
+            z,
+            work,
+            grid.n**2,
+            pits=True,
+            min_height=depth / 4,
+            min_distance_nm=spacing / 2,
+            window_nm=max(2.5 * min(work.pixel_size), 30.0),
+        ),
+        spacing / 2,
+    )
     return order_grid(found, grid.n) if len(found) == grid.n**2 else found
 
 
@@ -154,8 +219,12 @@ def stage_key(label: str) -> str:
 
 
 def _summary(e: np.ndarray) -> dict:
-    return {"median_nm": float(np.median(e)), "p95_nm": float(np.percentile(e, 95)), "max_nm": float(e.max()),
-            "targets": int(e.size)}
+    return {
+        "median_nm": float(np.median(e)),
+        "p95_nm": float(np.percentile(e, 95)),
+        "max_nm": float(e.max()),
+        "targets": int(e.size),
+    }
 
 
 def _setup(cfg: RunConfig, config_path: Path) -> tuple:
@@ -163,8 +232,9 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
     the particles; every check that can fail runs here, before any step."""
     afm = default_afm(drift_nm_per_min=tuple(cfg.drift_nm_per_min))
     ws = cfg.workspace
-    work = Raster(ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm),
-                  overscan=0.05)
+    work = Raster(
+        ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm), overscan=0.05
+    )
     grid = LandmarkGrid(cfg.landmarks.n, cfg.landmarks.start_px, cfg.landmarks.step_px, ws.pixels)
     D = grid.positions(work)
     afm.check_range(afm.nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
@@ -175,16 +245,18 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
     return afm, work, grid, D, particle_field(cfg, grid, D)
 
 
-def survey(cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool,
-           key) -> tuple:
+def survey(
+    cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool, key
+) -> tuple:
     """Press the landmarks (with ``with_b``) and image the workspace: the images, the sample with
     its indents, the stand after, and the seconds it took."""
     k_press, k_scan = jax.random.split(key)
     t0 = float(stand.afm.scanner.t)
     if with_b:
         for j, d in enumerate(D):
-            sample, stand, _ = press_at(pos, sample, stand, jnp.asarray(d), cfg.landmarks.depth_nm,
-                                        jax.random.fold_in(k_press, j))
+            sample, stand, _ = press_at(
+                pos, sample, stand, jnp.asarray(d), cfg.landmarks.depth_nm, jax.random.fold_in(k_press, j)
+            )
     images, stand = raster(pos, sample, stand, work, k_scan)
     return images, sample, stand, float(stand.afm.scanner.t) - t0
 
@@ -207,21 +279,34 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
     afm, work, grid, D, particles = _setup(cfg, config_path)
     box = np.stack([D.min(0), D.max(0)])
     prepare()
-    log(f"step A: the calibration scan ({cfg.calibration.simulate.pixels}² px, "
-        f"{cfg.calibration.simulate.size_nm / 1e3:g} µm) ...")
+    log(
+        f"step A: the calibration scan ({cfg.calibration.simulate.pixels}² px, "
+        f"{cfg.calibration.simulate.size_nm / 1e3:g} µm) ..."
+    )
     scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
     model, fit_s = identify_scanner(cfg, scan, config_path, log)
     save_model(model, out / "model_scanner.json")
     calib_s = scan.raster.lines / scan.raster.line_rate
     start_state = run_cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
     twin = twin_state(model, scan, sim.cycle).scanner
-    metrics = {"step_a_fit_s": fit_s, "step_a_scan_s": calib_s, "particles": len(particles.radii),
-               "workspace_nm": cfg.workspace.size_nm, "workspace_pixels": cfg.workspace.pixels,
-               "landmarks_n": grid.n, "drift_x_nm_per_min": cfg.drift_nm_per_min[0],
-               "drift_y_nm_per_min": cfg.drift_nm_per_min[1]}
+    metrics = {
+        "step_a_fit_s": fit_s,
+        "step_a_scan_s": calib_s,
+        "particles": len(particles.radii),
+        "workspace_nm": cfg.workspace.size_nm,
+        "workspace_pixels": cfg.workspace.pixels,
+        "landmarks_n": grid.n,
+        "drift_x_nm_per_min": cfg.drift_nm_per_min[0],
+        "drift_y_nm_per_min": cfg.drift_nm_per_min[1],
+    }
     ls = cfg.local_scan
-    local = LocalScan(ls.points, ls.line_time_s, margin=ls.margin_nm, max_lines=ls.max_lines,
-                      width_tolerance=ls.width_tolerance)
+    local = LocalScan(
+        ls.points,
+        ls.line_time_s,
+        margin=ls.margin_nm,
+        max_lines=ls.max_lines,
+        width_tolerance=ls.width_tolerance,
+    )
     rows, figures, errors, arrays = [], {}, {}, {}
     for i, (name, with_a, with_b) in enumerate(STAGES):
         if name not in cfg.stages:
@@ -229,9 +314,17 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         log(f"{name}: {'pressing the landmarks, ' if with_b else ''}imaging the workspace ...")
         pos = Positioner(afm, model if with_a else None)
         key_survey, key_trials = jax.random.split(jax.random.fold_in(jax.random.key(cfg.seed), i))
-        images, sample, stand, prep_s = survey(cfg, pos, pos.start(start_state, twin if with_a else None),
-                                               Indented.empty(particles, afm.tip, capacity=grid.n**2),
-                                               work, grid, D, with_b, key_survey)
+        images, sample, stand, prep_s = survey(
+            cfg,
+            pos,
+            pos.start(start_state, twin if with_a else None),
+            Indented.empty(particles, afm.tip, capacity=grid.n**2),
+            work,
+            grid,
+            D,
+            with_b,
+            key_survey,
+        )
         targets, which = find_targets(images, work, particles, cfg)
         found = f"{len(targets)} of the {len(particles.radii)} particles found"
         maps = {"": None}
@@ -240,12 +333,16 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
             figures["landmarks" + ("_A" if with_a else "")] = (images, D, M)
             metrics[f"{stage_key(name)}_landmarks_found"] = len(M)
             if len(M) < grid.n**2:
-                log(f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
-                    "step B cannot map targets (no results for this stage)")
+                log(
+                    f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
+                    "step B cannot map targets (no results for this stage)"
+                )
                 rows += [(name + f" ({m})", None, float("nan")) for m in cfg.landmarks.interpolation]
                 continue
-            maps = {f" ({m})": LandmarkMap(M, D, m, cfg.landmarks.m, cfg.landmarks.degree)
-                    for m in cfg.landmarks.interpolation}
+            maps = {
+                f" ({m})": LandmarkMap(M, D, m, cfg.landmarks.m, cfg.landmarks.degree)
+                for m in cfg.landmarks.interpolation
+            }
             inside = np.all((targets >= M.min(0)) & (targets <= M.max(0)), axis=1)
             targets, which = targets[inside], which[inside]
             found += f", {len(targets)} inside the landmark grid"
@@ -258,25 +355,46 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         for j, (suffix, frame) in enumerate(maps.items()):
             with_c = with_a and with_b and j == 0
             start = time.perf_counter()
-            r = jax.tree_util.tree_map(np.asarray, trials(
-                Positioner(afm, pos.model, frame), seen, stand, jnp.asarray(targets), truth, radii,
-                jnp.asarray(directions), jnp.asarray(distances), keys, local if with_c else None,
-                Push(speed=cfg.push.speed_nm_per_s) if with_c else None))
+            r = jax.tree_util.tree_map(
+                np.asarray,
+                trials(
+                    Positioner(afm, pos.model, frame),
+                    seen,
+                    stand,
+                    jnp.asarray(targets),
+                    truth,
+                    radii,
+                    jnp.asarray(directions),
+                    jnp.asarray(distances),
+                    keys,
+                    local if with_c else None,
+                    Push(speed=cfg.push.speed_nm_per_s) if with_c else None,
+                ),
+            )
             label = name + suffix
             arrays |= {f"{label}/{k}": v for k, v in r.items()} | {
-                f"{label}/truth": np.asarray(truth), f"{label}/radius": np.asarray(radii), f"{label}/target": targets}
+                f"{label}/truth": np.asarray(truth),
+                f"{label}/radius": np.asarray(radii),
+                f"{label}/target": targets,
+            }
             rows.append((label, _summary(r["error_nm"]), scan_s))
             errors[label] = r["error_nm"]
-            log(f"  {label}: median {rows[-1][1]['median_nm']:.1f} nm, worst {rows[-1][1]['max_nm']:.1f} nm "
-                f"({time.perf_counter() - start:.1f} s)")
+            log(
+                f"  {label}: median {rows[-1][1]['median_nm']:.1f} nm, worst {rows[-1][1]['max_nm']:.1f} nm "
+                f"({time.perf_counter() - start:.1f} s)"
+            )
             if with_c:
-                rows.append(("A+B+C" + suffix, _summary(r["c_error_nm"]), scan_s + float(r["c_seconds"].mean())))
+                rows.append(
+                    ("A+B+C" + suffix, _summary(r["c_error_nm"]), scan_s + float(r["c_seconds"].mean()))
+                )
                 errors["A+B+C" + suffix] = r["c_error_nm"]
                 metrics |= _step_c_metrics(r, np.asarray(radii), cfg.push.tolerance_radii)
                 figures["trials"] = (r, np.asarray(truth), np.asarray(radii))
     for label, s, scan_s in rows:
         if s is not None:
-            metrics |= {f"{stage_key(label)}_error_{k}": v for k, v in s.items()} | {f"{stage_key(label)}_scan_time_s": scan_s}
+            metrics |= {f"{stage_key(label)}_error_{k}": v for k, v in s.items()} | {
+                f"{stage_key(label)}_scan_time_s": scan_s
+            }
     log(_table(rows, metrics))
     _figures(figures, work, out)
     plots.stage_errors(errors, out / "errors.png")
@@ -289,15 +407,19 @@ def _step_c_metrics(r: dict, radii: np.ndarray, tolerance_radii: float) -> dict:
     e_c = r["c_error_nm"]
     push_err = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1)
     success = r["push_contact"] & (push_err <= tolerance_radii * radii)
-    return {"ABC_error_over_radius_median": float(np.median(e_c / radii)),
-            "ABC_error_over_radius_max": float(np.max(e_c / radii)),
-            "ABC_within_0p1R_pct": 100 * float(np.mean(e_c < 0.1 * radii)),
-            "ABC_found_pct": 100 * float(np.mean(r["c_found"])),
-            "ABC_lines_mean": float(np.mean(r["c_lines"])),
-            "ABC_local_scan_s_mean": float(np.mean(r["c_seconds"])),
-            "push_trials": int(radii.size), "push_tolerance_radii": tolerance_radii,
-            "push_success_pct": 100 * float(np.mean(success)),
-            "push_error_median_nm": float(np.median(push_err)), "push_error_max_nm": float(np.max(push_err))}
+    return {
+        "ABC_error_over_radius_median": float(np.median(e_c / radii)),
+        "ABC_error_over_radius_max": float(np.max(e_c / radii)),
+        "ABC_within_0p1R_pct": 100 * float(np.mean(e_c < 0.1 * radii)),
+        "ABC_found_pct": 100 * float(np.mean(r["c_found"])),
+        "ABC_lines_mean": float(np.mean(r["c_lines"])),
+        "ABC_local_scan_s_mean": float(np.mean(r["c_seconds"])),
+        "push_trials": int(radii.size),
+        "push_tolerance_radii": tolerance_radii,
+        "push_success_pct": 100 * float(np.mean(success)),
+        "push_error_median_nm": float(np.median(push_err)),
+        "push_error_max_nm": float(np.max(push_err)),
+    }
 
 
 def _table(rows, metrics) -> str:
@@ -307,25 +429,39 @@ def _table(rows, metrics) -> str:
         if s is None:
             lines.append(f"{label:22s} {'failed: landmarks missing from the image':>44s}")
             continue
-        lines.append(f"{label:22s} {s['targets']:7d} {s['median_nm']:7.1f}nm {s['p95_nm']:7.1f}nm "
-                     f"{s['max_nm']:7.1f}nm {scan_s:8.0f}s")
-    lines.append("error: true tip to true particle centre after a 0.2 s dwell; scanning: time spent "
-                 "scanning and pressing (A: calibration image; B: landmarks + workspace image; C: mean local scan)")
+        lines.append(
+            f"{label:22s} {s['targets']:7d} {s['median_nm']:7.1f}nm {s['p95_nm']:7.1f}nm "
+            f"{s['max_nm']:7.1f}nm {scan_s:8.0f}s"
+        )
+    lines.append(
+        "error: true tip to true particle centre after a 0.2 s dwell; scanning: time spent "
+        "scanning and pressing (A: calibration image; B: landmarks + workspace image; C: mean local scan)"
+    )
     if "push_success_pct" in metrics:
-        lines.append(f"A+B+C: error under 0.1 R for {metrics['ABC_within_0p1R_pct']:.1f} % of targets "
-                     f"(worst {metrics['ABC_error_over_radius_max']:.3f} R); local scan verified for "
-                     f"{metrics['ABC_found_pct']:.1f} %, {metrics['ABC_lines_mean']:.1f} lines, "
-                     f"{metrics['ABC_local_scan_s_mean']:.1f} s on average")
-        lines.append(f"push: {metrics['push_success_pct']:.1f} % of {metrics['push_trials']} particles end within "
-                     f"{metrics['push_tolerance_radii']:g} R of the goal (median miss "
-                     f"{metrics['push_error_median_nm']:.1f} nm, worst {metrics['push_error_max_nm']:.1f} nm)")
+        lines.append(
+            f"A+B+C: error under 0.1 R for {metrics['ABC_within_0p1R_pct']:.1f} % of targets "
+            f"(worst {metrics['ABC_error_over_radius_max']:.3f} R); local scan verified for "
+            f"{metrics['ABC_found_pct']:.1f} %, {metrics['ABC_lines_mean']:.1f} lines, "
+            f"{metrics['ABC_local_scan_s_mean']:.1f} s on average"
+        )
+        lines.append(
+            f"push: {metrics['push_success_pct']:.1f} % of {metrics['push_trials']} particles end within "
+            f"{metrics['push_tolerance_radii']:g} R of the goal (median miss "
+            f"{metrics['push_error_median_nm']:.1f} nm, worst {metrics['push_error_max_nm']:.1f} nm)"
+        )
     return "\n".join(lines)
 
 
 def _figures(figures: dict, work: Raster, out: Path) -> None:
     if "landmarks_A" in figures:
-        plots.landmarks({"B (nominal drive)": figures.get("landmarks"), "A+B (compensated drive)":
-                         figures["landmarks_A"]}, work, out / "landmarks.png")
+        plots.landmarks(
+            {
+                "B (nominal drive)": figures.get("landmarks"),
+                "A+B (compensated drive)": figures["landmarks_A"],
+            },
+            work,
+            out / "landmarks.png",
+        )
     if "trials" in figures:
         plots.local_scans(*figures["trials"], out / "local_scan.png")
         plots.pushes(*figures["trials"], out / "push.png")

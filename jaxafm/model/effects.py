@@ -13,14 +13,22 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import checks
+from .. import checks
 
 Array = jax.Array
 
 #: Every effect name the project knows. The AFM layer (imaging) owns the last two.
 EFFECTS = (
-    "hysteresis", "asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow",
-    "noise", "feedback_lag", "tip",
+    "hysteresis",
+    "asymmetry",
+    "rate_dependence",
+    "creep",
+    "drift",
+    "coupling",
+    "bow",
+    "noise",
+    "feedback_lag",
+    "tip",
 )
 
 
@@ -80,8 +88,7 @@ class Creep(eqx.Module):
         checks.finite("Creep.weights", self.weights)
 
     @classmethod
-    def logarithmic(cls, gamma: float, tau_min: float = 0.1, tau_max: float = 1000.0,
-                    per_decade: int = 2):
+    def logarithmic(cls, gamma: float, tau_min: float = 0.1, tau_max: float = 1000.0, per_decade: int = 2):
         """Creep of ``gamma`` (fraction per decade) between ``tau_min`` and ``tau_max`` s."""
         checks.nonnegative("creep gamma", gamma)
         checks.positive("creep tau_min", tau_min)

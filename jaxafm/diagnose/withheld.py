@@ -16,16 +16,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .afm import AFM, Raster, raster_scan
-from .diagnose_scans import GratingSpec, ScanPair
-from .effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
-from .records import Record
-from .samples import Grating, Tip
-from .scanner import Scanner, default_scanner
+from ..instrument.afm import AFM, Raster, raster_scan
+from ..instrument.records import Record
+from ..instrument.samples import Grating, Tip
+from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
+from ..model.scanner import Scanner, default_scanner
+from .scans import GratingSpec, ScanPair
 
 #: Unit of the ``magnitude`` of a withheld effect in :func:`simulate_record`.
-RECORD_UNITS = {"asymmetry": "x default dead zones", "rate_dependence": "s", "creep": "per decade",
-                   "drift": "nm/s", "coupling": "dimensionless", "bow": "1/nm"}
+RECORD_UNITS = {
+    "asymmetry": "x default dead zones",
+    "rate_dependence": "s",
+    "creep": "per decade",
+    "drift": "nm/s",
+    "coupling": "dimensionless",
+    "bow": "1/nm",
+}
 
 
 def simulated_scanner(withheld: Optional[str], magnitude: float, noise_nm: float) -> Scanner:
@@ -36,41 +42,63 @@ def simulated_scanner(withheld: Optional[str], magnitude: float, noise_nm: float
     if withheld is None:
         return base
     if withheld not in RECORD_UNITS:
-        raise ValueError(f"simulate.withheld: {withheld!r} cannot be simulated in an actuator record; "
-                         f"one of {', '.join(RECORD_UNITS)}")
+        raise ValueError(
+            f"simulate.withheld: {withheld!r} cannot be simulated in an actuator record; "
+            f"one of {', '.join(RECORD_UNITS)}"
+        )
     m = jnp.asarray(float(magnitude))
     if withheld == "asymmetry":
         scaled = full.without("creep", "coupling", "bow", "drift")
         for ax in ("x", "y"):
             for side in ("upper_weights", "lower_weights"):
-                get = lambda s, ax=ax, side=side: getattr(getattr(s, ax).hysteresis.deadzone, side)  # noqa: E731
+                get = lambda s, ax=ax, side=side: getattr(getattr(s, ax).hysteresis.deadzone, side)
                 scaled = eqx.tree_at(get, scaled, m * get(scaled))
         return scaled
     if withheld in ("rate_dependence", "creep"):
         stage = RateDependence(m) if withheld == "rate_dependence" else Creep.logarithmic(float(magnitude))
-        return eqx.tree_at(lambda s: (getattr(s.x, withheld), getattr(s.y, withheld)), base, (stage, stage),
-                           is_leaf=lambda v: v is None)
-    module = {"coupling": lambda: Coupling(m, -0.6 * m), "bow": lambda: Bow(m, -0.5 * m),
-              "drift": lambda: Drift(jnp.stack([m, -0.6 * m]), jnp.full(2, 0.05), jnp.asarray(1e-3))}[withheld]()
+        return eqx.tree_at(
+            lambda s: (getattr(s.x, withheld), getattr(s.y, withheld)),
+            base,
+            (stage, stage),
+            is_leaf=lambda v: v is None,
+        )
+    module = {
+        "coupling": lambda: Coupling(m, -0.6 * m),
+        "bow": lambda: Bow(m, -0.5 * m),
+        "drift": lambda: Drift(jnp.stack([m, -0.6 * m]), jnp.full(2, 0.05), jnp.asarray(1e-3)),
+    }[withheld]()
     return eqx.tree_at(lambda s: getattr(s, withheld), base, module, is_leaf=lambda v: v is None)
 
 
-def simulate_record(withheld: Optional[str] = None, magnitude: float = 0.0, seed: int = 0,
-                    duration_s: float = 20.0, sample_rate_hz: float = 100.0, noise_nm: float = 2.0,
-                    amplitude_v: float = 9.0) -> Record:
+def simulate_record(
+    withheld: Optional[str] = None,
+    magnitude: float = 0.0,
+    seed: int = 0,
+    duration_s: float = 20.0,
+    sample_rate_hz: float = 100.0,
+    noise_nm: float = 2.0,
+    amplitude_v: float = 9.0,
+) -> Record:
     """A two-axis record of :func:`simulated_scanner`, each axis driven by
     ``u = A e(t) sin(phi(t))``, ``e(t) = 0.55 + 0.45 cos(2 pi t / 10 s)``, at a frequency
     ``phi'/2 pi`` swept between 0.2 and 1.8 Hz (x) and 0.3 and 1.3 Hz (y), so that
     loops of many sizes and speeds appear."""
     t = np.arange(int(round(duration_s * sample_rate_hz))) / sample_rate_hz
-    env = lambda s: 0.55 + 0.45 * np.cos(2 * np.pi * s / 10.0)  # noqa: E731
-    phase = lambda f0, df, period: 2 * np.pi * (f0 * t + df * period / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / period)))  # noqa: E501,E731
-    u = amplitude_v * np.stack([env(t) * np.sin(phase(1.0, 0.8, 7.0)), env(t + 5.0) * np.sin(phase(0.8, 0.5, 9.0))], -1)
+    env = lambda s: 0.55 + 0.45 * np.cos(2 * np.pi * s / 10.0)
+    phase = lambda f0, df, period: (
+        2 * np.pi * (f0 * t + df * period / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / period)))
+    )
+    u = amplitude_v * np.stack(
+        [env(t) * np.sin(phase(1.0, 0.8, 7.0)), env(t + 5.0) * np.sin(phase(0.8, 0.5, 9.0))], -1
+    )
     truth = simulated_scanner(withheld, magnitude, noise_nm)
     d = np.asarray(truth(jnp.asarray(u), jnp.asarray(t), key=jax.random.key(seed)))
     unit = RECORD_UNITS.get(withheld, "")
-    meta = {"source": f"simulated: PI scanner + noise {noise_nm} nm"
-                      + (f" + {withheld} {magnitude:g} {unit}" if withheld else ""), "samples": len(t)}
+    meta = {
+        "source": f"simulated: PI scanner + noise {noise_nm} nm"
+        + (f" + {withheld} {magnitude:g} {unit}" if withheld else ""),
+        "samples": len(t),
+    }
     return Record(t, u, d, meta)
 
 
@@ -82,30 +110,52 @@ SIM_DEPTH_NM = 30.0
 SETTLE_LINES = 2  # the first lines run while the scanner's loop settles: dropped
 
 
-def simulate_scans(withheld: Optional[str] = None, magnitude: float = 0.0, seed: int = 0,
-                   line_rates_hz=(1.0, 4.0), lines: int = 24, pixels: int = 512, size_nm: float = 2000.0,
-                   noise_nm: float = 0.5) -> list:
+def simulate_scans(
+    withheld: Optional[str] = None,
+    magnitude: float = 0.0,
+    seed: int = 0,
+    line_rates_hz=(1.0, 4.0),
+    lines: int = 24,
+    pixels: int = 512,
+    size_nm: float = 2000.0,
+    noise_nm: float = 0.5,
+) -> list:
     """Trace/retrace images of :data:`SIM_GRATING` by the simulated AFM at each line rate (slowest
     first, one scan after the other): the symmetric-PI scanner of :func:`simulated_scanner`
     (``noise_nm`` lateral noise), an ideal tip and feedback, plus ``withheld`` at ``magnitude``
     (:data:`SCAN_UNITS`). Returns :class:`ScanPair` s."""
     if withheld is not None and withheld not in SCAN_UNITS:
-        raise ValueError(f"simulate.withheld: {withheld!r} cannot be simulated in a scan set; "
-                         f"one of {', '.join(SCAN_UNITS)}")
-    scanner = simulated_scanner("rate_dependence" if withheld == "rate_dependence" else None, magnitude, noise_nm)
+        raise ValueError(
+            f"simulate.withheld: {withheld!r} cannot be simulated in a scan set; "
+            f"one of {', '.join(SCAN_UNITS)}"
+        )
+    scanner = simulated_scanner(
+        "rate_dependence" if withheld == "rate_dependence" else None, magnitude, noise_nm
+    )
     radius = float(magnitude) if withheld == "tip" else 10.0
     tip = Tip(jnp.asarray(radius), jnp.asarray(np.deg2rad(SIM_GRATING.tip_half_angle_deg)))
     feedback = FeedbackLag(jnp.asarray(float(magnitude))) if withheld == "feedback_lag" else None
     afm = AFM(scanner, tip, jnp.full(2, 500.0), feedback, u_max=10.0, dilate=withheld == "tip")
-    sample = Grating(jnp.asarray(SIM_GRATING.pitch_nm), jnp.asarray(SIM_DEPTH_NM),
-                     edge_width=jnp.asarray(SIM_GRATING.edge_width_nm), phase=jnp.asarray(37.0))
+    sample = Grating(
+        jnp.asarray(SIM_GRATING.pitch_nm),
+        jnp.asarray(SIM_DEPTH_NM),
+        edge_width=jnp.asarray(SIM_GRATING.edge_width_nm),
+        phase=jnp.asarray(37.0),
+    )
     state = afm.initial_state()
     out = []
     for i, rate in enumerate(line_rates_hz):
         raster = Raster((size_nm, size_nm / 2), pixels, lines + SETTLE_LINES, line_rate=float(rate))
         img = raster_scan(afm, sample, state, raster, key=jax.random.fold_in(jax.random.key(seed), i))
         state = img["state"]
-        pick = lambda z: np.asarray(z)[SETTLE_LINES:]  # noqa: E731
-        out.append(ScanPair(pick(img["trace"]), pick(img["retrace"]), raster.pixel_size, raster.sample_time,
-                            f"{rate:g} Hz"))
+        pick = lambda z: np.asarray(z)[SETTLE_LINES:]
+        out.append(
+            ScanPair(
+                pick(img["trace"]),
+                pick(img["retrace"]),
+                raster.pixel_size,
+                raster.sample_time,
+                f"{rate:g} Hz",
+            )
+        )
     return out

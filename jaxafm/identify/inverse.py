@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import checks
-from .hysteresis import GeneralizedPI, PrandtlIshlinskii
-from .scanner import Axis, AxisState, Scanner, ScannerState
+from .. import checks
+from ..model.hysteresis import GeneralizedPI, PrandtlIshlinskii
+from ..model.scanner import Axis, AxisState, Scanner, ScannerState
 
 Array = jax.Array
 METHODS = ("analytic", "numerical")
@@ -40,6 +40,7 @@ METHODS = ("analytic", "numerical")
 
 def _undo_coupling(model: Scanner, q: Array, iterations: int = 8) -> Array:
     """Axis outputs ``v`` (2,) nm with ``bow(coupling(v)) = q``, by fixed-point iteration."""
+
     def forward_extra(v):
         p = v
         if model.coupling is not None:
@@ -72,7 +73,7 @@ def _hysteresis_target(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array) 
 def _root(axis: Axis, h: Array, plays: Array, u_guess: Array, lo: float, hi: float, tol: float = 1e-7):
     """``u`` in ``[lo, hi]`` with ``H[u; plays] = h``: Newton steps, bisection when a step leaves
     the bracket. Returns ``(u, saturated)``; saturated when ``h`` lies beyond ``H[lo]``/``H[hi]``."""
-    H = lambda u: axis.hysteresis.step(u, plays)[0] - h  # noqa: E731
+    H = lambda u: axis.hysteresis.step(u, plays)[0] - h
     below, above = H(lo) > 0, H(hi) < 0
 
     def body(c):
@@ -84,8 +85,11 @@ def _root(axis: Axis, h: Array, plays: Array, u_guess: Array, lo: float, hi: flo
         return jnp.where(jnp.abs(f) <= tol, u, step), a, b, jnp.abs(f), i + 1
 
     start = jnp.clip(u_guess, lo, hi)
-    u, *_ = lax.while_loop(lambda c: (c[3] > tol) & (c[4] < 60), body,
-                           (start, jnp.asarray(lo, float), jnp.asarray(hi, float), jnp.asarray(jnp.inf), 0))
+    u, *_ = lax.while_loop(
+        lambda c: (c[3] > tol) & (c[4] < 60),
+        body,
+        (start, jnp.asarray(lo, float), jnp.asarray(hi, float), jnp.asarray(jnp.inf), 0),
+    )
     u = jnp.where(below, lo, jnp.where(above, hi, u))
     return u, below | above
 
@@ -200,22 +204,29 @@ class Compensator(eqx.Module):
         if self.method == "analytic":
             for a in ("x", "y"):
                 if not isinstance(getattr(self.model, a).hysteresis, (PrandtlIshlinskii, GeneralizedPI)):
-                    raise ValueError("the analytic inverse needs a PI or generalised-PI model; "
-                                     "use method='numerical' for Preisach")
+                    raise ValueError(
+                        "the analytic inverse needs a PI or generalised-PI model; "
+                        "use method='numerical' for Preisach"
+                    )
             if self.history is None:
-                raise ValueError("the analytic inverse needs the drive history since the initialisation cycle")
+                raise ValueError(
+                    "the analytic inverse needs the drive history since the initialisation cycle"
+                )
 
     def __call__(self, wanted: Array, t: Array) -> Array:
         wanted, t = jnp.asarray(wanted, dtype=float), jnp.asarray(t, dtype=float)
         if wanted.ndim != 2 or wanted.shape[1] != 2 or t.shape != wanted.shape[:1]:
-            raise ValueError(f"wanted positions must be (T, 2) nm with times (T,) s, got {wanted.shape}, {t.shape}")
+            raise ValueError(
+                f"wanted positions must be (T, 2) nm with times (T,) s, got {wanted.shape}, {t.shape}"
+            )
         checks.increasing("times t", t)
         if self.method == "analytic":
             u = _analytic(self.model, wanted, t, self.state, jnp.asarray(self.history, dtype=float))
             saturated = np.zeros(u.shape, dtype=bool)
         else:
-            u, saturated = numerical_inverse(self.model, wanted, t, self.state, jnp.asarray(self.u_now, dtype=float),
-                                      self.u_max)
+            u, saturated = numerical_inverse(
+                self.model, wanted, t, self.state, jnp.asarray(self.u_now, dtype=float), self.u_max
+            )
         self._check(np.asarray(u), np.asarray(saturated), np.asarray(wanted))
         return u
 
@@ -228,7 +239,8 @@ class Compensator(eqx.Module):
             raise ValueError(
                 f"wanted position ({wanted[n, 0]:.0f}, {wanted[n, 1]:.0f}) nm needs a drive of {u[n, k]:.3g} V on "
                 f"{'xy'[k]}, outside the range the model was fitted over, [{lo[k]:.3g}, {hi[k]:.3g}] V: "
-                "keep targets inside the calibrated area or calibrate over a larger scan")
+                "keep targets inside the calibrated area or calibrate over a larger scan"
+            )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -251,8 +263,9 @@ class NeuralInverse(eqx.Module):
         return (h @ w + b)[..., 0] * self.u_scale[1] + self.u_scale[0]
 
 
-def train_neural_inverse(x: np.ndarray, u: np.ndarray, width: int = 16, seed: int = 0,
-                         max_steps: int = 3000) -> tuple:
+def train_neural_inverse(
+    x: np.ndarray, u: np.ndarray, width: int = 16, seed: int = 0, max_steps: int = 3000
+) -> tuple:
     """Fit a :class:`NeuralInverse` to pairs ``x`` (nm) -> ``u`` (V) by BFGS (optimistix) on the
     mean squared error; returns ``(network, seconds)``."""
     import optimistix as optx

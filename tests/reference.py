@@ -52,21 +52,23 @@ def pi_loop(u, thresholds, weights, offset=0.0):
 
 # --- the whole instrument, one sample at a time -------------------------------------------------
 
+
 def _np(x):
     return np.asarray(x, dtype=float)
 
 
 def numpy_height(sample):
     """A NumPy ``height(xy)`` for points ``(..., 2)`` nm of a jaxafm ``Grating`` or ``Plane``."""
-    from .samples import Grating, Plane
+    from jaxafm.instrument.samples import Grating, Plane
 
     if isinstance(sample, Plane):
         z0, slope = _np(sample.z0), _np(sample.slope)
         return lambda xy: z0 + xy @ slope
     if not isinstance(sample, Grating):
         raise NotImplementedError(f"no NumPy height for {type(sample).__name__}: give a height function")
-    pitch, depth, duty, edge, angle, phase = (_np(getattr(sample, f)) for f in (
-        "pitch", "depth", "duty", "edge_width", "angle", "phase"))
+    pitch, depth, duty, edge, angle, phase = (
+        _np(getattr(sample, f)) for f in ("pitch", "depth", "duty", "edge_width", "angle", "phase")
+    )
     c, s = np.cos(angle), np.sin(angle)
 
     def height(xy):
@@ -82,8 +84,9 @@ def numpy_grating_image(sample, tip):
     (``Grating.imaged``), written again from its description: the best of the nearer top corner,
     the top plateau and the tangent contact of the apex sphere inside a wall, over the nearest
     line and its neighbours."""
-    pitch, depth, duty, w, angle, phase = (_np(getattr(sample, f)) for f in (
-        "pitch", "depth", "duty", "edge_width", "angle", "phase"))
+    pitch, depth, duty, w, angle, phase = (
+        _np(getattr(sample, f)) for f in ("pitch", "depth", "duty", "edge_width", "angle", "phase")
+    )
     radius, theta = _np(tip.radius), _np(tip.half_angle)
     if depth < 0:  # grooves: lines of |depth| in between, lowered by |depth|
         duty, phase, low, depth = 1 - duty, phase + pitch / 2, depth, -depth
@@ -115,20 +118,27 @@ def numpy_grating_image(sample, tip):
 
 def _axis_numpy(axis):
     """One axis's parameters as NumPy: play radii, PI weights and offset, dead zone, lags."""
-    from .hysteresis import GeneralizedPI, PrandtlIshlinskii
+    from jaxafm.model.hysteresis import GeneralizedPI, PrandtlIshlinskii
 
     h, dz = axis.hysteresis, None
     if isinstance(h, GeneralizedPI):
         h, dz = h.pi, h.deadzone
     if not isinstance(h, PrandtlIshlinskii):
         raise NotImplementedError(f"the NumPy scan covers PI and generalised PI axes, not {type(h).__name__}")
-    p = {"r": _np(h.thresholds), "w": _np(h.weights), "offset": _np(h.offset), "dz": None,
-         "rate_tau": None if axis.rate_dependence is None else _np(axis.rate_dependence.tau),
-         "creep_taus": None if axis.creep is None else _np(axis.creep.taus),
-         "creep_w": None if axis.creep is None else _np(axis.creep.weights)}
+    p = {
+        "r": _np(h.thresholds),
+        "w": _np(h.weights),
+        "offset": _np(h.offset),
+        "dz": None,
+        "rate_tau": None if axis.rate_dependence is None else _np(axis.rate_dependence.tau),
+        "creep_taus": None if axis.creep is None else _np(axis.creep.taus),
+        "creep_w": None if axis.creep is None else _np(axis.creep.weights),
+    }
     if dz is not None:
-        p["dz"] = tuple(_np(getattr(dz, f)) for f in (
-            "centre", "slope", "upper", "upper_weights", "lower", "lower_weights"))
+        p["dz"] = tuple(
+            _np(getattr(dz, f))
+            for f in ("centre", "slope", "upper", "upper_weights", "lower", "lower_weights")
+        )
     return p
 
 
@@ -142,8 +152,19 @@ def _readout(a, plays):
     return c + g0 * x + np.maximum(x - up, 0.0) @ up_w - np.maximum(lo - x, 0.0) @ lo_w
 
 
-def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0.0, 0.0), t0=0.0,
-                history=None, z0=0.0, probe=None):
+def drive_numpy(
+    afm,
+    height,
+    u,
+    t,
+    drift_normals=None,
+    noise_normals=None,
+    u0=(0.0, 0.0),
+    t0=0.0,
+    history=None,
+    z0=0.0,
+    probe=None,
+):
     """The true tip path and the recorded height of the drive ``u`` (T, 2) V at times ``t`` (T,) s.
 
     A naive instrument simulation: a Python loop over samples, NumPy inside a
@@ -158,7 +179,7 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
     ``afm.tip.stencil()``, e.g. :func:`numpy_grating_image` for a grating), or ``height(p)``
     when ``afm.dilate`` is off, and the
     feedback lag. The lags hold each input over ``(t[n-1], t[n]]``, as
-    :func:`jaxafm.effects.lowpass` does. ``height`` is a NumPy function of points
+    :func:`jaxafm.model.effects.lowpass` does. ``height`` is a NumPy function of points
     (..., 2) nm, e.g. :func:`numpy_height` of the sample. The normals must be
     the draws the JAX scanner makes (see :func:`raster_normals`) for the results to agree.
     Returns ``path`` (T, 2) nm and ``recorded`` (T,) nm.
@@ -170,13 +191,17 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
     bow = None if sc.bow is None else (_np(sc.bow.bx), _np(sc.bow.by))
     drift = sc.drift is not None
     if drift:
-        vel, sigma, theta = _np(sc.drift.velocity), _np(sc.drift.sigma), np.maximum(_np(sc.drift.theta), 1e-12)
+        vel, sigma, theta = (
+            _np(sc.drift.velocity),
+            _np(sc.drift.sigma),
+            np.maximum(_np(sc.drift.theta), 1e-12),
+        )
     noise_std = None if sc.noise is None else _np(sc.noise.std)
     q, lift = (_np(a) for a in afm.tip.stencil())
     if not afm.dilate:
         probe = height
     elif probe is None:
-        probe = lambda p: np.max(height(p + q) - lift)  # noqa: E731
+        probe = lambda p: np.max(height(p + q) - lift)
     fb_tau = None if afm.feedback is None else _np(afm.feedback.tau)
 
     # the state afm.initial_state(u0, t0, history) builds
@@ -230,7 +255,7 @@ def drive_numpy(afm, height, u, t, drift_normals=None, noise_normals=None, u0=(0
 
 
 def raster_drive(afm, raster, u0=(0.0, 0.0), t0=0.0, move_time=0.1, move_samples=32):
-    """The drive (T, 2) V and times (T,) s of ``jaxafm.afm.raster_scan`` from rest at ``u0``, ``t0``:
+    """The drive (T, 2) V and times (T,) s of ``jaxafm.instrument.afm.raster_scan`` from rest at ``u0``, ``t0``:
     the ``move`` ramp to the first point (``move_samples`` samples), then the raster, nominal volts."""
     wanted = raster.wanted()
     L, _, n, _ = wanted.shape
@@ -256,8 +281,20 @@ def raster_normals(key, raster, move_samples=32):
     return np.concatenate(drift), np.concatenate(noise)
 
 
-def raster_scan_numpy(afm, height, raster, drift_normals=None, noise_normals=None, u0=(0.0, 0.0),
-                      t0=0.0, history=None, move_time=0.1, move_samples=32, lines=None, probe=None):
+def raster_scan_numpy(
+    afm,
+    height,
+    raster,
+    drift_normals=None,
+    noise_normals=None,
+    u0=(0.0, 0.0),
+    t0=0.0,
+    history=None,
+    move_time=0.1,
+    move_samples=32,
+    lines=None,
+    probe=None,
+):
     """:func:`drive_numpy` over :func:`raster_drive`: the NumPy counterpart of ``raster_scan``
     from ``afm.initial_state(u0, t0, history)`` with nominal volts.
 
@@ -269,14 +306,15 @@ def raster_scan_numpy(afm, height, raster, drift_normals=None, noise_normals=Non
     u, t = raster_drive(afm, raster, u0, t0, move_time, move_samples)
     L, n = raster.lines if lines is None else lines, 2 * (raster.pixels + 2 * raster.margin)
     T = move_samples + L * n
-    cut = (lambda a: None if a is None else a[:T])  # noqa: E731
-    path, rec = drive_numpy(afm, height, u[:T], t[:T], cut(drift_normals), cut(noise_normals),
-                            u0, t0, history, probe=probe)
+    cut = lambda a: None if a is None else a[:T]
+    path, rec = drive_numpy(
+        afm, height, u[:T], t[:T], cut(drift_normals), cut(noise_normals), u0, t0, history, probe=probe
+    )
     out = {"path": path, "recorded": rec, "t": t[:T]}
     P, m = raster.pixels, raster.margin
     for i, name in enumerate(("trace", "retrace")):
         for key, a in ((name, rec[move_samples:]), (f"path_{name}", path[move_samples:])):
-            img = a.reshape((L, 2, n // 2) + a.shape[1:])[:, i, m:m + P]
+            img = a.reshape((L, 2, n // 2) + a.shape[1:])[:, i, m : m + P]
             img = img[:, ::-1] if i == 1 else img
             out[key] = img[::-1] if raster.direction == "down" else img
     return out

@@ -28,7 +28,7 @@ import numpy as np
 from jax import lax
 from skimage import feature
 
-from . import checks
+from .. import checks
 
 Array = jax.Array
 METHODS = ("pairwise", "polynomial")
@@ -48,13 +48,17 @@ class LandmarkGrid:
         if self.n != int(self.n) or self.n < 2:
             raise ValueError(f"the landmark grid needs N >= 2 indents per side, got N = {self.n}")
         if not self.start_px >= 0 or not self.step_px > 0:
-            raise ValueError(f"landmark grid start P must be >= 0 px and step S > 0 px, got P = {self.start_px}, "
-                             f"S = {self.step_px}")
+            raise ValueError(
+                f"landmark grid start P must be >= 0 px and step S > 0 px, got P = {self.start_px}, "
+                f"S = {self.step_px}"
+            )
         last = self.start_px + self.step_px * (self.n - 1)
         if not last < self.image_px:
-            raise ValueError(f"the landmark grid does not fit the image (paper eq. 3, P + S(N-1) < n): "
-                             f"{self.start_px:g} + {self.step_px:g} x {self.n - 1} = {last:g} px, but the image has "
-                             f"n = {self.image_px} px: reduce N, P or S, or scan more pixels")
+            raise ValueError(
+                f"the landmark grid does not fit the image (paper eq. 3, P + S(N-1) < n): "
+                f"{self.start_px:g} + {self.step_px:g} x {self.n - 1} = {last:g} px, but the image has "
+                f"n = {self.image_px} px: reduce N, P or S, or scan more pixels"
+            )
 
     def positions(self, raster) -> np.ndarray:
         """Wanted indent positions ``D`` (n*n, 2) nm in ``raster``'s frame, row by row from the
@@ -68,8 +72,9 @@ class LandmarkGrid:
         return np.asarray(raster.origin) + px * np.asarray(raster.pixel_size)
 
 
-def find_features(z: np.ndarray, raster, count: int, pits: bool, min_height: float,
-                  min_distance_nm: float, window_nm: float) -> np.ndarray:
+def find_features(
+    z: np.ndarray, raster, count: int, pits: bool, min_height: float, min_distance_nm: float, window_nm: float
+) -> np.ndarray:
     """Sub-pixel centres (k, 2) nm of up to ``count`` pits (or bumps) of ``z`` (lines, pixels) nm
     deeper (higher) than ``min_height`` nm against the image's median level.
 
@@ -80,15 +85,16 @@ def find_features(z: np.ndarray, raster, count: int, pits: bool, min_height: flo
     s = (-1.0 if pits else 1.0) * (z - np.median(z))
     pixel = np.asarray(raster.pixel_size)
     md = max(1, int(min_distance_nm / pixel.min()))
-    peaks = feature.peak_local_max(s, min_distance=md, threshold_abs=min_height, num_peaks=count,
-                                   exclude_border=False)
+    peaks = feature.peak_local_max(
+        s, min_distance=md, threshold_abs=min_height, num_peaks=count, exclude_border=False
+    )
     w = max(1, int(np.ceil(window_nm / pixel.min())))
     centres = []
     for r, c in peaks:
         r0, c0 = max(r - w, 0), max(c - w, 0)
-        patch = s[r0:r + w + 1, c0:c + w + 1]
+        patch = s[r0 : r + w + 1, c0 : c + w + 1]
         weight = np.clip(patch - s[r, c] / 4, 0, None)
-        rr, cc = np.mgrid[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]]
+        rr, cc = np.mgrid[r0 : r0 + patch.shape[0], c0 : c0 + patch.shape[1]]
         rc = np.array([(rr * weight).sum(), (cc * weight).sum()]) / weight.sum()
         centres.append(np.asarray(raster.origin) + rc[::-1] * pixel)
     return np.asarray(centres).reshape(-1, 2)
@@ -99,8 +105,10 @@ def order_grid(points: np.ndarray, n: int) -> np.ndarray:
     alternating direction as :meth:`LandmarkGrid.positions` presses them."""
     points = np.asarray(points, dtype=float)
     if points.shape != (n * n, 2):
-        raise ValueError(f"found {len(points)} landmarks in the re-scan, expected N x N = {n * n}: check the indent "
-                         "depth against the image's noise, and that no other pits lie in the area")
+        raise ValueError(
+            f"found {len(points)} landmarks in the re-scan, expected N x N = {n * n}: check the indent "
+            "depth against the image's noise, and that no other pits lie in the area"
+        )
     rows = points[np.argsort(points[:, 1])].reshape(n, n, 2)
     out = []
     for i, row in enumerate(rows):
@@ -130,12 +138,21 @@ class LandmarkMap(eqx.Module):
     centre: Array = None
     scale: Array = None
 
-    def __init__(self, measured, commands, method: str = "polynomial", m: int = 4, degree: int = 3,
-                 min_separation: float | None = None):
+    def __init__(
+        self,
+        measured,
+        commands,
+        method: str = "polynomial",
+        m: int = 4,
+        degree: int = 3,
+        min_separation: float | None = None,
+    ):
         measured, commands = jnp.asarray(measured, dtype=float), jnp.asarray(commands, dtype=float)
         if measured.ndim != 2 or measured.shape[1] != 2 or measured.shape != commands.shape:
-            raise ValueError(f"landmarks need measured and command positions of one shape (K, 2), got "
-                             f"{measured.shape} and {commands.shape}")
+            raise ValueError(
+                f"landmarks need measured and command positions of one shape (K, 2), got "
+                f"{measured.shape} and {commands.shape}"
+            )
         if method not in METHODS:
             raise ValueError(f"unknown landmark interpolation {method!r}; one of {', '.join(METHODS)}")
         K = measured.shape[0]
@@ -143,21 +160,25 @@ class LandmarkMap(eqx.Module):
             raise ValueError(f"pairwise interpolation needs 2 <= m <= {K} landmarks, got m = {m}")
         terms = (degree + 1) * (degree + 2) // 2
         if method == "polynomial" and not (degree >= 1 and K >= terms):
-            raise ValueError(f"a degree-{degree} surface has {terms} coefficients per axis but there are {K} "
-                             "landmarks: lower the degree (>= 1) or use a larger grid")
+            raise ValueError(
+                f"a degree-{degree} surface has {terms} coefficients per axis but there are {K} "
+                "landmarks: lower the degree (>= 1) or use a larger grid"
+            )
         self.measured, self.commands = measured, commands
         self.method, self.m, self.degree = method, int(m), int(degree)
         self.centre = jnp.mean(measured, axis=0)
         self.scale = jnp.maximum(jnp.ptp(measured, axis=0) / 2, 1e-9)
         spacing = float(np.median(_nearest_distances(np.asarray(measured))))
-        self.min_separation = jnp.asarray(0.25 * spacing if min_separation is None else min_separation, dtype=float)
+        self.min_separation = jnp.asarray(
+            0.25 * spacing if min_separation is None else min_separation, dtype=float
+        )
         if method == "polynomial":
             A = self._terms(measured)
             self.coefficients = jnp.linalg.lstsq(A, commands)[0]
 
     def _terms(self, p: Array) -> Array:
         x, y = ((p - self.centre) / self.scale).T
-        return jnp.stack([x**i * y**(d - i) for d in range(self.degree + 1) for i in range(d + 1)], axis=-1)
+        return jnp.stack([x**i * y ** (d - i) for d in range(self.degree + 1) for i in range(d + 1)], axis=-1)
 
     def __call__(self, targets: Array) -> Array:
         """Commands (..., 2) nm for ``targets`` (..., 2) nm in the re-scan's frame."""
@@ -191,9 +212,11 @@ class LandmarkMap(eqx.Module):
         bad = np.any((t < lo) | (t > hi), axis=1)
         if bad.any():
             p = t[np.argmax(bad)]
-            raise ValueError(f"{name} ({p[0]:.0f}, {p[1]:.0f}) nm lies outside the landmark grid, x {lo[0]:.0f} to "
-                             f"{hi[0]:.0f} nm, y {lo[1]:.0f} to {hi[1]:.0f} nm: choose a target inside it or press a "
-                             "larger grid")
+            raise ValueError(
+                f"{name} ({p[0]:.0f}, {p[1]:.0f}) nm lies outside the landmark grid, x {lo[0]:.0f} to "
+                f"{hi[0]:.0f} nm, y {lo[1]:.0f} to {hi[1]:.0f} nm: choose a target inside it or press a "
+                "larger grid"
+            )
 
 
 def _nearest_distances(p: np.ndarray) -> np.ndarray:

@@ -121,7 +121,9 @@ class LineGratingFit:
         """Where each edge lies on the fitted grating (nm): phase + index * pitch +- w_r / 2."""
         e = self.edges
         half = 0.5 * np.nan_to_num(self.row_width_nm[e.row]) * (1 if self.grooves else -1)
-        return np.where(e.rising, self.phase_rise_nm + half, self.phase_fall_nm - half) + e.index * self.pitch_nm
+        return (
+            np.where(e.rising, self.phase_rise_nm + half, self.phase_fall_nm - half) + e.index * self.pitch_nm
+        )
 
     def residuals_nm(self) -> np.ndarray:
         """Per edge: its corrected x minus its place on the fitted grating (nm)."""
@@ -136,7 +138,10 @@ class LineGratingFit:
 
     def uniformity(self) -> dict:
         """``features.pitch_spread`` of the local pitch: ``{"raw": ..., "corrected": ...}``."""
-        return {k: pitch_spread(self.local_pitch(corrected=c)[1]) for k, c in (("raw", False), ("corrected", True))}
+        return {
+            k: pitch_spread(self.local_pitch(corrected=c)[1])
+            for k, c in (("raw", False), ("corrected", True))
+        }
 
 
 def local_pitch(edges: GratingEdges, x_nm: np.ndarray) -> tuple:
@@ -158,8 +163,10 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
     slow axis y, rows), each with its line index, tracked from row to row."""
     z = np.asarray(z, dtype=float)
     if z.ndim == 2 and z.shape[0] < MIN_ROWS:
-        raise ValueError(f"{name} has {z.shape[0]} scan line(s); fitting the skew needs at least {MIN_ROWS}: "
-                         "scan more lines")
+        raise ValueError(
+            f"{name} has {z.shape[0]} scan line(s); fitting the skew needs at least {MIN_ROWS}: "
+            "scan more lines"
+        )
     z = _check_image(z, name)
     dx, dy = (float(p) for p in np.broadcast_to(np.asarray(pixel_size, dtype=float), (2,)))
     if not (dx > 0 and dy > 0):
@@ -167,13 +174,17 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
     rows = [edge_crossings(r) for r in z]
     both = [r.any() and not r.all() for _, r in rows]  # rows with rising and falling edges
     if sum(both) < MIN_ROWS:
-        raise ValueError(f"{name}: only {sum(both)} scan line(s) show both rising and falling edges; the fit needs "
-                         f"at least {MIN_ROWS}: check that the lines run along the slow axis (rows)")
+        raise ValueError(
+            f"{name}: only {sum(both)} scan line(s) show both rising and falling edges; the fit needs "
+            f"at least {MIN_ROWS}: check that the lines run along the slow axis (rows)"
+        )
     periods = [max(np.sum(r) - 1, np.sum(~r) - 1, 0) for _, r in rows]
     if np.median(periods) < MIN_PERIODS:
-        raise ValueError(f"{name}: a typical row shows {int(np.median(periods))} complete grating period(s) along x; "
-                         f"the fit needs at least {MIN_PERIODS}: scan a wider area or use a grating of finer pitch, "
-                         "with its lines along the slow axis (rows)")
+        raise ValueError(
+            f"{name}: a typical row shows {int(np.median(periods))} complete grating period(s) along x; "
+            f"the fit needs at least {MIN_PERIODS}: scan a wider area or use a grating of finer pitch, "
+            "with its lines along the slow axis (rows)"
+        )
     p0 = float(np.median(np.concatenate([np.diff(c[r == t]) for c, r in rows for t in (True, False)])))
 
     found = []
@@ -189,7 +200,8 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
                 raise ValueError(
                     f"{name}: edge indexing is inconsistent: in row {j} the {_kind(rising)} edges at columns "
                     f"{np.round(x, 1).tolist()} are not whole periods ({p0:.1f} px) apart; a defect, dust or a "
-                    "broken line interrupts the grating there: crop or fill it")
+                    "broken line interrupts the grating there: crop or fill it"
+                )
             m = np.concatenate([[0], np.cumsum(whole)]).astype(int)
             phase = float(np.median(x - p0 * m))
             if ref is not None:
@@ -198,7 +210,8 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
                     raise ValueError(
                         f"{name}: edge indexing is inconsistent: the {_kind(rising)} edges move by {shift:+.2f} "
                         f"periods from the row before row {j} to row {j}, so which line is which is ambiguous; "
-                        "the image jumps there (a tip change, a shock): crop the image at that row")
+                        "the image jumps there (a tip change, a shock): crop the image at that row"
+                    )
                 m = m + int(round(shift))
             ref = float(np.median(x - p0 * m))
             found.append((np.full(x.size, j), x, np.full(x.size, rising), m))
@@ -254,20 +267,31 @@ def _solve(a: np.ndarray, b: np.ndarray, e: GratingEdges, widths: bool, name: st
     sol, _, rank, _ = np.linalg.lstsq(at / norm, bt, rcond=None)
     p = a.shape[1] + (np.count_nonzero(count) if widths else 0)
     if rank < a.shape[1] or a.shape[0] <= p:
-        raise ValueError(f"{name}: {a.shape[0]} edges at too few distinct places for {p} parameters: scan more "
-                         "periods or lines, lower the degree, or fit without slow=True or widths=True")
+        raise ValueError(
+            f"{name}: {a.shape[0]} edges at too few distinct places for {p} parameters: scan more "
+            "periods or lines, lower the degree, or fit without slow=True or widths=True"
+        )
     r = bt - (at / norm) @ sol
     rss = float(r @ r)
     cov = rss / (a.shape[0] - p) * np.linalg.inv((at / norm).T @ (at / norm))
     theta = sol / norm
     w = np.full(n_rows, np.nan)
     if widths:
-        w[count > 0] = (2 * np.bincount(e.row, sign * (b - a @ theta), n_rows) / np.maximum(count, 1))[count > 0]
+        w[count > 0] = (2 * np.bincount(e.row, sign * (b - a @ theta), n_rows) / np.maximum(count, 1))[
+            count > 0
+        ]
     return theta, np.sqrt(np.diag(cov)) / norm, rss, p, w
 
 
-def fit_line_grating(z: np.ndarray, pixel_size, degree: Optional[int] = None, grooves: bool = True,
-                     slow: bool = True, widths: bool = True, name: str = "image") -> LineGratingFit:
+def fit_line_grating(
+    z: np.ndarray,
+    pixel_size,
+    degree: Optional[int] = None,
+    grooves: bool = True,
+    slow: bool = True,
+    widths: bool = True,
+    name: str = "image",
+) -> LineGratingFit:
     """Fit pitch, fast-axis nonlinearity and skew (and the optional terms) to a 1-D grating image.
 
     ``z`` (rows, cols) heights nm, lines along the slow axis (y, rows); ``pixel_size`` (x, y)
@@ -278,14 +302,19 @@ def fit_line_grating(z: np.ndarray, pixel_size, degree: Optional[int] = None, gr
     """
     e = grating_edges(z, pixel_size, name)
     fits = {}
-    for d in (DEGREES if degree is None else (int(degree),)):
+    for d in DEGREES if degree is None else (int(degree),):
         if d < 1:
             raise ValueError(f"degree must be >= 1 (1: no nonlinearity), got {d}")
         a, names, xr, yr = _design(e, d, slow, widths)
         theta, se, rss, p, w = _solve(a, e.x_nm, e, widths, name)
         n = len(e.x_nm)
-        fits[d] = (n * np.log(max(rss, 1e-300) / n) + p * np.log(n), dict(zip(names, theta)), dict(zip(names, se)),
-                   rss, w)
+        fits[d] = (
+            n * np.log(max(rss, 1e-300) / n) + p * np.log(n),
+            dict(zip(names, theta)),
+            dict(zip(names, se)),
+            rss,
+            w,
+        )
     best = min(fits, key=lambda d: fits[d][0])
     bic, sol, se, rss, w = fits[best]
     pitch = sol["pitch"]
@@ -295,21 +324,35 @@ def fit_line_grating(z: np.ndarray, pixel_size, degree: Optional[int] = None, gr
         sol["phase_rise"], sol["phase_fall"] = sol["phase"] + mean / 2, sol["phase"] - mean / 2
     groove_width = (sol["phase_rise"] - sol["phase_fall"]) % pitch
     fit = LineGratingFit(
-        pitch_nm=float(pitch), pitch_se_nm=float(se["pitch"]),
+        pitch_nm=float(pitch),
+        pitch_se_nm=float(se["pitch"]),
         coeffs_nm=tuple(float(sol[f"c{k}"]) for k in range(2, best + 1)),
         coeffs_se_nm=tuple(float(se[f"c{k}"]) for k in range(2, best + 1)),
-        skew=float(sol["skew"]), skew_se=float(se["skew"]),
-        bow_nm=float(sol.get("bow", 0.0)), bow_se_nm=float(se.get("bow", np.nan)),
-        drift=float(sol.get("drift", 0.0)), drift_se=float(se.get("drift", np.nan)),
-        phase_rise_nm=float(sol["phase_rise"]), phase_fall_nm=float(sol["phase_fall"]),
-        line_width_nm=float(groove_width if grooves else pitch - groove_width), degree=best,
-        residual_rms_nm=float(np.sqrt(rss / len(e.x_nm))), x_range_nm=xr, y_range_nm=yr, bic=float(bic),
-        bic_by_degree={d: float(f[0]) for d, f in fits.items()}, row_width_nm=w, edges=e, grooves=grooves)
+        skew=float(sol["skew"]),
+        skew_se=float(se["skew"]),
+        bow_nm=float(sol.get("bow", 0.0)),
+        bow_se_nm=float(se.get("bow", np.nan)),
+        drift=float(sol.get("drift", 0.0)),
+        drift_se=float(se.get("drift", np.nan)),
+        phase_rise_nm=float(sol["phase_rise"]),
+        phase_fall_nm=float(sol["phase_fall"]),
+        line_width_nm=float(groove_width if grooves else pitch - groove_width),
+        degree=best,
+        residual_rms_nm=float(np.sqrt(rss / len(e.x_nm))),
+        x_range_nm=xr,
+        y_range_nm=yr,
+        bic=float(bic),
+        bic_by_degree={d: float(f[0]) for d, f in fits.items()},
+        row_width_nm=w,
+        edges=e,
+        grooves=grooves,
+    )
     res = fit.residuals_nm()
     worst = int(np.argmax(np.abs(res)))
     if abs(res[worst]) > TOL * pitch:
         raise ValueError(
             f"{name}: edge indexing is inconsistent: an edge in row {e.row[worst]} at x = {e.x_nm[worst]:.0f} nm "
             f"lies {res[worst]:+.0f} nm off its line (pitch {pitch:.0f} nm): a defect or a partial line there; "
-            "crop it")
+            "crop it"
+        )
     return fit
