@@ -8,7 +8,7 @@ multi-cycle signal plus a filtered random walk, squashed into [0, 3.6] V):
    forward+gradient of a squared-error loss w.r.t. the fitted arrays (density
    and offset; the grids stay fixed, as in a fit) and w.r.t. every array, smooth=False (same
    model as the relay grid, used for the speed-up) and smooth=True (the default); vs the NumPy loop
-   ``jaxafm.reference.preisach_relay_grid`` timed once on the full input.
+   ``preisach_relay_grid`` (tests/reference.py) timed once on the full input.
    The JAX/NumPy agreement (smooth=False) is checked and reported.
 2. Prandtl-Ishlinskii with 50 plays and random positive weights vs ``pi_loop``.
 
@@ -40,8 +40,7 @@ import numpy as np
 from benchutil import machine_info, time_jax
 from reference import pi_loop, preisach_relay_grid
 
-import jaxafm  # noqa: F401  (enables float64)
-from jaxafm import PrandtlIshlinskii, Preisach
+from jaxafm import PrandtlIshlinskii, Preisach  # the model package switches JAX to float64
 
 U_MIN, U_MAX, SEED = 0.0, 3.6, 0
 GOAL_SPEEDUP, GOAL_GRAD_RATIO = 50.0, 4.0

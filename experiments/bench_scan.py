@@ -13,7 +13,7 @@ scanner's +-5000 nm). One image includes the 32-sample move to its first point.
 (b) JAX forward+gradient: value and gradient of ``mean(trace^2 + retrace^2) / 2``
     with respect to every float array of the AFM (scanner, tip, calibration,
     feedback: ``eqx.filter_value_and_grad``), jitted and timed the same way.
-(c) NumPy: ``jaxafm.reference.raster_scan_numpy``, a Python loop over samples fed
+(c) NumPy: ``raster_scan_numpy`` (tests/reference.py), a Python loop over samples fed
     the same random draws; its output is checked against (a). Timed once. By
     default a few lines are timed first and the whole image is run if that
     projects under ``--numpy-budget`` s; otherwise (or with ``--numpy-lines N``)
@@ -119,11 +119,11 @@ def main():
 
     def forward(afm, sample, state, key):
         out = raster_scan(afm, sample, state, raster, key=key)
-        return out["trace"], out["retrace"], out["path_trace"], out["path_retrace"]
+        return out.trace, out.retrace, out.path_trace, out.path_retrace
 
     def loss(afm, sample, state, key):
         out = raster_scan(afm, sample, state, raster, key=key)
-        return 0.5 * (jnp.mean(out["trace"] ** 2) + jnp.mean(out["retrace"] ** 2))
+        return 0.5 * (jnp.mean(out.trace**2) + jnp.mean(out.retrace**2))
 
     def value_and_grad(afm, sample, state, key):
         return eqx.filter_value_and_grad(loss)(afm, sample, state, key)

@@ -52,7 +52,7 @@ def main() -> None:
     trace, retrace = from_scan(scan, raster, "trace"), from_scan(scan, raster, "retrace")
     for name, image in (("trace", trace), ("retrace", retrace)):
         save_image(image, args.out / f"{name}.npz", overwrite=True)
-    path = np.asarray(scan["path_trace"])
+    path = np.asarray(scan.path_trace)
     nominal = np.stack(np.meshgrid(trace.x, trace.y), axis=-1)
     err = path - nominal
     diff = trace.z - retrace.z
@@ -60,7 +60,7 @@ def main() -> None:
         "pixels": args.pixels,
         "scan_size_nm": 8000.0,
         "line_rate_hz": args.line_rate,
-        "frame_time_s": float(scan["t_retrace"].max() - scan["t_trace"].min()),
+        "frame_time_s": float(scan.t_retrace.max() - scan.t_trace.min()),
         "simulate_seconds_incl_compile": seconds,
         "position_error_rms_nm": float(np.sqrt(np.mean(np.sum(err**2, axis=-1)))),
         "position_error_max_nm": float(np.max(np.linalg.norm(err, axis=-1))),
@@ -68,9 +68,7 @@ def main() -> None:
         "y_error_range_nm": [float(err[..., 1].min()), float(err[..., 1].max())],
         "trace_retrace_offset_rms_nm": float(
             np.sqrt(
-                np.mean(
-                    np.sum((np.asarray(scan["path_trace"]) - np.asarray(scan["path_retrace"])) ** 2, axis=-1)
-                )
+                np.mean(np.sum((np.asarray(scan.path_trace) - np.asarray(scan.path_retrace)) ** 2, axis=-1))
             )
         ),
         "trace_minus_retrace_rms_nm": float(np.sqrt(np.mean(diff**2))),

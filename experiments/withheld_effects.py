@@ -34,11 +34,12 @@ from jaxafm.diagnose import withheld as W
 
 OUT = Path(__file__).parent / "results" / "withheld_effects"
 #: low, middle, high, per kind of data; units in jaxafm.diagnose.withheld.RECORD_UNITS and
-#: jaxafm.diagnose.withheld.SCAN_UNITS. Records' middle: a typical value of design.md section 4
-#: (creep 1 %/decade, coupling 1 %, the default scanner's bow and asymmetry x 0.5); drift is larger
-#: than a real one (1-6 nm/min), which would stay under the 2 nm noise in a 20 s record. Scans: a
-#: feedback lag of 0.1-1 ms (a 0.2-2 kHz loop), tips of 10 nm (new) to 50 nm (worn), and the
-#: records' scanner lag, which shifts edges as a feedback lag does.
+#: jaxafm.diagnose.withheld.SCAN_UNITS. Records' middle: a typical published value
+#: (docs/index.md, "What we compare against": creep 1 %/decade, coupling 1 %, the default
+#: scanner's bow and asymmetry x 0.5); drift is larger than a real one (1-6 nm/min), which would
+#: stay under the 2 nm noise in a 20 s record. Scans: a feedback lag of 0.1-1 ms (a 0.2-2 kHz
+#: loop), tips of 10 nm (new) to 50 nm (worn), and the records' scanner lag, which shifts edges as
+#: a feedback lag does.
 MAGNITUDES = {
     "record": {
         "asymmetry": (0.25, 0.5, 1.0),
@@ -83,8 +84,8 @@ def run_case(kind, effect, magnitude, seed) -> dict:
         res = S.diagnose_scans(
             W.simulate_scans(effect, magnitude, seed), W.SIM_GRATING, S.CANDIDATES, 0.6, D.Rules()
         )
-    rows = {r["effect"]: r for r in res["candidates"]}
-    verdict = res["verdict"]
+    rows = {r.effect: r for r in res.candidates}
+    verdict = res.verdict
     return {
         "data": kind,
         "truth": effect,
@@ -92,23 +93,21 @@ def run_case(kind, effect, magnitude, seed) -> dict:
         "seed": seed,
         "verdict": verdict,
         "seconds": time.perf_counter() - start,
-        "heldout_gap_before_nm": res["nominal"]["heldout_gap_nm"],
+        "heldout_gap_before_nm": res.nominal.heldout_gap_nm,
         "verdict_shrink_pct": rows[verdict]["shrink_pct"] if verdict else 0.0,
         "truth_shrink_pct": rows[effect]["shrink_pct"] if effect else None,
         **(
             {
                 "verdict_rms_shrink_pct": 100
-                * (1 - rows[verdict]["fit"]["heldout_rms_nm"] / res["nominal"]["heldout_rms_nm"])
+                * (1 - rows[verdict].fit.heldout_rms_nm / res.nominal.heldout_rms_nm)
                 if verdict
                 else 0.0,
-                "heldout_rms_before_nm": res["nominal"]["heldout_rms_nm"],
+                "heldout_rms_before_nm": res.nominal.heldout_rms_nm,
             }
             if kind == "scans"
             else {}
         ),
-        "ranking": [
-            [r["effect"], r["shrink_pct"], r["delta_bic"], r["significant"]] for r in res["candidates"]
-        ],
+        "ranking": [[r.effect, r.shrink_pct, r.delta_bic, r.significant] for r in res.candidates],
     }
 
 

@@ -1,57 +1,78 @@
 """jaxafm: differentiable AFM scanner models and positioning in JAX.
 
-Importing jaxafm switches JAX to float64: identification needs it (design.md, section 2).
+The layers, each a sub-package, data flowing down the list:
+
+- ``config``: the YAML schemas of every command (no JAX);
+- ``model``: the scanner (hysteresis, creep, coupling, bow, drift, noise);
+- ``instrument``: the simulated AFM, samples, images and data readers;
+- ``identify``: features, fits, step A's calibration and the inverses;
+- ``position``: steps B and C and the push; ``study``: Monte-Carlo studies;
+- ``diagnose``: the sim-to-real gap, beside identify and position;
+- ``cli``: the ``jaxafm`` command.
+
+The public names below are loaded on first use (PEP 562), so ``import jaxafm`` and
+``import jaxafm.config`` import no JAX. **Precision:** the first use of any JAX part of jaxafm
+switches JAX to float64 (``jax_enable_x64``) for the whole process: identification needs it, and
+a model built before the switch would hold float32 arrays (see ``jaxafm._precision``). Figures
+are drawn on their own ``matplotlib.figure.Figure`` objects: no backend is chosen, no pyplot
+state touched. Units (nm, s, V) and effect names: ``docs/conventions.md``.
 """
 
-import jax
+from __future__ import annotations
 
-jax.config.update("jax_enable_x64", True)
-
-from .instrument.afm import (  # noqa: E402
-    AFM,
-    Raster,
-    default_afm,
-    line_scan,
-    move,
-    press,
-    raster_scan,
-)
-from .instrument.images import AFMImage, load_image, read_image, save_image  # noqa: E402
-from .instrument.samples import (  # noqa: E402
-    Grating,
-    HeightMap,
-    Indented,
-    Lattice,
-    Particles,
-    Plane,
-    Tip,
-)
-from .model.effects import (  # noqa: E402
-    EFFECTS,
-    Bow,
-    Coupling,
-    Creep,
-    Drift,
-    FeedbackLag,
-    Noise,
-    RateDependence,
-)
-from .model.hysteresis import (  # noqa: E402
-    Anhysteretic,
-    Deadzone,
-    GeneralizedPI,
-    Linear,
-    PrandtlIshlinskii,
-    Preisach,
-    play,
-)
-from .model.scanner import Axis, Scanner, default_scanner  # noqa: E402
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
-__all__ = [
+#: public name -> the module that defines it
+_HOMES = {
+    "AFM": "instrument.afm",
+    "Raster": "instrument.afm",
+    "default_afm": "instrument.afm",
+    "line_scan": "instrument.afm",
+    "move": "instrument.afm",
+    "press": "instrument.afm",
+    "raster_scan": "instrument.afm",
+    "RasterScan": "instrument.afm",
+    "AbstractSample": "instrument.samples",
+    "AFMImage": "instrument.images",
+    "load_image": "instrument.images",
+    "read_image": "instrument.images",
+    "save_image": "instrument.images",
+    "Grating": "instrument.samples",
+    "HeightMap": "instrument.samples",
+    "Indented": "instrument.samples",
+    "Lattice": "instrument.samples",
+    "Particles": "instrument.samples",
+    "Plane": "instrument.samples",
+    "Tip": "instrument.samples",
+    "EFFECTS": "config.names",
+    "Bow": "model.effects",
+    "Coupling": "model.effects",
+    "Creep": "model.effects",
+    "Drift": "model.effects",
+    "FeedbackLag": "model.effects",
+    "Noise": "model.effects",
+    "RateDependence": "model.effects",
+    "AbstractHysteresis": "model.hysteresis",
+    "Anhysteretic": "model.hysteresis",
+    "Deadzone": "model.hysteresis",
+    "GeneralizedPI": "model.hysteresis",
+    "Linear": "model.hysteresis",
+    "PrandtlIshlinskii": "model.hysteresis",
+    "Preisach": "model.hysteresis",
+    "play": "model.hysteresis",
+    "Axis": "model.scanner",
+    "Scanner": "model.scanner",
+    "default_scanner": "model.scanner",
+}
+
+__all__ = [  # = sorted(_HOMES); a literal list, for static tools
     "AFM",
     "AFMImage",
+    "AbstractHysteresis",
+    "AbstractSample",
     "Anhysteretic",
     "Axis",
     "Bow",
@@ -73,6 +94,7 @@ __all__ = [
     "PrandtlIshlinskii",
     "Preisach",
     "Raster",
+    "RasterScan",
     "RateDependence",
     "Scanner",
     "Tip",
@@ -87,3 +109,44 @@ __all__ = [
     "read_image",
     "save_image",
 ]
+
+
+def __getattr__(name: str):
+    """Import a public name's module on first use (PEP 562) and keep the name here."""
+    if name not in _HOMES:
+        raise AttributeError(f"module 'jaxafm' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # what static tools (type checkers, editors, the API docs) see
+    from .config.names import EFFECTS
+    from .instrument.afm import AFM, Raster, RasterScan, default_afm, line_scan, move, press, raster_scan
+    from .instrument.images import AFMImage, load_image, read_image, save_image
+    from .instrument.samples import (
+        AbstractSample,
+        Grating,
+        HeightMap,
+        Indented,
+        Lattice,
+        Particles,
+        Plane,
+        Tip,
+    )
+    from .model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, Noise, RateDependence
+    from .model.hysteresis import (
+        AbstractHysteresis,
+        Anhysteretic,
+        Deadzone,
+        GeneralizedPI,
+        Linear,
+        PrandtlIshlinskii,
+        Preisach,
+        play,
+    )
+    from .model.scanner import Axis, Scanner, default_scanner

@@ -1,12 +1,34 @@
-"""Figures, written to files (matplotlib, no display needed)."""
+"""Figures, written to files.
+
+Each figure is its own ``matplotlib.figure.Figure``, saved with ``fig.savefig``: no pyplot, no
+backend chosen, nothing of matplotlib's global state changed, so importing jaxafm leaves a
+user's interactive plotting as it was, and no display is needed.
+"""
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+
+
+def subplots(
+    nrows: int = 1, ncols: int = 1, *, figsize: tuple, constrained_layout: bool = False, **kw
+) -> tuple:
+    """A new figure and its grid of axes, like ``pyplot.subplots`` but outside pyplot.
+
+    Arguments:
+        nrows, ncols: the grid of axes.
+        figsize: width, height (inches).
+        constrained_layout: let matplotlib place the axes and colour bars.
+        **kw: passed to ``Figure.subplots`` (``squeeze``, ``gridspec_kw``, ...).
+
+    Returns:
+        ``(fig, axes)``; save with ``fig.savefig(path)``. Nothing else holds the figure: it is
+        freed with its last reference.
+    """
+    fig = Figure(figsize=figsize, constrained_layout=constrained_layout)
+    return fig, fig.subplots(nrows, ncols, **kw)
 
 
 def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -> None:
@@ -16,7 +38,7 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     """
     u, d, t = record.u, record.d, record.t
     d_range = float(d.max() - d.min())
-    fig, (ax_loop, ax_err) = plt.subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.4]})
+    fig, (ax_loop, ax_err) = subplots(1, 2, figsize=(13, 6), gridspec_kw={"width_ratios": [1, 1.4]})
     ax_loop.plot(u[split:], d[split:] / 1e3, color="0.6", lw=2.5, label="measured")
     for name, pred in predictions.items():
         ax_loop.plot(u[split:], pred[split:] / 1e3, lw=0.8, label=name)
@@ -41,14 +63,13 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every: int = 16) -> None:
     """Trace, retrace and their difference (nm) at the nominal pixel positions, and the true
     tip path: where every ``every``-th line and column of pixels really was, over the
     nominal grid. ``trace``/``retrace`` are ``AFMImage``; ``path`` (lines, pixels, 2) nm."""
-    fig, axes = plt.subplots(1, 4, figsize=(20, 5.2), constrained_layout=True)
+    fig, axes = subplots(1, 4, figsize=(20, 5.2), constrained_layout=True)
     um = [e / 1e3 for e in trace.extent]
     for ax, image, name in ((axes[0], trace.z, "trace"), (axes[1], retrace.z, "retrace")):
         im = ax.imshow(image, origin="lower", extent=um, cmap="afmhot")
@@ -81,7 +102,6 @@ def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every:
     if title:
         fig.suptitle(title)
     fig.savefig(path_file, dpi=110)
-    plt.close(fig)
 
 
 def compensation(images: dict, raster, path, title: str = "", every: int = 16) -> None:
@@ -89,7 +109,7 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
     pixel positions (the paper's Fig. 6 and 7), and the fast-axis error of the tip (true
     minus wanted x, nm; its mean over the image removed) along every ``every``-th line."""
     names = list(images)
-    fig, axes = plt.subplots(
+    fig, axes = subplots(
         3, len(names), figsize=(3.3 * len(names), 10), constrained_layout=True, squeeze=False
     )
     ext = [
@@ -100,14 +120,14 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
     ]
     x = raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels)
     errors = {
-        n: np.stack([np.asarray(images[n][f"path_{k}"])[..., 0] - x for k in ("trace", "retrace")])
+        n: np.stack([np.asarray(getattr(images[n], f"path_{k}"))[..., 0] - x for k in ("trace", "retrace")])
         for n in names
     }
     lim = max(float(np.abs(e - e.mean()).max()) for e in errors.values())
     for j, n in enumerate(names):
         for i, k in enumerate(("trace", "retrace")):
             ax = axes[i, j]
-            im = ax.imshow(np.asarray(images[n][k]), origin="lower", extent=ext, cmap="afmhot")
+            im = ax.imshow(np.asarray(getattr(images[n], k)), origin="lower", extent=ext, cmap="afmhot")
             ax.set_title(f"{n}\n{k}" if i == 0 else k, fontsize=9)
             ax.set_xlabel("x nominal (µm)")
             if j == 0:
@@ -130,21 +150,20 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def landmarks(panels: dict, raster, path) -> None:
     """Step B: each workspace image with the indents intended (``D``, +) and found (``M``, o),
     their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M)``."""
     panels = {k: v for k, v in panels.items() if v is not None}
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
+    fig, axes = subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
     x0, y0 = raster.origin
     dx, dy = raster.pixel_size
     extent = np.array(
         [x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)]
     )
     for ax, (title, (images, D, M)) in zip(axes[0], panels.items()):
-        z = np.asarray(images["trace"])
+        z = np.asarray(images.trace)
         lo, hi = np.percentile(z, [1, 99.5])
         ax.imshow(z, origin="lower", extent=extent / 1e3, cmap="afmhot", vmin=lo, vmax=hi)
         ax.plot(D[:, 0] / 1e3, D[:, 1] / 1e3, "+", color="c", ms=10, mew=1.5, label="intended D")
@@ -173,7 +192,6 @@ def landmarks(panels: dict, raster, path) -> None:
     fig.suptitle("Step B: landmark grid pressed, re-scanned and found (particles are the bright dots)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _examples(radii: np.ndarray, k: int = 3) -> np.ndarray:
@@ -187,7 +205,7 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     the particle where it truly lies relative to the tip after the final move."""
     names = {0: ("search (x)", "0.6"), 1: ("centre (y)", "tab:blue"), 2: ("verify (x)", "tab:red")}
     picks = _examples(radii)
-    fig, axes = plt.subplots(1, len(picks), figsize=(5.2 * len(picks), 5.4))
+    fig, axes = subplots(1, len(picks), figsize=(5.2 * len(picks), 5.4))
     for ax, i in zip(np.atleast_1d(axes), picks):
         c = r["c_centre"][i]
         n = int(r["c_lines"][i])
@@ -204,7 +222,7 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
                 label=label if j == min(k for k in range(n) if int(r["c_phases"][i, k]) == phase) else None,
             )
         p = truth[i] - r["c_tip"][i]
-        ax.add_patch(plt.Circle(p, radii[i], fill=False, color="k", lw=1.5, label="particle (true, vs tip)"))
+        ax.add_patch(Circle(p, radii[i], fill=False, color="k", lw=1.5, label="particle (true, vs tip)"))
         guess = r["c_starts"][i, 0] * 0.5 + r["c_ends"][i, 0] * 0.5 - c
         ax.plot(*guess, "x", color="tab:orange", ms=10, mew=2, label="target after A+B")
         ax.plot(0, 0, "k+", ms=14, mew=1.5, label="centre found")
@@ -219,25 +237,22 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     fig.suptitle("Step C: local scans (each line scanned there and back) on particles of three sizes")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     """The push: three examples (tip path, particle before and after, goal and its tolerance),
     and the miss distance of every particle in units of its radius."""
     picks = _examples(radii)
-    fig, axes = plt.subplots(1, len(picks) + 1, figsize=(5 * (len(picks) + 1), 5))
+    fig, axes = subplots(1, len(picks) + 1, figsize=(5 * (len(picks) + 1), 5))
     for ax, i in zip(axes, picks):
         o = truth[i]
         tip = r["push_path"][i] - o
         ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true)")
         ax.add_patch(
-            plt.Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before")
+            Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before")
         )
         ax.add_patch(
-            plt.Circle(
-                r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5, label="particle after"
-            )
+            Circle(r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5, label="particle after")
         )
         g = r["push_goal"][i] - o
         ax.plot(*g, "*", color="tab:red", ms=12, label="goal")
@@ -260,12 +275,11 @@ def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     fig.suptitle("The pushing task after A+B+C (particle carried by the tip from contact on)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def stage_errors(errors: dict, path) -> None:
     """Cumulative distribution of the error at the target (nm) after each stage."""
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, ax = subplots(figsize=(8, 5))
     for name, e in errors.items():
         e = np.sort(np.asarray(e))
         ax.step(
@@ -283,12 +297,11 @@ def stage_errors(errors: dict, path) -> None:
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     """A study's error per stage: cumulative distribution (nm) and histogram of error / R."""
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, (ax, bx) = subplots(1, 2, figsize=(12, 4.8))
     rel = {name: e / radii for name, e in errors.items()}
     finite = np.concatenate([r[np.isfinite(r)] for r in rel.values()])
     bins = (
@@ -328,4 +341,3 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     fig.suptitle(f"Monte-Carlo positioning study, {len(radii)} trials (simulated AFM)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

@@ -39,6 +39,34 @@ def _relay_update(state, ut, alpha, beta):
     return np.where(ut <= beta, -1.0, state)
 
 
+def preisach_spread_relays(u, density, u_min, u_max, m):
+    """The smoothed Preisach plane (``smooth=True``) by its definition, as bare relays.
+
+    Relay ``(alpha_i, beta_j)`` with weight ``mu`` spread evenly over ``+-D/2`` along
+    its play line (``alpha - beta`` fixed) is approximated by ``m`` relays
+    ``(alpha_i + delta, beta_j + delta)``, ``delta = ((l + 1/2) / m - 1/2) D``, each
+    ``mu / m``. Virgin start at ``u[0]``: a relay is up iff ``(alpha + beta) / 2 <= u[0]``.
+    The midpoint rule misses each line's partly-up relay by at most ``1 / (2 m)`` of its
+    weight: ``|difference| <= sum_k max_j M[k, j] / m`` (``M[k, j] = density[j + k, j]``).
+    """
+    density = np.asarray(density, dtype=float)
+    n = density.shape[0]
+    D = (u_max - u_min) / n
+    centres = u_min + (np.arange(n) + 0.5) * D
+    ii, jj = np.tril_indices(n)
+    delta = ((np.arange(m) + 0.5) / m - 0.5) * D
+    alpha = (centres[ii][:, None] + delta).ravel()
+    beta = (centres[jj][:, None] + delta).ravel()
+    mu = np.repeat(density[ii, jj] / m, m)
+    state = np.where((alpha + beta) / 2 <= u[0], 1.0, -1.0)
+    out = np.empty(len(u))
+    for t, ut in enumerate(u):
+        state[ut >= alpha] = 1.0
+        state[ut <= beta] = -1.0
+        out[t] = mu @ state
+    return out
+
+
 def pi_loop(u, thresholds, weights, offset=0.0):
     """PI operator with a Python loop over time and NumPy over the plays (start at ``u[0]``)."""
     r = np.asarray(thresholds, dtype=float)
@@ -47,6 +75,18 @@ def pi_loop(u, thresholds, weights, offset=0.0):
     for t, ut in enumerate(u):
         p = np.minimum(np.maximum(p, ut - r), ut + r)
         out[t] = offset + p @ weights
+    return out
+
+
+def play_loop(u, thresholds):
+    """The play outputs (T, n): ``p_t = min(max(p_{t-1}, u_t - r), u_t + r)``, ``p_{-1} = u[0]``,
+    one Python step per sample: the design matrix of a PI operator, ``y = offset + P @ w``."""
+    r = np.asarray(thresholds, dtype=float)
+    p = np.full(r.shape, u[0], dtype=float)
+    out = np.empty((len(u), r.size))
+    for t, ut in enumerate(u):
+        p = np.minimum(np.maximum(p, ut - r), ut + r)
+        out[t] = p
     return out
 
 

@@ -79,8 +79,8 @@ def test_ideal_instrument_images_the_sample_at_the_nominal_pixels():
     assert np.allclose(raster.pixel_size, (125.0, 2000.0 / 6)) and np.isclose(x0, 100 - 1500 + 62.5)
     nominal = np.stack(np.meshgrid(xs, ys), axis=-1)
     for d in ("trace", "retrace"):
-        np.testing.assert_allclose(scan[f"path_{d}"], nominal, atol=1e-9)
-        np.testing.assert_allclose(scan[d], GRATING.height(jnp.asarray(nominal)), atol=1e-9)
+        np.testing.assert_allclose(getattr(scan, f"path_{d}"), nominal, atol=1e-9)
+        np.testing.assert_allclose(getattr(scan, d), GRATING.height(jnp.asarray(nominal)), atol=1e-9)
 
 
 def test_raster_timing_and_down_direction():
@@ -91,14 +91,14 @@ def test_raster_timing_and_down_direction():
     n = 10 + 2 * 2  # samples per direction with 2 over-scan samples at each end
     dt = 1 / (2 * 5.0 * n)
     assert np.isclose(raster.sample_time, dt)
-    t = np.asarray(scan["t_trace"])
+    t = np.asarray(scan.t_trace)
     np.testing.assert_allclose(np.diff(t, axis=1), dt, rtol=1e-9)  # within a trace line
     # down: the first line scanned is the top row; each line takes 1 / line_rate
     np.testing.assert_allclose(t[::-1, 0] - t[-1, 0], np.arange(4) * 0.2, atol=1e-12)
     assert np.isclose(t[-1, 0], 3.0 + 0.5 + 3 * dt)  # after the move and 2 over-scan samples
-    rt = np.asarray(scan["t_retrace"])
+    rt = np.asarray(scan.t_retrace)
     assert np.all(rt[:, 0] > rt[:, -1])  # the retrace reaches its left end last
-    assert np.isclose(scan["state"].scanner.t, rt[0, 0] + 2 * dt)  # the bottom line's retrace ends the scan
+    assert np.isclose(scan.state.scanner.t, rt[0, 0] + 2 * dt)  # the bottom line's retrace ends the scan
 
 
 def test_feedback_lag_shifts_edges_by_speed_times_delay_in_opposite_directions():
@@ -109,8 +109,8 @@ def test_feedback_lag_shifts_edges_by_speed_times_delay_in_opposite_directions()
     dt, dx = raster.sample_time, raster.pixel_size[0]
     # a first-order lag held per sample trails a ramp by dt / (exp(dt / tau) - 1) s
     shift = dx / dt * dt / np.expm1(dt / tau)
-    truth = np.asarray(GRATING.height(jnp.asarray(scan["path_trace"][0])))
-    x = np.asarray(scan["path_trace"][0, :, 0])
+    truth = np.asarray(GRATING.height(jnp.asarray(scan.path_trace[0])))
+    x = np.asarray(scan.path_trace[0, :, 0])
 
     def rising_edges(z):  # x where z crosses half depth going up with x, by linear interpolation
         i = np.nonzero((z[:-1] < 50) & (z[1:] >= 50))[0]
@@ -118,8 +118,8 @@ def test_feedback_lag_shifts_edges_by_speed_times_delay_in_opposite_directions()
 
     ref = rising_edges(truth)
     assert ref.size >= 3
-    np.testing.assert_allclose(rising_edges(np.asarray(scan["trace"][0])) - ref, shift, atol=0.05)
-    np.testing.assert_allclose(rising_edges(np.asarray(scan["retrace"][0])) - ref, -shift, atol=0.05)
+    np.testing.assert_allclose(rising_edges(np.asarray(scan.trace[0])) - ref, shift, atol=0.05)
+    np.testing.assert_allclose(rising_edges(np.asarray(scan.retrace[0])) - ref, -shift, atol=0.05)
 
 
 def test_drift_acts_in_real_time_between_scans():
@@ -133,10 +133,10 @@ def test_drift_acts_in_real_time_between_scans():
     )
     raster = Raster((2000.0, 2000.0), 16, 4, line_rate=2.0)
     first = raster_scan(afm, GRATING, afm.initial_state(), raster, key=jax.random.key(0))
-    _, later = move(afm, GRATING, first["state"], first["state"].u, duration=100.0, key=jax.random.key(1))
+    _, later = move(afm, GRATING, first.state, first.state.u, duration=100.0, key=jax.random.key(1))
     second = raster_scan(afm, GRATING, later, raster, key=jax.random.key(2))
-    gap = np.asarray(second["t_trace"] - first["t_trace"])
-    np.testing.assert_allclose(second["path_trace"] - first["path_trace"], gap[..., None] * v, atol=1e-9)
+    gap = np.asarray(second.t_trace - first.t_trace)
+    np.testing.assert_allclose(second.path_trace - first.path_trace, gap[..., None] * v, atol=1e-9)
 
 
 def test_press_leaves_an_indent_where_the_tip_really_is_and_a_rescan_finds_it():
@@ -236,7 +236,7 @@ def test_raster_is_jittable_vmappable_and_its_gradient_matches_finite_difference
 
     def loss(coupling):
         a = eqx.tree_at(lambda m: m.scanner.coupling.xy, afm, coupling)
-        return jnp.mean(raster_scan(a, GRATING, state, raster)["trace"])
+        return jnp.mean(raster_scan(a, GRATING, state, raster).trace)
 
     c0 = afm.scanner.coupling.xy
     g = jax.jit(jax.grad(loss))(c0)
@@ -246,7 +246,7 @@ def test_raster_is_jittable_vmappable_and_its_gradient_matches_finite_difference
 
     phases = jnp.array([0.0, 250.0])
     batch = jax.vmap(
-        lambda p: raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, p), state, raster)["trace"]
+        lambda p: raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, p), state, raster).trace
     )(phases)
-    one = raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, phases[1]), state, raster)["trace"]
+    one = raster_scan(afm, eqx.tree_at(lambda s: s.phase, GRATING, phases[1]), state, raster).trace
     np.testing.assert_allclose(batch[1], one, atol=1e-9)

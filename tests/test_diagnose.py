@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, DiagnoseConfig, load_config
 from jaxafm.diagnose import record as D
+from jaxafm.diagnose.image import diagnose_image
 from jaxafm.diagnose.withheld import simulate_record
 from jaxafm.instrument.images import AFMImage
 from jaxafm.instrument.records import Record
@@ -30,10 +31,10 @@ def quiet(*_):
 @pytest.mark.parametrize("effect, magnitude", [("creep", 0.01), ("coupling", 0.01)])
 def test_withheld_effect_is_found_with_its_size(effect, magnitude):
     res = D.diagnose_record(record(effect, magnitude), D.Nominal(), CANDIDATES, log=quiet)
-    assert res["verdict"] == effect
-    top = res["candidates"][0]
-    assert top["effect"] == effect and top["shrink_pct"] > 60
-    plant = top["fit"]["plant"]
+    assert res.verdict == effect
+    top = res.candidates[0]
+    assert top.effect == effect and top.shrink_pct > 60
+    plant = top.fit.plant
     if effect == "creep":  # Creep.logarithmic(gamma) puts gamma / 2 on each lag
         np.testing.assert_allclose([2 * float(a.creep.weights[0]) for a in plant.axes], magnitude, rtol=0.3)
     else:  # the simulator couples y into x by m, x into y by -0.6 m
@@ -44,18 +45,18 @@ def test_withheld_effect_is_found_with_its_size(effect, magnitude):
 
 def test_control_gives_no_significant_effect():
     res = D.diagnose_record(record(seed=8), D.Nominal(), CANDIDATES, log=quiet)
-    assert res["verdict"] is None
-    assert all(r["shrink_pct"] < 5 for r in res["candidates"])
+    assert res.verdict is None
+    assert all(r.shrink_pct < 5 for r in res.candidates)
     noise = 2.0  # nm, the simulator's white noise: the held-out gap is near it
-    assert noise < res["nominal"]["heldout_gap_nm"] < 2 * noise
+    assert noise < res.nominal.heldout_gap_nm < 2 * noise
 
 
 def test_one_axis_record_skips_two_axis_effects():
     r = record("creep", 0.01)
     one = Record(r.t, r.u[:, 0], r.d[:, 0], r.meta)
     res = D.diagnose_record(one, D.Nominal(), ["creep", "coupling", "tip"], log=quiet)
-    assert res["verdict"] == "creep"
-    assert "two axes" in res["skipped"]["coupling"] and "images" in res["skipped"]["tip"]
+    assert res.verdict == "creep"
+    assert "two axes" in res.skipped["coupling"] and "images" in res.skipped["tip"]
 
 
 def test_image_skew_is_found_as_coupling():
@@ -70,14 +71,14 @@ def test_image_skew_is_found_as_coupling():
         return AFMImage(z, (px, px), meta={"source": "synthetic"})
 
     rules = D.Rules()
-    found = D.diagnose_image.diagnose_image(image(skew), ["coupling", "bow", "creep", "tip"], 0.6, rules)
-    assert found["verdict"] == "coupling"
-    row = found["candidates"][0]
-    assert row["shrink_pct"] > 80
-    assert row["fitted"]["skew"] == pytest.approx(skew, rel=0.05)  # edges seen at x = edge - s y
-    assert "absorb" in found["skipped"]["tip"]
-    plain = D.diagnose_image.diagnose_image(image(0.0), ["coupling", "bow", "creep"], 0.6, rules)
-    assert plain["verdict"] is None
+    found = diagnose_image(image(skew), ["coupling", "bow", "creep", "tip"], 0.6, rules)
+    assert found.verdict == "coupling"
+    row = found.candidates[0]
+    assert row.shrink_pct > 80
+    assert row.fit.fitted["skew"] == pytest.approx(skew, rel=0.05)  # edges seen at x = edge - s y
+    assert "absorb" in found.skipped["tip"]
+    plain = diagnose_image(image(0.0), ["coupling", "bow", "creep"], 0.6, rules)
+    assert plain.verdict is None
 
 
 # ---------------------------------------------------------------- bad input

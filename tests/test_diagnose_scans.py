@@ -11,10 +11,10 @@ import pytest
 from typer.testing import CliRunner
 
 from jaxafm.cli import app
-from jaxafm.config import ConfigError, DiagnoseConfig, load_config
+from jaxafm.config import ConfigError, DiagnoseConfig, ScanGrating, load_config
 from jaxafm.diagnose import scans as S
 from jaxafm.diagnose import withheld as W
-from jaxafm.diagnose.record import Rules
+from jaxafm.diagnose.core import Rules
 from jaxafm.instrument.images import AFMImage, save_image
 from jaxafm.instrument.samples import Grating, Tip
 
@@ -79,16 +79,16 @@ def test_edge_shape_closed_forms():
     lambda ln(1 / (1 - l)) after the step, lambda = lag_samples dx, in the scan direction."""
     levels = (0.3, 0.5, 0.7)
     w, depth, radius = 17.32, 30.0, 8.0
-    ramp = S.edge_shape(S.GratingSpec(400.0, w), depth, 0.5, levels)
+    ramp = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels)
     np.testing.assert_allclose(ramp[0, 0], (np.array(levels) - 0.5) * w, atol=1e-3)  # rising, trace
     np.testing.assert_allclose(ramp[1, 1], -(np.array(levels) - 0.5) * w, atol=1e-3)  # falling, retrace
-    tipped = S.edge_shape(S.GratingSpec(400.0, w), depth, 0.5, levels, radius=radius)
+    tipped = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels, radius=radius)
     a = np.arctan(depth / w)
     np.testing.assert_allclose(
         tipped[0, 0] - ramp[0, 0], -radius * (1 / np.cos(a) - 1) / np.tan(a), atol=0.02
     )
     dx, lag = 0.05, 100.0
-    step = S.edge_shape(S.GratingSpec(400.0, 0.01), depth, dx, levels, lag_samples=lag)
+    step = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=0.01), depth, dx, levels, lag_samples=lag)
     expect = lag * dx * np.log(1 / (1 - np.array(levels)))
     np.testing.assert_allclose(step[0, 0], expect, atol=2 * dx)  # trace: lag to the right
     np.testing.assert_allclose(
@@ -104,10 +104,10 @@ def control():
 
 
 def test_control_gives_no_significant_effect(control):
-    assert control["verdict"] is None
-    assert control["nominal"]["heldout_gap_nm"] < 0.6
+    assert control.verdict is None
+    assert control.nominal.heldout_gap_nm < 0.6
     # the nominal scale: 400 nm of grating span 1 / (minor-loop gain) nominal nm
-    assert 1.1 < control["scale"] < 1.5
+    assert 1.1 < control.data.scale < 1.5
 
 
 @pytest.mark.parametrize(
@@ -122,10 +122,10 @@ def test_withheld_imaging_effect_is_found_with_its_size(effect, magnitude, fitte
     res = S.diagnose_scans(
         W.simulate_scans(effect, magnitude, 5, **SMALL), W.SIM_GRATING, S.CANDIDATES, 0.6, Rules()
     )
-    assert res["verdict"] == effect
-    top = res["candidates"][0]
-    assert top["effect"] == effect and top["shrink_pct"] > 60
-    assert top["fitted"][key] == pytest.approx(fitted, rel=rtol)
+    assert res.verdict == effect
+    top = res.candidates[0]
+    assert top.effect == effect and top.shrink_pct > 60
+    assert top.fit.fitted[key] == pytest.approx(fitted, rel=rtol)
 
 
 def test_scan_set_needs_two_speeds():

@@ -1,12 +1,16 @@
 """Fitting with gradient solvers: parameters recovered from data simulated with known
 values, the real piezo record against the facts in its README, and honest failure reports."""
 
+import inspect
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference
+from jax.flatten_util import ravel_pytree
 
 from jaxafm import (
     Axis,
@@ -17,7 +21,8 @@ from jaxafm import (
     Preisach,
     RateDependence,
 )
-from jaxafm.identify.fit import error_metrics, fit_operator, initial_model
+from jaxafm.identify import fit
+from jaxafm.identify.fit import error_metrics, evaluator, fit_operator, initial_model
 from jaxafm.instrument.records import read_record
 
 REAL = Path(__file__).parents[1] / "jaxafm" / "data" / "real" / "piezo_sine_1hz.dat"
@@ -87,12 +92,16 @@ def test_generalized_pi_recovered_on_heldout_data():
 def test_preisach_density_fit_matches_truth_output():
     """A Preisach truth with a random density on the plane initial_model builds: BFGS from
     initial_model's start predicts held-out minor loops to within twice the noise
-    (the density itself need not be unique)."""
+    (the density itself need not be unique). The truth's output comes from NumPy relays
+    (the smooth plane by its definition), not from the plays the fit uses."""
     u, _ = drive()
     grid = initial_model("preisach", u, u, levels=6)
-    rng = np.random.default_rng(4)
-    truth = Preisach(jnp.asarray(np.tril(rng.random((6, 6)))), grid.u_min, grid.u_max, jnp.asarray(2.0))
-    clean = np.asarray(truth(jnp.asarray(u)))
+    density = np.tril(np.random.default_rng(4).random((6, 6)))
+    m = 2000  # sub-relays per relay: the definition's output within sum_k max_j M[k, j] / m
+    line_max = [max(density[j + k, j] for j in range(6 - k)) for k in range(6)]
+    assert sum(line_max) / m < 0.25 * 0.01  # 0.0023 nm: under a quarter of the noise
+    u_min, u_max = float(grid.u_min), float(grid.u_max)
+    clean = 2.0 + reference.preisach_spread_relays(u, density, u_min, u_max, m)
     d = noisy(clean, 0.01)
     n = int(0.6 * T)
     start = initial_model("preisach", u, d, levels=6)
@@ -153,7 +162,8 @@ def test_straight_line_on_real_record_matches_its_readme():
     r = read_record(REAL, input_columns=[1], output_columns=[5], sample_rate_hz=200, output_unit="um")
     res = fit_operator(initial_model("linear", r.u, r.d), r.u, r.d)
     m = error_metrics(np.asarray(res.model(jnp.asarray(r.u))), r.d)
-    assert m["rms_error_nm"] == pytest.approx(3410, abs=10)
+    # each figure to the README's rounding: half a unit of its last digit
+    assert m["rms_error_nm"] == pytest.approx(3410, abs=5)
     assert m["rms_error_pct"] == pytest.approx(6.9, abs=0.05)
     assert r.d.max() - r.d.min() == pytest.approx(49_400, abs=50)  # 49.4 um range
 
@@ -197,18 +207,63 @@ def test_bad_fit_arguments():
         fit_operator(initial_model("pi", u, u, operators=4), bad, u)
 
 
-def test_fit_gradient_matches_finite_differences():
-    """The loss the solvers see: its jax gradient w.r.t. PI weights equals central differences."""
+@pytest.mark.parametrize("kind", ["pi", "preisach"])
+def test_fit_gradient_matches_finite_differences(kind, monkeypatch):
+    """The loss fit_operator hands its solver (over the raw, order-one parameters; for a
+    Preisach start through its design matrix): its jax gradient equals central differences,
+    and the loss the fit reports is this function's value."""
     u, _ = drive(300)
-    model = initial_model("pi", u, u + 0.3 * np.sin(u), operators=5)
-    d = jnp.asarray(u + 0.3 * np.sin(u))
+    d = u + 0.3 * np.sin(u)
+    start = initial_model(kind, u, d, operators=5, levels=4)
+    handed = {}
 
-    def loss(w):
-        return jnp.mean((PrandtlIshlinskii(model.thresholds, w, model.offset)(jnp.asarray(u)) - d) ** 2)
+    def spy(*args, **kwargs):  # keep what the solver is handed; return the start unchanged
+        handed.update(inspect.signature(solve).bind(*args, **kwargs).arguments)
+        return handed["raw0"], 0, False
 
-    loss = jax.jit(loss)  # compiled once for all eleven calls
-    w0 = jnp.array([0.8, 0.1, 0.2, 0.05, 0.3])
-    g = jax.grad(loss)(w0)
+    solve = fit._solve
+    monkeypatch.setattr(fit, "_solve", spy)
+    res = fit_operator(start, u, d)
+    flat0, unravel = ravel_pytree(handed["raw0"])
+    loss = jax.jit(lambda x: handed["loss"](unravel(x), handed.get("args")))  # one compile, all calls
+    assert res.loss == pytest.approx(2 * float(loss(flat0)), rel=1e-12)  # reported: 2 x the loss
+    x0 = flat0 + 0.25 * jnp.sin(jnp.arange(flat0.size) + 1.0)  # away from the start's tiny weights
+    g = jax.grad(loss)(x0)
     h = 1e-6
-    fd = [(loss(w0.at[i].add(h)) - loss(w0.at[i].add(-h))) / (2 * h) for i in range(5)]
+    fd = [(loss(x0.at[i].add(h)) - loss(x0.at[i].add(-h))) / (2 * h) for i in range(flat0.size)]
     np.testing.assert_allclose(np.asarray(g), np.asarray(fd), rtol=1e-6)
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_preisach_design_matrix_equals_numpy_relays(smooth):
+    """The fit's Preisach evaluator is linear in the density; its design matrix (one column per
+    relay, here its Jacobian) against relays switched one sample at a time in NumPy: the bare
+    relays exactly, the smooth plane by its definition, m sub-relays per relay, each column
+    within 1 / m (a unit weight's midpoint-rule error). The output adds the offset."""
+    u, _ = drive(300)
+    plane = initial_model("preisach", u, u, levels=6)
+    u_min, u_max = float(plane.u_min), float(plane.u_max)
+    model = Preisach(plane.density, plane.u_min, plane.u_max, jnp.asarray(0.0), smooth)
+    f = evaluator(model, jnp.asarray(u))
+    jac = jax.jacfwd(lambda rho: f(eqx.tree_at(lambda p: p.density, model, rho)))(model.density)
+    m = 400
+    for i in range(6):
+        for j in range(6):
+            unit = np.zeros((6, 6))
+            unit[i, j] = 1.0
+            if i < j:  # above the diagonal: no relay, no column
+                np.testing.assert_array_equal(np.asarray(jac[:, i, j]), 0.0)
+            elif smooth:
+                want = reference.preisach_spread_relays(u, unit, u_min, u_max, m)
+                assert np.abs(np.asarray(jac[:, i, j]) - want).max() <= (1 + 1e-9) / m
+            else:
+                want = reference.preisach_relay_grid(u, unit, u_min, u_max)
+                np.testing.assert_array_equal(np.asarray(jac[:, i, j]), want)
+    density = np.tril(np.random.default_rng(5).random((6, 6)))
+    truth = Preisach(jnp.asarray(density), plane.u_min, plane.u_max, jnp.asarray(1.5), smooth)
+    if smooth:
+        want = 1.5 + reference.preisach_spread_relays(u, density, u_min, u_max, m)
+        bound = sum(max(density[j + k, j] for j in range(6 - k)) for k in range(6)) / m
+    else:
+        want, bound = 1.5 + reference.preisach_relay_grid(u, density, u_min, u_max), 0.0
+    assert np.abs(np.asarray(f(truth)) - want).max() <= bound + 1e-12 * np.abs(want).max()

@@ -1,8 +1,8 @@
-"""Tests of the rate-independent hysteresis operators (jaxafm.hysteresis).
+"""Tests of the rate-independent hysteresis operators (jaxafm.model.hysteresis).
 
 Every expected value comes from outside the code under test: Preisach
 properties (wiping-out, congruency of minor loops, saturation), the NumPy
-reference implementations in ``jaxafm.reference``, closed forms, analytic
+reference implementations in ``tests/reference.py``, closed forms, analytic
 inverses checked by composition, central finite differences, and parameters
 recovered from simulated noisy data by ordinary least squares.
 
@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import reference
 
-import jaxafm
 from jaxafm import Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
 
 T = 600  # samples in every input sequence
@@ -228,31 +227,6 @@ def test_relays_jump_by_row_mass_smooth_is_continuous():
         np.testing.assert_allclose(y[-1], offset + total, rtol=1e-13)
 
 
-def sub_relay_grid(u, density, m):
-    """The smoothed plane by its definition, as bare relays in NumPy.
-
-    Relay (alpha_i, beta_j) with weight mu spread evenly over +-D/2 along its
-    play line (alpha - beta fixed) is approximated by m relays
-    (alpha_i + delta, beta_j + delta), delta = ((l + 1/2)/m - 1/2) D, each mu/m.
-    Virgin start at u[0]: a relay is up iff (alpha + beta)/2 <= u[0].
-    """
-    n = density.shape[0]
-    D = (U_MAX - U_MIN) / n
-    centres = U_MIN + (np.arange(n) + 0.5) * D
-    ii, jj = np.tril_indices(n)
-    delta = ((np.arange(m) + 0.5) / m - 0.5) * D
-    alpha = (centres[ii][:, None] + delta).ravel()
-    beta = (centres[jj][:, None] + delta).ravel()
-    mu = np.repeat(density[ii, jj] / m, m)
-    state = np.where((alpha + beta) / 2 <= u[0], 1.0, -1.0)
-    out = np.empty(len(u))
-    for t, ut in enumerate(u):
-        state[ut >= alpha] = 1.0
-        state[ut <= beta] = -1.0
-        out[t] = mu @ state
-    return out
-
-
 def test_preisach_smooth_equals_spread_relays():
     """smooth=True against its definition (relay weight spread evenly over +-D/2 along the
     play line), evaluated as a grid of m = 80 sub-relays per relay.
@@ -268,7 +242,7 @@ def test_preisach_smooth_equals_spread_relays():
     y = np.asarray(run(preisach(d, True, offset=0.0), jnp.asarray(u)))
     line_max = [max(d[j + k, j] for j in range(N_LEVELS - k)) for k in range(N_LEVELS)]
     bound = sum(line_max) / m
-    assert np.abs(y - sub_relay_grid(u, d, m)).max() <= bound * (1 + 1e-9)
+    assert np.abs(y - reference.preisach_spread_relays(u, d, U_MIN, U_MAX, m)).max() <= bound * (1 + 1e-9)
     assert bound < 0.01 * np.ptp(y)
 
 
@@ -601,7 +575,8 @@ def test_pi_grad_matches_finite_differences():
 
 
 def test_pi_weights_recovered_by_least_squares():
-    """Simulate y = PI[u] + noise, fit weights and offset by OLS on the play matrix.
+    """Simulate y = PI[u] + noise, fit weights and offset by OLS on the play matrix, which
+    NumPy builds sample by sample (``reference.play_loop``), not the plays under test.
 
     With Gaussian noise of std sigma, the OLS estimate is unbiased with
     covariance sigma^2 (A^T A)^-1, A = [P, 1]. Tolerance: every parameter within
@@ -620,7 +595,7 @@ def test_pi_weights_recovered_by_least_squares():
     rng = np.random.default_rng(80)
     y = np.asarray(run(pi, jnp.asarray(u))) + sigma * rng.normal(size=T)
 
-    P = np.asarray(jaxafm.play(jnp.asarray(u), r))
+    P = reference.play_loop(u, np.asarray(r))  # the design matrix from NumPy, not jaxafm's plays
     A = np.column_stack([P, np.ones(T)])
     theta, *_ = np.linalg.lstsq(A, y, rcond=None)
     se = sigma * np.sqrt(np.diag(np.linalg.inv(A.T @ A)))

@@ -1,6 +1,10 @@
-"""Records, configs, saved models and the command line: conversions, round trips, clear errors."""
+"""Records, configs, saved models, the command line and package hygiene: conversions, round trips,
+clear errors, and what importing jaxafm does (no JAX for configs and --help, no matplotlib state)."""
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -232,3 +236,83 @@ def test_axis_needs_increasing_times():
     ax = Axis(Linear(jnp.asarray(1.0), jnp.asarray(0.0)))
     with pytest.raises(ValueError, match="times t must be strictly increasing"):
         ax(jnp.zeros(3), jnp.array([0.0, 2.0, 1.0]))
+
+
+# ---------------------------------------------------------------- package hygiene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+JAX_FREE = {
+    "validating a config": (
+        "from jaxafm.config import RunConfig, load_config; "
+        f"load_config({str(ROOT / 'configs' / 'paper.yaml')!r}, RunConfig)"
+    ),
+    "jaxafm --help": (
+        "from typer.testing import CliRunner; from jaxafm.cli import app; "
+        "r = CliRunner().invoke(app, ['run', '--help']); assert r.exit_code == 0, r.output"
+    ),
+    "import jaxafm": "import jaxafm; jaxafm.EFFECTS; dir(jaxafm)",
+}
+
+
+def _python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("what", sorted(JAX_FREE))
+def test_config_and_cli_help_import_no_jax(what):
+    proc = _python(JAX_FREE[what] + "\nimport sys; assert 'jax' not in sys.modules, 'jax imported'")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_float64_is_switched_on_by_the_jax_parts_only():
+    code = (
+        "import jax, jaxafm, jaxafm.config, jaxafm.plots; assert not jax.config.jax_enable_x64; "
+        "from jaxafm import default_scanner; assert jax.config.jax_enable_x64"
+    )
+    proc = _python(code)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_plots_leave_matplotlib_settings_alone(tmp_path):
+    """Importing jaxafm and drawing a figure neither choose a backend nor start pyplot."""
+    code = (  # the raw rcParams entry: matplotlib.get_backend() itself may start pyplot
+        "import sys, matplotlib; backend = lambda: dict.__getitem__(matplotlib.rcParams, 'backend'); "
+        "before = backend(); import numpy as np, jaxafm.plots as P; "
+        f"P.stage_errors({{'A': np.arange(5.0)}}, {str(tmp_path / 'e.png')!r}); "
+        "assert backend() == before, backend(); "
+        "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot imported'"
+    )
+    proc = _python(code)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "e.png").stat().st_size > 0
+
+
+def test_public_names_load_on_first_use():
+    import jaxafm
+
+    assert set(jaxafm.__all__) <= set(dir(jaxafm)) and sorted(jaxafm.__all__) == sorted(jaxafm._HOMES)
+    for name in jaxafm.__all__:
+        assert getattr(jaxafm, name) is not None
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        jaxafm.nothing  # noqa: B018
+
+
+@pytest.mark.parametrize(
+    "schema, entry",
+    [
+        ("ActuatorFitConfig", "simulate: {{}}\nmodels: [{{name: a, kind: gpi, {key}: {value}}}]\n"),
+        ("CalibrateConfig", "simulate: {{}}\nmodels: [{{name: a, kind: gpi, {key}: {value}}}]\n"),
+        ("DiagnoseConfig", "simulate: {{}}\nnominal: {{kind: gpi, {key}: {value}}}\n"),
+    ],
+)
+def test_every_command_takes_the_same_hysteresis_limits(tmp_path, schema, entry):
+    """One hysteresis-model spec: the same largest model for fit, calibrate/run/study and diagnose."""
+    import jaxafm.config as C
+
+    for key, most in (("operators", C.common.MAX_OPERATORS), ("levels", C.common.MAX_LEVELS)):
+        f = write(tmp_path / "c.yaml", entry.format(key=key, value=most))
+        load_config(f, getattr(C, schema))
+        f = write(tmp_path / "c.yaml", entry.format(key=key, value=most + 1))
+        with pytest.raises(ConfigError, match=rf"{key}: Input should be less than or equal to {most}"):
+            load_config(f, getattr(C, schema))

@@ -91,7 +91,11 @@ def test_landmarks_are_found_at_their_known_positions():
     found = order_grid(
         find_features(z, raster, 16, pits=True, min_height=12.0, min_distance_nm=200, window_nm=30), 4
     )
-    assert np.abs(found - truth).max() < 2.0  # nm, with 15.6 nm pixels
+    # the image has no noise: the error is the centroid's sampling bias, a periodic function of
+    # where the indent (about 40 nm across: 2-3 pixels above a quarter of its depth) falls on
+    # the 15.6 nm pixel grid. Over a 16 x 16 grid of sub-pixel positions and 192 random ones it
+    # reaches 1.13 nm on an axis (0.44 nm rms): 1.2 nm (0.077 px) holds wherever they fall
+    assert np.abs(found - truth).max() < 1.2  # nm
 
 
 def test_order_grid_needs_every_landmark():

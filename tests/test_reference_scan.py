@@ -63,14 +63,14 @@ def test_raster_scan_matches_numpy_reference():
     ref = raster_scan_numpy(afm, numpy_height(SAMPLE), RASTER, drift, noise, U0, T0, HISTORY, probe=probe)
 
     for name in ("trace", "retrace", "path_trace", "path_retrace"):
-        got, want = np.asarray(out[name]), ref[name]
+        got, want = np.asarray(getattr(out, name)), ref[name]
         assert got.shape == want.shape, name
         scale = np.max(np.abs(want))
         assert np.max(np.abs(got - want)) <= 1e-9 * scale, (name, np.max(np.abs(got - want)), scale)
     np.testing.assert_allclose(
-        np.asarray(out["t_trace"]), ref["t"][32:].reshape(4, 2, -1)[:, 0, 2:18], rtol=1e-15
+        np.asarray(out.t_trace), ref["t"][32:].reshape(4, 2, -1)[:, 0, 2:18], rtol=1e-15
     )
-    np.testing.assert_allclose(np.asarray(out["state"].z), ref["recorded"][-1:], rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.state.z), ref["recorded"][-1:], rtol=1e-9)
     # not vacuous: the scan crosses the grating's lines, and the random draws move the tip
     assert np.ptp(ref["trace"]) > 100.0
     still = raster_scan_numpy(

@@ -431,15 +431,28 @@ def test_dilate_flat_and_tilted_plane():
     flat = Plane(jnp.asarray(-4.0), jnp.zeros(2))
     np.testing.assert_allclose(np.asarray(D(Tip(), flat, xy)), -4.0, atol=1e-12)
     s = 0.5
-    tilted = Plane(jnp.asarray(2.0), jnp.array([0.6 * s, 0.8 * s]))
+    slope = np.array([0.6 * s, 0.8 * s])
+    tilted = Plane(jnp.asarray(2.0), jnp.asarray(slope))
     exact = RT * (np.sqrt(1 + s**2) - 1)
-    errs = []
+    errs, bounds = [], []
     for kw in (dict(), dict(rings=32, per_ring=64)):
-        lift = np.asarray(D(Tip(**kw), tilted, xy) - H(tilted, xy))
+        tip = Tip(**kw)
+        lift = np.asarray(D(tip, tilted, xy) - H(tilted, xy))
         np.testing.assert_allclose(lift, lift[0], atol=1e-10)
         assert 0 <= lift[0] <= exact + 1e-12
+        # the stencil's max by its definition, in NumPy: max over its offsets of s . q - profile(|q|)
+        q = np.asarray(jax.jit(Tip.stencil)(tip)[0])
+        np.testing.assert_allclose(lift[0], np.max(q @ slope - ref_profile(np.hypot(*q.T))), atol=1e-9)
+        # Taylor: f(q) = s . q - profile(|q|) peaks at q* = R s / sqrt(1 + s^2) (grad f = 0), so the
+        # stencil offset nearest q*, h away, lies below the peak by at most kappa h^2 / 2, kappa the
+        # apex sphere's largest curvature R^2 / (R^2 - r^2)^(3/2) over r <= |q*| + h
+        q_star = RT * slope / np.sqrt(1 + s**2)
+        h = np.min(np.hypot(*(q - q_star).T))
+        kappa = RT**2 / (RT**2 - (np.hypot(*q_star) + h) ** 2) ** 1.5
         errs.append(exact - lift[0])
-    assert errs[0] < 0.3 and errs[1] < 0.02 and errs[1] < errs[0] / 10  # measured 0.281, 0.0093 nm
+        bounds.append(0.5 * kappa * h**2)  # 0.41 nm (h = 1.9 nm) and 0.010 nm (h = 0.37 nm)
+    assert errs[0] <= bounds[0] and errs[1] <= bounds[1] and errs[1] < errs[0] / 10
+    assert errs[0] < 0.3  # the default stencil's accuracy on a 0.5 slope (0.281 nm; tighter than its bound)
 
 
 def test_dilate_sphere_closed_form():
@@ -454,16 +467,22 @@ def test_dilate_sphere_closed_form():
     errs = []
     for kw in (dict(), dict(rings=32, per_ring=64)):
         tip = Tip(**kw)
+        q = np.asarray(jax.jit(Tip.stencil)(tip)[0])
         worst = 0.0
         for ang in (0.0, 0.3, 2.0):
             xy = np.stack([5.0 + r * np.cos(ang), -3.0 + r * np.sin(ang)], -1)
             img = np.asarray(D(tip, part, jnp.asarray(xy)))
+            # the stencil's max by its definition, in NumPy: max_q [z(p + q) - profile(|q|)]
+            d2 = np.sum((xy[:, None] + q - [5.0, -3.0]) ** 2, -1)
+            z = np.where(d2 < Rp**2, Rp + np.sqrt(np.clip(Rp**2 - d2, 0, None)), 0.0)
+            np.testing.assert_allclose(img, np.max(z - ref_profile(np.hypot(*q.T)), -1), atol=1e-9)
             err = (Rp + np.sqrt((Rp + RT) ** 2 - r**2) - RT) - img
             assert err.min() > -1e-9  # never above the exact dilation
             assert err[0] == pytest.approx(0.0, abs=1e-9)  # apex on the top
             worst = max(worst, err.max())
         errs.append(worst)
-    # measured: default (8 rings x 16) 2.46 nm, 32 rings x 64: 0.154 nm
+    # measured: default (8 rings x 16) 2.46 nm, 32 rings x 64: 0.154 nm; the stencils' own values
+    # (checked above against their definition), kept as the accuracy each stencil promises
     assert errs[0] < 3.0
     assert errs[1] < 0.2
     assert errs[1] < errs[0] / 10
@@ -524,7 +543,7 @@ def test_dilate_sharp_step_cone_flank():
     g = Grating(jnp.asarray(1000.0), jnp.asarray(depth), edge_width=jnp.asarray(w))
     corner = 250.0 - w / 2  # top corner of the line's right edge (line centred at 0)
     exact = lambda d: np.maximum(depth - ref_profile(d), 0.0)
-    lateral, vertical = [], []
+    lateral, vertical, gaps, steps = [], [], [], []
     for kw in (dict(), dict(rings=32, per_ring=64)):
         tip = Tip(**kw)
         q = np.asarray(jax.jit(Tip.stencil)(tip)[0])
@@ -547,10 +566,14 @@ def test_dilate_sharp_step_cone_flank():
         dd = np.linspace(0, 30, 30001)
         lateral.append(np.max(np.interp(-img[m], -exact(dd), dd) - d[m]))
         vertical.append(np.max(exact(d) - img))
-    # measured: lateral 10.90 nm for the default stencil (its rings at 14.06 and 25 nm on the
-    # flank, a gap of 10.94 nm), 3.00 nm for 32 rings; vertical 29.9 nm and 8.2 nm
-    assert lateral[0] < 11.0 and lateral[1] < 3.2
-    assert vertical[0] < 30.0 and vertical[1] < vertical[0] / 3
+        # the staircase's bounds: laterally, the way from d to the next ring out (the default's
+        # rings at 14.06 and 25 nm on the flank: 10.90 nm from the first point past 14.06 nm; 3.00
+        # nm for 32 rings), to the 0.001 nm grid of dd; vertically, the exact image's fall from d
+        # to that ring (29.9 and 8.2 nm)
+        gaps.append(np.max(nxt[m] - d[m]) + 1e-3)
+        steps.append(np.max(exact(d) - exact(nxt)) + 1e-9)
+    assert lateral[0] <= gaps[0] < 11.0 and lateral[1] <= gaps[1] < 3.2
+    assert vertical[0] <= steps[0] < 30.0 and vertical[1] <= steps[1] and vertical[1] < vertical[0] / 3
 
 
 def test_dilate_never_lowers_and_keeps_flat_regions():

@@ -12,7 +12,7 @@ import pytest
 
 from jaxafm.identify import calibration, features
 from jaxafm.identify.inverse import Compensator, train_neural_inverse
-from jaxafm.instrument.afm import Raster, default_afm, raster_scan
+from jaxafm.instrument.afm import Raster, RasterScan, default_afm, raster_scan
 from jaxafm.instrument.samples import Lattice
 from jaxafm.model.effects import Drift
 from jaxafm.model.scanner import default_scanner
@@ -149,8 +149,8 @@ def _simulated_scan():
     raster = Raster(6000.0, 72, 72, line_rate=2.0)
     out = raster_scan(truth, lattice, truth.initial_state((0.0, 0.0), 0.0, CYCLE), raster)
     scan = calibration.CalibrationScan(
-        out["trace"],
-        out["retrace"],
+        out.trace,
+        out.retrace,
         raster,
         1000.0,
         np.asarray(truth.sensitivity),
@@ -171,7 +171,9 @@ def test_identification_recovers_coupling_and_the_tip_path():
     assert abs(float(model.scanner.coupling.xy) - 0.02) < 0.002
     assert abs(float(model.scanner.coupling.yx) + 0.012) < 0.002
     fitted = model.image(scan)
-    err = [np.asarray(fitted[k]) - np.asarray(out[k]) for k in ("path_trace", "path_retrace")]
+    err = [
+        np.asarray(getattr(fitted, k)) - np.asarray(getattr(out, k)) for k in ("path_trace", "path_retrace")
+    ]
     err = np.stack(err) - np.mean(np.stack(err).reshape(-1, 2), axis=0)
     # nm (72 px of 83 nm), where the uncompensated path is about 500 nm off; the slow axis is pinned only at the
     # pillar rows, so its error is checked in the median
@@ -232,7 +234,9 @@ def test_position_errors_of_a_known_path():
     wanted = np.stack(np.meshgrid(x0 + dx * np.arange(11), raster.origin[1] + 200.0 * np.arange(5)), -1)
     bend = np.zeros_like(wanted)
     bend[..., 0] = 30.0 * np.sin(np.pi * np.arange(11) / 10)  # 0 at the ends, 30 nm mid-line
-    out = {"path_trace": wanted + bend + 7.0, "path_retrace": wanted - bend + 7.0}  # + an unobservable shift
+    zero = np.zeros(wanted.shape[:2])  # heights and times: not used
+    # the paths: the wanted pixels, bent, plus an unobservable shift
+    out = RasterScan(zero, zero, wanted + bend + 7.0, wanted - bend + 7.0, zero, zero)
     e = position_errors(out, raster)
     assert e["linearity_error_trace_pct"] == pytest.approx(3.0) and e[
         "linearity_error_retrace_pct"

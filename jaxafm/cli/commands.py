@@ -8,57 +8,20 @@ from typing import Optional
 
 import typer
 
+from .output import (
+    CALIBRATE_OUTPUTS,
+    DIAGNOSE_OUTPUTS,
+    FIT_OUTPUTS,
+    RUN_OUTPUTS,
+    STUDY_OUTPUTS,
+    prepare_output,
+)
+
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="jaxafm: differentiable AFM scanner models and positioning in JAX.",
 )
-
-
-FIT_OUTPUTS = ("metrics.json", "fit.png", "model_*.json")  # what `jaxafm fit` writes
-CALIBRATE_OUTPUTS = ("metrics.json", "compensation.png", "model_*.json")  # what `jaxafm calibrate` writes
-RUN_OUTPUTS = (
-    "metrics.json",
-    "trials.npz",
-    "landmarks.png",
-    "local_scan.png",
-    "push.png",
-    "errors.png",
-    "model_scanner.json",
-)  # what `jaxafm run` writes
-STUDY_OUTPUTS = (
-    "metrics.json",
-    "trials.npz",
-    "trials.csv",
-    "errors.png",
-    "study.yaml",
-    "scanners.json",
-    "chunks/trials_*.npz",
-    "scanners/model_*.json",
-)  # what `jaxafm study` writes
-DIAGNOSE_OUTPUTS = (
-    "metrics.json",
-    "diagnosis.json",
-    "residuals.png",
-    "report.md",
-)  # what `jaxafm diagnose` writes
-
-
-def prepare_output(out: Path, overwrite: bool, outputs: tuple) -> None:
-    """Create ``out``; an existing, non-empty one only with ``overwrite``, which removes
-    just the files this command writes and leaves everything else where it is."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"output {out} exists and is not a folder: choose another with --out")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise ValueError(
-                f"output folder {out} exists and is not empty: choose another with --out, "
-                "or pass --overwrite to replace the results in it"
-            )
-        for pattern in outputs:
-            for f in out.glob(pattern):
-                f.unlink()
-    out.mkdir(parents=True, exist_ok=True)
 
 
 def _fail(e: Exception) -> None:
@@ -71,7 +34,8 @@ def _launch(
 ) -> None:
     """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it (with
     ``options``) into the output folder, prepared only once the inputs have been checked; errors
-    become messages."""
+    become messages. The job's module (and with it JAX) is imported only here, so ``--help`` and
+    a config error stay quick."""
     import importlib
 
     from .. import config as configs
@@ -121,7 +85,7 @@ def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVER
 def diagnose(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
     """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
     held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
-    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose.record", DIAGNOSE_OUTPUTS)
+    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose.run", DIAGNOSE_OUTPUTS)
 
 
 @app.command()
@@ -147,7 +111,7 @@ def study(
 @app.command()
 def effects():
     """List the effect names used in configs and diagnosis."""
-    from ..model.effects import EFFECTS
+    from ..config.names import EFFECTS
 
     typer.echo("\n".join(EFFECTS))
 

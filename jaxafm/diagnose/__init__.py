@@ -1,0 +1,8 @@
+"""The sim-to-real gap: which unmodelled effect explains what the nominal model misses, in a
+record, an image or a set of scans (the ``jaxafm diagnose`` job).
+
+Sits beside identification and positioning: imports the model, the instrument, identification
+and the shared leaves; importing it switches JAX to float64 (``jaxafm._precision``).
+"""
+
+from .. import _precision  # noqa: F401  (float64 before any array of this package exists)

@@ -31,7 +31,7 @@ trace or retrace, rising or falling, level) of the cell's mean crossing residual
 (nm), what is the same for every edge of a kind, with the white noise averaged
 out; the per-crossing rms is reported beside it. Tip radius and lag are fitted
 by a scalar search (log grid, then bounded refinement), the rest by linear least
-squares; BIC and significance as in :mod:`jaxafm.diagnose`.
+squares; BIC, significance, ranking and verdict are the core's (:mod:`jaxafm.diagnose.core`).
 """
 
 from __future__ import annotations
@@ -45,19 +45,13 @@ from numpy.polynomial import legendre
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
+from ..config import ScanGrating  # the grating and tip of a scan set: its config schema
 from ..identify.line_grating import grating_edges
 from ..instrument.samples import Tip
-from . import report as gap_report
+from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
 
 LEVELS = (0.1, 0.3, 0.5, 0.7, 0.9)
 CANDIDATES = ("rate_dependence", "feedback_lag", "tip", "coupling", "bow")
-NOT_IN_SCANS = {
-    "asymmetry": "the nominal model fits the trace and retrace branches apart, asymmetric or not",
-    "creep": "needs an actuator record or images repeated over minutes",
-    "drift": "needs an actuator record or images repeated over minutes",
-    "noise": "white noise is what the residual should be; it is no candidate",
-    "hysteresis": "already in the nominal model",
-}
 PHASES = 8  # where the pixels fall on an edge, averaged
 FINE_NM = 0.25  # grid of the modelled edge profile
 TIP_RADII_NM = (0.5, 500.0)  # the tip search's bounds
@@ -78,16 +72,6 @@ class ScanPair:
     @property
     def speed_nm_s(self) -> float:
         return self.pixel_size[0] / self.sample_time_s
-
-
-@dataclasses.dataclass(frozen=True)
-class GratingSpec:
-    """What is known of the calibration grating: ``pitch_nm``, ``edge_width_nm`` (a linear
-    ramp), and of the tip: ``tip_half_angle_deg``."""
-
-    pitch_nm: float
-    edge_width_nm: float
-    tip_half_angle_deg: float = 20.0
 
 
 # ----------------------------------------------------------------------------- data
@@ -156,7 +140,7 @@ def _edge_levels(z: np.ndarray, e, levels) -> np.ndarray:
 
 
 def edge_shape(
-    grating: GratingSpec,
+    grating: ScanGrating,
     depth: float,
     dx: float,
     levels,
@@ -226,15 +210,112 @@ def _crossings(xi, h, depth, dx, phase, lag_samples, retrace, levels) -> np.ndar
 # ----------------------------------------------------------------------------- fits
 
 
-@dataclasses.dataclass
-class _Data:
-    """The crossings and what the model needs of them, flat over edges and levels."""
+NOMINAL = (
+    "phase_rise",
+    "phase_fall",
+    "pitch",
+    "c2_trace",
+    "c3_trace",
+    "c2_retrace",
+    "c3_retrace",
+    "offset_retrace",
+)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScanFit(Fit):
+    """A :class:`~jaxafm.diagnose.core.Fit` of a scan set's crossings; ``residual`` (crossings,)
+    nm; ``heldout_gap_nm`` the systematic held-out misfit (module docstring).
+
+    Attributes:
+        theta: the linear coefficients by column name (nm; ``rate_dependence`` s).
+        fitted: the candidate's own parameter (``tau_s``, ``tip_radius_nm``, ``coupling``,
+            ``bow``; none for the nominal model).
+        rss: the training residual sum of squares (nm^2).
+        heldout_rms_nm: the rms held-out crossing residual, noise included (nm).
+    """
+
+    theta: dict
+    fitted: dict
+    rss: float
+    heldout_rms_nm: float
+
+    def shown(self) -> dict:
+        return {"fitted": self.fitted}
+
+    def summary(self) -> dict:
+        return {
+            "train_rms_nm": self.train_rms_nm,
+            "heldout_gap_nm": self.heldout_gap_nm,
+            "heldout_rms_nm": self.heldout_rms_nm,
+            "parameters": self.parameters,
+            "fitted": self.theta,
+        }
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScanSet(DataKind):
+    """Trace/retrace pairs at two or more scan speeds as a diagnosis's data: the crossings and
+    what the model needs of them, flat over edges and levels.
+
+    Attributes:
+        f: the crossings (:func:`crossings`).
+        pairs: the :class:`ScanPair` s, slowest first.
+        grating: what is known of the grating and the tip.
+        depth: the edges' depth (nm), the median 10-90 % contrast of the rows.
+        train: (crossings,) True on the crossings of the training rows.
+        scale: the calibration scale ``k = p / pitch_nm`` of the nominal fit without edge shape.
+    """
 
     f: dict
     pairs: list
-    grating: GratingSpec
+    grating: ScanGrating
     depth: float
     train: np.ndarray
+    scale: float = 1.0
+
+    name = "scans"
+    gap_label = "held-out systematic gap [nm]"
+    model = (
+        "hysteresis-only scanner (a nonlinearity per branch and the loop offset), ideal tip "
+        "and feedback, the grating's known edge"
+    )
+    label = "hysteresis only, ideal tip and feedback"
+    tries = CANDIDATES
+
+    @classmethod
+    def split_off(cls, pairs, grating: ScanGrating, train_fraction: float) -> ScanSet:
+        """The crossings of ``pairs`` (:class:`ScanPair`), the first ``train_fraction`` of every
+        pair's rows to train on, and the calibration scale.
+
+        Raises:
+            ValueError: with fewer than two pairs or two scan speeds, or fewer than 50 crossings
+                in either part.
+        """
+        if len(pairs) < 2:
+            raise ValueError(
+                f"a scan-set diagnosis needs trace/retrace pairs at two or more scan speeds, got "
+                f"{len(pairs)}: add a pair scanned at another line rate"
+            )
+        pairs = sorted(pairs, key=lambda p: p.speed_nm_s)
+        speeds = [p.speed_nm_s for p in pairs]
+        if len(set(np.round(speeds, 6))) < 2:
+            raise ValueError(
+                f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
+                "two speeds: give a pair scanned at another line rate"
+            )
+        f = crossings(pairs)
+        rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
+        train = f["row"] < np.round(train_fraction * rows)
+        if train.sum() < 50 or (~train).sum() < 50:
+            raise ValueError(
+                f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
+                f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction"
+            )
+        depth = float(np.median([np.subtract(*np.percentile(p.trace, [90, 10], axis=1)) for p in pairs]))
+        data = cls(f, list(pairs), grating, depth, train)
+        scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0).theta["pitch"] / grating.pitch_nm
+        return dataclasses.replace(data, scale=scale)
 
     @property
     def sign(self) -> np.ndarray:  # +1 trace, -1 retrace
@@ -267,20 +348,136 @@ class _Data:
             "bow": -0.5 * (3 * t**2 - 1),
         }
 
+    def fit_nominal(self) -> ScanFit:
+        return _solve(self, list(NOMINAL), _shape(self, self.scale), self.scale)
 
-NOMINAL = (
-    "phase_rise",
-    "phase_fall",
-    "pitch",
-    "c2_trace",
-    "c3_trace",
-    "c2_retrace",
-    "c3_retrace",
-    "offset_retrace",
-)
+    def fit_candidate(self, effect: str, nominal: ScanFit) -> ScanFit:
+        """Nominal + ``effect``: tip radius and feedback lag by a scalar search (:func:`_search`),
+        the linear candidates by least squares; ``fitted`` holds the candidate's parameter."""
+        cols, scale = list(NOMINAL), self.scale
+        if effect == "tip":
+            radius, fit = _search(
+                lambda r: _solve(self, cols, _shape(self, scale, radius=r), scale, 1), *TIP_RADII_NM
+            )
+            return dataclasses.replace(fit, fitted={"tip_radius_nm": radius})
+        if effect == "feedback_lag":
+            dt = min(p.sample_time_s for p in self.pairs)
+            tau, fit = _search(
+                lambda v: _solve(self, cols, _shape(self, scale, tau_s=v), scale, 1),
+                LAG_SAMPLES[0] * dt,
+                LAG_SAMPLES[1] * dt,
+            )
+            return dataclasses.replace(fit, fitted={"tau_s": tau})
+        fit = _solve(self, cols + [effect], _shape(self, scale), scale)
+        key = "tau_s" if effect == "rate_dependence" else effect
+        return dataclasses.replace(fit, fitted={key: fit.theta[effect]})
+
+    def describe(self) -> dict:
+        pairs = [
+            {
+                "name": p.name,
+                "pixels": list(p.trace.shape),
+                "pixel_size_nm": list(p.pixel_size),
+                "sample_time_s": p.sample_time_s,
+                "speed_nm_s": p.speed_nm_s,
+            }
+            for p in self.pairs
+        ]
+        return {
+            "source": f"{len(pairs)} trace/retrace pairs of a 1-D grating",
+            "kind": "scan set",
+            "pairs": pairs,
+            "grating": self.grating.model_dump(),
+            "levels": list(LEVELS),
+            "train_samples": int(self.train.sum()),
+            "heldout_samples": int((~self.train).sum()),
+            "counts": "edge-level crossings",
+            "units": "nm (crossings, gaps), s",
+        }
+
+    def findings(self, diagnosis: Diagnosis) -> Findings:
+        """Which levels, directions and speeds the nominal model misses."""
+        nominal = diagnosis.nominal
+        metrics = {
+            "nominal_heldout_rms_nm": nominal.heldout_rms_nm,
+            "train_crossings": int(self.train.sum()),
+            "heldout_crossings": int((~self.train).sum()),
+            "calibration_scale": self.scale,
+            "edge_depth_nm": self.depth,
+        }
+        notes = [
+            "- The gap is systematic: per (pair, direction, edge kind, level) the mean held-out residual, then their "
+            f"rms; the nominal's per-crossing rms is {nominal.heldout_rms_nm:.3g} nm.",
+        ]
+        return Findings(metrics, self.where(nominal.residual), notes)
+
+    def where(self, r: np.ndarray) -> list:
+        """Sentences: which levels, directions and speeds the residual ``r`` (nm) misses."""
+        cells = _cell_means(self, r, ~self.train)
+        speeds = [p.speed_nm_s for p in self.pairs]
+        by_level = np.sqrt(np.nanmean(cells**2, axis=(0, 1, 2)))
+        by_pair = np.sqrt(np.nanmean(cells**2, axis=(1, 2, 3)))
+        # trace minus retrace, rising edges at mid level: a lag moves the two apart in proportion to the speed
+        split = cells[:, 0, 0, LEVELS.index(0.5)] - cells[:, 1, 0, LEVELS.index(0.5)]
+        spread = np.moveaxis(
+            (cells[..., -1] - cells[..., 0]) * [1, -1], -1, 0
+        )  # (kind, pair, direction); > 0: wider
+        return [
+            f"By level, the systematic misfit is {', '.join(f'{v:.2g}' for v in by_level)} nm at "
+            f"{', '.join(f'{100 * lv:.0f} %' for lv in LEVELS)} of the step (an edge shape the model lacks "
+            "shows at some levels more than others).",
+            f"By scan speed ({', '.join(f'{v / 1e3:.3g}' for v in speeds)} um/s): "
+            f"{', '.join(f'{v:.2g}' for v in by_pair)} nm"
+            f"; trace minus retrace at mid level (rising edges): {', '.join(f'{v:+.2g}' for v in split)} nm "
+            "(a lag grows it with the speed, hysteresis does not).",
+            f"Edges wider than modelled (10 % to 90 % crossing), rising / falling, trace: "
+            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 0], spread[1, :, 0]))} nm; retrace: "
+            f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 1], spread[1, :, 1]))} nm per speed "
+            "(a tip widens every edge alike; a feedback lag widens them more at higher speed).",
+        ]
+
+    def panels(self, axes: list, diagnosis: Diagnosis, findings: Findings) -> None:
+        """The mean held-out crossing residual per level, speed, direction and edge kind, of the
+        nominal model and with the verdict; the nominal residual at mid level across the field."""
+        nominal, top = diagnosis.nominal, diagnosis.top
+        shown = [("nominal", nominal.residual)] + ([(f"with {top.effect}", top.fit.residual)] if top else [])
+        for a, (label, r) in zip(axes[:2], shown):
+            cells = _cell_means(self, r, ~self.train)
+            for p, pair in enumerate(self.pairs):
+                for d, ls in ((0, "-"), (1, "--")):
+                    for k, marker in ((0, "^"), (1, "v")):
+                        a.plot(
+                            100 * np.array(LEVELS),
+                            cells[p, d, k],
+                            ls,
+                            marker=marker,
+                            color=f"C{p}",
+                            lw=1,
+                            label=f"{pair.speed_nm_s / 1e3:.3g} um/s" if d == k == 0 else None,
+                        )
+            a.axhline(0, color="k", lw=0.5)
+            a.set(
+                xlabel="level [% of the step]",
+                ylabel="mean held-out crossing residual [nm]",
+                title=f"{label}: - trace, -- retrace; ^ rising, v falling edges",
+            )
+            a.legend(fontsize=8)
+        if top is None:
+            axes[1].axis("off")
+        a = axes[2]
+        f, r = self.f, nominal.residual
+        for d, name in ((False, "trace"), (True, "retrace")):
+            sel = ~self.train & (f["retrace"] == d) & (f["level"] == 0.5)
+            a.plot(f["x"][sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
+        a.set(
+            xlabel="x (nominal) [um]",
+            ylabel="residual at mid level [nm]",
+            title="nominal, held-out rows, across the field",
+        )
+        a.legend(fontsize=8, markerscale=4)
 
 
-def _shape(data: _Data, scale: float, radius=None, tau_s: float = 0.0) -> np.ndarray:
+def _shape(data: ScanSet, scale: float, radius=None, tau_s: float = 0.0) -> np.ndarray:
     """The edge-shape term ``S_l`` (true nm) of every crossing."""
     f, out = data.f, np.empty(len(data.f["x"]))
     li = np.searchsorted(LEVELS, f["level"])
@@ -293,7 +490,7 @@ def _shape(data: _Data, scale: float, radius=None, tau_s: float = 0.0) -> np.nda
     return out
 
 
-def _solve(data: _Data, cols: list, shape: np.ndarray, scale: float, searched: int = 0) -> dict:
+def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched: int = 0) -> ScanFit:
     """Linear least squares on the training crossings with the shape term moved to the left,
     converted to nominal nm by ``k / g`` (two passes: the gain comes from the first);
     ``searched``: parameters of ``shape`` found by a search, counted in the BIC."""
@@ -309,26 +506,24 @@ def _solve(data: _Data, cols: list, shape: np.ndarray, scale: float, searched: i
             c = np.array([0, 0, th[f"c2_{d}"], th[f"c3_{d}"]])
             gain[sel] = 1 + legendre.legval(s[sel], legendre.legder(c)) * ds[sel]
     r = b - a @ theta
-    n, k = int(data.train.sum()), len(cols) + searched
     rss = float(r[data.train] @ r[data.train])
-    return {
-        "residual": r,
-        "theta": th,
-        "parameters": k,
-        "rss": rss,
-        "train_rms_nm": float(np.sqrt(rss / n)),
-        "bic": n * np.log(max(rss, 1e-300) / n) + k * np.log(n),
-        "heldout_gap_nm": _systematic(data, r),
-        "heldout_rms_nm": float(np.sqrt(np.mean(r[~data.train] ** 2))),
-    }
+    return ScanFit(
+        residual=r,
+        heldout_gap_nm=_systematic(data, r),
+        theta=th,
+        fitted={},
+        rss=rss,
+        heldout_rms_nm=float(np.sqrt(np.mean(r[~data.train] ** 2))),
+        **Fit.scores(rss, int(data.train.sum()), len(cols) + searched),
+    )
 
 
-def _systematic(data: _Data, r: np.ndarray) -> float:
+def _systematic(data: ScanSet, r: np.ndarray) -> float:
     """rms over the cells (pair, direction, edge kind, level) of the cell's mean held-out residual."""
     return float(np.sqrt(np.nanmean(_cell_means(data, r, ~data.train) ** 2)))
 
 
-def _cell_means(data: _Data, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
+def _cell_means(data: ScanSet, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
     """Mean residual (pairs, direction [trace, retrace], kind [rising, falling], levels) nm over
     the crossings ``sel``; NaN where a cell has none."""
     f, shape = data.f, (len(data.pairs), 2, 2, len(LEVELS))
@@ -348,232 +543,34 @@ def _cell_means(data: _Data, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
 
 
 def _search(fit_at, lo: float, hi: float) -> tuple:
-    """Minimise ``fit_at(v)['rss']`` over ``v`` in [lo, hi]: a log grid, then bounded refinement."""
+    """Minimise ``fit_at(v).rss`` over ``v`` in [lo, hi]: a log grid, then bounded refinement."""
     grid = np.geomspace(lo, hi, 17)
-    rss = [fit_at(v)["rss"] for v in grid]
+    rss = [fit_at(v).rss for v in grid]
     i = int(np.argmin(rss))
     a, b = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, len(grid) - 1)])
     best = minimize_scalar(
-        lambda lv: fit_at(np.exp(lv))["rss"], bounds=(a, b), method="bounded", options={"xatol": 0.01}
+        lambda lv: fit_at(np.exp(lv)).rss, bounds=(a, b), method="bounded", options={"xatol": 0.01}
     )
     v = float(np.exp(best.x)) if best.fun <= rss[i] else float(grid[i])
     return v, fit_at(v)
 
 
-def fit_candidate(data: _Data, name: Optional[str], scale: float) -> dict:
-    """The nominal model (``name=None``) or nominal + ``name``, fitted to the training crossings;
-    ``fitted`` holds the candidate's parameter."""
-    cols = list(NOMINAL)
-    if name == "tip":
-        radius, fit = _search(
-            lambda r: _solve(data, cols, _shape(data, scale, radius=r), scale, 1), *TIP_RADII_NM
-        )
-        return fit | {"fitted": {"tip_radius_nm": radius}}
-    if name == "feedback_lag":
-        dt = min(p.sample_time_s for p in data.pairs)
-        tau, fit = _search(
-            lambda v: _solve(data, cols, _shape(data, scale, tau_s=v), scale, 1),
-            LAG_SAMPLES[0] * dt,
-            LAG_SAMPLES[1] * dt,
-        )
-        return fit | {"fitted": {"tau_s": tau}}
-    fit = _solve(data, cols + ([name] if name else []), _shape(data, scale), scale)
-    key = "tau_s" if name == "rate_dependence" else name
-    return fit | {"fitted": {} if name is None else {key: fit["theta"][name]}}
+def diagnose_scans(
+    pairs, grating: ScanGrating, candidates, train_fraction: float, rules: Rules = Rules(), log=None
+) -> Diagnosis:
+    """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs``.
 
+    Arguments:
+        pairs: :class:`ScanPair` s at two or more scan speeds.
+        grating: what is known of the grating and the tip.
+        candidates: effect names to try (those a scan set cannot show are skipped with the reason).
+        train_fraction: the first part of every pair's rows the fits train on; its later rows
+            are held out.
+        rules: when a candidate is significant.
+        log: called with a line per fit (``None``: quiet).
 
-def diagnose_scans(pairs, grating: GratingSpec, candidates, train_fraction: float, rules) -> dict:
-    """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs`` (ScanPair);
-    the first ``train_fraction`` of every pair's rows train, its later rows are held out."""
-    if len(pairs) < 2:
-        raise ValueError(
-            f"a scan-set diagnosis needs trace/retrace pairs at two or more scan speeds, got "
-            f"{len(pairs)}: add a pair scanned at another line rate"
-        )
-    pairs = sorted(pairs, key=lambda p: p.speed_nm_s)
-    speeds = [p.speed_nm_s for p in pairs]
-    if len(set(np.round(speeds, 6))) < 2:
-        raise ValueError(
-            f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
-            "two speeds: give a pair scanned at another line rate"
-        )
-    f = crossings(pairs)
-    rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
-    train = f["row"] < np.round(train_fraction * rows)
-    if train.sum() < 50 or (~train).sum() < 50:
-        raise ValueError(
-            f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
-            f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction"
-        )
-    depth = float(np.median([np.subtract(*np.percentile(p.trace, [90, 10], axis=1)) for p in pairs]))
-    data = _Data(f, list(pairs), grating, depth, train)
-    scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0)["theta"]["pitch"] / grating.pitch_nm
-    nominal = fit_candidate(data, None, scale)
-    rows, skipped = [], {}
-    for c in candidates:
-        if c not in CANDIDATES:
-            skipped[c] = NOT_IN_SCANS[c]
-            continue
-        fit = fit_candidate(data, c, scale)
-        rows.append(gap_report.candidate_row(c, nominal, fit, rules, fitted=fit["fitted"]))
-    rows.sort(key=lambda r: -r["shrink_pct"])
-    verdict = next((r["effect"] for r in rows if r["significant"]), None)
-    return {
-        "data": data,
-        "scale": scale,
-        "nominal": nominal,
-        "candidates": rows,
-        "skipped": skipped,
-        "verdict": verdict,
-    }
-
-
-# ----------------------------------------------------------------------------- outputs
-
-
-def where(res: dict) -> list:
-    """Sentences: which levels, directions and speeds the nominal model misses."""
-    data, r = res["data"], res["nominal"]["residual"]
-    cells = _cell_means(data, r, ~data.train)
-    speeds = [p.speed_nm_s for p in data.pairs]
-    by_level = np.sqrt(np.nanmean(cells**2, axis=(0, 1, 2)))
-    by_pair = np.sqrt(np.nanmean(cells**2, axis=(1, 2, 3)))
-    # trace minus retrace, rising edges at mid level: a lag moves the two apart in proportion to the speed
-    split = cells[:, 0, 0, LEVELS.index(0.5)] - cells[:, 1, 0, LEVELS.index(0.5)]
-    spread = np.moveaxis(
-        (cells[..., -1] - cells[..., 0]) * [1, -1], -1, 0
-    )  # (kind, pair, direction); > 0: wider
-    return [
-        f"By level, the systematic misfit is {', '.join(f'{v:.2g}' for v in by_level)} nm at "
-        f"{', '.join(f'{100 * lv:.0f} %' for lv in LEVELS)} of the step (an edge shape the model lacks "
-        "shows at some levels more than others).",
-        f"By scan speed ({', '.join(f'{v / 1e3:.3g}' for v in speeds)} um/s): "
-        f"{', '.join(f'{v:.2g}' for v in by_pair)} nm"
-        f"; trace minus retrace at mid level (rising edges): {', '.join(f'{v:+.2g}' for v in split)} nm "
-        "(a lag grows it with the speed, hysteresis does not).",
-        f"Edges wider than modelled (10 % to 90 % crossing), rising / falling, trace: "
-        f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 0], spread[1, :, 0]))} nm; retrace: "
-        f"{', '.join(f'{v:+.2g}/{w:+.2g}' for v, w in zip(spread[0, :, 1], spread[1, :, 1]))} nm per speed "
-        "(a tip widens every edge alike; a feedback lag widens them more at higher speed).",
-    ]
-
-
-def figure(res: dict, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    data, nominal = res["data"], res["nominal"]
-    top = next((c for c in res["candidates"] if c["effect"] == res["verdict"]), None)
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8.5))
-    for a, (label, r) in zip(
-        ax[0],
-        [("nominal", nominal["residual"])]
-        + ([(f"with {top['effect']}", top["fit"]["residual"])] if top else []),
-    ):
-        cells = _cell_means(data, r, ~data.train)
-        for p, pair in enumerate(data.pairs):
-            for d, ls in ((0, "-"), (1, "--")):
-                for k, marker in ((0, "^"), (1, "v")):
-                    a.plot(
-                        100 * np.array(LEVELS),
-                        cells[p, d, k],
-                        ls,
-                        marker=marker,
-                        color=f"C{p}",
-                        lw=1,
-                        label=f"{pair.speed_nm_s / 1e3:.3g} um/s" if d == k == 0 else None,
-                    )
-        a.axhline(0, color="k", lw=0.5)
-        a.set(
-            xlabel="level [% of the step]",
-            ylabel="mean held-out crossing residual [nm]",
-            title=f"{label}: - trace, -- retrace; ^ rising, v falling edges",
-        )
-        a.legend(fontsize=8)
-    if top is None:
-        ax[0, 1].axis("off")
-    a = ax[1, 0]
-    f, r = data.f, nominal["residual"]
-    for d, name in ((False, "trace"), (True, "retrace")):
-        sel = ~data.train & (f["retrace"] == d) & (f["level"] == 0.5)
-        a.plot(f["x"][sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
-    a.set(
-        xlabel="x (nominal) [um]",
-        ylabel="residual at mid level [nm]",
-        title="nominal, held-out rows, across the field",
-    )
-    a.legend(fontsize=8, markerscale=4)
-    gap_report.candidate_bars(
-        ax[1, 1], res["candidates"], nominal["heldout_gap_nm"], "held-out systematic gap [nm]"
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def write_outputs(res: dict, rules, out, log=print) -> dict:
-    """``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md``; returns the metrics."""
-    data, nominal, rows = res["data"], res["nominal"], res["candidates"]
-    verdict, metrics = gap_report.summary(res, nominal, rows)
-    metrics |= {
-        "nominal_heldout_rms_nm": nominal["heldout_rms_nm"],
-        "train_crossings": int(data.train.sum()),
-        "heldout_crossings": int((~data.train).sum()),
-        "calibration_scale": res["scale"],
-        "edge_depth_nm": data.depth,
-    }
-    pairs = [
-        {
-            "name": p.name,
-            "pixels": list(p.trace.shape),
-            "pixel_size_nm": list(p.pixel_size),
-            "sample_time_s": p.sample_time_s,
-            "speed_nm_s": p.speed_nm_s,
-        }
-        for p in data.pairs
-    ]
-    doc = {
-        "data": {
-            "source": f"{len(pairs)} trace/retrace pairs of a 1-D grating",
-            "kind": "scan set",
-            "pairs": pairs,
-            "grating": dataclasses.asdict(data.grating),
-            "levels": list(LEVELS),
-            "train_samples": int(data.train.sum()),
-            "heldout_samples": int((~data.train).sum()),
-            "counts": "edge-level crossings",
-            "units": "nm (crossings, gaps), s",
-        },
-        "nominal": {
-            "model": "hysteresis-only scanner (a nonlinearity per branch and the loop offset), ideal tip "
-            "and feedback, the grating's known edge",
-            "train_rms_nm": nominal["train_rms_nm"],
-            "heldout_gap_nm": nominal["heldout_gap_nm"],
-            "heldout_rms_nm": nominal["heldout_rms_nm"],
-            "parameters": nominal["parameters"],
-            "fitted": nominal["theta"],
-        },
-        "verdict": verdict,
-        "candidates": [{k: v for k, v in c.items() if k != "fit"} for c in rows],
-        "skipped": res["skipped"],
-        "rules": dataclasses.asdict(rules),
-        "where": where(res),
-    }
-    figure(res, out / "residuals.png")
-    gap_report.save(
-        doc,
-        metrics,
-        out,
-        gap_report.markdown_head(doc)
-        + [
-            "- The gap is systematic: per (pair, direction, edge kind, level) the mean held-out residual, then their "
-            f"rms; the nominal's per-crossing rms is {nominal['heldout_rms_nm']:.3g} nm.",
-            "",
-            "![residuals](residuals.png)",
-            "",
-        ],
-        log,
-    )
-    return metrics
+    Returns:
+        The :class:`~jaxafm.diagnose.core.Diagnosis`; its ``data`` is a :class:`ScanSet`, its
+        fits are :class:`ScanFit` s.
+    """
+    return diagnose(ScanSet.split_off(pairs, grating, train_fraction), candidates, rules, log)

@@ -16,12 +16,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..config import ScanGrating
 from ..instrument.afm import AFM, Raster, raster_scan
 from ..instrument.records import Record
 from ..instrument.samples import Grating, Tip
 from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
 from ..model.scanner import Scanner, default_scanner
-from .scans import GratingSpec, ScanPair
+from .scans import ScanPair
 
 #: Unit of the ``magnitude`` of a withheld effect in :func:`simulate_record`.
 RECORD_UNITS = {
@@ -105,7 +106,7 @@ def simulate_record(
 #: Unit of the ``magnitude`` of a withheld effect in :func:`simulate_scans`.
 SCAN_UNITS = {"feedback_lag": "s", "tip": "nm (apex radius)", "rate_dependence": "s"}
 #: The simulated calibration grating: 400 nm pitch, 30 nm deep, 60-degree walls (17.3 nm ramps).
-SIM_GRATING = GratingSpec(pitch_nm=400.0, edge_width_nm=30.0 / np.tan(np.deg2rad(60.0)))
+SIM_GRATING = ScanGrating(pitch_nm=400.0, edge_width_nm=30.0 / np.tan(np.deg2rad(60.0)))
 SIM_DEPTH_NM = 30.0
 SETTLE_LINES = 2  # the first lines run while the scanner's loop settles: dropped
 
@@ -147,12 +148,12 @@ def simulate_scans(
     for i, rate in enumerate(line_rates_hz):
         raster = Raster((size_nm, size_nm / 2), pixels, lines + SETTLE_LINES, line_rate=float(rate))
         img = raster_scan(afm, sample, state, raster, key=jax.random.fold_in(jax.random.key(seed), i))
-        state = img["state"]
+        state = img.state
         pick = lambda z: np.asarray(z)[SETTLE_LINES:]
         out.append(
             ScanPair(
-                pick(img["trace"]),
-                pick(img["retrace"]),
+                pick(img.trace),
+                pick(img.retrace),
                 raster.pixel_size,
                 raster.sample_time,
                 f"{rate:g} Hz",

@@ -1,0 +1,10 @@
+"""Identification: from images and records to a fitted scanner model, and its inverse.
+
+``features`` and ``line_grating`` (what an image shows), ``fit`` (fitting hysteresis models to
+a record), ``calibration`` (step A's end-to-end fit of the scanner to a grating image pair),
+``inverse`` (compensation), ``actuator_fit`` (the ``jaxafm fit`` job) and ``step_a`` (the
+``jaxafm calibrate`` job). Imports the model, the instrument and the shared leaves; importing
+it switches JAX to float64 (``jaxafm._precision``).
+"""
+
+from .. import _precision  # noqa: F401  (float64 before any array of this package exists)

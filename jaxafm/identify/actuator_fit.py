@@ -61,9 +61,8 @@ def _build(spec, u, d):
 
 
 def _predict(model, record: Record, history):
-    u = jnp.asarray(record.u)
-    out = model(u, jnp.asarray(record.t), history) if isinstance(model, Axis) else model(u, history)
-    return np.asarray(out)
+    """The output (T,) nm of a fitted operator or Axis over the whole record."""
+    return np.asarray(model.predict(jnp.asarray(record.u), jnp.asarray(record.t), history))
 
 
 def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:

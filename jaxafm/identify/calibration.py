@@ -29,17 +29,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..instrument.afm import AFM, Raster, raster_scan
+from ..config.names import MODEL_EFFECTS
+from ..instrument.afm import AFM, Raster, RasterScan, raster_scan
 from ..instrument.samples import Lattice, Plane, Tip
 from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
-from ..model.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
+from ..model.hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
 from ..model.scanner import Axis, Scanner
 from .features import LatticeFeatures, lattice_features
 from .fit import FitResult, _softplus_inv, _solve, free_parameters
 
 Array = jax.Array
 KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key never matters
-MODEL_EFFECTS = ("asymmetry", "rate_dependence", "creep", "coupling", "bow", "drift", "feedback_lag")
 
 
 class CalibrationScan(eqx.Module):
@@ -142,15 +142,16 @@ class ScanModel(eqx.Module):
         scan's drive (the heights are not rendered)."""
         afm = eqx.tree_at(lambda a: a.feedback, self.afm(scan), None, is_leaf=lambda v: v is None)
         out = raster_scan(afm, Plane(), self._start(afm, scan), scan.raster, key=KEY)
-        return out["path_trace"], out["path_retrace"]
+        return out.path_trace, out.path_retrace
 
     def _start(self, afm: AFM, scan: CalibrationScan):
         return afm.initial_state(
             scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history)
         )
 
-    def image(self, scan: CalibrationScan) -> dict:
-        """:func:`~jaxafm.afm.raster_scan` of the lattice through this model, along the scan's drive."""
+    def image(self, scan: CalibrationScan) -> RasterScan:
+        """:func:`~jaxafm.instrument.afm.raster_scan` of the lattice through this model, along the
+        scan's drive."""
         afm = self.afm(scan)
         return raster_scan(afm, self.lattice, self._start(afm, scan), scan.raster, key=KEY)
 
@@ -168,7 +169,7 @@ def initial_model(
     ``kind``: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
     ``deadzones`` dead zones a side, evenly over the imaged half width: beyond it no data
     would hold them) or ``preisach`` (``levels`` levels over ``+-u_max``). ``effects``
-    lists the others to fit (names as in design.md).
+    lists the others to fit (names as in docs/conventions.md).
     """
     unknown = [e for e in effects if e not in MODEL_EFFECTS]
     if unknown:
@@ -185,8 +186,7 @@ def initial_model(
         if kind == "preisach":
             h = Preisach.uniform(levels, -scan.u_max, scan.u_max, total=half)
         else:
-            pi = PrandtlIshlinskii.uniform(operators, scan.u_max, gain)
-            h = PrandtlIshlinskii(pi.thresholds, jnp.full(operators, 1e-3 * gain).at[0].set(gain), pi.offset)
+            h = PrandtlIshlinskii.uniform(operators, scan.u_max, gain, others=1e-3)
             if kind == "gpi":
                 steps = (np.arange(deadzones) + 1) / (deadzones + 1) * imaged
                 h = GeneralizedPI(h, Deadzone.identity(-steps, steps))
@@ -282,9 +282,8 @@ def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
     return raw, rebuild
 
 
-def _zero_offset(h, start):
-    if isinstance(h, GeneralizedPI):
-        return eqx.tree_at(lambda g: g.pi.offset, h, start.pi.offset)
+def _zero_offset(h: AbstractHysteresis, start: AbstractHysteresis) -> AbstractHysteresis:
+    """``h`` with the offset of ``start`` (for a generalised PI, its PI operator's)."""
     return eqx.tree_at(lambda g: g.offset, h, start.offset)
 
 
@@ -321,12 +320,19 @@ def blur(z: Array, kernel: Array) -> Array:
     return along(along(z, 0), 1) / along(along(jnp.ones_like(z), 0), 1)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Identification:
-    """The fitted model and one :class:`~jaxafm.fit.FitResult` per stage."""
+    """What :func:`identify` returns.
+
+    Attributes:
+        model: the fitted :class:`ScanModel`.
+        stages: one :class:`~jaxafm.identify.fit.FitResult` per stage (feature points, then
+            each blur), in order.
+        seconds: the whole identification's wall time (s).
+    """
 
     model: ScanModel
-    stages: list
+    stages: tuple
     seconds: float
 
     @property
@@ -356,8 +362,8 @@ def _image_residuals(raw, args) -> Array:
     out = parameters(start, scan)[1](raw).image(scan)
     return jnp.concatenate(
         [
-            ((blur(out[k], kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
-            for k, z in (("trace", scan.trace), ("retrace", scan.retrace))
+            ((blur(m, kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
+            for m, z in ((out.trace, scan.trace), (out.retrace, scan.retrace))
         ]
     )
 
@@ -389,6 +395,20 @@ def identify(
 
     Never returns a silently bad fit: each stage's convergence and last loss
     are in the result, and a stage whose loss is not finite raises.
+
+    Arguments:
+        scan: the measured trace/retrace pair and how it was driven.
+        model: the start; by default :func:`initial_model` with ``kind``, ``effects``,
+            ``operators``, ``deadzones`` and ``levels``.
+        solver: one of :data:`~jaxafm.identify.fit.SOLVERS`.
+        blur_px: the image stages' Gaussian blurs (pixels), widest first.
+        max_steps: each stage's step limit.
+        rtol: each stage's relative tolerance.
+        atol: each stage's absolute tolerance.
+        log: where each stage's one-line summary goes.
+
+    Returns:
+        An :class:`Identification`: the fitted model and one fit result per stage.
     """
     start = time.perf_counter()
     features = scan.features()
@@ -422,7 +442,7 @@ def identify(
         model = rebuild(raw)
         stages.append(FitResult(model, solver, ok, steps, loss, time.perf_counter() - t0, message))
         log(f"  stage {i + 1}/{len(plan)} {name}: {message}, {stages[-1].seconds:.1f} s")
-    return Identification(model, stages, time.perf_counter() - start)
+    return Identification(model, tuple(stages), time.perf_counter() - start)
 
 
 def _start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> ScanModel:

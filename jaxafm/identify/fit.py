@@ -23,35 +23,24 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from ..config.names import SOLVERS
 from ..model.effects import Creep, RateDependence
 from ..model.hysteresis import (
+    AbstractHysteresis,
     Deadzone,
     GeneralizedPI,
     Linear,
-    PlayOperator,
     PrandtlIshlinskii,
     Preisach,
-    play,
+    softplus_inverse,
 )
 from ..model.scanner import Axis
 
 Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
-SOLVERS = (
-    "optimistix.levenberg_marquardt",
-    "optimistix.gauss_newton",
-    "optimistix.dogleg",
-    "optimistix.bfgs",
-    "jaxopt.levenberg_marquardt",
-    "jaxopt.gauss_newton",
-    "jaxopt.lbfgs",
-    "scipy.least_squares",
-)
 
 
-def _softplus_inv(x):
-    x = jnp.maximum(x, 1e-9)
-    return x + jnp.log(-jnp.expm1(-x))
+_softplus_inv = softplus_inverse  # the name other modules import
 
 
 def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):
@@ -74,9 +63,8 @@ def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, dea
             "non-negative weights and rise: negate the output (or the input) before fitting"
         )
     if kind in ("pi", "gpi"):
-        pi = PrandtlIshlinskii.uniform(operators, span / 2, gain, offset)
         # small positive weights on every play so softplus starts with a gradient
-        pi = PrandtlIshlinskii(pi.thresholds, jnp.full(operators, 1e-3 * gain).at[0].set(gain), pi.offset)
+        pi = PrandtlIshlinskii.uniform(operators, span / 2, gain, offset, others=1e-3)
         if kind == "pi":
             return pi
         steps = (np.arange(deadzones) + 1) / (deadzones + 1) * rng / 2
@@ -88,35 +76,20 @@ def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, dea
 
 
 def free_parameters(model, u_span: float, d_range: float):
-    """``(raw, rebuild)``: the fitted parameters as an order-one pytree and the map back."""
-    ws = d_range / u_span  # weight scale, nm/V
-    if isinstance(model, Linear):
-        raw = (model.gain / ws, model.offset / d_range)
-        return raw, lambda p: Linear(p[0] * ws, p[1] * d_range)
-    if isinstance(model, PrandtlIshlinskii):
-        raw = (_softplus_inv(model.weights / ws), model.offset / d_range)
-        return raw, lambda p: PrandtlIshlinskii(model.thresholds, jax.nn.softplus(p[0]) * ws, p[1] * d_range)
-    if isinstance(model, GeneralizedPI):
-        pi_raw, pi_rebuild = free_parameters(model.pi, u_span, d_range)
-        dz = model.deadzone
-        # each side's partial slopes g_0 + g_1 + ... + g_i stay > 0: the dead zones stay
-        # monotone and invertible however far the fit moves them
-        partial = lambda g: _softplus_inv((dz.slope + jnp.cumsum(g)) / dz.slope)
-        weights = lambda p: jnp.diff(jax.nn.softplus(p) * dz.slope, prepend=dz.slope)
-        raw = (pi_raw, partial(dz.upper_weights), partial(dz.lower_weights))
-        return raw, lambda p: GeneralizedPI(
-            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, weights(p[1]), dz.lower, weights(p[2]), dz.centre)
-        )
-    if isinstance(model, Preisach):
-        tri = np.tril_indices(model.levels)
-        scale = d_range / len(tri[0])
-        raw = (_softplus_inv(model.density[tri] / scale), model.offset / d_range)
+    """The fitted parameters as an order-one pytree, and the map back.
 
-        def rebuild(p):
-            density = jnp.zeros_like(model.density).at[tri].set(jax.nn.softplus(p[0]) * scale)
-            return Preisach(density, model.u_min, model.u_max, p[1] * d_range, model.smooth)
+    Arguments:
+        model: a hysteresis operator (its :meth:`~jaxafm.model.hysteresis.AbstractHysteresis.free_parameters`,
+            weights kept non-negative), a creep or rate-dependence stage, or an
+            :class:`~jaxafm.model.scanner.Axis` of those.
+        u_span: the span of the fitted input (V).
+        d_range: the range of the fitted output (nm).
 
-        return raw, rebuild
+    Returns:
+        ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> model``.
+    """
+    if isinstance(model, AbstractHysteresis):
+        return model.free_parameters(u_span, d_range)
     if isinstance(model, Creep):
         return model.weights / 0.01, lambda p: Creep(model.taus, p * 0.01)
     if isinstance(model, RateDependence):
@@ -132,17 +105,20 @@ def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Calla
     """``f(m) = m(u, t, history)`` for models shaped like ``model``, with the plays run once.
 
     The fit keeps every threshold grid fixed, so the play trajectories -- the
-    only sequential part -- do not depend on the fitted parameters.
+    only sequential part -- do not depend on the fitted parameters
+    (:meth:`~jaxafm.model.hysteresis.AbstractHysteresis.evaluator`).
+
+    Arguments:
+        model: a hysteresis operator or an :class:`~jaxafm.model.scanner.Axis`.
+        u: the input (T,) V.
+        t: the sample times (T,) s; an Axis needs them.
+        history: the inputs (H,) V before ``u[0]``, or ``None``.
+
+    Returns:
+        ``f(m) -> (T,) nm`` for models ``m`` of the same structure.
     """
     h = model.hysteresis if isinstance(model, Axis) else model
-    if isinstance(h, Preisach):  # linear in the density: one design matrix for the whole fit
-        states = h.relay_states(play(u, h.radii(), history))
-        hysteresis = lambda m: m.offset + jnp.einsum("tij,ij->t", states, m.density)
-    elif isinstance(h, PlayOperator):
-        P = play(u, h.radii(), history)
-        hysteresis = lambda m: m.from_plays(P)
-    else:
-        hysteresis = lambda m: m(u, history)
+    hysteresis = h.evaluator(u, history)
     if isinstance(model, Axis):
         if t is None:
             raise ValueError("fitting an Axis (creep or rate dependence) needs the sample times t (s)")
@@ -151,15 +127,25 @@ def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Calla
     return hysteresis
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class FitResult:
-    """A fitted model and how the solver got there."""
+    """A fitted model and how the solver got there.
+
+    Attributes:
+        model: the fitted model, the same structure as the start.
+        solver: the solver's name (one of ``SOLVERS``).
+        converged: whether the solver met its tolerances within ``max_steps``.
+        steps: the solver's steps (or function evaluations, for scipy).
+        loss: the final mean squared residual, in (fraction of the output range)^2.
+        seconds: the solve's wall time (s).
+        message: one line saying how the solve ended.
+    """
 
     model: object
     solver: str
     converged: bool
     steps: int
-    loss: float  # final mean squared residual, in (fraction of output range)^2
+    loss: float
     seconds: float
     message: str
 
@@ -179,7 +165,7 @@ def fit_operator(
 ) -> FitResult:
     """Least-squares fit of ``model(u, [t,] history) ~ d``; residuals in fractions of the output range.
 
-    ``model`` is a hysteresis operator or an :class:`~jaxafm.scanner.Axis`
+    ``model`` is a hysteresis operator or an :class:`~jaxafm.model.scanner.Axis`
     (hysteresis plus creep; ``t`` in s). Threshold grids stay as given. The
     model runs over the whole of ``u``; the first ``settle`` samples (a
     transient the model is not meant to follow) are left out of the loss.

@@ -9,11 +9,12 @@ stateful stage carries its state:
 3. creep and rate lag: one step of a first-order lag is affine in its input, so
    the hysteresis output that gives ``v`` is ``(v - f(0)) / (f(1) - f(0))``;
 4. hysteresis, one of
-   - ``"analytic"``: the exact inverse operator of a PI or generalised-PI model
-     (Kuhnen & Janocha), run after the initialisation cycle on the output history;
-   - ``"numerical"``: per sample from the plays' state, exact for a PI or
-     generalised-PI model (:func:`_pi_step`), else a safeguarded Newton root find
-     of the monotone map ``u -> H[u; plays]`` (Preisach too).
+   - ``"analytic"``: the operator's exact inverse (``inverse()``, for a PI or
+     generalised-PI model: Kuhnen & Janocha), run after the initialisation cycle
+     on the output history;
+   - ``"numerical"``: per sample from the plays' state (``invert_step``), exact
+     for a PI or generalised-PI model, else a safeguarded Newton root find of the
+     monotone map ``u -> H[u; plays]`` (Preisach too).
 
 The paper's baseline, a neural network trained on (position, voltage) pairs per
 branch, is :class:`NeuralInverse`.
@@ -31,7 +32,6 @@ import numpy as np
 from jax import lax
 
 from .. import checks
-from ..model.hysteresis import GeneralizedPI, PrandtlIshlinskii
 from ..model.scanner import Axis, AxisState, Scanner, ScannerState
 
 Array = jax.Array
@@ -70,61 +70,11 @@ def _hysteresis_target(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array) 
     return (v - f0) / (f1 - f0)
 
 
-def _root(axis: Axis, h: Array, plays: Array, u_guess: Array, lo: float, hi: float, tol: float = 1e-7):
-    """``u`` in ``[lo, hi]`` with ``H[u; plays] = h``: Newton steps, bisection when a step leaves
-    the bracket. Returns ``(u, saturated)``; saturated when ``h`` lies beyond ``H[lo]``/``H[hi]``."""
-    H = lambda u: axis.hysteresis.step(u, plays)[0] - h
-    below, above = H(lo) > 0, H(hi) < 0
-
-    def body(c):
-        u, a, b, _, i = c
-        f, df = jax.jvp(H, (u,), (jnp.ones(()),))
-        a, b = jnp.where(f < 0, u, a), jnp.where(f > 0, u, b)
-        step = u - f / jnp.where(df > 0, df, 1.0)
-        step = jnp.where((step > a) & (step < b) & (df > 0), step, 0.5 * (a + b))
-        return jnp.where(jnp.abs(f) <= tol, u, step), a, b, jnp.abs(f), i + 1
-
-    start = jnp.clip(u_guess, lo, hi)
-    u, *_ = lax.while_loop(
-        lambda c: (c[3] > tol) & (c[4] < 60),
-        body,
-        (start, jnp.asarray(lo, float), jnp.asarray(hi, float), jnp.asarray(jnp.inf), 0),
-    )
-    u = jnp.where(below, lo, jnp.where(above, hi, u))
-    return u, below | above
-
-
-def _pi_step(pi: PrandtlIshlinskii, z: Array, plays: Array, lo: float, hi: float) -> tuple:
-    """``u`` in ``[lo, hi]`` with ``PI[u; plays] = z``, exactly, and whether it saturated.
-
-    From the plays' state, the output is piecewise linear in ``u``: rising, play
-    ``k`` moves once ``u`` passes ``b_k = p_k + r_k`` (falling: ``p_k - r_k``),
-    so at ``b_j`` it is ``Y_j = y0 + s sum_k w_k max(0, s (b_j - b_k))`` (``s``
-    the direction) with slope ``W_j = sum_{k: s b_k <= s b_j} w_k`` beyond it.
-    The last breakpoint not past ``z`` gives ``u = b_j + (z - Y_j) / W_j``.
-    """
-    r, w = pi.thresholds, pi.weights
-    y0 = pi.offset + plays @ w
-    sign = jnp.where(z >= y0, 1.0, -1.0)
-    b = plays + sign * r
-    ahead = sign * (b[:, None] - b[None, :])  # (j, k): how far b_j lies beyond b_k
-    Y = y0 + sign * (jnp.maximum(ahead, 0.0) @ w)
-    W = (ahead >= 0) @ w
-    passed = sign * (z - Y) >= 0
-    j = jnp.argmax(jnp.where(passed, sign * b, -jnp.inf))
-    u = b[j] + (z - Y[j]) / W[j]
-    return jnp.clip(u, lo, hi), (u < lo) | (u > hi)
-
-
 def _step_axis(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array, u_prev: Array, u_max: float):
+    """One sample of the numerical inverse on one axis: the drive (V) that puts its output at
+    ``v`` nm at time ``t``, the state after it, and whether it saturated at ``+-u_max``."""
     h = _hysteresis_target(axis, v, t, s, t0)
-    op = axis.hysteresis
-    if isinstance(op, PrandtlIshlinskii):
-        u, saturated = _pi_step(op, h, s.plays, -u_max, u_max)
-    elif isinstance(op, GeneralizedPI):
-        u, saturated = _pi_step(op.pi, op.deadzone.inverse()(h), s.plays, -u_max, u_max)
-    else:
-        u, saturated = _root(axis, h, s.plays, u_prev, -u_max, u_max)
+    u, saturated = axis.hysteresis.invert_step(h, s.plays, -u_max, u_max, u_prev)
     y, plays = axis.hysteresis.step(u, s.plays)
     _, lag, creep = _dynamics(axis, y, t, s, t0)
     return u, AxisState(plays, lag, creep), saturated
@@ -184,7 +134,8 @@ class Compensator(eqx.Module):
     ``state`` (where the twin of the instrument stands) with the drive at ``u_now`` (2,) V.
 
     ``method``: ``"numerical"`` (any hysteresis model, any state) or ``"analytic"``
-    (PI or generalised-PI, right after the initialisation cycle: ``history`` (H, 2) V,
+    (a model whose operator ``has_inverse``: PI, generalised-PI or linear, right after the
+    initialisation cycle: ``history`` (H, 2) V,
     the cycle and any monotone moves since). ``u_range`` (2, 2) V: the drive range the
     model was fitted over, per axis [min, max]; a wanted position that needs a drive
     outside it raises an error. Call as ``volts(wanted, t)``: wanted (T, 2) nm, t (T,) s.
@@ -203,10 +154,11 @@ class Compensator(eqx.Module):
             raise ValueError(f"unknown inverse method {self.method!r}; one of {', '.join(METHODS)}")
         if self.method == "analytic":
             for a in ("x", "y"):
-                if not isinstance(getattr(self.model, a).hysteresis, (PrandtlIshlinskii, GeneralizedPI)):
+                h = getattr(self.model, a).hysteresis
+                if not h.has_inverse:
                     raise ValueError(
-                        "the analytic inverse needs a PI or generalised-PI model; "
-                        "use method='numerical' for Preisach"
+                        f"the analytic inverse needs a hysteresis model with one (PI or generalised-PI), "
+                        f"but axis {a} has a {type(h).__name__}: use method='numerical'"
                     )
             if self.history is None:
                 raise ValueError(

@@ -26,11 +26,13 @@ from .. import plots
 from ..config import (
     CalibrateConfig,
     CalibrationImages,
+    CalibrationModel,
+    CalibrationSolver,
     Grating,
     SimulatedCalibration,
     resolve_data_path,
 )
-from ..instrument.afm import AFM, Raster, default_afm, move, raster_scan
+from ..instrument.afm import AFM, Raster, RasterScan, default_afm, move, raster_scan
 from ..instrument.images import read_image
 from ..instrument.samples import Lattice, Plane, Tip
 from ..model.io import save_model
@@ -50,7 +52,7 @@ class Simulation:
     afm: AFM
     lattice: Lattice
     cycle: np.ndarray
-    measured: dict
+    measured: RasterScan
     key: jax.Array
 
 
@@ -74,8 +76,8 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
     key = jax.random.key(spec.seed)
     out = raster_scan(afm, lattice, afm.initial_state((0.0, 0.0), 0.0, cycle), raster, key=key)
     scan = calibration.CalibrationScan(
-        out["trace"],
-        out["retrace"],
+        out.trace,
+        out.retrace,
         raster,
         p,
         np.asarray(afm.sensitivity),
@@ -91,7 +93,7 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
 def read_calibration(
     spec: CalibrationImages, grating: Grating, config_path: Path
 ) -> calibration.CalibrationScan:
-    """A measured trace/retrace pair as a :class:`~jaxafm.calibration.CalibrationScan`."""
+    """A measured trace/retrace pair as a :class:`~jaxafm.identify.calibration.CalibrationScan`."""
     trace, retrace = (read_image(resolve_data_path(p, config_path)) for p in (spec.trace, spec.retrace))
     if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
         raise ValueError(
@@ -110,6 +112,25 @@ def read_calibration(
         0.0,
         spec.history_v,
         pits=grating.pits,
+    )
+
+
+def identify_model(
+    scan: calibration.CalibrationScan, model: CalibrationModel, solver: CalibrationSolver, log=print
+) -> calibration.Identification:
+    """Step A's identification (:func:`~jaxafm.identify.calibration.identify`) of the configured
+    ``model`` from ``scan`` with the configured ``solver``."""
+    return calibration.identify(
+        scan,
+        kind=model.kind,
+        effects=model.effects,
+        operators=model.operators,
+        deadzones=model.deadzones,
+        levels=model.levels,
+        solver=solver.name,
+        blur_px=solver.blur_px,
+        max_steps=solver.max_steps,
+        log=log,
     )
 
 
@@ -149,7 +170,7 @@ def paper_inverse(poly: calibration.BranchPolynomials, sensitivity, samples: int
     return volts
 
 
-def position_errors(out: dict, raster: Raster) -> dict:
+def position_errors(out: RasterScan, raster: Raster) -> dict:
     """Linearity error (max |x error| along the fast axis, % of the scan width) and position
     errors (nm) of a scan against its wanted pixels, trace and retrace. The one whole-image
     translation that no image observes (the lattice's phase) is removed: errors are about
@@ -161,7 +182,7 @@ def position_errors(out: dict, raster: Raster) -> dict:
         ),
         -1,
     )
-    e = np.stack([np.asarray(out["path_trace"]), np.asarray(out["path_retrace"])]) - wanted
+    e = np.stack([np.asarray(out.path_trace), np.asarray(out.path_retrace)]) - wanted
     offset = e.reshape(-1, 2).mean(axis=0)
     e = e - offset
     width = raster.size[0]
@@ -174,12 +195,12 @@ def position_errors(out: dict, raster: Raster) -> dict:
     }
 
 
-def pitch_uniformity(out: dict, raster: Raster, pitch: float) -> dict:
+def pitch_uniformity(out: RasterScan, raster: Raster, pitch: float) -> dict:
     """Spread of the local x pitch (% of its mean) in the trace and the retrace image."""
     px = tuple(pitch / p for p in raster.pixel_size)
     result = {}
     for k in ("trace", "retrace"):
-        f = features.lattice_features(np.asarray(out[k]), px, f"{k} image")
+        f = features.lattice_features(np.asarray(getattr(out, k)), px, f"{k} image")
         spread = features.pitch_spread(features.local_pitch(f, raster.pixel_size))
         result |= {
             f"pitch_std_{k}_pct": spread["pitch_std_pct"],
@@ -199,7 +220,7 @@ def run_cycle(afm: AFM, sample, state, cycle: np.ndarray, key):
 def compensated_scan(sim: Simulation, raster: Raster, volts: Optional[Callable]) -> tuple:
     """The cycle again, then the lattice imaged along the drive ``volts(xy, t)`` (nominal if
     ``None``); returns the scan and the seconds the inverse took for the whole raster."""
-    s = run_cycle(sim.afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    s = run_cycle(sim.afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
     if volts is None:
         return raster_scan(sim.afm, sim.lattice, s, raster, key=sim.key), 0.0
     seconds = []
@@ -219,7 +240,7 @@ def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.nd
     twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
     s = raster_scan(
         twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster, key=calibration.KEY
-    )["state"]
+    ).state
     return run_cycle(twin, Plane(), s, cycle, calibration.KEY)
 
 
@@ -315,18 +336,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
             images["paper (poly + NN)"] = _measure(sim, work, volts, "paper", fit_s, metrics, rows)
     for spec in cfg.models:
         log(f"identifying {spec.name} ({spec.kind}, {', '.join(spec.effects) or 'no other effects'}) ...")
-        ident = calibration.identify(
-            scan,
-            kind=spec.kind,
-            effects=spec.effects,
-            operators=spec.operators,
-            deadzones=spec.deadzones,
-            levels=spec.levels,
-            solver=cfg.solver.name,
-            blur_px=cfg.solver.blur_px,
-            max_steps=cfg.solver.max_steps,
-            log=log,
-        )
+        ident = identify_model(scan, spec, cfg.solver, log)
         if not ident.converged:
             n = sum(not s.converged for s in ident.stages)
             log(

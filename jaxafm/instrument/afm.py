@@ -10,7 +10,7 @@ chain in real time: creep and drift carry on from one to the next.
 Voltages come from wanted positions through ``volts(xy, t)`` (nm and s -> V): by
 default the instrument's nominal linear calibration ``u = xy / sensitivity``,
 which is what an uncompensated AFM does; a fitted inverse model
-(:class:`~jaxafm.inverse.Compensator`) compensates instead.
+(:class:`~jaxafm.identify.inverse.Compensator`) compensates instead.
 
 Everything is a pure function of equinox Modules: ``jit``, ``vmap`` over
 instruments or samples, and ``grad`` with respect to scanner parameters work.
@@ -29,7 +29,8 @@ import numpy as np
 from jax import lax
 
 from .. import checks
-from ..model.effects import FeedbackLag, check_effect_names
+from ..config.names import check_effect_names
+from ..model.effects import FeedbackLag
 from ..model.scanner import Scanner, ScannerState, default_scanner
 from .samples import Indented, Tip, surface
 
@@ -319,6 +320,31 @@ class Raster:
         return out
 
 
+class RasterScan(eqx.Module):
+    """What a raster scan records, as images: per pixel the height, where the tip really
+    was and when, for the trace and the retrace.
+
+    Attributes:
+        trace: the recorded heights (lines, pixels) nm of the trace, left to right, row 0 at
+            the lowest y.
+        retrace: the same for the retrace, also left to right.
+        path_trace: the true tip positions (lines, pixels, 2) nm of the trace's pixels.
+        path_retrace: the same for the retrace.
+        t_trace: the times (lines, pixels) s of the trace's pixels.
+        t_retrace: the same for the retrace.
+        state: the instrument's state after the scan (``None`` from :func:`raster_images`,
+            which only arranges samples).
+    """
+
+    trace: Array
+    retrace: Array
+    path_trace: Array
+    path_retrace: Array
+    t_trace: Array
+    t_retrace: Array
+    state: Optional[AFMState] = None
+
+
 def raster_scan(
     afm: AFM,
     sample,
@@ -327,13 +353,24 @@ def raster_scan(
     volts: Optional[Callable] = None,
     key: Optional[Array] = None,
     move_time: float = 0.1,
-) -> dict:
+) -> RasterScan:
     """Image ``sample`` with ``raster`` from ``state``: trace and retrace height images (nm).
 
-    Returns a dict of arrays: ``trace`` and ``retrace`` (lines, pixels) nm, both
-    left to right, row 0 at the lowest y; ``path_trace``/``path_retrace``
-    (lines, pixels, 2) nm, the true tip positions of those pixels; ``t_trace``/
-    ``t_retrace`` (lines, pixels) s; and ``state`` after the scan.
+    The tip first moves to the raster's first point over ``move_time`` s.
+
+    Arguments:
+        afm: the instrument.
+        sample: the sample (an :class:`~jaxafm.instrument.samples.AbstractSample`).
+        state: where the instrument stands.
+        raster: the scan's geometry and timing.
+        volts: ``volts(xy, t)`` (nm, s -> V), the drive for wanted positions; the nominal
+            calibration by default.
+        key: a PRNG key, needed when the scanner has drift or noise.
+        move_time: the move's duration (s).
+
+    Returns:
+        A :class:`RasterScan`: the images, the tip's true path and times per pixel, and the
+        instrument's state after the scan.
     """
     volts = afm.nominal_volts if volts is None else volts
     wanted = raster.wanted().reshape(-1, 2)
@@ -343,7 +380,7 @@ def raster_scan(
     k_move, k_scan = (None, None) if key is None else jax.random.split(key)
     _, state = move(afm, sample, state, u[0], move_time, key=k_move)
     path, h, state = afm.drive(sample, u, t, state, k_scan)
-    return raster_images(raster, path, h, t) | {"state": state}
+    return dataclasses.replace(raster_images(raster, path, h, t), state=state)
 
 
 def raster_times(raster: Raster, after) -> Array:
@@ -352,9 +389,18 @@ def raster_times(raster: Raster, after) -> Array:
     return after + raster.sample_time * jnp.arange(1, n + 1)
 
 
-def raster_images(raster: Raster, path: Array, h: Array, t: Array) -> dict:
-    """Heights ``h`` (T,), true path (T, 2) and times (T,) of a raster's samples as images:
-    ``trace``, ``retrace``, ``path_*`` and ``t_*`` (see :func:`raster_scan`)."""
+def raster_images(raster: Raster, path: Array, h: Array, t: Array) -> RasterScan:
+    """A raster's samples arranged as images, without the over-scan.
+
+    Arguments:
+        raster: the scan's geometry.
+        path: the true tip path (T, 2) nm of every sample of ``raster.wanted()``.
+        h: the recorded heights (T,) nm.
+        t: the times (T,) s.
+
+    Returns:
+        A :class:`RasterScan` with ``state=None``.
+    """
     L, P, m = raster.lines, raster.pixels, raster.margin
     n = P + 2 * m
     out = {}
@@ -365,4 +411,4 @@ def raster_images(raster: Raster, path: Array, h: Array, t: Array) -> dict:
         out[name] = rows(flip(pick(h)))
         out[f"path_{name}"] = rows(flip(pick(path)))
         out[f"t_{name}"] = rows(flip(pick(t)))
-    return out
+    return RasterScan(**out)

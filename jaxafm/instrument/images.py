@@ -23,11 +23,14 @@ import json
 import os
 import re
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
-from .records import LENGTH_TO_NM
+from ..config.names import LENGTH_TO_NM
+
+if TYPE_CHECKING:
+    from .afm import RasterScan
 
 FORMAT, VERSION = "jaxafm-image", 1
 #: Suffix -> AFMReader module and loader, with the channel it reads by default.
@@ -103,7 +106,7 @@ class AFMImage:
         return HeightMap(jnp.asarray(self.z), jnp.asarray(self.pixel_size), jnp.asarray(self.origin))
 
 
-def from_scan(scan: dict, raster, direction: str = "trace", meta: Optional[dict] = None) -> AFMImage:
+def from_scan(scan: RasterScan, raster, direction: str = "trace", meta: Optional[dict] = None) -> AFMImage:
     """The ``trace`` or ``retrace`` image of a ``raster_scan`` result, with the scan's metadata."""
     if direction not in ("trace", "retrace"):
         raise ValueError(f"direction must be 'trace' or 'retrace', got {direction!r}")
@@ -113,10 +116,10 @@ def from_scan(scan: dict, raster, direction: str = "trace", meta: Optional[dict]
         "line_rate_hz": raster.line_rate,
         "scan_direction": raster.direction,
         "overscan": raster.overscan,
-        "start_time_s": float(np.min(scan[f"t_{direction}"])),
+        "start_time_s": float(np.min(getattr(scan, f"t_{direction}"))),
         **(meta or {}),
     }
-    return AFMImage(np.asarray(scan[direction]), raster.pixel_size, raster.origin, info)
+    return AFMImage(np.asarray(getattr(scan, direction)), raster.pixel_size, raster.origin, info)
 
 
 def read_image(

@@ -1,4 +1,4 @@
-"""Actuator time-series records (design.md, section 3): read, convert to V / nm / s, split.
+"""Actuator time-series records (``docs/conventions.md``, records): read, convert to V / nm / s, split.
 
 A record is a delimited text file with one row per sample. The reader is told
 where time (a column, or a sample rate), input and output are, and the units;
@@ -15,8 +15,8 @@ from typing import Optional, Union
 
 import numpy as np
 
-LENGTH_TO_NM = {"pm": 1e-3, "Å": 0.1, "nm": 1.0, "um": 1e3, "µm": 1e3, "\u03bcm": 1e3, "mm": 1e6, "m": 1e9}
-VOLTAGE_TO_V = {"V": 1.0, "mV": 1e-3}
+from ..config.names import LENGTH_TO_NM, VOLTAGE_TO_V
+
 Column = Union[int, str]  # 1-based index or header name
 
 

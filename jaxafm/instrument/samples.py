@@ -1,7 +1,7 @@
 """Sample topographies ``z = sample.height(xy)`` (nm) and the AFM tip that images them.
 
-Every sample is an equinox Module with ``height(xy)`` for points ``xy`` of shape
-``(..., 2)`` nm, differentiable in the points and the sample's parameters:
+Every sample is an :class:`AbstractSample` with ``height(xy)`` for points ``xy`` of
+shape ``(..., 2)`` nm, differentiable in the points and the sample's parameters:
 calibration gratings (1-D lines, 2-D lattices of pits or pillars) with edges of
 finite width, nanoparticles on a flat or tilted substrate, indents pressed by
 the tip, and any measured height map, sampled by bilinear interpolation.
@@ -10,12 +10,15 @@ The tip (effect ``tip``): a sphere of radius ``R`` capped by a cone of half-angl
 ``theta``. What the AFM records is the dilation of the surface by the tip,
 ``I(p) = max_q [z(p + q) - tip(q)]`` (Villarrubia 1997), evaluated here over a
 fixed polar stencil of offsets ``q`` so that it works at any point of a
-distorted scan path; for particles alone it has a closed form
-(:meth:`Particles.imaged`).
+distorted scan path (:meth:`AbstractSample.imaged`); particles and line gratings
+override it with their closed forms (:meth:`Particles.imaged`, :meth:`Grating.imaged`).
+A new kind of sample is one class: its ``height``, and ``imaged`` where a closed form
+exists.
 """
 
 from __future__ import annotations
 
+import abc
 from typing import Optional
 
 import equinox as eqx
@@ -45,7 +48,37 @@ def _nearest_offset(u: Array, pitch: Array, phase: Array) -> Array:
     return jnp.mod(u - phase + pitch / 2, pitch) - pitch / 2
 
 
-class Plane(eqx.Module):
+class AbstractSample(eqx.Module):
+    """A sample's topography, and how the tip images it."""
+
+    @abc.abstractmethod
+    def height(self, xy: Array) -> Array:
+        """The surface height at points ``xy`` (..., 2) nm.
+
+        Arguments:
+            xy: lateral positions (..., 2) nm.
+
+        Returns:
+            Heights (...) nm.
+        """
+
+    def imaged(self, tip: Tip, xy: Array) -> Array:
+        """What the tip records at ``xy`` (..., 2) nm: ``max_q [height(xy + q) - tip(|q|)]``.
+
+        By default over the tip's stencil (:meth:`Tip.dilate`); samples with a closed form
+        override it.
+
+        Arguments:
+            tip: the probe.
+            xy: the apex's lateral positions (..., 2) nm.
+
+        Returns:
+            The dilated heights (...) nm.
+        """
+        return tip.dilate(self.height, xy)
+
+
+class Plane(AbstractSample):
     """A flat substrate ``z = z0 + slope . xy`` (nm; slopes dimensionless)."""
 
     z0: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
@@ -55,7 +88,7 @@ class Plane(eqx.Module):
         return self.z0 + xy @ self.slope
 
 
-class Grating(eqx.Module):
+class Grating(AbstractSample):
     """A 1-D calibration grating: raised lines of ``depth`` nm every ``pitch`` nm.
 
     Lines run perpendicular to the direction ``angle`` (rad; 0: lines along
@@ -119,7 +152,7 @@ class Grating(eqx.Module):
         return jnp.maximum(best, 0.0) + jnp.where(neg, self.depth, 0.0)
 
 
-class Lattice(eqx.Module):
+class Lattice(AbstractSample):
     """A 2-D calibration grating: round pits or pillars of ``radius`` on a square or
     rectangular lattice of ``pitch`` (2,) nm turned by ``angle`` (rad).
 
@@ -146,7 +179,7 @@ class Lattice(eqx.Module):
         return self.depth * _ramp(self.radius - r, self.edge_width)
 
 
-class Particles(eqx.Module):
+class Particles(AbstractSample):
     """Spheres of ``radii`` (K,) nm resting at ``centres`` (K, 2) nm on a ``substrate``.
 
     The surface is the higher of the substrate and the spheres' upper halves:
@@ -155,7 +188,7 @@ class Particles(eqx.Module):
 
     centres: Array
     radii: Array
-    substrate: eqx.Module = eqx.field(default_factory=Plane)
+    substrate: AbstractSample = eqx.field(default_factory=Plane)
 
     def __check_init__(self):
         checks.positive("Particles.radii", self.radii)
@@ -197,7 +230,7 @@ class Particles(eqx.Module):
         return base + jnp.maximum(jnp.max(apex, axis=-1), 0.0)
 
 
-class HeightMap(eqx.Module):
+class HeightMap(AbstractSample):
     """A measured topography ``z`` (rows = y, columns = x) nm, pixel ``pixel_size`` (2,) nm
     (x, y), pixel ``[0, 0]`` centred at ``origin`` (2,) nm; bilinear between pixels,
     the edge value beyond them."""
@@ -273,7 +306,7 @@ class Tip(eqx.Module):
         return jnp.max(height(xy[..., None, :] + q) - lift, axis=-1)
 
 
-class Indented(eqx.Module):
+class Indented(AbstractSample):
     """A ``base`` sample with up to ``capacity`` indents pressed into it by a ``tip``.
 
     An indent pressed at ``xy`` to ``depth`` nm leaves the tip's shape in the
@@ -285,7 +318,7 @@ class Indented(eqx.Module):
     beyond it is dropped.
     """
 
-    base: eqx.Module
+    base: AbstractSample
     tip: Tip
     centres: Array  # (capacity, 2) nm
     bottoms: Array  # (capacity,) nm
@@ -320,12 +353,17 @@ class Indented(eqx.Module):
         return jnp.minimum(self.base.height(xy), jnp.min(pits, axis=-1))
 
 
-def surface(sample, tip: Optional[Tip]):
-    """The height the AFM's probe follows: the sample dilated by ``tip`` (in closed form for
-    :class:`Particles`, across the lines for a :class:`Grating`, over the tip's stencil
-    otherwise), or the bare sample."""
+def surface(sample: AbstractSample, tip: Optional[Tip]):
+    """The height the AFM's probe follows, as a function of points (..., 2) nm.
+
+    Arguments:
+        sample: the sample.
+        tip: the probe, or ``None`` for no tip effect.
+
+    Returns:
+        ``sample.imaged(tip, .)`` (:meth:`AbstractSample.imaged`), or ``sample.height``
+        without a tip.
+    """
     if tip is None:
         return sample.height
-    if isinstance(sample, (Particles, Grating)):
-        return lambda xy: sample.imaged(tip, xy)
-    return lambda xy: tip.dilate(sample.height, xy)
+    return lambda xy: sample.imaged(tip, xy)

@@ -1,4 +1,4 @@
-"""The scanner's non-hysteretic effects, one module each (names as in design.md).
+"""The scanner's non-hysteretic effects, one module each (names as in ``docs/conventions.md``).
 
 Each module is a pure function of its parameters, the signal and the sample
 times ``t`` (s); lengths are nm. The scanner composes them in the order
@@ -16,27 +16,6 @@ from jax import lax
 from .. import checks
 
 Array = jax.Array
-
-#: Every effect name the project knows. The AFM layer (imaging) owns the last two.
-EFFECTS = (
-    "hysteresis",
-    "asymmetry",
-    "rate_dependence",
-    "creep",
-    "drift",
-    "coupling",
-    "bow",
-    "noise",
-    "feedback_lag",
-    "tip",
-)
-
-
-def check_effect_names(names, where: str = "effects") -> None:
-    """Raise for any name not in :data:`EFFECTS`."""
-    unknown = [n for n in names if n not in EFFECTS]
-    if unknown:
-        raise ValueError(f"unknown effect {unknown[0]!r} in {where}; known effects: {', '.join(EFFECTS)}")
 
 
 def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -> tuple:
@@ -68,7 +47,8 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -
 
 
 class Creep(eqx.Module):
-    """Logarithmic creep as a bank of first-order elements (design.md, section 4).
+    """Logarithmic creep as a bank of first-order elements (gamma 0.01-0.02 per decade in published
+    data: ``docs/index.md``, "What we compare against").
 
     ``y(t) = v(t) + sum_k g_k z_k(t)``, each ``z_k`` a lag of ``v`` with time
     constant ``tau_k``. After a step of size ``d0``,

@@ -18,14 +18,26 @@ the state no longer depends on anything earlier (wiping-out). Without a history
 every play starts at ``u[0]`` (a demagnetised, virgin state). To carry on from
 where a previous input stopped, ``y, plays = op.run(u, plays)`` takes and returns
 the plays' state (``op.initial_state(u0, history)`` makes the first).
+
+Every operator is an :class:`AbstractHysteresis`. Besides running from a state
+(``initial_state``, ``run``, ``step``) it names the effects it holds
+(``effects``, ``without``), hands its fitted parameters out and back
+(``free_parameters``, ``evaluator``, ``design_matrix``, ``with_weights``) and
+inverts itself where it can (``inverse``, ``has_inverse``, ``invert_step``).
+The scanner, the fits and the inverses ask the operator instead of testing its
+type, so a new operator is one class in this file.
 """
 
-from __future__ import annotations
+# no `from __future__ import annotations` here: equinox reads the AbstractVar annotation
+# of AbstractHysteresis when the class is made, and cannot read it from a string
+import abc
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from equinox import AbstractVar
 from jax import lax
 
 from .. import checks
@@ -103,18 +115,190 @@ def play_map(u: Array, radii: Array, readout, plays: Array, block: int = 32):
     return y.reshape(-1)[:T], p
 
 
-class PlayOperator(eqx.Module):
-    """An operator ``y = f(P)`` of the plays ``P = play(u, radii())``.
+def softplus_inverse(x: Array) -> Array:
+    """The raw value ``log(exp(x) - 1)`` whose softplus is ``x`` (``x`` floored at 1e-9).
+
+    Fits keep weights non-negative by fitting this raw value instead of the weight.
+    """
+    x = jnp.maximum(x, 1e-9)
+    return x + jnp.log(-jnp.expm1(-x))
+
+
+def _weight_maps(positive: bool) -> tuple:
+    """``(to_raw, from_raw)`` for fitted weights: through softplus (kept >= 0) or as they are."""
+    if positive:
+        return softplus_inverse, jax.nn.softplus
+    return (lambda w: w), (lambda p: p)
+
+
+class AbstractHysteresis(eqx.Module):
+    """A hysteresis operator: input ``u`` (T,) V -> output ``y`` (T,) nm, with a state.
+
+    Concrete operators fill in ``offset`` and the state methods ``initial_state``,
+    ``run`` and ``step``. The other methods have defaults that an operator
+    overrides where it can: the effects it holds, its fitted parameters, a design
+    matrix when its output is linear in its weights, and its inverse.
+    """
+
+    offset: AbstractVar[Array]  # nm, added to the output (for a generalised PI: its PI's)
+
+    @abc.abstractmethod
+    def initial_state(self, u0, history=None) -> Array:
+        """The operator's state before the first sample.
+
+        Arguments:
+            u0: the first input (V); without a history the operator starts at rest there.
+            history: the inputs (H,) V applied before it (see the module docstring), or ``None``.
+
+        Returns:
+            The state, an array ((n,) plays in V; (0,) for a memoryless operator).
+        """
+
+    @abc.abstractmethod
+    def run(self, u: Array, state: Array) -> tuple:
+        """Drive the operator on from ``state``.
+
+        Arguments:
+            u: the input (T,) V.
+            state: where the operator stands (from ``initial_state`` or an earlier ``run``).
+
+        Returns:
+            The output (T,) nm and the state after the last sample.
+        """
+
+    @abc.abstractmethod
+    def step(self, u: Array, state: Array) -> tuple:
+        """``run`` for one sample ``u`` () V, without a scan: the output () nm and the next state."""
+
+    def __call__(self, u: Array, history=None) -> Array:
+        """The output (T,) nm for the input ``u`` (T,) V, from the state ``initial_state(u[0], history)``."""
+        u = _checked_input(u)
+        return self.run(u, self.initial_state(u[0], history))[0]
+
+    def predict(self, u: Array, t: Array, history=None) -> Array:
+        """The output (T,) nm for a record's inputs ``u`` (T,) V at times ``t`` (T,) s.
+
+        Rate-independent: ``t`` is not used. An :class:`~jaxafm.model.scanner.Axis` (hysteresis
+        plus rate-dependent stages) is called the same way, so either can be applied to a record.
+        """
+        return self(u, history)
+
+    @property
+    def effects(self) -> frozenset:
+        """The effect names this operator holds (``hysteresis``, ``asymmetry``; see docs/conventions.md)."""
+        return frozenset()
+
+    def without(self, name: str) -> "AbstractHysteresis":
+        """The operator with the effect ``name`` switched off; itself when it does not hold it."""
+        return self
+
+    def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
+        """The fitted parameters at order one, and the map back to an operator.
+
+        Threshold grids stay fixed. Weights are scaled by ``d_range / u_span``, offsets
+        by ``d_range``, so that every Jacobian column of a fit is of similar size.
+
+        Arguments:
+            u_span: the span of the fitted input (V).
+            d_range: the range of the fitted output (nm).
+            positive: keep weights and densities non-negative (through softplus), as
+                an analytic inverse needs; ``False`` leaves them free (the output stays
+                linear in them).
+
+        Returns:
+            ``(raw, rebuild)``: a pytree of raw parameters and ``rebuild(raw) -> operator``.
+        """
+        raise TypeError(f"cannot fit a {type(self).__name__}")
+
+    def evaluator(self, u: Array, history=None) -> Callable:
+        """``f(m) = m(u, history)`` for operators ``m`` shaped like this one.
+
+        Operators whose sequential part does not depend on the fitted parameters
+        run it once here, so that a fit evaluates only the rest.
+        """
+        return lambda m: m(u, history)
+
+    def design_matrix(self, u: Array, history=None) -> Array:
+        """Columns ``A`` (T, m) with output ``offset + A @ weights`` (dead zones, if any, at identity).
+
+        Arguments:
+            u: the input (T,) V.
+            history: the inputs (H,) V applied before it, or ``None``.
+
+        Returns:
+            The design matrix (T, m); ``with_weights`` puts solved weights back.
+        """
+        raise TypeError(f"the output of a {type(self).__name__} is not linear in weights: no design matrix")
+
+    def with_weights(self, weights: Array, offset: Array) -> "AbstractHysteresis":
+        """The operator with the weights (m,) of ``design_matrix``'s columns and ``offset`` nm."""
+        raise TypeError(f"the output of a {type(self).__name__} is not linear in weights: no design matrix")
+
+    def inverse(self):
+        """The analytic inverse operator (output nm -> input V), where one exists."""
+        raise ValueError(
+            f"{type(self).__name__} has no analytic inverse: invert it numerically "
+            "(invert_step, or Compensator(..., method='numerical'))"
+        )
+
+    @property
+    def has_inverse(self) -> bool:
+        """Whether ``inverse()`` exists for this kind of operator."""
+        return type(self).inverse is not AbstractHysteresis.inverse
+
+    def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array, tol: float = 1e-7) -> tuple:
+        """The input ``u`` in ``[lo, hi]`` V whose ``step`` from ``state`` outputs ``y`` nm.
+
+        A safeguarded Newton root find of the monotone map ``u -> step(u, state)``:
+        Newton steps, bisection when a step leaves the bracket, to ``|error| <= tol`` nm.
+
+        Arguments:
+            y: the wanted output () nm.
+            state: where the operator stands.
+            lo: the lowest input (V).
+            hi: the highest input (V).
+            u_guess: where the search starts (V), e.g. the previous sample's input.
+            tol: the output tolerance (nm).
+
+        Returns:
+            ``(u, saturated)``: the input () V, and whether ``y`` lies beyond the outputs
+            at ``lo`` or ``hi`` (then ``u`` is that end).
+        """
+        H = lambda u: self.step(u, state)[0] - y
+        below, above = H(lo) > 0, H(hi) < 0
+
+        def body(c):
+            u, a, b, _, i = c
+            f, df = jax.jvp(H, (u,), (jnp.ones(()),))
+            a, b = jnp.where(f < 0, u, a), jnp.where(f > 0, u, b)
+            step = u - f / jnp.where(df > 0, df, 1.0)
+            step = jnp.where((step > a) & (step < b) & (df > 0), step, 0.5 * (a + b))
+            return jnp.where(jnp.abs(f) <= tol, u, step), a, b, jnp.abs(f), i + 1
+
+        start = jnp.clip(u_guess, lo, hi)
+        u, *_ = lax.while_loop(
+            lambda c: (c[3] > tol) & (c[4] < 60),
+            body,
+            (start, jnp.asarray(lo, float), jnp.asarray(hi, float), jnp.asarray(jnp.inf), 0),
+        )
+        u = jnp.where(below, lo, jnp.where(above, hi, u))
+        return u, below | above
+
+
+class PlayOperator(AbstractHysteresis):
+    """An operator ``y = f(P)`` of the plays ``P = play(u, radii())``: the effect ``hysteresis``.
 
     Subclasses give ``radii()`` and ``readout()``, the memoryless map ``f``
     from plays ``(..., n)`` to outputs ``(...)``.
     """
 
+    @abc.abstractmethod
     def radii(self) -> Array:
-        raise NotImplementedError
+        """The play radii (n,) V."""
 
-    def readout(self):
-        raise NotImplementedError
+    @abc.abstractmethod
+    def readout(self) -> Callable:
+        """The map from plays (..., n) V to outputs (...) nm."""
 
     def from_plays(self, P: Array) -> Array:
         """The output for known play trajectories ``P`` (T, n)."""
@@ -133,12 +317,20 @@ class PlayOperator(eqx.Module):
         p, _ = _play_step(self.radii())(plays, u)
         return self.readout()(p), p
 
-    def __call__(self, u: Array, history=None) -> Array:
-        u = _checked_input(u)
-        return self.run(u, self.initial_state(u[0], history))[0]
+    @property
+    def effects(self) -> frozenset:
+        return frozenset({"hysteresis"})
+
+    def without(self, name: str) -> "AbstractHysteresis":
+        return Anhysteretic(self) if name == "hysteresis" else self
+
+    def evaluator(self, u: Array, history=None) -> Callable:
+        """``f(m) = m(u, history)`` with the plays run once: fits keep the radii fixed."""
+        P = play(u, self.radii(), history)
+        return lambda m: m.from_plays(P)
 
 
-class Anhysteretic(eqx.Module):
+class Anhysteretic(AbstractHysteresis):
     """The effect ``hysteresis`` switched off: ``operator`` with every play at the input.
 
     For a PI operator the straight line of slope ``sum(w)`` through the middle of
@@ -148,6 +340,10 @@ class Anhysteretic(eqx.Module):
     """
 
     operator: PlayOperator
+
+    @property
+    def offset(self) -> Array:
+        return self.operator.offset
 
     def initial_state(self, u0, history=None) -> Array:
         return jnp.zeros((0,))  # memoryless
@@ -161,11 +357,17 @@ class Anhysteretic(eqx.Module):
     def step(self, u: Array, plays: Array) -> tuple:
         return self.operator.from_plays(jnp.broadcast_to(u, self.operator.radii().shape)), plays
 
-    def __call__(self, u: Array, history=None) -> Array:
-        return self.run(u, self.initial_state(None))[0]
+    @property
+    def effects(self) -> frozenset:
+        return self.operator.effects - {"hysteresis"}
+
+    def without(self, name: str) -> "AbstractHysteresis":
+        if name in self.effects:
+            return Anhysteretic(self.operator.without(name))
+        return self
 
 
-class Linear(eqx.Module):
+class Linear(AbstractHysteresis):
     """No hysteresis: ``y = gain * u + offset``."""
 
     gain: Array  # nm/V
@@ -184,7 +386,19 @@ class Linear(eqx.Module):
     def __call__(self, u: Array, history=None) -> Array:
         return self.run(u, self.initial_state(None))[0]
 
-    def inverse(self) -> Linear:
+    def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
+        """``(gain / (d_range / u_span), offset / d_range)``; the gain keeps its sign."""
+        ws = d_range / u_span  # weight scale, nm/V
+        raw = (self.gain / ws, self.offset / d_range)
+        return raw, lambda p: Linear(p[0] * ws, p[1] * d_range)
+
+    def design_matrix(self, u: Array, history=None) -> Array:
+        return jnp.asarray(u, dtype=float)[:, None]
+
+    def with_weights(self, weights: Array, offset: Array) -> "Linear":
+        return Linear(weights[0], offset)
+
+    def inverse(self) -> "Linear":
         checks.positive("Linear.gain", self.gain)
         return Linear(1.0 / self.gain, -self.offset / self.gain)
 
@@ -210,14 +424,58 @@ class PrandtlIshlinskii(PlayOperator):
             )
 
     @classmethod
-    def uniform(cls, n: int, span: float, gain: float = 1.0, offset: float = 0.0):
-        """``n`` thresholds evenly over ``[0, span)`` V; weights give slope ``gain``."""
+    def uniform(cls, n: int, span: float, gain: float = 1.0, offset: float = 0.0, others: float = 0.0):
+        """``n`` thresholds evenly over ``[0, span)`` V, the linear weight ``w_0 = gain`` nm/V.
+
+        Arguments:
+            n: the number of plays.
+            span: the thresholds' range (V).
+            gain: the linear weight (nm/V).
+            offset: the output offset (nm).
+            others: every other weight as a fraction of ``gain`` (a fit starts from a small
+                positive value, so that softplus has a gradient there).
+
+        Returns:
+            The operator; with ``others=0`` a straight line of slope ``gain``.
+        """
         if n < 1:
             raise ValueError(f"number of play operators n must be >= 1, got {n}")
         checks.positive("span", span)
         r = jnp.arange(n) * (span / n)
         w = jnp.zeros(n).at[0].set(gain)
+        if others:
+            w = w.at[1:].set(others * gain)
         return cls(r, w, jnp.asarray(offset, dtype=float))
+
+    @classmethod
+    def with_loop_width(cls, n: int, span: float, travel: float, loop_width: float) -> "PrandtlIshlinskii":
+        """A PI operator whose major loop over ``span`` V moves ``travel`` nm, ``loop_width`` wide.
+
+        Thresholds ``r_k = k span / (2n)``. On the major loop, play ``k`` moves
+        ``span - 2 r_k`` and opens a gap of ``min(2 r_k, span - 2 r_k)`` at
+        mid-input, where every play's gap peaks. Equal weights ``b`` above ``w_0 = a``
+        then give ``b = W T / sum_k min(...)`` and ``a = (T - b sum_k (span - 2 r_k)) / span``
+        for width fraction ``W`` and travel ``T``.
+
+        Arguments:
+            n: the number of plays (>= 2).
+            span: the major loop's input span (V).
+            travel: the major loop's output travel (nm).
+            loop_width: the loop's width at mid-input, a fraction of ``travel`` (0 to 1).
+
+        Returns:
+            The operator, zero offset.
+        """
+        if n < 2 or not 0 <= loop_width < 1:
+            raise ValueError(
+                f"need n >= 2 operators and 0 <= loop_width < 1, got n={n}, loop_width={loop_width}"
+            )
+        r = np.arange(1, n) * span / (2 * n)
+        b = loop_width * travel / np.minimum(2 * r, span - 2 * r).sum()
+        a = (travel - b * (span - 2 * r).sum()) / span
+        if a <= 0:
+            raise ValueError(f"loop_width={loop_width} is too wide for a PI operator with {n} plays")
+        return cls(jnp.arange(n) * span / (2 * n), jnp.full(n, b).at[0].set(a), jnp.zeros(()))
 
     def radii(self) -> Array:
         return self.thresholds
@@ -225,7 +483,22 @@ class PrandtlIshlinskii(PlayOperator):
     def readout(self):
         return lambda P: self.offset + P @ self.weights
 
-    def inverse(self) -> PrandtlIshlinskii:
+    def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
+        """Weights in units of ``d_range / u_span`` (softplus-raw when ``positive``), offset in
+        units of ``d_range``; the thresholds stay."""
+        ws = d_range / u_span  # weight scale, nm/V
+        to_raw, from_raw = _weight_maps(positive)
+        raw = (to_raw(self.weights / ws), self.offset / d_range)
+        return raw, lambda p: PrandtlIshlinskii(self.thresholds, from_raw(p[0]) * ws, p[1] * d_range)
+
+    def design_matrix(self, u: Array, history=None) -> Array:
+        """The plays (T, n): the output is ``offset + plays @ weights``."""
+        return play(u, self.radii(), history)
+
+    def with_weights(self, weights: Array, offset: Array) -> "PrandtlIshlinskii":
+        return PrandtlIshlinskii(self.thresholds, weights, offset)
+
+    def inverse(self) -> "PrandtlIshlinskii":
         """The analytic inverse, again a PI operator (Kuhnen & Janocha 2001).
 
         ``W_i = sum_{j<=i} w_j``; ``r'_i = sum_{j<=i} w_j (r_i - r_j)``;
@@ -250,6 +523,31 @@ class PrandtlIshlinskii(PlayOperator):
         # plays are shift-equivariant and sum(w') = 1/W_last, so the offset folds in
         return PrandtlIshlinskii(r_inv, w_inv, -self.offset / W[-1])
 
+    def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array = None, tol: float = 1e-7) -> tuple:
+        """The input ``u`` in ``[lo, hi]`` V with ``step(u, state)`` outputting ``y``, exactly.
+
+        From the plays' state, the output is piecewise linear in ``u``: rising, play
+        ``k`` moves once ``u`` passes ``b_k = p_k + r_k`` (falling: ``p_k - r_k``),
+        so at ``b_j`` it is ``Y_j = y0 + s sum_k w_k max(0, s (b_j - b_k))`` (``s``
+        the direction) with slope ``W_j = sum_{k: s b_k <= s b_j} w_k`` beyond it.
+        The last breakpoint not past ``y`` gives ``u = b_j + (y - Y_j) / W_j``.
+        ``u_guess`` and ``tol`` are not needed.
+
+        Returns:
+            ``(u, saturated)``: the input () V clipped to ``[lo, hi]``, and whether it was.
+        """
+        r, w = self.thresholds, self.weights
+        y0 = self.offset + state @ w
+        sign = jnp.where(y >= y0, 1.0, -1.0)
+        b = state + sign * r
+        ahead = sign * (b[:, None] - b[None, :])  # (j, k): how far b_j lies beyond b_k
+        Y = y0 + sign * (jnp.maximum(ahead, 0.0) @ w)
+        W = (ahead >= 0) @ w
+        passed = sign * (y - Y) >= 0
+        j = jnp.argmax(jnp.where(passed, sign * b, -jnp.inf))
+        u = b[j] + (y - Y[j]) / W[j]
+        return jnp.clip(u, lo, hi), (u < lo) | (u > hi)
+
 
 def _deadzone_side_inverse(slope, d, g):
     """Inverse dead-zone thresholds and weights for one side (Kuhnen 2003, eq. 14)."""
@@ -265,7 +563,8 @@ class Deadzone(eqx.Module):
     ``min(x - d, 0)`` for the lower ones ``d < 0``. A monotone piecewise-linear
     map with ``S(c) = c``: following a symmetric PI operator it bends the loop
     unevenly, which is how the generalised (modified) PI model reproduces
-    asymmetric hysteresis (Kuhnen 2003).
+    asymmetric hysteresis (Kuhnen 2003). A memoryless map of the output, not an
+    operator on the input: it is a part of :class:`GeneralizedPI`.
     """
 
     slope: Array  # g_0 > 0
@@ -304,7 +603,7 @@ class Deadzone(eqx.Module):
         down = jax.nn.relu(self.lower - x) @ self.lower_weights
         return self.centre + self.slope * x[..., 0] + up - down
 
-    def inverse(self) -> Deadzone:
+    def inverse(self) -> "Deadzone":
         """The analytic inverse, again a dead-zone superposition about the same centre.
 
         Exists iff every partial slope ``g_0 + g_1 + ... + g_i`` is positive on
@@ -327,11 +626,17 @@ class GeneralizedPI(PlayOperator):
     """Generalised (modified) PI operator ``y = S[PI[u]]`` for asymmetric loops.
 
     Kuhnen's modified PI model: a classical PI operator followed by a dead-zone
-    superposition. Its inverse is analytic too: ``PI^-1[S^-1[y]]``.
+    superposition (the effect ``asymmetry``). Its inverse is analytic too:
+    ``PI^-1[S^-1[y]]``.
     """
 
     pi: PrandtlIshlinskii
     deadzone: Deadzone
+
+    @property
+    def offset(self) -> Array:
+        """The PI operator's offset (nm), before the dead zones."""
+        return self.pi.offset
 
     def radii(self) -> Array:
         return self.pi.radii()
@@ -340,8 +645,46 @@ class GeneralizedPI(PlayOperator):
         pi = self.pi.readout()
         return lambda P: self.deadzone(pi(P))
 
-    def inverse(self) -> _InverseGeneralizedPI:
+    @property
+    def effects(self) -> frozenset:
+        return frozenset({"hysteresis", "asymmetry"})
+
+    def without(self, name: str) -> "AbstractHysteresis":
+        return self.pi if name == "asymmetry" else PlayOperator.without(self, name)
+
+    def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
+        """The PI operator's parameters, then each side's dead-zone weights.
+
+        With ``positive`` each side's partial slopes ``g_0 + g_1 + ... + g_i`` are fitted
+        through softplus, in units of ``g_0``: the dead zones stay monotone and invertible
+        however far the fit moves them. Otherwise the weights are fitted as they are.
+        """
+        pi_raw, pi_rebuild = self.pi.free_parameters(u_span, d_range, positive)
+        dz = self.deadzone
+        if positive:
+            partial = lambda g: softplus_inverse((dz.slope + jnp.cumsum(g)) / dz.slope)
+            weights = lambda p: jnp.diff(jax.nn.softplus(p) * dz.slope, prepend=dz.slope)
+        else:
+            partial = weights = lambda g: g
+        raw = (pi_raw, partial(dz.upper_weights), partial(dz.lower_weights))
+        return raw, lambda p: GeneralizedPI(
+            pi_rebuild(p[0]), Deadzone(dz.slope, dz.upper, weights(p[1]), dz.lower, weights(p[2]), dz.centre)
+        )
+
+    def design_matrix(self, u: Array, history=None) -> Array:
+        """The PI operator's plays (T, n): exact while the dead zones are the identity."""
+        return self.pi.design_matrix(u, history)
+
+    def with_weights(self, weights: Array, offset: Array) -> "GeneralizedPI":
+        """The PI operator's weights and offset replaced, the dead zones kept."""
+        return GeneralizedPI(self.pi.with_weights(weights, offset), self.deadzone)
+
+    def inverse(self) -> "_InverseGeneralizedPI":
         return _InverseGeneralizedPI(self.deadzone.inverse(), self.pi.inverse())
+
+    def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array = None, tol: float = 1e-7) -> tuple:
+        """Exactly, as the PI operator's :meth:`PrandtlIshlinskii.invert_step` of ``S^-1[y]``."""
+        return self.pi.invert_step(self.deadzone.inverse()(y), state, lo, hi, u_guess, tol)
 
 
 class _InverseGeneralizedPI(eqx.Module):
@@ -473,3 +816,37 @@ class Preisach(PlayOperator):
         x = (P[:, k] - s) / D
         states = jnp.clip(2 * x, -1.0, 1.0) if self.smooth else jnp.where(x >= 0, 1.0, -1.0)
         return jnp.where(i >= j, states, 0.0)
+
+    def _triangle(self) -> tuple:
+        """Indices of the lower triangle (alpha >= beta), where the density may be non-zero."""
+        return np.tril_indices(self.levels)
+
+    def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
+        """The lower triangle's densities in units of ``d_range`` over their number (softplus-raw
+        when ``positive``) and the offset in units of ``d_range``; the plane stays."""
+        tri = self._triangle()
+        scale = d_range / len(tri[0])
+        to_raw, from_raw = _weight_maps(positive)
+        raw = (to_raw(self.density[tri] / scale), self.offset / d_range)
+
+        def rebuild(p):
+            density = jnp.zeros_like(self.density).at[tri].set(from_raw(p[0]) * scale)
+            return Preisach(density, self.u_min, self.u_max, p[1] * d_range, self.smooth)
+
+        return raw, rebuild
+
+    def evaluator(self, u: Array, history=None) -> Callable:
+        """``f(m) = m(u, history)`` through the relay states, computed once: the output is
+        linear in the density, so a fit evaluates one design matrix."""
+        states = self.relay_states(play(u, self.radii(), history))
+        return lambda m: m.offset + jnp.einsum("tij,ij->t", states, m.density)
+
+    def design_matrix(self, u: Array, history=None) -> Array:
+        """The relay states (T, n(n+1)/2) of the lower triangle, row by row."""
+        tri = self._triangle()
+        return self.relay_states(play(u, self.radii(), history))[:, tri[0], tri[1]]
+
+    def with_weights(self, weights: Array, offset: Array) -> "Preisach":
+        """The lower triangle's densities (n(n+1)/2,) nm, in ``design_matrix``'s order."""
+        density = jnp.zeros_like(self.density).at[self._triangle()].set(weights)
+        return Preisach(density, self.u_min, self.u_max, offset, self.smooth)

@@ -8,6 +8,7 @@ the code), nested modules as nested objects, absent effects as ``null``.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 from pathlib import Path
 
@@ -22,7 +23,10 @@ _TYPES = {
     cls.__name__: cls
     for module in (hysteresis, effects, scanner)
     for cls in vars(module).values()
-    if isinstance(cls, type) and issubclass(cls, eqx.Module) and cls.__module__ == module.__name__
+    if isinstance(cls, type)
+    and issubclass(cls, eqx.Module)
+    and cls.__module__ == module.__name__
+    and not inspect.isabstract(cls)  # a saved model names concrete classes only
 }
 
 

@@ -8,7 +8,7 @@ code with different modules switched in, and ``Scanner.effects`` names them.
 
 from __future__ import annotations
 
-from typing import Optional, Union
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
+from ..config.names import check_effect_names
 from .effects import (
     Bow,
     Coupling,
@@ -23,24 +24,15 @@ from .effects import (
     Drift,
     Noise,
     RateDependence,
-    check_effect_names,
 )
-from .hysteresis import (
-    Anhysteretic,
-    Deadzone,
-    GeneralizedPI,
-    Linear,
-    PlayOperator,
-    PrandtlIshlinskii,
-    Preisach,
-)
+from .hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii
 
 Array = jax.Array
-Hysteresis = Union[Linear, Anhysteretic, PrandtlIshlinskii, GeneralizedPI, Preisach]
 
 
 class AxisState(eqx.Module):
-    """Where one axis stands: its plays (V), lag (nm) and creep lags plus rest level (nm)."""
+    """Where one axis stands: its hysteresis operator's state (the plays, V; empty for a
+    memoryless operator), the lag (nm) and the creep lags plus rest level (nm)."""
 
     plays: Array
     lag: Array
@@ -50,22 +42,28 @@ class AxisState(eqx.Module):
 class Axis(eqx.Module):
     """One actuator axis: ``y = creep(lag(H[u]))`` in nm, for ``u`` in V and ``t`` in s."""
 
-    hysteresis: Hysteresis
+    hysteresis: AbstractHysteresis
     rate_dependence: Optional[RateDependence] = None
     creep: Optional[Creep] = None
 
     @property
     def effects(self) -> frozenset:
-        h = self.hysteresis
-        names = set()
-        if isinstance(h, PlayOperator):
-            names.add("hysteresis")
-        if isinstance(h, GeneralizedPI) or (
-            isinstance(h, Anhysteretic) and isinstance(h.operator, GeneralizedPI)
-        ):
-            names.add("asymmetry")  # a Preisach density holds its asymmetry itself
-        names.update(n for n in ("rate_dependence", "creep") if getattr(self, n) is not None)
-        return frozenset(names)
+        """The hysteresis operator's effects (a Preisach density holds its asymmetry itself,
+        unnamed), plus ``rate_dependence`` and ``creep`` when present."""
+        stages = {n for n in ("rate_dependence", "creep") if getattr(self, n) is not None}
+        return self.hysteresis.effects | stages
+
+    def without(self, name: str) -> Axis:
+        """The same axis with the effect ``name`` switched off (unchanged if it does not hold it)."""
+        if name in ("rate_dependence", "creep"):
+            return eqx.tree_at(lambda a: getattr(a, name), self, None, is_leaf=lambda v: v is None)
+        h = self.hysteresis.without(name)
+        return self if h is self.hysteresis else eqx.tree_at(lambda a: a.hysteresis, self, h)
+
+    def predict(self, u: Array, t: Array, history=None) -> Array:
+        """The output (T,) nm for a record's inputs ``u`` (T,) V at times ``t`` (T,) s, as
+        every model of one axis is called (:meth:`AbstractHysteresis.predict`)."""
+        return self(u, t, history)
 
     def initial_state(self, u0, history=None) -> AxisState:
         """At rest at the input ``u0`` (V) after ``history``: the lags and creep relaxed there."""
@@ -204,42 +202,14 @@ class Scanner(eqx.Module):
         for n in names:
             if n in ("coupling", "bow", "drift", "noise"):
                 s = eqx.tree_at(lambda m: getattr(m, n), s, None, is_leaf=lambda v: v is None)
-            for ax in ("x", "y"):
-                s = eqx.tree_at(lambda m: getattr(m, ax), s, _axis_without(getattr(s, ax), n))
+            s = eqx.tree_at(lambda m: (m.x, m.y), s, (s.x.without(n), s.y.without(n)))
         return s
 
 
-def _axis_without(axis: Axis, name: str) -> Axis:
-    h = axis.hysteresis
-    if name in ("rate_dependence", "creep"):
-        return eqx.tree_at(lambda a: getattr(a, name), axis, None, is_leaf=lambda v: v is None)
-    if name == "asymmetry":
-        if isinstance(h, GeneralizedPI):
-            return eqx.tree_at(lambda a: a.hysteresis, axis, h.pi)
-        if isinstance(h, Anhysteretic) and isinstance(h.operator, GeneralizedPI):
-            return eqx.tree_at(lambda a: a.hysteresis, axis, Anhysteretic(h.operator.pi))
-    if name == "hysteresis" and isinstance(h, PlayOperator):
-        return eqx.tree_at(lambda a: a.hysteresis, axis, Anhysteretic(h))
-    return axis
-
-
 def pi_with_loop_width(n: int, span: float, travel: float, loop_width: float) -> PrandtlIshlinskii:
-    """A PI operator whose major loop over ``span`` V moves ``travel`` nm, ``loop_width`` wide.
-
-    Thresholds ``r_k = k span / (2n)``. On the major loop, play ``k`` moves
-    ``span - 2 r_k`` and opens a gap of ``min(2 r_k, span - 2 r_k)`` at
-    mid-input, where every play's gap peaks. Equal weights ``b`` above ``w_0 = a``
-    then give ``b = W T / sum_k min(...)`` and ``a = (T - b sum_k (span - 2 r_k)) / span``
-    for width fraction ``W`` and travel ``T``.
-    """
-    if n < 2 or not 0 <= loop_width < 1:
-        raise ValueError(f"need n >= 2 operators and 0 <= loop_width < 1, got n={n}, loop_width={loop_width}")
-    r = np.arange(1, n) * span / (2 * n)
-    b = loop_width * travel / np.minimum(2 * r, span - 2 * r).sum()
-    a = (travel - b * (span - 2 * r).sum()) / span
-    if a <= 0:
-        raise ValueError(f"loop_width={loop_width} is too wide for a PI operator with {n} plays")
-    return PrandtlIshlinskii(jnp.arange(n) * span / (2 * n), jnp.full(n, b).at[0].set(a), jnp.zeros(()))
+    """:meth:`PrandtlIshlinskii.with_loop_width`: a major loop over ``span`` V that moves
+    ``travel`` nm and is ``loop_width`` (a fraction of the travel) wide."""
+    return PrandtlIshlinskii.with_loop_width(n, span, travel, loop_width)
 
 
 def default_scanner(
@@ -254,7 +224,7 @@ def default_scanner(
     noise_std: float = 0.2,
     n_operators: int = 16,
 ) -> Scanner:
-    """The default simulated tube scanner (figures from design.md, section 4).
+    """The default simulated tube scanner (figures from docs/conventions.md).
 
     Drive ``-u_range..+u_range`` V moves about ``travel`` nm; the major loop is
     about ``loop_width`` of range wide and asymmetric (dead zones compress the

@@ -6,9 +6,11 @@ commands ``I``; the area is re-scanned and the indents found there, ``M``, are
 where the tip really went, in the frame of the image. A target ``M_x`` seen in
 that image is then reached through the command interpolated from the landmarks:
 
-- ``"pairwise"``: the paper's eq. 4-5 over the ``m`` nearest landmarks,
-  ``I_x = 2 / (m (m - 1)) sum_{i<j} f_ij`` with
-  ``f_ij = (M_x - M_xi) / (M_xj - M_xi) (I_xj - I_xi) + I_xi``, per axis;
+- ``"pairwise"``: a variant of the paper's eq. 4-5 over the ``m`` nearest landmarks,
+  ``f_ij = (M_x - M_xi) / (M_xj - M_xi) (I_xj - I_xi) + I_xi`` per axis, averaged over the
+  pairs ``i < j`` that lie apart on that axis: pairs in one column (row) are left out of the x
+  (y) average, where eq. 5 would divide by about zero, so the mean is over those pairs, not
+  over all ``m (m - 1) / 2`` of eq. 4;
 - ``"polynomial"``: a least-squares polynomial surface ``I = p(M)`` of total
   degree ``degree`` per axis (the abstract's curve fit).
 
@@ -29,6 +31,7 @@ from jax import lax
 from skimage import feature
 
 from .. import checks
+from ..config.run import check_landmark_grid
 
 Array = jax.Array
 METHODS = ("pairwise", "polynomial")
@@ -45,20 +48,7 @@ class LandmarkGrid:
     image_px: int
 
     def __post_init__(self):
-        if self.n != int(self.n) or self.n < 2:
-            raise ValueError(f"the landmark grid needs N >= 2 indents per side, got N = {self.n}")
-        if not self.start_px >= 0 or not self.step_px > 0:
-            raise ValueError(
-                f"landmark grid start P must be >= 0 px and step S > 0 px, got P = {self.start_px}, "
-                f"S = {self.step_px}"
-            )
-        last = self.start_px + self.step_px * (self.n - 1)
-        if not last < self.image_px:
-            raise ValueError(
-                f"the landmark grid does not fit the image (paper eq. 3, P + S(N-1) < n): "
-                f"{self.start_px:g} + {self.step_px:g} x {self.n - 1} = {last:g} px, but the image has "
-                f"n = {self.image_px} px: reduce N, P or S, or scan more pixels"
-            )
+        check_landmark_grid(self.n, self.start_px, self.step_px, self.image_px)
 
     def positions(self, raster) -> np.ndarray:
         """Wanted indent positions ``D`` (n*n, 2) nm in ``raster``'s frame, row by row from the

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import checks
+from ..config import LocalScanSpec, PushSpec
 from ..identify.inverse import numerical_inverse
 from ..instrument.afm import AFM, AFMState, Raster, raster_images, raster_times
 from ..instrument.samples import Particles, Tip, surface
@@ -113,7 +114,7 @@ def raster(
     pos: Positioner, sample, stand: Stand, raster: Raster, key: Array, move_time: float = 0.1
 ) -> tuple:
     """Image ``sample`` along ``raster`` (wanted positions); the images as
-    :func:`~jaxafm.afm.raster_scan` gives them, and the next stand."""
+    :func:`~jaxafm.instrument.afm.raster_scan` gives them, and the next stand."""
     wanted = jnp.asarray(raster.wanted().reshape(-1, 2))
     k_move, k_scan = jax.random.split(key)
     _, _, stand = goto(pos, sample, stand, wanted[0], k_move, move_time, dwell=0.05)
@@ -139,6 +140,17 @@ class LocalScan(eqx.Module):
     margin: float = eqx.field(static=True, default=40.0)
     max_lines: int = eqx.field(static=True, default=24)
     width_tolerance: float = eqx.field(static=True, default=0.1)
+
+    @classmethod
+    def from_config(cls, spec: LocalScanSpec) -> LocalScan:
+        """The settings a config's ``local_scan`` gives (``move_time`` keeps its default)."""
+        return cls(
+            spec.points,
+            spec.line_time_s,
+            margin=spec.margin_nm,
+            max_lines=spec.max_lines,
+            width_tolerance=spec.width_tolerance,
+        )
 
     def half_length(self, radius: Array, tip: Tip) -> Array:
         """Half the length of a line, nm: the search margin plus the imaged particle's reach."""
@@ -301,6 +313,11 @@ class Push(eqx.Module):
     gap: float = eqx.field(static=True, default=20.0)
     speed: float = eqx.field(static=True, default=200.0)
     samples: int = eqx.field(static=True, default=512)
+
+    @classmethod
+    def from_config(cls, spec: PushSpec) -> Push:
+        """The settings a config's ``push`` gives (``gap`` and ``samples`` keep their defaults)."""
+        return cls(speed=spec.speed_nm_per_s)
 
 
 def push(

@@ -31,10 +31,9 @@ import numpy as np
 from jax import lax
 
 from .. import plots
-from ..config import RunConfig, resolve_data_path
-from ..identify import calibration
-from ..identify.step_a import run_cycle, simulate_calibration, twin_state
-from ..instrument.afm import Raster, default_afm
+from ..config import Positioning, RunConfig, resolve_data_path
+from ..identify.step_a import identify_model, run_cycle, simulate_calibration, twin_state
+from ..instrument.afm import Raster, RasterScan, default_afm
 from ..instrument.samples import Indented, Particles
 from ..model.io import load_model, save_model
 from .landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
@@ -66,7 +65,7 @@ def particle_field(cfg: RunConfig, grid: LandmarkGrid, D: np.ndarray) -> Particl
     return Particles(jnp.asarray(centres), jnp.asarray(radii))
 
 
-def identify_scanner(cfg: RunConfig, scan, config_path: Path, log) -> tuple:
+def identify_scanner(cfg: Positioning, scan, config_path: Path, log) -> tuple:
     """Step A's model: identified from ``scan``, or read from ``model_file``; and the seconds."""
     spec = cfg.calibration
     if spec.model_file is not None:
@@ -75,18 +74,7 @@ def identify_scanner(cfg: RunConfig, scan, config_path: Path, log) -> tuple:
         return load_model(path), 0.0
     m = spec.model
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
-    ident = calibration.identify(
-        scan,
-        kind=m.kind,
-        effects=m.effects,
-        operators=m.operators,
-        deadzones=m.deadzones,
-        levels=m.levels,
-        solver=spec.solver.name,
-        blur_px=spec.solver.blur_px,
-        max_steps=spec.solver.max_steps,
-        log=log,
-    )
+    ident = identify_model(scan, m, spec.solver, log)
     if not ident.converged:
         log(
             f"  WARNING: identification stopped at max_steps={spec.solver.max_steps} (last loss "
@@ -155,10 +143,10 @@ def trials(
     return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys)
 
 
-def _trace_and_retrace(images: dict, find, tolerance: float) -> np.ndarray:
+def _trace_and_retrace(images: RasterScan, find, tolerance: float) -> np.ndarray:
     """Features found in both the trace and the retrace image (within ``tolerance`` nm), at
     the mean of the two: the feedback lag shifts them equally in opposite directions."""
-    ft, fr = find(images["trace"]), find(images["retrace"])
+    ft, fr = find(images.trace), find(images.retrace)
     if len(ft) == 0 or len(fr) == 0:
         return np.zeros((0, 2))
     d = np.linalg.norm(ft[:, None] - fr[None], axis=-1)
@@ -167,7 +155,7 @@ def _trace_and_retrace(images: dict, find, tolerance: float) -> np.ndarray:
     return (ft[ok] + fr[j[ok]]) / 2
 
 
-def find_targets(images: dict, work: Raster, particles: Particles, cfg: RunConfig) -> tuple:
+def find_targets(images: RasterScan, work: Raster, particles: Particles, cfg: RunConfig) -> tuple:
     """The particles found in the workspace images (K, 2) nm, and the index of the true particle
     each one is (from the true tip path over its pixel); unmatched finds are dropped."""
     spec = cfg.particles
@@ -187,14 +175,14 @@ def find_targets(images: dict, work: Raster, particles: Particles, cfg: RunConfi
     )
     px = np.asarray(work.pixel_size)
     col_row = np.clip(np.round((found - np.asarray(work.origin)) / px).astype(int), 0, work.pixels - 1)
-    true_xy = np.asarray(images["path_trace"])[col_row[:, 1], col_row[:, 0]]
+    true_xy = np.asarray(images.path_trace)[col_row[:, 1], col_row[:, 0]]
     d = np.linalg.norm(true_xy[:, None] - np.asarray(particles.centres)[None], axis=-1)
     which = np.argmin(d, axis=1)
     ok = d[np.arange(len(found)), which] < spacing / 3
     return found[ok], which[ok]
 
 
-def find_landmarks(images: dict, work: Raster, grid: LandmarkGrid, depth: float) -> np.ndarray:
+def find_landmarks(images: RasterScan, work: Raster, grid: LandmarkGrid, depth: float) -> np.ndarray:
     """The indents found in the workspace image (k <= N*N, 2) nm, in pressing order when all are found."""
     spacing = grid.step_px * min(work.pixel_size)
     found = _trace_and_retrace(
@@ -227,16 +215,22 @@ def _summary(e: np.ndarray) -> dict:
     }
 
 
-def _setup(cfg: RunConfig, config_path: Path) -> tuple:
-    """The instrument, the workspace raster, the landmark grid with its wanted positions ``D``, and
-    the particles; every check that can fail runs here, before any step."""
-    afm = default_afm(drift_nm_per_min=tuple(cfg.drift_nm_per_min))
+def workspace_layout(cfg: Positioning) -> tuple:
+    """The workspace raster (5 % over-scan each side), step B's landmark grid in its image
+    (eq. 3) and the grid's wanted positions ``D`` (N*N, 2) nm, as ``cfg`` sets them."""
     ws = cfg.workspace
     work = Raster(
         ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm), overscan=0.05
     )
     grid = LandmarkGrid(cfg.landmarks.n, cfg.landmarks.start_px, cfg.landmarks.step_px, ws.pixels)
-    D = grid.positions(work)
+    return work, grid, grid.positions(work)
+
+
+def _setup(cfg: RunConfig, config_path: Path) -> tuple:
+    """The instrument, the workspace raster, the landmark grid with its wanted positions ``D``, and
+    the particles; every check that can fail runs here, before any step."""
+    afm = default_afm(drift_nm_per_min=tuple(cfg.drift_nm_per_min))
+    work, grid, D = workspace_layout(cfg)
     afm.check_range(afm.nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
     if cfg.calibration.model_file is not None:
         path = resolve_data_path(cfg.calibration.model_file, config_path)
@@ -246,7 +240,7 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
 
 
 def survey(
-    cfg: RunConfig, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool, key
+    cfg: Positioning, pos: Positioner, stand, sample, work: Raster, grid: LandmarkGrid, D, with_b: bool, key
 ) -> tuple:
     """Press the landmarks (with ``with_b``) and image the workspace: the images, the sample with
     its indents, the stand after, and the seconds it took."""
@@ -287,7 +281,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
     model, fit_s = identify_scanner(cfg, scan, config_path, log)
     save_model(model, out / "model_scanner.json")
     calib_s = scan.raster.lines / scan.raster.line_rate
-    start_state = run_cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    start_state = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
     twin = twin_state(model, scan, sim.cycle).scanner
     metrics = {
         "step_a_fit_s": fit_s,
@@ -299,14 +293,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         "drift_x_nm_per_min": cfg.drift_nm_per_min[0],
         "drift_y_nm_per_min": cfg.drift_nm_per_min[1],
     }
-    ls = cfg.local_scan
-    local = LocalScan(
-        ls.points,
-        ls.line_time_s,
-        margin=ls.margin_nm,
-        max_lines=ls.max_lines,
-        width_tolerance=ls.width_tolerance,
-    )
+    local = LocalScan.from_config(cfg.local_scan)
     rows, figures, errors, arrays = [], {}, {}, {}
     for i, (name, with_a, with_b) in enumerate(STAGES):
         if name not in cfg.stages:
@@ -368,7 +355,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                     jnp.asarray(distances),
                     keys,
                     local if with_c else None,
-                    Push(speed=cfg.push.speed_nm_per_s) if with_c else None,
+                    Push.from_config(cfg.push) if with_c else None,
                 ),
             )
             label = name + suffix

@@ -37,10 +37,10 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .. import plots
 from ..config import STUDY_PARAMETERS, StudyConfig, resolve_data_path
 from ..identify.step_a import run_cycle, simulate_calibration, twin_state
-from ..instrument.afm import Raster, default_afm
+from ..instrument.afm import default_afm
 from ..instrument.samples import Indented, Particles, Plane
 from ..model.io import load_model, save_model
-from ..position.landmarks import LandmarkGrid, LandmarkMap
+from ..position.landmarks import LandmarkMap
 from ..position.positioning import LocalScan, Positioner, Push
 from ..position.strategy import (
     find_landmarks,
@@ -49,6 +49,7 @@ from ..position.strategy import (
     survey,
     trials,
 )
+from ..position.strategy import workspace_layout as _layout
 
 #: survey stages: name -> (step A, step B); A+B+C and the push go on from A+B's survey
 SURVEYS = {"open_loop": (False, False), "A": (True, False), "B": (False, True), "A+B": (True, True)}
@@ -118,15 +119,6 @@ def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, ce
     return origin + pix * pixel, inside
 
 
-def _layout(cfg: StudyConfig) -> tuple:
-    ws = cfg.workspace
-    work = Raster(
-        ws.size_nm, ws.pixels, ws.pixels, line_rate=ws.line_rate_hz, centre=tuple(ws.centre_nm), overscan=0.05
-    )
-    grid = LandmarkGrid(cfg.landmarks.n, cfg.landmarks.start_px, cfg.landmarks.step_px, ws.pixels)
-    return work, grid, grid.positions(work)
-
-
 def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, out: Path, log) -> tuple:
     """Scanner ``s``: its calibration scan, step A's model (identified, or read from ``scanners/``
     when a resumed study saved it, or from ``calibration.model_file``) and one survey per stage.
@@ -135,7 +127,7 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
     work, grid, D = _layout(cfg)
     afm = default_afm(**params)
     scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
-    start = run_cycle(afm, sim.lattice, sim.measured["state"], sim.cycle, sim.key)
+    start = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
     stages = [st for st in SURVEYS if st in cfg.stages or (st == "A+B" and "A+B+C" in cfg.stages)]
     info = {"scanner": s, **params, "step_a_fit_s": 0.0}
     model = twin = None
@@ -171,7 +163,7 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
                 continue
             lm = cfg.landmarks
             pos = Positioner(afm, pos.model, LandmarkMap(M, D, lm.interpolation[0], lm.m, lm.degree))
-        mean_path = (images["path_trace"] + images["path_retrace"]) / 2
+        mean_path = (images.path_trace + images.path_retrace) / 2
         contexts[st] = (pos, stand, mean_path)
     return contexts, info
 
@@ -210,7 +202,7 @@ FIRST_PASS_LINES = 6
 def stage_trials(
     cfg: StudyConfig, context: tuple, x: dict, stage: int, mesh: Mesh, local=None, push_spec=None
 ) -> dict:
-    """:func:`~jaxafm.strategy.trials` for the trials ``x`` (NumPy columns) on one stage's survey
+    """:func:`~jaxafm.position.strategy.trials` for the trials ``x`` (NumPy columns) on one stage's survey
     ``context``, split over the mesh. With ``local``, in two passes (:data:`FIRST_PASS_LINES`);
     each trial's key is ``fold_in(fold_in(seed, trial), stage)``, so the second pass gives what one
     pass with every line would. Returns NumPy columns (trials first)."""
@@ -275,15 +267,8 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
 def run_chunk(cfg: StudyConfig, contexts: dict, draws: dict, mesh: Mesh) -> dict:
     """The results of the trials in ``draws`` (one scanner's), columns keyed by stage, run as one
     batch split over the ``mesh``'s devices (``contexts`` replicated on them)."""
-    ls = cfg.local_scan
-    local = LocalScan(
-        ls.points,
-        ls.line_time_s,
-        margin=ls.margin_nm,
-        max_lines=ls.max_lines,
-        width_tolerance=ls.width_tolerance,
-    )
-    push_spec = Push(speed=cfg.push.speed_nm_per_s) if "push" in cfg.stages else None
+    local = LocalScan.from_config(cfg.local_scan)
+    push_spec = Push.from_config(cfg.push) if "push" in cfg.stages else None
     x = {
         "trial": draws["trial"],
         "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1),

@@ -1,0 +1,46 @@
+"""mkdocs hooks: the committed result figures, and Sphinx roles in docstrings.
+
+The pages link a figure as ``../experiments/results/<run>/<name>.png``, a path that is right for the
+Markdown file in the repository (``docs/<page>.md``). The hooks add every PNG under
+``experiments/results/`` to the site at ``experiments/results/...`` and rewrite those links for the
+site, so the figures exist once, where the runs wrote them.
+
+Docstrings name other objects as ``:func:`name```, ``:class:`Name``` and the like; Markdown shows the
+role as text before the code, so the hooks drop the role and keep the code.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = "experiments/results/"
+ROLE = re.compile(r":(?:func|class|data|meth|attr|mod|obj|exc|const):(?=<code>)")
+
+
+def on_files(files, config):
+    """Add the result figures to the site's files."""
+    for png in sorted((ROOT / RESULTS).rglob("*.png")):
+        files.append(
+            File(
+                png.relative_to(ROOT).as_posix(),
+                src_dir=str(ROOT),
+                dest_dir=config["site_dir"],
+                use_directory_urls=config["use_directory_urls"],
+            )
+        )
+    return files
+
+
+def on_page_markdown(markdown, page, config, files):
+    """Point the repository-relative figure links of a page at the figures added by ``on_files``."""
+    depth = page.file.src_uri.count("/")
+    return markdown.replace("../" * (depth + 1) + RESULTS, "../" * depth + RESULTS)
+
+
+def on_page_content(html, page, config, files):
+    """Drop the Sphinx role before a code span of a rendered docstring (``:func:`name``` -> ``name``)."""
+    return ROLE.sub("", html)

@@ -1,0 +1,97 @@
+"""YAML run configurations, validated by pydantic schemas before any work starts.
+
+One schema per command (``fit``, ``calibrate``, ``run``, ``study``, ``diagnose``), built from
+shared parts: the strict base, the loader and data paths, and one hysteresis-model spec
+(:class:`HysteresisSpec`) in ``common``; the names configs are checked against in ``names``.
+Errors name the file, the key and the value, and say what is allowed.
+
+This package imports no JAX: checking a YAML file is quick, and every layer's ``run(cfg, ...)``
+job can take its config from here.
+"""
+
+from .calibrate import (
+    CalibrateConfig,
+    CalibrationImages,
+    CalibrationModel,
+    CalibrationSolver,
+    Compensation,
+    Grating,
+    SimulatedCalibration,
+)
+from .common import (
+    ConfigError,
+    HysteresisSpec,
+    RecordData,
+    Solver,
+    load_config,
+    resolve_data_path,
+)
+from .diagnose import (
+    DiagnoseConfig,
+    DiagnoseImage,
+    DiagnoseNominal,
+    DiagnoseScans,
+    DiagnoseSimulation,
+    ScanFiles,
+    ScanGrating,
+    ScanSimulation,
+)
+from .fit import ActuatorFitConfig, ModelSpec, SimulatedData
+from .names import EFFECTS, LENGTH_TO_NM, MODEL_EFFECTS, SOLVERS, VOLTAGE_TO_V, check_effect_names
+from .run import (
+    LandmarkSpec,
+    LocalScanSpec,
+    ParticleField,
+    Positioning,
+    PushSpec,
+    RunConfig,
+    StepA,
+    Workspace,
+    check_landmark_grid,
+)
+from .study import STUDY_PARAMETERS, Distribution, StudyConfig
+
+__all__ = [
+    "EFFECTS",
+    "LENGTH_TO_NM",
+    "MODEL_EFFECTS",
+    "SOLVERS",
+    "STUDY_PARAMETERS",
+    "VOLTAGE_TO_V",
+    "ActuatorFitConfig",
+    "CalibrateConfig",
+    "CalibrationImages",
+    "CalibrationModel",
+    "CalibrationSolver",
+    "Compensation",
+    "ConfigError",
+    "DiagnoseConfig",
+    "DiagnoseImage",
+    "DiagnoseNominal",
+    "DiagnoseScans",
+    "DiagnoseSimulation",
+    "Distribution",
+    "Grating",
+    "HysteresisSpec",
+    "LandmarkSpec",
+    "LocalScanSpec",
+    "ModelSpec",
+    "ParticleField",
+    "Positioning",
+    "PushSpec",
+    "RecordData",
+    "RunConfig",
+    "ScanFiles",
+    "ScanGrating",
+    "ScanSimulation",
+    "SimulatedCalibration",
+    "SimulatedData",
+    "Solver",
+    "StepA",
+    "StudyConfig",
+    "Workspace",
+    "check_effect_names",
+    "check_landmark_grid",
+    "load_config",
+    "resolve_data_path",
+]

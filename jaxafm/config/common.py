@@ -1,0 +1,135 @@
+"""What every command's configuration shares: the strict schema base, the error type, the YAML
+loader, data paths, the hysteresis-model spec and the measured-record spec.
+
+Units as everywhere in jaxafm (``docs/conventions.md``): nm, s, V; a key's unit is in its name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal, Optional, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .names import LENGTH_TO_NM, SOLVERS, VOLTAGE_TO_V
+
+Solver = Literal[SOLVERS]  # type: ignore[valid-type]
+HysteresisKind = Literal["pi", "gpi", "preisach"]
+
+#: The limits of :class:`HysteresisSpec`, the same for every command (see its docstring).
+MAX_OPERATORS = 200
+MAX_DEADZONES = 20
+MAX_LEVELS = 100
+
+Operators = Annotated[int, Field(ge=2, le=MAX_OPERATORS, description="play operators (pi, gpi)")]
+Deadzones = Annotated[int, Field(ge=1, le=MAX_DEADZONES, description="dead zones each side (gpi)")]
+Levels = Annotated[int, Field(ge=2, le=MAX_LEVELS, description="Preisach plane levels")]
+ModelName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$", description="names the model's output file")]
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be run; the message names file, key and value."""
+
+
+class Strict(BaseModel):
+    """A schema that refuses unknown keys (a misspelt key is an error, not a silent default)
+    and whose values cannot change after validation."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class HysteresisSpec(Strict):
+    """The hysteresis model of a fit, the same keys for every command (``fit``, ``calibrate``,
+    ``run``, ``study``, ``diagnose``): its ``kind``, ``operators`` plays (pi, gpi; thresholds
+    evenly over half the drive span), ``deadzones`` each side (gpi) and ``levels`` of a
+    Preisach plane. Each command's schema names the kinds it can fit and its defaults.
+
+    The limits are set by the cost of the fit: its Levenberg–Marquardt or BFGS step holds a
+    dense (weights x weights) matrix in float64. A Preisach plane of L levels has L(L+1)/2
+    weights: 100 levels are 5 050 weights, a 0.2 GB matrix (200 levels would be 20 100 weights
+    and 3.2 GB). 200 plays resolve the play radii in steps of 1/400 of the drive span (50 mV
+    over +-10 V), finer than the finest Preisach plane (1/200 of the span), with about ten
+    times the plays or levels the shipped configs use (16 to 30).
+    """
+
+    kind: HysteresisKind = "gpi"
+    operators: Operators = 20
+    deadzones: Deadzones = 3
+    levels: Levels = 20
+
+
+class RecordData(Strict):
+    """A measured time-series record (``docs/conventions.md``, records); columns are 1-based or
+    header names."""
+
+    path: str = Field(description="file path, relative to the config file, or builtin:NAME")
+    input_columns: Optional[list[Union[int, str]]] = None
+    output_columns: Optional[list[Union[int, str]]] = None
+    time_column: Optional[Union[int, str]] = None
+    sample_rate_hz: Optional[float] = Field(None, gt=0)
+    input_unit: Literal[tuple(VOLTAGE_TO_V)] = "V"  # type: ignore[valid-type]
+    output_unit: Optional[Literal[tuple(LENGTH_TO_NM)]] = None  # type: ignore[valid-type]
+    delimiter: Optional[str] = None
+
+
+def _format(error: ValidationError, path: Path) -> str:
+    """pydantic's errors as one line per key: ``key: what is wrong (got value)``."""
+    lines = [f"{path}: invalid configuration"]
+    for e in error.errors():
+        key = ".".join(str(p) for p in e["loc"])
+        value = "" if e["type"] == "missing" or not key else f" (got {e.get('input')!r})"
+        msg = e["msg"].replace(
+            "Extra inputs are not permitted", "unknown key: remove it or check its spelling"
+        )
+        msg = msg.removeprefix("Value error, ")
+        lines.append(f"  {key}: {msg}{value}" if key else f"  {msg}")
+    return "\n".join(lines)
+
+
+def load_config(path: Union[str, Path], schema: Optional[type] = None):
+    """Read a YAML configuration and validate it against ``schema``.
+
+    Arguments:
+        path: the YAML file.
+        schema: the command's schema, e.g. ``RunConfig``; default ``ActuatorFitConfig``
+            (``jaxafm fit``).
+
+    Returns:
+        The validated ``schema`` instance.
+
+    Raises:
+        ConfigError: naming the file, and for each wrong key the key, the value and what is allowed.
+    """
+    if schema is None:
+        from .fit import ActuatorFitConfig as schema
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({e})") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+    try:
+        return schema.model_validate(raw)
+    except ValidationError as e:
+        raise ConfigError(_format(e, path)) from None
+
+
+def resolve_data_path(spec: str, config_path: Path) -> Path:
+    """Where a config's file lies.
+
+    Arguments:
+        spec: ``builtin:NAME`` (the copy shipped in ``jaxafm/data/real``), an absolute path, or a
+            path relative to the config file.
+        config_path: the config file.
+
+    Returns:
+        The file's path.
+    """
+    if spec.startswith("builtin:"):
+        return Path(__file__).parents[1] / "data" / "real" / spec.removeprefix("builtin:")
+    p = Path(spec)
+    return p if p.is_absolute() else Path(config_path).parent / p

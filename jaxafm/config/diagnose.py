@@ -1,0 +1,152 @@
+"""``jaxafm diagnose``: the sim-to-real gap of a record, an image or a set of scans."""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from .common import HysteresisKind, HysteresisSpec, RecordData, Strict
+from .names import check_effect_names
+
+
+class DiagnoseNominal(HysteresisSpec):
+    """The nominal model ``jaxafm diagnose`` starts from: the shared hysteresis spec and its
+    other effects."""
+
+    kind: HysteresisKind = Field("pi", description="pi: the classical symmetric PI model")
+    effects: list[str] = Field(["hysteresis"], description="effects the nominal model has")
+
+    @model_validator(mode="after")
+    def _known_effects(self):
+        check_effect_names(self.effects, "nominal.effects")
+        if "hysteresis" not in self.effects:
+            raise ValueError(f"nominal.effects must include 'hysteresis', got {self.effects}")
+        return self
+
+
+class DiagnoseSimulation(Strict):
+    """A two-axis record of the simulated PI scanner with one effect the nominal model lacks
+    (``jaxafm.diagnose.withheld.simulate_record``; ``magnitude`` in its ``RECORD_UNITS``)."""
+
+    withheld: Optional[str] = Field(None, description="the effect switched on; none: a control")
+    magnitude: float = 0.0
+    duration_s: float = Field(20.0, gt=0)
+    sample_rate_hz: float = Field(100.0, gt=0)
+    noise_nm: float = Field(2.0, ge=0)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _known_effect(self):
+        if self.withheld is not None:
+            check_effect_names([self.withheld], "simulate.withheld")
+        return self
+
+
+class DiagnoseImage(Strict):
+    """One image of a 1-D grating (any format ``jaxafm.instrument.images.read_image`` reads),
+    lines along the slow axis; rows are taken in scan order (row 0 first)."""
+
+    path: str = Field(description="image file, relative to the config file, or builtin:NAME")
+
+
+class ScanGrating(Strict):
+    """The calibration grating a scan set images (its datasheet) and the tip's cone."""
+
+    pitch_nm: float = Field(gt=0)
+    edge_width_nm: float = Field(gt=0, description="width of an edge's linear ramp (nm)")
+    tip_half_angle_deg: float = Field(20.0, gt=0, lt=90)
+
+
+class ScanFiles(Strict):
+    """One trace/retrace pair (any format ``jaxafm.instrument.images.read_image`` reads), both
+    left to right, row 0 scanned first, and how fast it was scanned."""
+
+    trace: str = Field(description="image file, relative to the config file")
+    retrace: str = Field(description="image file, relative to the config file")
+    line_rate_hz: float = Field(gt=0, description="lines (trace + retrace) per second")
+    overscan: float = Field(0.0, ge=0, le=1, description="fraction of the width scanned beyond each end")
+
+
+class ScanSimulation(Strict):
+    """Trace/retrace pairs of the simulated AFM (``jaxafm.diagnose.withheld.simulate_scans``)."""
+
+    withheld: Optional[Literal["feedback_lag", "tip", "rate_dependence"]] = Field(
+        None, description="the effect switched on; none: a control"
+    )
+    magnitude: float = Field(0.0, ge=0, description="units: jaxafm.diagnose.withheld.SCAN_UNITS")
+    line_rates_hz: list[float] = Field([1.0, 4.0], min_length=2)
+    lines: int = Field(24, ge=8, le=4096)
+    pixels: int = Field(512, ge=64, le=8192)
+    noise_nm: float = Field(0.5, ge=0)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _valid(self):
+        if min(self.line_rates_hz) <= 0 or len(set(self.line_rates_hz)) < 2:
+            raise ValueError(
+                f"line_rates_hz needs two or more different rates > 0 Hz, got {self.line_rates_hz}"
+            )
+        if self.withheld is not None and not self.magnitude > 0:
+            raise ValueError(f"magnitude must be > 0 for withheld {self.withheld!r}, got {self.magnitude}")
+        return self
+
+
+class DiagnoseScans(Strict):
+    """Trace/retrace images of a 1-D grating at two or more scan speeds (``jaxafm.diagnose``):
+    ``pairs`` from files, or ``simulate``; ``grating`` is required with files."""
+
+    grating: Optional[ScanGrating] = None
+    pairs: Optional[list[ScanFiles]] = Field(None, min_length=2)
+    simulate: Optional[ScanSimulation] = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.pairs is None) == (self.simulate is None):
+            raise ValueError("scans: give exactly one of 'pairs' (files) and 'simulate'")
+        if self.pairs is not None and self.grating is None:
+            raise ValueError(
+                "scans.grating is required with scans.pairs: the grating's pitch_nm and edge_width_nm "
+                "from its datasheet"
+            )
+        return self
+
+
+class DiagnoseConfig(Strict):
+    """Sim-to-real gap diagnosis: fit the nominal model, then nominal + each candidate effect on the
+    training part; compare the gaps on the held-out part (``jaxafm.diagnose``)."""
+
+    data: Optional[RecordData] = None
+    simulate: Optional[DiagnoseSimulation] = None
+    image: Optional[DiagnoseImage] = None
+    scans: Optional[DiagnoseScans] = None
+    nominal: DiagnoseNominal = DiagnoseNominal()
+    candidates: list[str] = Field(
+        ["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "feedback_lag", "tip"],
+        min_length=1,
+    )
+    history_v: Optional[list[float]] = Field(
+        None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]"
+    )
+    settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
+    train_fraction: float = Field(
+        0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows"
+    )
+    min_shrink_pct: float = Field(
+        5.0, ge=0, description="held-out gap shrink a significant candidate needs, %"
+    )
+    min_delta_bic: float = Field(10.0, ge=0, description="training BIC drop a significant candidate needs")
+    max_steps: int = Field(300, ge=1, le=100_000, description="Levenberg-Marquardt steps per fit")
+    output: str = "runs/diagnose"
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if sum(s is not None for s in (self.data, self.simulate, self.image, self.scans)) != 1:
+            raise ValueError(
+                "give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'"
+            )
+        check_effect_names(self.candidates, "candidates")
+        if self.history_v is not None and not all(np.isfinite(self.history_v)):
+            raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
+        return self

@@ -1,0 +1,59 @@
+"""Names and unit tables that configs are checked against, kept free of JAX.
+
+Each constant lives here once; the JAX modules that use them (``model.effects``,
+``identify.calibration``, ``identify.fit``, ``instrument.records``) import them from here, so
+that validating a YAML file never imports JAX. Effect names and units: ``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+#: Every effect name the project knows (configs, the simulated instrument, diagnosis output).
+#: The AFM layer (imaging) owns the last two.
+EFFECTS = (
+    "hysteresis",
+    "asymmetry",
+    "rate_dependence",
+    "creep",
+    "drift",
+    "coupling",
+    "bow",
+    "noise",
+    "feedback_lag",
+    "tip",
+)
+
+#: The effects besides hysteresis that step A can fit from a grating's trace/retrace images.
+MODEL_EFFECTS = ("asymmetry", "rate_dependence", "creep", "coupling", "bow", "drift", "feedback_lag")
+
+#: The solvers a fit can use: ``library.method``.
+SOLVERS = (
+    "optimistix.levenberg_marquardt",
+    "optimistix.gauss_newton",
+    "optimistix.dogleg",
+    "optimistix.bfgs",
+    "jaxopt.levenberg_marquardt",
+    "jaxopt.gauss_newton",
+    "jaxopt.lbfgs",
+    "scipy.least_squares",
+)
+
+#: Length units a data file may use -> nm per unit (every length inside jaxafm is in nm).
+LENGTH_TO_NM = {"pm": 1e-3, "Å": 0.1, "nm": 1.0, "um": 1e3, "µm": 1e3, "\u03bcm": 1e3, "mm": 1e6, "m": 1e9}
+
+#: Voltage units a data file may use -> V per unit.
+VOLTAGE_TO_V = {"V": 1.0, "mV": 1e-3}
+
+
+def check_effect_names(names, where: str = "effects") -> None:
+    """Raise for any name not in :data:`EFFECTS`.
+
+    Arguments:
+        names: effect names, e.g. from a config.
+        where: the config key or argument they came from, named in the error.
+
+    Raises:
+        ValueError: naming the first unknown effect, ``where`` and the known effects.
+    """
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect {unknown[0]!r} in {where}; known effects: {', '.join(EFFECTS)}")

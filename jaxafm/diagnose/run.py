@@ -1,0 +1,143 @@
+"""The ``jaxafm diagnose`` job: read the configured data, diagnose it, write the report.
+
+One of four sources (``jaxafm.config.DiagnoseConfig``): a measured actuator record
+(``data``), a simulated one (``simulate``), one grating image (``image``) or trace/retrace
+scan pairs (``scans``, from files or simulated). Everything is read and checked before the
+output folder is prepared; the report is :func:`jaxafm.diagnose.report.write`'s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from . import withheld
+from .core import Diagnosis, Rules
+from .image import diagnose_image
+from .record import diagnose_record
+from .report import write
+from .scans import ScanPair, diagnose_scans
+
+
+def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
+    """Diagnose the configured record, image or scan set into ``out``.
+
+    Arguments:
+        cfg: a validated ``DiagnoseConfig``.
+        config_path: the config file (data paths are relative to it; errors name it).
+        out: the output folder: ``diagnosis.json``, ``metrics.json``, ``residuals.png``,
+            ``report.md``.
+        prepare: called once the data are read and diagnosed, before anything is written.
+        log: called with each line of the human summary.
+
+    Returns:
+        The metrics.
+
+    Raises:
+        ValueError: for data that cannot be read or split, naming the config key to change.
+    """
+    rules = Rules(cfg.min_shrink_pct, cfg.min_delta_bic, cfg.max_steps)
+    config_path = Path(config_path)
+    if cfg.image is not None:
+        diagnosis = _image(cfg, config_path, rules, log)
+    elif cfg.scans is not None:
+        diagnosis = _scans(cfg, config_path, rules, log)
+    else:
+        diagnosis = _record(cfg, config_path, rules, log)
+    prepare()
+    return write(diagnosis, Path(out), log)
+
+
+def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+    record = _load(cfg, config_path)
+    try:
+        split = record.split(cfg.train_fraction)
+    except ValueError as e:
+        raise ValueError(f"{e}: give a longer record, or change train_fraction in {config_path}") from None
+    settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
+    if split - settle < 10:
+        raise ValueError(
+            f"settle_s={cfg.settle_s} s leaves {split - settle} training samples: lower settle_s "
+            f"or raise train_fraction in {config_path}"
+        )
+    history = None if cfg.history_v is None else np.asarray(cfg.history_v, dtype=float)
+    outputs = np.asarray(record.d).reshape(len(record), -1).shape[1]
+    log(
+        f"record: {record.meta['source']} - {len(record)} samples x {outputs} output(s); train "
+        f"{split - settle}, hold out {len(record) - split}"
+    )
+    return diagnose_record(
+        record, cfg.nominal, cfg.candidates, cfg.train_fraction, settle, history, rules, log
+    )
+
+
+def _load(cfg, config_path: Path):
+    """The configured record: simulated, or read (the output unit must be named)."""
+    from ..config import resolve_data_path
+    from ..instrument.records import read_record
+
+    if cfg.data is None:
+        s = cfg.simulate
+        return withheld.simulate_record(
+            s.withheld, s.magnitude, s.seed, s.duration_s, s.sample_rate_hz, s.noise_nm
+        )
+    spec = cfg.data.model_dump(exclude={"path"})
+    path = resolve_data_path(cfg.data.path, config_path)
+    if spec["output_unit"] is None and spec["output_columns"] is not None:
+        raise ValueError(
+            f"{path}: the record's output unit is missing: set data.output_unit in {config_path} "
+            "(e.g. output_unit: um)"
+        )
+    record = read_record(path, **spec)
+    return dataclasses.replace(record, meta=record.meta | {"source": cfg.data.path})  # as the config gives it
+
+
+def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+    from ..config import resolve_data_path
+    from ..instrument.images import read_image
+
+    image = read_image(resolve_data_path(cfg.image.path, config_path))
+    image = dataclasses.replace(image, meta=image.meta | {"source": cfg.image.path})  # as the config gives it
+    log(
+        f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
+        "scanner (fast-axis nonlinearity)"
+    )
+    return diagnose_image(image, cfg.candidates, cfg.train_fraction, rules, log)
+
+
+def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+    sc = cfg.scans
+    grating = withheld.SIM_GRATING if sc.grating is None else sc.grating
+    pairs = _scan_pairs(sc, config_path, log)
+    return diagnose_scans(pairs, grating, cfg.candidates, cfg.train_fraction, rules, log)
+
+
+def _scan_pairs(sc, config_path: Path, log) -> list:
+    """The configured trace/retrace pairs: simulated, or read from files."""
+    from ..config import resolve_data_path
+    from ..instrument.images import read_image
+
+    if sc.simulate is not None:
+        s = sc.simulate
+        what = (
+            f" with {s.withheld} {s.magnitude:g} {withheld.SCAN_UNITS[s.withheld]}"
+            if s.withheld
+            else " (a control)"
+        )
+        log(f"simulating trace/retrace pairs at {', '.join(f'{r:g}' for r in s.line_rates_hz)} Hz{what}")
+        return withheld.simulate_scans(
+            s.withheld, s.magnitude, s.seed, s.line_rates_hz, s.lines, s.pixels, noise_nm=s.noise_nm
+        )
+    pairs = []
+    for i, p in enumerate(sc.pairs):
+        tr, re = (read_image(resolve_data_path(f, config_path)) for f in (p.trace, p.retrace))
+        if tr.shape != re.shape:
+            raise ValueError(
+                f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
+                "images differ in size"
+            )
+        dt = 1.0 / (2 * p.line_rate_hz * tr.shape[1] * (1 + 2 * p.overscan))  # s between two pixels
+        pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace))
+    return pairs
