@@ -25,12 +25,13 @@ import matplotlib.pyplot as plt
 from jaxafm.config import CalibrationModel, Grating, SimulatedCalibration
 from jaxafm.identify import calibration
 from jaxafm.identify.step_a import simulate_calibration
+from jaxafm.instrument.afm import RasterScan
 
 
-def path_error(model: calibration.ScanModel, scan, truth: dict) -> dict:
+def path_error(model: calibration.ScanModel, scan, truth: RasterScan) -> dict:
     """Fitted against true tip path over the image (nm), the unobservable mean shift removed."""
     paths = zip(model.paths(scan), ("path_trace", "path_retrace"))
-    e = np.stack([np.asarray(p) - np.asarray(truth[k]) for p, k in paths])
+    e = np.stack([np.asarray(p) - np.asarray(getattr(truth, k)) for p, k in paths])
     e = e - e.reshape(-1, 2).mean(axis=0)
     return {
         "path_x_rms_nm": float(np.sqrt(np.mean(e[..., 0] ** 2))),

@@ -94,8 +94,8 @@ def run_case(kind, effect, magnitude, seed) -> dict:
         "verdict": verdict,
         "seconds": time.perf_counter() - start,
         "heldout_gap_before_nm": res.nominal.heldout_gap_nm,
-        "verdict_shrink_pct": rows[verdict]["shrink_pct"] if verdict else 0.0,
-        "truth_shrink_pct": rows[effect]["shrink_pct"] if effect else None,
+        "verdict_shrink_pct": rows[verdict].shrink_pct if verdict else 0.0,
+        "truth_shrink_pct": rows[effect].shrink_pct if effect else None,
         **(
             {
                 "verdict_rms_shrink_pct": 100

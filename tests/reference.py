@@ -211,7 +211,7 @@ def drive_numpy(
     sample. The AFM starts as ``afm.initial_state(u0, t0, history)`` (at rest at
     ``u0`` V at ``t0`` s after the drive ``history`` (H, 2) V; the feedback at
     ``z0`` nm), so ``drive_numpy(afm, ...)`` is ``afm.drive(sample, u, t, state, key)``
-    of :mod:`jaxafm.afm` from that state. Per sample and axis: plays, PI and
+    of :mod:`jaxafm.instrument.afm` from that state. Per sample and axis: plays, PI and
     dead-zone readout, the rate-dependence lag, the creep lags (from the rest
     level); then coupling, bow, drift (velocity plus the exact Ornstein-Uhlenbeck
     step driven by ``drift_normals`` (T, 2)), noise (``std * noise_normals``

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxafm  # noqa: F401  (float64)
 from jaxafm.instrument.afm import (
     AFM,
     Raster,

@@ -1,6 +1,6 @@
 """1-D grating fit: pitch, fast-axis nonlinearity and skew from drawn gratings of known distortion, and the real file.
 
-The gratings are drawn here with numpy from the equation in ``jaxafm.line_grating``
+The gratings are drawn here with numpy from the equation in ``jaxafm.identify.line_grating``
 (trapezoidal grooves, point-sampled), not with the code under test.
 """
 

@@ -1,4 +1,4 @@
-"""The JAX raster scan against the NumPy sample-by-sample reference (jaxafm.reference).
+"""The JAX raster scan against the NumPy sample-by-sample reference (tests/reference.py).
 
 The reference is a plain loop over samples written from the model's equations;
 it is fed the same standard-normal draws as the JAX scanner (drift kicks and

@@ -1,4 +1,4 @@
-"""Tests of the sample topographies and the AFM tip (jaxafm.samples).
+"""Tests of the sample topographies and the AFM tip (jaxafm.instrument.samples).
 
 Every expected value comes from outside the code under test: closed forms
 (the sphere-capped cone written out by hand, the dilation of a sphere or a
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-# importing jaxafm (the package of jaxafm.samples) switches JAX to float64
+# importing jaxafm.instrument switches JAX to float64 (jaxafm._precision)
 from jaxafm.instrument.samples import (
     Grating,
     HeightMap,

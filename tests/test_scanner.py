@@ -1,4 +1,4 @@
-"""Tests of the scanner effects (jaxafm.effects) and the composed scanner (jaxafm.scanner).
+"""Tests of the scanner effects (jaxafm.model.effects) and the composed scanner (jaxafm.model.scanner).
 
 Expected values come from closed forms (creep step response, first-order lag
 of a sine, coupling and bow formulas, Ornstein-Uhlenbeck variances), from
@@ -98,7 +98,8 @@ def test_creep_step_response_closed_form(times):
 
 @pytest.mark.parametrize("gamma", [0.01, 0.02])
 def test_logarithmic_creep_grows_gamma_per_decade(gamma):
-    """design.md: d(t) = d0 (1 + gamma log10(t / 0.1 s)): gamma d0 more per decade (1 s .. 100 s)."""
+    """The published creep law (docs/index.md): d(t) = d0 (1 + gamma log10(t / 0.1 s)), gamma d0
+    more per decade (1 s .. 100 s)."""
     t = np.concatenate([[0.0], np.logspace(-3, 3, CREEP_T - 1)])
     d0 = 100.0
     v = np.full(CREEP_T, d0)

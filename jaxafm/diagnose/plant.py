@@ -27,9 +27,9 @@ from jax.flatten_util import ravel_pytree
 from scipy.optimize import nnls
 
 from ..config import DiagnoseNominal as Nominal  # the nominal model: its config schema
-from ..identify.fit import _softplus_inv, evaluator, free_parameters, initial_model
+from ..identify.fit import evaluator, free_parameters, initial_model
 from ..model.effects import Bow, Coupling, Creep, Drift, RateDependence
-from ..model.hysteresis import Deadzone, GeneralizedPI
+from ..model.hysteresis import Deadzone, GeneralizedPI, softplus_inverse
 from ..model.scanner import Axis
 
 Array = jax.Array
@@ -117,7 +117,7 @@ def _model_fn(plant: Plant, u, t, d, history):
         evaluator(a, u[:, i], t, None if history is None else history[:, i]) for i, a in enumerate(inner)
     ]
     creeps = [a.creep for a in plant.axes]
-    gamma0 = tuple(_softplus_inv(2 * c.weights[0] / 0.01) for c in creeps if c is not None)
+    gamma0 = tuple(softplus_inverse(2 * c.weights[0] / 0.01) for c in creeps if c is not None)
     extras0, rebuild_extras = _rebuild_extras(plant, s)
     raw0 = (tuple(p[0] for p in parts), extras0, gamma0)
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import resolve_data_path
 from . import withheld
 from .core import Diagnosis, Rules
 from .image import diagnose_image
@@ -75,7 +76,6 @@ def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
 
 def _load(cfg, config_path: Path):
     """The configured record: simulated, or read (the output unit must be named)."""
-    from ..config import resolve_data_path
     from ..instrument.records import read_record
 
     if cfg.data is None:
@@ -95,7 +95,6 @@ def _load(cfg, config_path: Path):
 
 
 def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
-    from ..config import resolve_data_path
     from ..instrument.images import read_image
 
     image = read_image(resolve_data_path(cfg.image.path, config_path))
@@ -116,7 +115,6 @@ def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
 
 def _scan_pairs(sc, config_path: Path, log) -> list:
     """The configured trace/retrace pairs: simulated, or read from files."""
-    from ..config import resolve_data_path
     from ..instrument.images import read_image
 
     if sc.simulate is not None:

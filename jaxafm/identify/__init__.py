@@ -8,3 +8,21 @@ it switches JAX to float64 (``jaxafm._precision``).
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)
+from .calibration import CalibrationScan, Identification, identify
+from .features import lattice_features
+from .fit import FitResult, error_metrics, fit_operator
+from .inverse import Compensator, numerical_inverse
+from .line_grating import fit_line_grating
+
+__all__ = [
+    "CalibrationScan",
+    "Compensator",
+    "FitResult",
+    "Identification",
+    "error_metrics",
+    "fit_line_grating",
+    "fit_operator",
+    "identify",
+    "lattice_features",
+    "numerical_inverse",
+]

@@ -33,10 +33,17 @@ from ..config.names import MODEL_EFFECTS
 from ..instrument.afm import AFM, Raster, RasterScan, raster_scan
 from ..instrument.samples import Lattice, Plane, Tip
 from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
-from ..model.hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
+from ..model.hysteresis import (
+    AbstractHysteresis,
+    Deadzone,
+    GeneralizedPI,
+    PrandtlIshlinskii,
+    Preisach,
+    softplus_inverse,
+)
 from ..model.scanner import Axis, Scanner
 from .features import LatticeFeatures, lattice_features
-from .fit import FitResult, _softplus_inv, _solve, free_parameters
+from .fit import FitResult, _solve, free_parameters
 
 Array = jax.Array
 KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key never matters
@@ -225,7 +232,7 @@ def _field(get: Callable, scale: float, positive: bool = False, shared: bool = F
     return (
         get,
         (lambda r: jax.nn.softplus(r) * scale) if positive else (lambda r: r * scale),
-        (lambda v: _softplus_inv(v / scale)) if positive else (lambda v: v / scale),
+        (lambda v: softplus_inverse(v / scale)) if positive else (lambda v: v / scale),
         shared,
     )
 

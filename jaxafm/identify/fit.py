@@ -40,9 +40,6 @@ Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
 
 
-_softplus_inv = softplus_inverse  # the name other modules import
-
-
 def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):
     """A start for ``kind`` from the record's ranges: the straight line through the data.
 
@@ -93,7 +90,7 @@ def free_parameters(model, u_span: float, d_range: float):
     if isinstance(model, Creep):
         return model.weights / 0.01, lambda p: Creep(model.taus, p * 0.01)
     if isinstance(model, RateDependence):
-        return _softplus_inv(model.tau / 0.01), lambda p: RateDependence(jax.nn.softplus(p) * 0.01)
+        return softplus_inverse(model.tau / 0.01), lambda p: RateDependence(jax.nn.softplus(p) * 0.01)
     if isinstance(model, Axis):
         stages = [n for n in ("hysteresis", "rate_dependence", "creep") if getattr(model, n) is not None]
         raws, rebuilds = zip(*(free_parameters(getattr(model, n), u_span, d_range) for n in stages))

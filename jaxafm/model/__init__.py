@@ -8,3 +8,41 @@ Imports only the shared leaves (``config``, ``checks``); importing it switches J
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)
+from .effects import Bow, Coupling, Creep, Drift, FeedbackLag, Noise, RateDependence
+from .hysteresis import (
+    AbstractHysteresis,
+    Anhysteretic,
+    Deadzone,
+    GeneralizedPI,
+    Linear,
+    PlayOperator,
+    PrandtlIshlinskii,
+    Preisach,
+    play,
+)
+from .io import load_model, save_model
+from .scanner import Axis, Scanner, default_scanner
+
+__all__ = [
+    "AbstractHysteresis",
+    "Anhysteretic",
+    "Axis",
+    "Bow",
+    "Coupling",
+    "Creep",
+    "Deadzone",
+    "Drift",
+    "FeedbackLag",
+    "GeneralizedPI",
+    "Linear",
+    "Noise",
+    "PlayOperator",
+    "PrandtlIshlinskii",
+    "Preisach",
+    "RateDependence",
+    "Scanner",
+    "default_scanner",
+    "load_model",
+    "play",
+    "save_model",
+]

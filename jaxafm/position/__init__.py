@@ -7,3 +7,17 @@ instrument, identification and the shared leaves; importing it switches JAX to f
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)
+from .landmarks import LandmarkGrid, LandmarkMap, find_features
+from .positioning import LocalScan, Positioner, Push, goto, local_scan, push
+
+__all__ = [
+    "LandmarkGrid",
+    "LandmarkMap",
+    "LocalScan",
+    "Positioner",
+    "Push",
+    "find_features",
+    "goto",
+    "local_scan",
+    "push",
+]
