@@ -41,7 +41,6 @@ from . import calibration, features
 from .inverse import Compensator, train_neural_inverse
 
 SETTLE_S = 0.5  # each leg of the initialisation cycle, s
-PAUSE_S = 0.1  # from the end of the cycle to the first sample of a scan, s
 
 
 @dataclasses.dataclass
