@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Optional
 import numpy as np
 
 from ..config.names import check_effect_names
+from ..identify.fit import bic
 
 #: Why an effect that is not in the nominal model cannot be tried: ``{kind name: {effect: reason}}``
 #: (the kinds: ``record``, ``image``, ``scans``). Every kind also skips :data:`NOISE` and the
@@ -78,20 +79,6 @@ class Rules:
     min_shrink_pct: float = 5.0
     min_delta_bic: float = 10.0
     max_steps: int = 300
-
-
-def bic(rss: float, n: int, k: int) -> float:
-    """The Bayesian information criterion ``n ln(RSS / n) + k ln n`` of a least-squares fit.
-
-    Arguments:
-        rss: residual sum of squares (nm^2) over the training data.
-        n: number of training residuals.
-        k: number of free parameters.
-
-    Returns:
-        The BIC (dimensionless; only differences between fits to the same data mean anything).
-    """
-    return n * np.log(max(rss, 1e-300) / n) + k * np.log(n)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -265,6 +265,20 @@ def _solve(
     return unravel(flat), steps, bool(steps < max_steps)
 
 
+def bic(rss: float, n: int, k: int) -> float:
+    """The Bayesian information criterion ``n ln(RSS / n) + k ln n`` of a least-squares fit.
+
+    Arguments:
+        rss: residual sum of squares (nm^2) over the training data.
+        n: number of training residuals.
+        k: number of free parameters.
+
+    Returns:
+        The BIC (dimensionless; only differences between fits to the same data mean anything).
+    """
+    return n * np.log(max(rss, 1e-300) / n) + k * np.log(n)
+
+
 def error_metrics(pred, d, d_range: Optional[float] = None) -> dict:
     """rms and max error, in nm and in % of the output range."""
     pred, d = np.asarray(pred), np.asarray(d)

@@ -43,6 +43,7 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from .features import _check_image, edge_crossings, pitch_spread
+from .fit import bic
 
 MIN_ROWS = 8  # scan lines: enough to see the skew against the edge jitter
 MIN_PERIODS = 3  # complete periods (same-type edge to same-type edge) in a typical row
@@ -309,14 +310,14 @@ def fit_line_grating(
         theta, se, rss, p, w = _solve(a, e.x_nm, e, widths, name)
         n = len(e.x_nm)
         fits[d] = (
-            n * np.log(max(rss, 1e-300) / n) + p * np.log(n),
+            bic(rss, n, p),
             dict(zip(names, theta)),
             dict(zip(names, se)),
             rss,
             w,
         )
     best = min(fits, key=lambda d: fits[d][0])
-    bic, sol, se, rss, w = fits[best]
+    best_bic, sol, se, rss, w = fits[best]
     pitch = sol["pitch"]
     if widths:  # W_r about its mean; the mean splits the centre phase into the two edges'
         mean = float(np.nanmean(w))
@@ -341,7 +342,7 @@ def fit_line_grating(
         residual_rms_nm=float(np.sqrt(rss / len(e.x_nm))),
         x_range_nm=xr,
         y_range_nm=yr,
-        bic=float(bic),
+        bic=float(best_bic),
         bic_by_degree={d: float(f[0]) for d, f in fits.items()},
         row_width_nm=w,
         edges=e,
