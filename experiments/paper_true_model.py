@@ -14,7 +14,7 @@ from pathlib import Path
 import yaml
 
 import jaxafm
-from jaxafm.cli import RUN_OUTPUTS, prepare_output
+from jaxafm.cli import run_folder
 from jaxafm.config import RunConfig
 from jaxafm.model.io import save_model
 from jaxafm.position import strategy
@@ -24,12 +24,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     out = ROOT / "experiments" / "results" / "paper_true_model"
-    prepare_output(out, True, RUN_OUTPUTS + ("true_scanner.json",))
+    config = ROOT / "configs" / "paper.yaml"
     model = out / "true_scanner.json"
-    save_model(jaxafm.default_scanner().without("drift", "noise"), model)
-    raw = yaml.safe_load((ROOT / "configs" / "paper.yaml").read_text())
+    raw = yaml.safe_load(config.read_text())
     raw["calibration"]["model_file"] = str(model)
-    strategy.run(RunConfig.model_validate(raw), ROOT / "configs" / "paper.yaml", out)
+    cfg = RunConfig.model_validate(raw)
+    with run_folder(out, "run", config, cfg, overwrite=True) as folder:
+        folder.prepare()  # the true model is one of the run's files
+        save_model(jaxafm.default_scanner().without("drift", "noise"), model)
+        strategy.run(cfg, config, out)
 
 
 if __name__ == "__main__":

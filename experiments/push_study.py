@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from jaxafm.cli import RUN_OUTPUTS, prepare_output
+from jaxafm.cli import run_folder
 from jaxafm.config import RunConfig
 from jaxafm.position import strategy
 
@@ -44,9 +44,8 @@ def main() -> None:
         cfg = RunConfig.model_validate(raw)
         out = args.out / f"field_{field}"
         print(f"--- field {field} (particle seed {cfg.particles.seed})")
-        m = strategy.run(
-            cfg, args.config, out, prepare=lambda: prepare_output(out, args.overwrite, RUN_OUTPUTS)
-        )
+        with run_folder(out, "run", args.config, cfg, overwrite=args.overwrite) as folder:
+            m = strategy.run(cfg, args.config, out, prepare=folder.prepare)
         results.append(m)
     n = sum(m["push_trials"] for m in results)
     success = sum(round(m["push_success_pct"] * m["push_trials"] / 100) for m in results)

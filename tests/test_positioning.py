@@ -1,5 +1,6 @@
 """Steps B and C and the push: landmark interpolation, landmark detection, the local scan, the push."""
 
+import json
 import subprocess
 import sys
 
@@ -321,3 +322,35 @@ def test_cli_run_positions_on_particles_and_pushes_them(cli_run):
     assert "A+B+C" in output
     again = CliRunner().invoke(app, ["run", str(cfg)])
     assert again.exit_code == 2 and "--overwrite" in again.output
+
+
+BLANK_RUN = """
+calibration:
+  simulate: {pixels: 32, size_nm: 8000, line_rate_hz: 10}
+  model: {name: pi, kind: pi, operators: 4, effects: []}
+  solver: {max_steps: 1, blur_px: [1.0]}
+workspace: {size_nm: 2000, pixels: 32, line_rate_hz: 10}
+landmarks: {n: 2, start_px: 8, step_px: 16, interpolation: [polynomial], m: 2, degree: 1}
+particles: {radius_nm: [10, 20], per_cell: 1}
+local_scan: {points: 16, max_lines: 3}
+stages: [open_loop, A]
+"""
+
+
+def test_a_survey_that_finds_no_particle_is_reported_not_a_crash(tmp_path, monkeypatch):
+    """Where the workspace image shows no particle (here: the finder finds none), the stage is
+    reported as failed with the reason, the others still run, and the results are written."""
+    from typer.testing import CliRunner
+
+    from jaxafm.cli import app
+    from jaxafm.position import strategy
+
+    real = strategy.find_targets
+    nothing = lambda *a: tuple(x[:0] for x in real(*a))  # what a blank image gives
+    monkeypatch.setattr(strategy, "find_targets", nothing)
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(BLANK_RUN)
+    result = CliRunner().invoke(app, ["run", str(cfg), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("failed: no particle found in the image") == 2  # open loop and A
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["particles"] > 0

@@ -171,24 +171,13 @@ def start_killed(tmp: Path) -> tuple:
 
 def test_outputs_and_trial_file(baseline):
     out, metrics, _ = baseline
-    for f in ("metrics.json", "trials.csv", "trials.npz", "errors.png", "study.yaml", "scanners.json"):
+    for f in ("metrics.json", "trials.csv", "trials.npz", "errors.png", "scanners.json"):
         assert (out / f).is_file()
     table = np.genfromtxt(out / "trials.csv", delimiter=",", names=True)
     assert table.shape == (6,) and set(table["scanner"]) == {0, 1}
     np.testing.assert_allclose(table["AB_error_nm"], results(out)["AB_error_nm"], rtol=1e-9)
     assert metrics["trials"] == 6 and metrics["AB_error_median_nm"] > 0 and metrics["AB_error_p99_nm"] > 0
     assert 0 < metrics["AB_ran_pct"] <= 100  # one of the two drawn scanners may miss landmarks
-
-
-def test_resume_refuses_a_changed_config(baseline, tmp_path):
-    import shutil
-
-    out = tmp_path / "out"
-    shutil.copytree(baseline[0], out)
-    path = write(tmp_path, seed=7)
-    cfg = load_config(path, StudyConfig)
-    with pytest.raises(ValueError, match="keys: seed"):
-        run(cfg, path, out, log=lambda m: None, resume=True)
 
 
 def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
@@ -224,8 +213,9 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
 def test_killed_two_device_study_resumes_to_the_same_results(baseline):
     """The study in chunks of 3 (two chunks, a scanner each), run by ``jaxafm study`` in a
     process with two host devices (the chunk padded to 4 trials, 2 a device), killed after its
-    first chunk: refused without --resume, and resumed (in this process: one device) it gives
-    the baseline's results (chunks of 2, one device), without redoing the done chunk."""
+    first chunk: refused with another config (naming the changed key, touching nothing), and run
+    again with its own (in this process: one device; no --resume needed) it resumes, giving the
+    baseline's results (chunks of 2, one device) without redoing the done chunk."""
     path, out, proc, watcher = baseline[2]
     watcher.join()
     log = proc.communicate()[0]
@@ -234,12 +224,14 @@ def test_killed_two_device_study_resumes_to_the_same_results(baseline):
     first = chunk_files(out)
     assert len(first) == 1, "the study ended before it could be killed"
     stamps = {f.name: f.stat().st_mtime_ns for f in first}
-    again = CliRunner().invoke(app, ["study", str(path), "--out", str(out)])  # without --resume: refused
-    assert again.exit_code == 2 and "not empty" in again.output
+    other = write(path.parent, "other.yaml", chunk=3, seed=7)
+    again = CliRunner().invoke(app, ["study", str(other), "--out", str(out)])
+    assert again.exit_code == 2 and "keys: seed" in again.output and "--overwrite" in again.output
     assert chunk_files(out) == first and not (out / "trials.npz").exists()  # nothing touched
-    resumed = CliRunner().invoke(app, ["study", str(path), "--out", str(out), "--resume"])
+    resumed = CliRunner().invoke(app, ["study", str(path), "--out", str(out)])
     assert resumed.exit_code == 0, resumed.output[-3000:]
     done = sum(int(f.stem.split("_")[2]) - int(f.stem.split("_")[1]) for f in first)
+    assert "resuming the unfinished `jaxafm study`" in resumed.output
     assert f"resuming: {done} done" in resumed.output
     assert {f.name: f.stat().st_mtime_ns for f in first} == stamps  # done chunks not recomputed
     assert_same(results(out), results(baseline[0]), "killed on two devices, resumed on one:")

@@ -1,7 +1,8 @@
 """The ``jaxafm`` command line: one sub-command per pipeline stage (``commands``) and the
-output folders they write into (``output``). Imports no JAX until a command runs its job."""
+output folders they write into, with their run manifests (``output``). Imports no JAX until a
+command runs its job."""
 
 from .commands import app, main
-from .output import RUN_OUTPUTS, prepare_output
+from .output import RunFolder, read_manifest, run_folder
 
-__all__ = ["RUN_OUTPUTS", "app", "main", "prepare_output"]
+__all__ = ["RunFolder", "app", "main", "read_manifest", "run_folder"]

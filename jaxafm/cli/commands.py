@@ -8,14 +8,7 @@ from typing import Optional
 
 import typer
 
-from .output import (
-    CALIBRATE_OUTPUTS,
-    DIAGNOSE_OUTPUTS,
-    FIT_OUTPUTS,
-    RUN_OUTPUTS,
-    STUDY_OUTPUTS,
-    prepare_output,
-)
+from .output import run_folder
 
 app = typer.Typer(
     add_completion=False,
@@ -24,68 +17,110 @@ app = typer.Typer(
 )
 
 
-def _fail(e: Exception) -> None:
-    typer.echo(f"error: {e}", err=True)
-    raise typer.Exit(code=2)
+def _fail(message: str, code: int = 2) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code=code)
 
 
-def _launch(
-    config: Path, out: Optional[Path], overwrite: bool, schema: str, job: str, outputs: tuple, **options
-) -> None:
-    """Validate ``config`` against ``jaxafm.config.<schema>``, then ``jaxafm.<job>.run`` it (with
-    ``options``) into the output folder, prepared only once the inputs have been checked; errors
-    become messages. The job's module (and with it JAX) is imported only here, so ``--help`` and
-    a config error stay quick."""
+#: Errors that describe bad input (their message is the whole story); any other exception is a
+#: bug in jaxafm and is reported as one.
+USER_ERRORS = (ValueError, OSError, RuntimeError)
+
+
+def _launch(config: Path, out: Optional[Path], flags: dict, command: str, job: str, **options) -> None:
+    """Validate ``config`` against ``command``'s schema, check the output folder, then
+    ``jaxafm.<job>.run`` it (with ``options``); the folder is prepared only once the job has
+    checked its inputs. Errors become messages (``--debug``: with the traceback); Ctrl-C says
+    what was saved and how to go on. The job's module (and with it JAX) is imported only
+    here, so ``--help`` and a config error stay quick."""
     import importlib
 
     from .. import config as configs
 
+    schema = {
+        "fit": configs.ActuatorFitConfig,
+        "calibrate": configs.CalibrateConfig,
+        "run": configs.RunConfig,
+        "study": configs.StudyConfig,
+        "diagnose": configs.DiagnoseConfig,
+    }[command]
+    folder = None
     try:
-        cfg = configs.load_config(config, getattr(configs, schema))
-        folder = out or Path(cfg.output)
-        importlib.import_module(f"jaxafm.{job}").run(
-            cfg,
-            config,
-            folder,
-            prepare=lambda: prepare_output(folder, overwrite, outputs),
-            log=typer.echo,
-            **options,
+        cfg = configs.load_config(config, schema)
+        path = out or Path(cfg.output)
+        with run_folder(
+            path, command, config, cfg, flags["overwrite"], flags.get("resume", False), typer.echo
+        ) as folder:
+            if folder.resuming:
+                options["resume"] = True
+            importlib.import_module(f"jaxafm.{job}").run(
+                cfg, config, path, prepare=folder.prepare, log=typer.echo, **options
+            )
+    except KeyboardInterrupt:
+        _interrupted(folder)
+    except Exception as e:
+        if flags["debug"]:
+            raise
+        if isinstance(e, USER_ERRORS):
+            _fail(str(e))
+        _fail(
+            f"internal error ({type(e).__name__}: {e}); this is a bug in jaxafm: please report it with "
+            "the output of the same command with --debug",
+            code=3,
         )
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(e)
-    typer.echo(f"wrote the results into {folder}")
+    typer.echo(f"wrote the results into {path}")
+
+
+def _interrupted(folder) -> None:
+    """What an interrupted run saved, and the command that goes on from it."""
+    if folder is None or not folder.prepared:
+        _fail("interrupted before any result was written; the output folder is as it was", code=130)
+    files = folder.saved
+    verb = "resumes it" if folder.command == "study" else "replaces them"
+    _fail(
+        f"interrupted: {len(files)} file(s) saved in {folder.path}, marked unfinished in its "
+        f"jaxafm-run.json; `{folder.again()}` {verb}",
+        code=130,
+    )
 
 
 CONFIG = typer.Argument(..., help="YAML config (see configs/)")
 OUT = typer.Option(None, help="output folder (default: the config's 'output')")
-OVERWRITE = typer.Option(False, help="replace the output folder's contents")
+OVERWRITE = typer.Option(
+    False, help="replace an earlier run's results in the output folder (only the files it wrote)"
+)
+DEBUG = typer.Option(False, help="show the traceback of an error")
 
 
 @app.command()
-def fit(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+def fit(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG):
     """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
-    _launch(config, out, overwrite, "ActuatorFitConfig", "identify.actuator_fit", FIT_OUTPUTS)
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "fit", "identify.actuator_fit")
 
 
 @app.command()
-def calibrate(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+def calibrate(
+    config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG
+):
     """Step A: identify the scanner from a grating image pair, invert it and compensate; write
     fitted scanners, metrics.json and compensation.png."""
-    _launch(config, out, overwrite, "CalibrateConfig", "identify.step_a", CALIBRATE_OUTPUTS)
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "calibrate", "identify.step_a")
 
 
 @app.command()
-def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG):
     """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
     push, with an ablation table; write metrics.json, trials.npz, the fitted scanner and figures."""
-    _launch(config, out, overwrite, "RunConfig", "position.strategy", RUN_OUTPUTS)
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "run", "position.strategy")
 
 
 @app.command()
-def diagnose(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE):
+def diagnose(
+    config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG
+):
     """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
     held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
-    _launch(config, out, overwrite, "DiagnoseConfig", "diagnose.run", DIAGNOSE_OUTPUTS)
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "diagnose", "diagnose.run")
 
 
 @app.command()
@@ -93,19 +128,20 @@ def study(
     config: Path = CONFIG,
     out: Optional[Path] = OUT,
     overwrite: bool = OVERWRITE,
-    resume: bool = typer.Option(False, help="go on with an interrupted study in the output folder"),
+    resume: bool = typer.Option(
+        False, help="go on with an unfinished study in the output folder (done without it too)"
+    ),
+    debug: bool = DEBUG,
 ):
     """A Monte-Carlo positioning study: trials over drawn scanners, particles and targets, in
     vmapped batches over every JAX device; writes per-chunk results, trials.csv/npz, metrics.json
-    and errors.png. Interrupted, it resumes with --resume."""
+    and errors.png. An unfinished study with the same config resumes where it stopped."""
     if resume and overwrite:
         _fail(
-            ValueError(
-                "--resume goes on with the results in the output folder; --overwrite would delete them: "
-                "pass one of them"
-            )
+            "--resume goes on with the results in the output folder; --overwrite would delete them: "
+            "pass one of them"
         )
-    _launch(config, out, overwrite, "StudyConfig", "study.monte_carlo", STUDY_OUTPUTS, resume=resume)
+    _launch(config, out, dict(overwrite=overwrite, resume=resume, debug=debug), "study", "study.monte_carlo")
 
 
 @app.command()

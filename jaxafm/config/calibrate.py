@@ -4,11 +4,11 @@ are also step A of ``jaxafm run`` and ``jaxafm study``."""
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 from pydantic import Field, field_validator, model_validator
 
-from .common import HysteresisKind, HysteresisSpec, ModelName, Operators, Solver, Strict
+from .common import HysteresisKind, HysteresisSpec, ModelName, Operators, Seed, Solver, Strict
 from .names import MODEL_EFFECTS, check_effect_names
 
 
@@ -27,7 +27,7 @@ class SimulatedCalibration(Strict):
     size_nm: float = Field(8000.0, gt=0, le=9000.0, description="scan width = height, nm")
     line_rate_hz: float = Field(1.0, gt=0, le=50.0)
     withheld: list[str] = Field([], description="effects the simulated instrument does not have")
-    seed: int = 0
+    seed: Seed = 0
 
     @model_validator(mode="after")
     def _known_effects(self):
@@ -41,12 +41,12 @@ class CalibrationImages(Strict):
 
     trace: str = Field(description="image file, relative to the config file")
     retrace: str = Field(description="image file, relative to the config file")
-    sensitivity_nm_per_v: list[float] = Field(
+    sensitivity_nm_per_v: list[Annotated[float, Field(gt=0)]] = Field(
         min_length=2, max_length=2, description="nominal x, y calibration"
     )
     u_max_v: float = Field(10.0, gt=0)
     line_rate_hz: float = Field(gt=0)
-    history_v: Optional[list[list[float]]] = Field(
+    history_v: Optional[list[Annotated[list[float], Field(min_length=2, max_length=2)]]] = Field(
         None,
         description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]",
     )
@@ -79,7 +79,9 @@ class CalibrationSolver(Strict):
 
     name: Solver = "optimistix.levenberg_marquardt"  # type: ignore[valid-type]
     max_steps: int = Field(100, ge=1, le=10_000, description="per stage")
-    blur_px: list[float] = Field([2.0, 1.0], description="image stages, coarse to fine (px)")
+    blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
+        [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
+    )
 
 
 class Compensation(Strict):

@@ -25,6 +25,7 @@ MAX_LEVELS = 100
 Operators = Annotated[int, Field(ge=2, le=MAX_OPERATORS, description="play operators (pi, gpi)")]
 Deadzones = Annotated[int, Field(ge=1, le=MAX_DEADZONES, description="dead zones each side (gpi)")]
 Levels = Annotated[int, Field(ge=2, le=MAX_LEVELS, description="Preisach plane levels")]
+Seed = Annotated[int, Field(ge=0, lt=2**32, description="random seed, 0 <= seed < 2**32")]
 ModelName = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$", description="names the model's output file")]
 
 
@@ -33,10 +34,11 @@ class ConfigError(ValueError):
 
 
 class Strict(BaseModel):
-    """A schema that refuses unknown keys (a misspelt key is an error, not a silent default)
-    and whose values cannot change after validation."""
+    """A schema that refuses unknown keys (a misspelt key is an error, not a silent default),
+    NaN and infinite numbers (``.nan``, ``.inf``, ``"nan"``) at any depth, and whose values
+    cannot change after validation."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class HysteresisSpec(Strict):
@@ -105,13 +107,16 @@ def load_config(path: Union[str, Path], schema: Optional[type] = None):
         from .fit import ActuatorFitConfig as schema
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist")
+        raise ConfigError(f"config file {path} " + ("is a folder" if path.is_dir() else "does not exist"))
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (a YAML config is UTF-8 text)") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML ({e})") from None
     if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: expected a mapping of keys at the top level")
+        found = "an empty file" if raw is None else f"a {type(raw).__name__}"
+        raise ConfigError(f"{path}: expected a mapping of keys at the top level, found {found}")
     try:
         return schema.model_validate(raw)
     except ValidationError as e:

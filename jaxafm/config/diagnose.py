@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-import numpy as np
 from pydantic import Field, model_validator
 
-from .common import HysteresisKind, HysteresisSpec, RecordData, Strict
+from .common import HysteresisKind, HysteresisSpec, RecordData, Seed, Strict
 from .names import check_effect_names
 
 
@@ -35,12 +34,17 @@ class DiagnoseSimulation(Strict):
     duration_s: float = Field(20.0, gt=0)
     sample_rate_hz: float = Field(100.0, gt=0)
     noise_nm: float = Field(2.0, ge=0)
-    seed: int = 0
+    seed: Seed = 0
 
     @model_validator(mode="after")
     def _known_effect(self):
         if self.withheld is not None:
             check_effect_names([self.withheld], "simulate.withheld")
+        if self.withheld in ("asymmetry", "rate_dependence", "creep") and self.magnitude < 0:
+            raise ValueError(
+                f"magnitude: {self.withheld} has no sign (a dead-zone scale, a time constant, a creep "
+                f"rate), so it must be >= 0, got {self.magnitude}"
+            )
         return self
 
 
@@ -80,7 +84,7 @@ class ScanSimulation(Strict):
     lines: int = Field(24, ge=8, le=4096)
     pixels: int = Field(512, ge=64, le=8192)
     noise_nm: float = Field(0.5, ge=0)
-    seed: int = 0
+    seed: Seed = 0
 
     @model_validator(mode="after")
     def _valid(self):
@@ -147,6 +151,4 @@ class DiagnoseConfig(Strict):
                 "give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'"
             )
         check_effect_names(self.candidates, "candidates")
-        if self.history_v is not None and not all(np.isfinite(self.history_v)):
-            raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
         return self

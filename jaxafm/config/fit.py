@@ -4,10 +4,9 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-import numpy as np
 from pydantic import Field, model_validator
 
-from .common import HysteresisSpec, ModelName, RecordData, Solver, Strict
+from .common import HysteresisSpec, ModelName, RecordData, Seed, Solver, Strict
 from .names import EFFECTS
 
 
@@ -25,7 +24,7 @@ class SimulatedData(Strict):
     duration_s: float = Field(40.0, gt=0)
     sample_rate_hz: float = Field(200.0, gt=0)
     noise_nm: float = Field(2.0, ge=0)
-    seed: int = 0
+    seed: Seed = 0
 
     @model_validator(mode="after")
     def _known_effects(self):
@@ -72,8 +71,6 @@ class ActuatorFitConfig(Strict):
 
     @model_validator(mode="after")
     def _one_source(self):
-        if self.history_v is not None and not all(np.isfinite(self.history_v)):
-            raise ValueError(f"history_v must hold finite voltages, got {self.history_v}")
         if (self.data is None) == (self.simulate is None):
             raise ValueError("give exactly one of 'data' (a measured record) and 'simulate'")
         names = [m.name for m in self.models]

@@ -9,7 +9,7 @@ from typing import Literal, Optional
 from pydantic import Field, model_validator
 
 from .calibrate import CalibrationModel, CalibrationSolver, Compensation, Grating, SimulatedCalibration
-from .common import Strict
+from .common import Seed, Strict
 
 
 class StepA(Strict):
@@ -46,7 +46,7 @@ class ParticleField(Strict):
 
     radius_nm: list[float] = Field([5.0, 50.0], min_length=2, max_length=2, description="[min, max], nm")
     per_cell: int = Field(2, ge=1, le=10, description="particles per landmark cell, each way")
-    seed: int = 1
+    seed: Seed = 1
 
     @model_validator(mode="after")
     def _sizes(self):
@@ -109,7 +109,7 @@ class Positioning(Strict):
     landmarks: LandmarkSpec = LandmarkSpec()
     local_scan: LocalScanSpec = LocalScanSpec()
     push: PushSpec = PushSpec()
-    seed: int = 0
+    seed: Seed = 0
 
 
 class RunConfig(Positioning):

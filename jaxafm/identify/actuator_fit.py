@@ -85,6 +85,13 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: No
             f"the training part is {record.t[split] - record.t[0]:.3g} s long"
         )
     history = None if cfg.history_v is None else jnp.asarray(cfg.history_v)
+    u, d = record.u[:split], record.d[:split]
+    starts = {}
+    for spec in cfg.models:  # every start before the folder is touched: a falling output fails here
+        try:
+            starts[spec.name] = _build(spec, u, d)
+        except ValueError as e:
+            raise ValueError(f"{record.meta['source']}: models.{spec.name}: {e}") from None
     prepare()
     d_range = float(record.d.max() - record.d.min())
     log(
@@ -98,11 +105,10 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: No
     }
     predictions, rows = {}, []
     for spec in cfg.models:
-        u, d = record.u[:split], record.d[:split]
         extras = "".join(f" + {e}" for e in ("rate_dependence", "creep") if getattr(spec, e))
         log(f"fitting {spec.name} ({spec.kind}{extras}) with {spec.solver_name} ...")
         res = fit_operator(
-            _build(spec, u, d),
+            starts[spec.name],
             u,
             d,
             t=record.t[:split],

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import checks
 from ..config.names import MODEL_EFFECTS
 from ..instrument.afm import AFM, Raster, RasterScan, raster_scan
 from ..instrument.samples import Lattice, Plane, Tip
@@ -43,7 +44,7 @@ from ..model.hysteresis import (
 )
 from ..model.scanner import Axis, Scanner
 from .features import LatticeFeatures, lattice_features
-from .fit import FitResult, _solve, free_parameters
+from .fit import FitResult, _solve, check_solver, free_parameters
 
 Array = jax.Array
 KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key never matters
@@ -88,8 +89,11 @@ class CalibrationScan(eqx.Module):
         self.raster = raster
         self.pitch = tuple(float(p) for p in np.broadcast_to(pitch, (2,)))
         self.sensitivity = tuple(float(v) for v in np.broadcast_to(sensitivity, (2,)))
-        if min(self.pitch) <= 0:
-            raise ValueError(f"the grating pitch must be > 0 nm, got {self.pitch}")
+        checks.positive("the grating pitch (nm)", self.pitch)
+        checks.positive("the nominal sensitivity (nm/V)", self.sensitivity)
+        checks.positive("u_max (V)", u_max)
+        checks.finite("u0 (V)", u0)
+        checks.finite("t0 (s)", t0)
         self.u_max, self.u0, self.t0 = float(u_max), tuple(float(v) for v in u0), float(t0)
         self.history = (
             None if history is None else tuple(tuple(float(v) for v in h) for h in np.asarray(history))
@@ -417,6 +421,10 @@ def identify(
     Returns:
         An :class:`Identification`: the fitted model and one fit result per stage.
     """
+    check_solver(solver, max_steps, rtol, atol)
+    for b in blur_px:
+        if not 0 <= b <= 64:
+            raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
     start = time.perf_counter()
     features = scan.features()
     model = initial_model(scan, kind, effects, operators, deadzones, levels) if model is None else model

@@ -23,6 +23,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from .. import checks
 from ..config.names import SOLVERS
 from ..model.effects import Creep, RateDependence
 from ..model.hysteresis import (
@@ -170,9 +171,9 @@ def fit_operator(
     Never raises for a solver that stops early: ``converged`` and ``message``
     say so, with the last loss.
     """
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; one of {', '.join(SOLVERS)}")
+    check_solver(solver, max_steps, rtol, atol)
     u, d = jnp.asarray(u, dtype=float), jnp.asarray(d, dtype=float)
+    _check_record(u, d, t)
     if not 0 <= settle < len(d) - 1:
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(d)})")
     d_range = float(d[settle:].max() - d[settle:].min())
@@ -196,6 +197,32 @@ def fit_operator(
         else f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {final:.3e}"
     )
     return FitResult(rebuild(raw), solver, ok, steps, final, seconds, message)
+
+
+def check_solver(solver: str, max_steps: int, rtol: float, atol: float) -> None:
+    """Raise for an unknown solver, a step limit that is not a whole number >= 1, or a tolerance
+    that is not finite and > 0 (naming the argument and the value)."""
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; one of {', '.join(SOLVERS)}")
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps >= 1):
+        raise ValueError(f"max_steps must be a whole number >= 1, got {max_steps!r}")
+    checks.positive("rtol", rtol)
+    checks.positive("atol", atol)
+
+
+def _check_record(u, d, t) -> None:
+    """Input and output of one length, finite, and both moving (a constant one identifies nothing)."""
+    if u.shape[:1] != d.shape[:1] or (t is not None and np.shape(t)[:1] != u.shape[:1]):
+        raise ValueError(
+            f"u {u.shape}, d {d.shape}" + ("" if t is None else f" and t {np.shape(t)}") + " must have "
+            "the same number of samples"
+        )
+    for name, x, unit in (("input u", u, "V"), ("output d", d, "nm")):
+        checks.finite(name, x)
+        if x.size and float(x.max() - x.min()) == 0:
+            raise ValueError(
+                f"{name} is constant ({float(x[0]):g} {unit}): a fit needs a moving input and output"
+            )
 
 
 def _solve(

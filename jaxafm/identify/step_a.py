@@ -100,6 +100,13 @@ def read_calibration(
             f"({retrace.shape} px, {retrace.size} nm) must cover the same raster"
         )
     raster = Raster(trace.size, trace.shape[1], trace.shape[0], line_rate=spec.line_rate_hz)
+    need = np.asarray(trace.size) / 2 / np.asarray(spec.sensitivity_nm_per_v)
+    if need.max() > spec.u_max_v:
+        raise ValueError(
+            f"data.sensitivity_nm_per_v = {spec.sensitivity_nm_per_v} nm/V needs +-{need.max():.3g} V "
+            f"to scan the {trace.size[0]:g} x {trace.size[1]:g} nm image, beyond data.u_max_v = "
+            f"{spec.u_max_v:g} V: check both against the instrument's scan range"
+        )
     return calibration.CalibrationScan(
         trace.z,
         retrace.z,

@@ -118,8 +118,10 @@ class AFM(eqx.Module):
         return _drive(self, sample, jnp.asarray(u, dtype=float), jnp.asarray(t, dtype=float), state, key)
 
     def check_range(self, u: Array) -> None:
+        """Raise for a drive ``u`` (..., 2) V that is not finite or leaves ``+-u_max``."""
         if not checks.is_concrete(u):
             return
+        checks.finite("the drive u (V)", u)
         peak = float(np.max(np.abs(np.asarray(u)))) if np.size(u) else 0.0
         if peak > self.u_max * (1 + 1e-9):
             raise ValueError(
@@ -154,7 +156,18 @@ def default_afm(
     tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3, **scanner_options
 ) -> AFM:
     """The default instrument: ``default_scanner(**scanner_options)``, a 10 nm tip of 20 degrees,
-    a 1 ms feedback lag, and the nominal calibration ``travel / (2 u_range)`` nm/V."""
+    a 1 ms feedback lag, and the nominal calibration ``travel / (2 u_range)`` nm/V.
+
+    Raises:
+        ValueError: naming the argument: a tip radius or lag that is not finite and >= 0, a half
+            angle outside (0, 90) degrees, or a bad scanner option (:func:`default_scanner`).
+    """
+    checks.positive("default_afm: tip_radius (nm)", tip_radius)
+    checks.nonnegative("default_afm: feedback_tau (s)", feedback_tau)
+    if not 0 < tip_half_angle_deg < 90:
+        raise ValueError(
+            f"default_afm: tip_half_angle_deg must be in (0, 90) degrees, got {tip_half_angle_deg}"
+        )
     scanner = default_scanner(**scanner_options)
     u_range = scanner_options.get("u_range", 10.0)
     travel = scanner_options.get("travel", 10_000.0)
@@ -181,6 +194,7 @@ def move(
     key: Optional[Array] = None,
 ) -> tuple:
     """Ramp the drive straight to ``u_target`` (2,) V over ``duration`` s; returns ``(path, state)``."""
+    checks.finite("move: u_target (V)", u_target)
     if not duration > 0 or samples < 1:
         raise ValueError(f"a move needs duration > 0 s and samples >= 1, got {duration} s, {samples}")
     frac = jnp.arange(1, samples + 1)[:, None] / samples
@@ -232,6 +246,8 @@ def line_scan(
     if points < 2:
         raise ValueError(f"a line scan needs points >= 2, got {points}")
     checks.positive("line scan speed (nm/s)", speed)
+    checks.finite("line scan start (nm)", start)
+    checks.finite("line scan end (nm)", end)
     volts = afm.nominal_volts if volts is None else volts
     start, end = jnp.asarray(start, dtype=float), jnp.asarray(end, dtype=float)
     wanted = start + jnp.linspace(0.0, 1.0, points)[:, None] * (end - start)
@@ -269,6 +285,10 @@ class Raster:
         size = tuple(float(s) for s in np.broadcast_to(np.asarray(self.size, dtype=float), (2,)))
         object.__setattr__(self, "size", size)
         object.__setattr__(self, "centre", tuple(float(c) for c in self.centre))
+        if not all(np.isfinite([self.pixels, self.lines])):
+            raise ValueError(
+                f"Raster pixels and lines must be whole numbers, got {self.pixels} and {self.lines}"
+            )
         if not all(np.isfinite(size)) or min(size) <= 0:
             raise ValueError(f"Raster.size must be > 0 nm on both axes, got {self.size}")
         if self.pixels != int(self.pixels) or self.lines != int(self.lines):
@@ -277,11 +297,11 @@ class Raster:
             )
         object.__setattr__(self, "pixels", int(self.pixels))
         object.__setattr__(self, "lines", int(self.lines))
-        if len(self.centre) != 2:
-            raise ValueError(f"Raster.centre must be (x, y) nm, got {self.centre}")
+        if len(self.centre) != 2 or not all(np.isfinite(self.centre)):
+            raise ValueError(f"Raster.centre must be finite (x, y) nm, got {self.centre}")
         if self.pixels < 2 or self.lines < 1:
             raise ValueError(f"Raster needs pixels >= 2 and lines >= 1, got {self.pixels} and {self.lines}")
-        if not self.line_rate > 0:
+        if not 0 < self.line_rate < np.inf:
             raise ValueError(f"Raster.line_rate must be > 0 Hz, got {self.line_rate}")
         if not 0 <= self.overscan <= 1:
             raise ValueError(f"Raster.overscan is a fraction of the width, 0 to 1, got {self.overscan}")

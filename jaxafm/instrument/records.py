@@ -47,8 +47,13 @@ class Record:
 
 def _header(path: Path, delimiter: Optional[str]) -> Optional[list]:
     """Column names from a first line that is not numeric (a leading ``#`` is dropped)."""
-    with open(path) as f:
-        first = f.readline().strip().lstrip("#").strip()
+    try:
+        with open(path, encoding="utf-8") as f:
+            first = f.readline().strip().lstrip("#").strip()
+    except UnicodeDecodeError:
+        raise ValueError(
+            f"{path}: not a text file; a record is delimited numeric text (CSV, TXT, DAT)"
+        ) from None
     if not first:
         raise ValueError(f"{path}: the first line is empty; the record needs data rows")
     names = first.split(delimiter) if delimiter else first.split()
@@ -67,6 +72,28 @@ def _column(spec: Column, header: Optional[list], path: Path, key: str) -> int:
     if spec < 1:
         raise ValueError(f"{path}: {key}={spec} must be a 1-based column number (>= 1)")
     return spec - 1
+
+
+def _name(i: int, header: Optional[list]) -> str:
+    """Column ``i`` (0-based) as the user knows it: its number, and its header name if any."""
+    return f"{i + 1}" + (f" ({header[i]!r})" if header and i < len(header) else "")
+
+
+def _check_distinct(path: Path, header: Optional[list], columns: dict) -> None:
+    """No column is both an input and an output (or twice an input or output).
+
+    Raises:
+        ValueError: naming the column and the keys that map it.
+    """
+    seen = {}
+    for key, cols in columns.items():
+        for i in cols:
+            if i in seen:
+                raise ValueError(
+                    f"{path}: column {_name(i, header)} is mapped twice ({seen[i]} and {key}); "
+                    "input and output must be different columns"
+                )
+            seen[i] = key
 
 
 def read_record(
@@ -130,11 +157,12 @@ def read_record(
     for i in i_in + i_out:
         if i >= data.shape[1]:
             raise ValueError(f"{path}: column {i + 1} requested but the file has {data.shape[1]} columns")
+    _check_distinct(path, header, {"input_columns": i_in, "output_columns": i_out})
     u = data[:, i_in] * VOLTAGE_TO_V[input_unit]
     d = data[:, i_out] * LENGTH_TO_NM[output_unit]
     if sample_rate_hz is not None:
-        if not sample_rate_hz > 0:
-            raise ValueError(f"{path}: sample_rate_hz must be > 0, got {sample_rate_hz}")
+        if not 0 < sample_rate_hz < np.inf:
+            raise ValueError(f"{path}: sample_rate_hz must be a finite rate > 0 Hz, got {sample_rate_hz}")
         t = np.arange(len(data)) / sample_rate_hz
     else:
         t = data[:, _column(time_column, header, path, "time_column")]
@@ -144,6 +172,13 @@ def read_record(
             raise ValueError(f"{path}: {name} column has a non-finite value at data row {row + 1}")
     if np.any(np.diff(t) <= 0):
         raise ValueError(f"{path}: time must increase strictly from row to row")
+    for key, cols, a, unit in (("input_columns", i_in, u, "V"), ("output_columns", i_out, d, "nm")):
+        for i, column in zip(cols, a.T):
+            if np.ptp(column) == 0:
+                raise ValueError(
+                    f"{path}: {key}: column {_name(i, header)} is constant ({column[0]:g} {unit} in all "
+                    f"{len(column)} rows); a record must drive and measure a moving axis"
+                )
     meta = {
         "source": str(path),
         "samples": len(t),

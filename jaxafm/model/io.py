@@ -10,9 +10,11 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import json
+import os
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -51,16 +53,79 @@ def _decode(obj):
 
 
 def save_model(model, path) -> None:
-    """Write ``model`` (any jaxafm scanner, axis, operator or effect) as JSON."""
-    Path(path).write_text(json.dumps({"format": FORMAT, "version": VERSION, "model": _encode(model)}))
+    """Write ``model`` (any jaxafm scanner, axis, operator or effect) as JSON, atomically: a
+    reader (or a run killed while writing) sees the old file or the whole new one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({"format": FORMAT, "version": VERSION, "model": _encode(model)}))
+    tmp.replace(path)
 
 
 def load_model(path):
-    """Read a model written by :func:`save_model`."""
+    """Read a model written by :func:`save_model`, and check that it can be used.
+
+    Raises:
+        ValueError: naming the file: not a saved model, another format version, broken
+            (truncated, edited into something that cannot be built) or not monotone
+            (:func:`check_monotone`).
+    """
     path = Path(path)
-    doc = json.loads(path.read_text())
-    if doc.get("format") != FORMAT:
-        raise ValueError(f"{path} is not a saved jaxafm model (format {doc.get('format')!r})")
+    if not path.is_file():
+        raise FileNotFoundError(f"model file {path} does not exist")
+    try:
+        doc = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not a saved jaxafm model: not JSON ({e})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise ValueError(f"{path} is not a saved jaxafm model (format {found!r})")
     if doc.get("version") != VERSION:
         raise ValueError(f"{path}: model format version {doc.get('version')} is not supported ({VERSION} is)")
-    return _decode(doc["model"])
+    try:
+        model = _decode(doc["model"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{path}: a broken saved model ({type(e).__name__}: {e})") from None
+    try:
+        check_monotone(model)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}; was the file edited by hand?") from None
+    return model
+
+
+def check_monotone(model) -> None:
+    """Refuse a hysteresis model whose loading curve falls somewhere: it cannot be inverted, and
+    it drives a scanner the wrong way. The conditions, for every operator inside ``model``:
+
+    - Prandtl–Ishlinskii: the loading curve's slope between thresholds ``r_i`` and
+      ``r_{i+1}`` is ``w_0 + ... + w_i``, which must be > 0 for every ``i`` (Kuhnen 2003);
+    - dead zones: ``g_0 + g_1 + ... + g_i`` > 0 on each side (the same for the output map);
+    - Preisach: every density >= 0 (a negative one makes some minor loop run backwards);
+    - a straight line: gain > 0 nm/V.
+
+    Raises:
+        ValueError: naming the parameter, the element and its value.
+    """
+    ruled = tuple(_RULES)
+    for key, leaf in jax.tree_util.tree_leaves_with_path(model, is_leaf=lambda m: isinstance(m, ruled)):
+        if isinstance(leaf, ruled):
+            for name, values, floor in _RULES[type(leaf)](leaf):
+                v = np.ravel(np.asarray(values, dtype=float))
+                bad = v < 0 if floor == ">= 0" else v <= 0
+                if bad.any():
+                    i = int(np.argmax(bad))
+                    raise ValueError(
+                        f"{type(leaf).__name__} {jax.tree_util.keystr(key) or '(the model)'}: {name} "
+                        f"must be {floor} for a monotone model, but element {i} is {v[i]:.4g}"
+                    )
+
+
+#: type -> [(what, values, the bound they must keep)]: the conditions of :func:`check_monotone`.
+_RULES = {
+    hysteresis.PrandtlIshlinskii: lambda m: [("the partial sums of weights", np.cumsum(m.weights), "> 0")],
+    hysteresis.Deadzone: lambda m: [
+        ("slope + the partial sums of upper_weights", m.slope + np.cumsum(m.upper_weights), "> 0"),
+        ("slope + the partial sums of lower_weights", m.slope + np.cumsum(m.lower_weights), "> 0"),
+    ],
+    hysteresis.Preisach: lambda m: [("density (lower triangle)", np.tril(m.density), ">= 0")],
+    hysteresis.Linear: lambda m: [("gain", m.gain, "> 0")],
+}

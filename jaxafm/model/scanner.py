@@ -234,7 +234,24 @@ def default_scanner(
     plus an Ornstein–Uhlenbeck wander of ``drift_sigma`` nm/sqrt(s); white
     position noise ``noise_std`` nm. From a virgin state at 0 V (``history=[[0, 0]]``), ``u = 0``
     is ``x = y = 0``.
+
+    Raises:
+        ValueError: naming the argument, for a value that is not finite, a range or travel that
+            is not > 0, or a width, creep rate, wander or noise below 0.
     """
+    for name, value in (("u_range (V)", u_range), ("travel (nm)", travel)):
+        checks.positive(f"default_scanner: {name}", value)
+    for name, value in (
+        ("loop_width", loop_width),
+        ("creep_gamma (per decade)", creep_gamma),
+        ("drift_sigma (nm/sqrt(s))", drift_sigma),
+        ("noise_std (nm)", noise_std),
+    ):
+        checks.nonnegative(f"default_scanner: {name}", value)
+    for name, value in (("coupling", coupling), ("bow (1/nm)", bow), ("drift_nm_per_min", drift_nm_per_min)):
+        checks.finite(f"default_scanner: {name}", value)
+    if not (isinstance(n_operators, (int, np.integer)) and n_operators >= 2):
+        raise ValueError(f"default_scanner: n_operators must be a whole number >= 2, got {n_operators!r}")
 
     def axis(upper_w: tuple, lower_w: tuple) -> Axis:
         pi = pi_with_loop_width(n_operators, 2 * u_range, travel, loop_width)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -36,6 +37,7 @@ from ..identify.step_a import identify_model, run_cycle, simulate_calibration, t
 from ..instrument.afm import Raster, RasterScan, default_afm
 from ..instrument.samples import Indented, Particles
 from ..model.io import load_model, save_model
+from ..model.scanner import Scanner
 from .landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
 from .positioning import (
     LocalScan,
@@ -65,13 +67,33 @@ def particle_field(cfg: RunConfig, grid: LandmarkGrid, D: np.ndarray) -> Particl
     return Particles(jnp.asarray(centres), jnp.asarray(radii))
 
 
+def read_model_file(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
+    """The scanner in ``calibration.model_file`` (None without one), checked.
+
+    Raises:
+        ValueError: naming the key and the file: missing, not a saved model, or not a scanner.
+    """
+    if cfg.calibration.model_file is None:
+        return None
+    path = resolve_data_path(cfg.calibration.model_file, config_path)
+    try:
+        model = load_model(path)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"calibration.model_file: {e}") from None
+    if not isinstance(model, Scanner):
+        raise ValueError(
+            f"calibration.model_file: {path} holds a {type(model).__name__}, not a two-axis scanner "
+            "(a model_*.json written by `jaxafm calibrate` or `jaxafm run`)"
+        )
+    return model
+
+
 def identify_scanner(cfg: Positioning, scan, config_path: Path, log) -> tuple:
     """Step A's model: identified from ``scan``, or read from ``model_file``; and the seconds."""
     spec = cfg.calibration
     if spec.model_file is not None:
-        path = resolve_data_path(spec.model_file, config_path)
-        log(f"step A: the scanner model from {path}")
-        return load_model(path), 0.0
+        log(f"step A: the scanner model from {resolve_data_path(spec.model_file, config_path)}")
+        return read_model_file(cfg, config_path), 0.0
     m = spec.model
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
     ident = identify_model(scan, m, spec.solver, log)
@@ -232,10 +254,7 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
     afm = default_afm(drift_nm_per_min=tuple(cfg.drift_nm_per_min))
     work, grid, D = workspace_layout(cfg)
     afm.check_range(afm.nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
-    if cfg.calibration.model_file is not None:
-        path = resolve_data_path(cfg.calibration.model_file, config_path)
-        if not path.is_file():
-            raise ValueError(f"calibration.model_file: {path} does not exist")
+    read_model_file(cfg, config_path)
     return afm, work, grid, D, particle_field(cfg, grid, D)
 
 
@@ -324,7 +343,10 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                     f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
                     "step B cannot map targets (no results for this stage)"
                 )
-                rows += [(name + f" ({m})", None, float("nan")) for m in cfg.landmarks.interpolation]
+                rows += [
+                    (name + f" ({m})", None, "landmarks missing from the image")
+                    for m in cfg.landmarks.interpolation
+                ]
                 continue
             maps = {
                 f" ({m})": LandmarkMap(M, D, m, cfg.landmarks.m, cfg.landmarks.degree)
@@ -334,6 +356,10 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
             targets, which = targets[inside], which[inside]
             found += f", {len(targets)} inside the landmark grid"
         log(f"  {found}; {'pressing and ' if with_b else ''}imaging took {prep_s:.0f} s")
+        if len(targets) == 0:
+            log(f"  {name}: no particle to go to (no results for this stage)")
+            rows += [(name + suffix, None, "no particle found in the image") for suffix in maps]
+            continue
         truth, radii = particles.centres[which], particles.radii[which]
         directions, distances = _push_goals(cfg, targets, which, len(particles.radii), box)
         keys = jax.random.split(key_trials, len(targets))
@@ -384,7 +410,8 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
             }
     log(_table(rows, metrics))
     _figures(figures, work, out)
-    plots.stage_errors(errors, out / "errors.png")
+    if errors:  # else no stage ran: the table says why
+        plots.stage_errors(errors, out / "errors.png")
     np.savez_compressed(out / "trials.npz", **arrays)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return metrics
@@ -413,8 +440,8 @@ def _table(rows, metrics) -> str:
     head = f"{'stage':22s} {'targets':>7s} {'median':>9s} {'p95':>9s} {'worst':>9s} {'scanning':>9s}"
     lines = [head, "-" * len(head)]
     for label, s, scan_s in rows:
-        if s is None:
-            lines.append(f"{label:22s} {'failed: landmarks missing from the image':>44s}")
+        if s is None:  # a stage that could not run: scan_s holds why
+            lines.append(f"{label:22s} {'failed: ' + scan_s:>44s}")
             continue
         lines.append(
             f"{label:22s} {s['targets']:7d} {s['median_nm']:7.1f}nm {s['p95_nm']:7.1f}nm "

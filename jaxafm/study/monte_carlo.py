@@ -31,11 +31,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import yaml
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .. import plots
-from ..config import STUDY_PARAMETERS, StudyConfig, resolve_data_path
+from ..config import STUDY_PARAMETERS, StudyConfig
 from ..identify.step_a import run_cycle, simulate_calibration, twin_state
 from ..instrument.afm import default_afm
 from ..instrument.samples import Indented, Particles, Plane
@@ -45,6 +44,7 @@ from ..position.positioning import LocalScan, Positioner, Push
 from ..position.strategy import (
     find_landmarks,
     identify_scanner,
+    read_model_file,
     stage_key,
     survey,
     trials,
@@ -330,20 +330,6 @@ def chunk_path(out: Path, a: int, b: int) -> Path:
     return out / "chunks" / f"trials_{a:08d}_{b:08d}.npz"
 
 
-def _check_resume(cfg: StudyConfig, out: Path) -> None:
-    saved = out / "study.yaml"
-    if not saved.is_file():
-        raise ValueError(f"--resume: {out} holds no study (no study.yaml): start it without --resume")
-    before = yaml.safe_load(saved.read_text())
-    now = cfg.model_dump(mode="json")
-    changed = sorted(k for k in set(before) | set(now) if before.get(k) != now.get(k))
-    if changed:
-        raise ValueError(
-            f"--resume: the config differs from the one the study in {out} started with "
-            f"(keys: {', '.join(changed)}); restore them, or start a new study with --out"
-        )
-
-
 def run(
     cfg: StudyConfig,
     config_path: Path,
@@ -353,7 +339,11 @@ def run(
     resume: bool = False,
     devices=None,
 ) -> dict:
-    """The whole study into ``out``; returns the metrics (see the module docstring)."""
+    """The whole study into ``out``; returns the metrics (see the module docstring).
+
+    ``resume``: keep the chunks and scanner models already in ``out`` (the caller has checked
+    that they come from the same config: ``jaxafm study`` does, through the run manifest).
+    """
     from tqdm.auto import tqdm
 
     work, grid, D = _layout(cfg)
@@ -361,19 +351,8 @@ def run(
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
-    if (
-        cfg.calibration.model_file is not None
-        and not resolve_data_path(cfg.calibration.model_file, config_path).is_file()
-    ):
-        raise ValueError(
-            f"calibration.model_file: {resolve_data_path(cfg.calibration.model_file, config_path)} "
-            "does not exist"
-        )
-    if resume:
-        _check_resume(cfg, out)
-    else:
-        prepare()
-        _atomic(out / "study.yaml", lambda f: f.write_text(yaml.safe_dump(cfg.model_dump(mode="json"))))
+    read_model_file(cfg, config_path)
+    prepare()
     todo = [c for c in _chunks(cfg) if not chunk_path(out, c[1], c[2]).is_file()]
     done = cfg.trials - sum(b - a for _, a, b in todo)
     info = _read_json(out / "scanners.json")
