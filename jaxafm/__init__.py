@@ -23,7 +23,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: F401  (jaxafm.__version__)
 
 #: public name -> the module that defines it
 _HOMES = {
@@ -63,6 +63,10 @@ _HOMES = {
     "PrandtlIshlinskii": "model.hysteresis",
     "Preisach": "model.hysteresis",
     "play": "model.hysteresis",
+    "load_model": "model.io",
+    "predict": "model.apply",
+    "read_model_file": "model.io",
+    "save_model": "model.io",
     "Axis": "model.scanner",
     "Scanner": "model.scanner",
     "default_scanner": "model.scanner",
@@ -102,12 +106,16 @@ __all__ = [  # = sorted(_HOMES); a literal list, for static tools
     "default_scanner",
     "line_scan",
     "load_image",
+    "load_model",
     "move",
     "play",
+    "predict",
     "press",
     "raster_scan",
     "read_image",
+    "read_model_file",
     "save_image",
+    "save_model",
 ]
 
 
@@ -138,6 +146,7 @@ if TYPE_CHECKING:  # what static tools (type checkers, editors, the API docs) se
         Plane,
         Tip,
     )
+    from .model.apply import predict
     from .model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, Noise, RateDependence
     from .model.hysteresis import (
         AbstractHysteresis,
@@ -149,4 +158,5 @@ if TYPE_CHECKING:  # what static tools (type checkers, editors, the API docs) se
         Preisach,
         play,
     )
+    from .model.io import load_model, read_model_file, save_model
     from .model.scanner import Axis, Scanner, default_scanner

@@ -65,6 +65,28 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     fig.savefig(path, dpi=120)
 
 
+def compensated_drive(t, u, cycle: int, wanted, model, path, title: str = "") -> None:
+    """A compensating drive and what the model does with it: the drive (V) against time with
+    its initialisation cycle shaded, the wanted and model outputs (µm), and their difference
+    (nm) over the trajectory."""
+    fig, (ax_u, ax_x, ax_e) = subplots(3, 1, figsize=(11, 8.5), sharex=True)
+    ax_u.plot(t, u, lw=1)
+    ax_u.axvspan(t[0], t[cycle - 1], color="0.85", label="initialisation cycle {u2, u1}")
+    ax_u.set(ylabel="drive u [V]")
+    ax_u.legend(fontsize=8, loc="upper right")
+    ax_x.plot(t[cycle:], wanted / 1e3, color="0.6", lw=2.5, label="wanted")
+    ax_x.plot(t[cycle:], model / 1e3, lw=0.9, label="model, driven by u")
+    ax_x.set(ylabel="output [µm]")
+    ax_x.legend(fontsize=8, loc="upper right")
+    ax_e.plot(t[cycle:], model - wanted, lw=0.9)
+    ax_e.set(xlabel="time [s]", ylabel="model - wanted [nm]")
+    for ax in (ax_u, ax_x, ax_e):
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def raster_scan(trace, retrace, path, raster, path_file, title: str = "", every: int = 16) -> None:
     """Trace, retrace and their difference (nm) at the nominal pixel positions, and the true
     tip path: where every ``every``-th line and column of pixels really was, over the

@@ -1,5 +1,6 @@
 """AFM images: the real Nanosurf grating, TIFF, Gwyddion and TopoStats files, the jaxafm
-image format, scans as images, and bad input."""
+image format, scans as images, bad input, and the image metadata a config gives (``ImageFile``)
+through every mode that reads images."""
 
 import json
 from pathlib import Path
@@ -8,14 +9,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import tifffile
+import yaml
 
 import jaxafm
+from jaxafm.config import CalibrateConfig, ConfigError, DiagnoseConfig, ImageFile, load_config
 from jaxafm.instrument.afm import Raster, default_afm, raster_scan
 from jaxafm.instrument.images import (
     AFMImage,
     from_scan,
     load_image,
     read_image,
+    read_image_file,
     save_image,
 )
 from jaxafm.instrument.samples import Grating
@@ -79,8 +84,6 @@ def test_image_format_refuses_other_npz_and_other_versions(tmp_path):
 
 
 def test_tiff_needs_its_size_and_converts_units(tmp_path):
-    import tifffile
-
     z = np.arange(12, dtype=np.float32).reshape(3, 4) / 1000  # µm
     tifffile.imwrite(tmp_path / "h.tif", z)
     with pytest.raises(ValueError, match="size_nm"):
@@ -197,3 +200,204 @@ def test_real_image_becomes_a_sample_the_afm_can_scan():
     rows, cols = np.array([0, 50, 127]), np.array([3, 64, 100])
     xy = np.stack([im.x[cols], im.y[rows]], axis=-1)
     np.testing.assert_allclose(sample.height(jnp.asarray(xy)), im.z[rows, cols], atol=1e-9)
+
+
+# ---------------------------------------------------------------- image metadata from a config
+
+Z_UM = np.arange(48.0).reshape(6, 8) / 8  # 6 lines of 8 px, µm: binary fractions, exact in nm
+
+
+def _tiff(path: Path, z=Z_UM) -> Path:
+    tifffile.imwrite(path, np.asarray(z, dtype=np.float32))  # no resolution tags, no unit
+    return path
+
+
+def _config(tmp_path: Path, doc: dict, schema):
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(doc, allow_unicode=True))
+    return load_config(path, schema), path
+
+
+def _read(tmp_path: Path, spec) -> AFMImage:
+    """``spec`` as a config's image key, read as every mode reads it."""
+    return read_image_file(ImageFile.model_validate(spec), tmp_path / "c.yaml", "image")
+
+
+def test_tiff_pair_with_size_from_the_calibrate_config(tmp_path):
+    from jaxafm.identify.step_a import read_calibration
+
+    _tiff(tmp_path / "trace.tif")
+    _tiff(tmp_path / "retrace.tif", Z_UM[:, ::-1])
+    image = {"size_nm": [8000, 6000], "z_unit": "um"}
+    data = {
+        "trace": {"path": "trace.tif", **image},
+        "retrace": {"path": "retrace.tif", "direction": "retrace", "line_rate_hz": 2.0, **image},
+        "sensitivity_nm_per_v": [500.0, 500.0],
+        "line_rate_hz": 2.0,
+    }
+    cfg, path = _config(tmp_path, {"data": data}, CalibrateConfig)
+    scan = read_calibration(cfg.data, cfg.grating, path)
+    assert np.array_equal(np.asarray(scan.trace), Z_UM * 1000)
+    assert np.array_equal(np.asarray(scan.retrace), Z_UM[:, ::-1] * 1000)
+    assert scan.raster.size == (8000.0, 6000.0) and scan.raster.pixel_size == (1000.0, 1000.0)
+    assert scan.raster.line_rate == 2.0
+
+
+@pytest.mark.parametrize("fast_axis", ["x", "y"])
+def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
+    """A 1-D grating of 16 px pitch over 128 px of 4096 nm: the diagnosis fits a 512 nm pitch.
+    Stored with its lines as columns (fast_axis: y), it is transposed first."""
+    from jaxafm.diagnose.run import run
+
+    x = np.arange(128)
+    z_um = np.where(x % 16 < 8, 0.0, 0.03) + np.random.default_rng(0).normal(0, 1e-4, (32, 128))
+    _tiff(tmp_path / "g.tif", z_um if fast_axis == "x" else z_um.T)
+    image = {"path": "g.tif", "size_nm": [4096, 1024], "z_unit": "um", "fast_axis": fast_axis}
+    cfg, path = _config(tmp_path, {"image": image, "candidates": ["bow"], "max_steps": 5}, DiagnoseConfig)
+    out = tmp_path / "out"
+    run(cfg, path, out, prepare=out.mkdir, log=lambda line: None)
+    doc = json.loads((out / "diagnosis.json").read_text())
+    assert doc["data"]["pixels"] == [32, 128] and doc["data"]["pixel_size_nm"] == [32.0, 32.0]
+    assert doc["nominal"]["fitted"]["pitch"] == pytest.approx(512.0, abs=0.1)
+    assert doc["nominal"]["fitted"]["phase_rise"] == pytest.approx(7.5 * 32, abs=0.5)  # edge at 7.5 px
+
+
+def test_scans_read_their_pairs_through_the_config_keys(tmp_path):
+    from jaxafm.diagnose.run import run
+
+    _tiff(tmp_path / "t.tif")
+    pair = {"trace": "t.tif", "retrace": {"path": "t.tif", "size_nm": [8000, 6000]}, "line_rate_hz": 1.0}
+    scans = {"grating": {"pitch_nm": 400, "edge_width_nm": 20}, "pairs": [pair, pair]}
+    cfg, path = _config(tmp_path, {"scans": scans}, DiagnoseConfig)
+    with pytest.raises(ValueError, match=r"c.yaml: scans.pairs\[0\].trace: .*t.tif: .*give size_nm"):
+        run(cfg, path, tmp_path / "out", log=lambda line: None)
+
+
+def test_a_plain_path_still_names_an_image(tmp_path):
+    scan = _nanosurf(tmp_path, ["1", "2", "3", "4"])
+    for image in ("scan.txt", {"path": "scan.txt"}):
+        cfg, path = _config(tmp_path, {"image": image}, DiagnoseConfig)
+        im = read_image_file(cfg.image, path, "image")
+        assert np.array_equal(im.z, [[1, 2], [3, 4]]) and im.meta["source"] == "scan.txt"
+        assert im.meta == read_image(scan).meta | {"source": "scan.txt"}  # nothing given, nothing noted
+    cfg, _ = _config(
+        tmp_path,
+        {"data": {"trace": "a.txt", "retrace": "b.txt", "sensitivity_nm_per_v": [1, 1], "line_rate_hz": 1}},
+        CalibrateConfig,
+    )
+    assert cfg.data.trace == ImageFile(path="a.txt") and cfg.data.retrace.path == "b.txt"
+
+
+def test_z_unit_converts_exactly_and_first_row_top_flips(tmp_path):
+    _tiff(tmp_path / "h.tif")
+    im = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600], "z_unit": "um"})
+    assert np.array_equal(im.z, Z_UM * 1000) and im.pixel_size == (100.0, 100.0)
+    assert im.meta["given"] == {"size_nm": [800.0, 600.0], "z_unit": "um"}
+    top = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600], "z_unit": "um", "first_row": "top"})
+    assert np.array_equal(top.z, Z_UM[::-1] * 1000) and "flipped" in top.meta["row_order"]
+    nm = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600]})
+    assert np.array_equal(nm.z, Z_UM) and "assumed" in nm.meta["converted"]  # no z_unit: nm
+
+
+def test_fast_axis_y_transposes_and_size_is_of_the_transposed_image(tmp_path):
+    _tiff(tmp_path / "h.tif", Z_UM.T)  # 8 stored rows of 6 px: the lines are its columns
+    im = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600], "fast_axis": "y"})
+    assert np.array_equal(im.z, Z_UM) and im.pixel_size == (100.0, 100.0)
+
+
+def test_gwyddion_row_order_from_the_config_wins_and_is_noted(tmp_path):
+    from gwyfile.objects import GwyContainer, GwyDataField
+
+    c = GwyContainer()
+    c["/0/data/title"] = "Height"
+    c["/0/data"] = GwyDataField(np.arange(12.0).reshape(3, 4) * 1e-9, xreal=4e-6, yreal=3e-6)
+    c.tofile(str(tmp_path / "a.gwy"))
+    im = _read(tmp_path, {"path": "a.gwy", "first_row": "bottom"})
+    np.testing.assert_allclose(im.z, np.arange(12.0).reshape(3, 4))  # as stored: not flipped
+    assert im.meta["file"] == {"first_row": "top"}
+
+
+def test_a_scalar_size_giving_non_square_pixels_is_refused(tmp_path):
+    _tiff(tmp_path / "h.tif")  # 8 px wide, 6 lines
+    with pytest.raises(ValueError, match=r"non-square pixels") as info:
+        _read(tmp_path, {"path": "h.tif", "size_nm": 8000})
+    message = str(info.value)
+    assert "[8000, 6000]" in message and "[10666.7, 8000]" in message
+    assert "image" in message and "h.tif" in message and "c.yaml" in message
+    square = _read(tmp_path, {"path": "h.tif", "size_nm": [8000, 6000]})
+    assert square.pixel_size == (1000.0, 1000.0)
+
+
+def test_a_size_that_disagrees_with_the_files_is_refused_beyond_one_percent(tmp_path):
+    _nanosurf(tmp_path, ["1", "2", "3", "4"], width="2.00 μm")  # 2000 x 2000 nm
+    near = _read(tmp_path, {"path": "scan.txt", "size_nm": 2010})  # 0.5 %: the config's is used
+    assert near.size == (2010.0, 2010.0) and near.meta["file"] == {"size_nm": [2000.0, 2000.0]}
+    with pytest.raises(
+        ValueError, match=r"\[2100, 2100\] nm disagrees with the file's own size \[2000, 2000\]"
+    ):
+        _read(tmp_path, {"path": "scan.txt", "size_nm": 2100})
+
+
+def test_a_z_unit_that_disagrees_with_the_files_is_refused(tmp_path):
+    _nanosurf(tmp_path, ["1", "2", "3", "4"], z_unit="nm")
+    assert np.array_equal(_read(tmp_path, {"path": "scan.txt", "z_unit": "nm"}).z, [[1, 2], [3, 4]])
+    with pytest.raises(
+        ValueError, match=r"image: .*scan.txt: z_unit = 'um' disagrees with the file's own height unit 'nm'"
+    ):
+        _read(tmp_path, {"path": "scan.txt", "z_unit": "um"})
+
+
+def test_direction_and_line_rate_from_the_config_win_and_are_noted(tmp_path):
+    _nanosurf(tmp_path, ["1", "2", "3", "4"])  # its name says Fwd: a trace
+    im = _read(tmp_path, {"path": "scan.txt", "direction": "retrace", "line_rate_hz": 0.5})
+    assert im.meta["direction"] == "retrace" and im.meta["line_rate_hz"] == 0.5
+    assert im.meta["file"] == {"direction": "trace"}
+
+
+def test_a_tiff_without_size_is_refused_naming_the_key(tmp_path):
+    _tiff(tmp_path / "h.tif")
+    with pytest.raises(ValueError, match=r"c.yaml: image: .*h.tif: .*give size_nm"):
+        _read(tmp_path, "h.tif")
+
+
+@pytest.mark.parametrize(
+    "image, match",
+    [
+        ({"size_nm": float("nan")}, r"image.size_nm[^\n]*finite number \(got nan\)"),
+        ({"size_nm": [8000, -1]}, r"image.size_nm[^\n]*greater than 0 \(got -1\)"),
+        ({"size_nm": [1, 2, 3]}, r"image.size_nm: List should have at most 2 items"),
+        ({"z_unit": "V"}, r"image.z_unit: Input should be 'pm', [^\n]*\(got 'V'\)"),
+        ({"line_rate_hz": 0}, r"image.line_rate_hz: Input should be greater than 0"),
+        ({"fast_axis": "z"}, r"image.fast_axis: Input should be 'x' or 'y' \(got 'z'\)"),
+        ({"first_row": "left"}, r"image.first_row: Input should be 'bottom' or 'top'"),
+        ({"direction": "up"}, r"image.direction: Input should be 'trace' or 'retrace'"),
+        ({"size": 8000}, r"image.size: unknown key"),
+    ],
+)
+def test_bad_image_metadata_is_refused_by_the_schema_naming_the_key(tmp_path, image, match):
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump({"image": {"path": "h.tif", **image}}))
+    with pytest.raises(ConfigError, match=match):
+        load_config(path, DiagnoseConfig)
+
+
+@pytest.mark.parametrize(
+    "trace, match",
+    [
+        ({"line_rate_hz": 4.0}, r"data: trace.line_rate_hz = 4 Hz disagrees with line_rate_hz = 2 Hz"),
+        ({"direction": "retrace"}, r"data: trace.direction is 'retrace', but the trace key holds"),
+    ],
+)
+def test_a_pair_refuses_image_metadata_that_contradicts_it(tmp_path, trace, match):
+    data = {
+        "trace": {"path": "t.tif", **trace},
+        "retrace": "r.tif",
+        "sensitivity_nm_per_v": [500.0, 500.0],
+        "line_rate_hz": 2.0,
+    }
+    with pytest.raises(ConfigError, match=match):
+        _config(tmp_path, {"data": data}, CalibrateConfig)
+    pair = {k: v for k, v in data.items() if k != "sensitivity_nm_per_v"}
+    scans = {"grating": {"pitch_nm": 400, "edge_width_nm": 20}, "pairs": [pair, pair]}
+    with pytest.raises(ConfigError, match=match.replace("data:", "scans.pairs.0:")):
+        _config(tmp_path, {"scans": scans}, DiagnoseConfig)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxafm"
-LEAVES = {"config", "checks", "plots", "_precision", "data"}
+LEAVES = {"config", "checks", "plots", "_precision", "_version", "data"}
 BELOW = {
     "model": set(),
     "instrument": {"model"},

@@ -43,6 +43,8 @@ def _launch(config: Path, out: Optional[Path], flags: dict, command: str, job: s
         "run": configs.RunConfig,
         "study": configs.StudyConfig,
         "diagnose": configs.DiagnoseConfig,
+        "predict": configs.PredictConfig,
+        "compensate": configs.CompensateConfig,
     }[command]
     folder = None
     try:
@@ -121,6 +123,24 @@ def diagnose(
     """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
     held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
     _launch(config, out, dict(overwrite=overwrite, debug=debug), "diagnose", "diagnose.run")
+
+
+@app.command()
+def predict(
+    config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG
+):
+    """Apply a saved model (model_*.json) to a record's input; write the prediction
+    (prediction.csv), its errors where the record has measured output (metrics.json) and predict.png."""
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "predict", "identify.predict")
+
+
+@app.command()
+def compensate(
+    config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG
+):
+    """The drive that makes a saved one-axis model follow a wanted trajectory (CSV or triangle), after
+    the initialisation cycle; write drive.csv (t_s, u_v), tracking.csv, metrics.json, compensate.png."""
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "compensate", "identify.compensate")
 
 
 @app.command()

@@ -49,6 +49,8 @@ FIXED_OUTPUTS = {
         "scanners/*",
     ),
     "diagnose": ("metrics.json", "diagnosis.json", "residuals.png", "report.md"),
+    "predict": ("metrics.json", "prediction.csv", "predict*.png"),
+    "compensate": ("metrics.json", "drive.csv", "tracking.csv", "compensate.png"),
 }  # what each command writes (glob patterns relative to its folder), besides its models
 RESUMABLE = ("study",)
 
@@ -254,7 +256,7 @@ class RunFolder:
         return self.saved
 
     def _write(self, status: str, files=(), error: str = "") -> None:
-        from .. import __version__
+        from .._version import __version__
 
         doc = {
             "format": FORMAT,

@@ -1,14 +1,17 @@
 """YAML run configurations, validated by pydantic schemas before any work starts.
 
-One schema per command (``fit``, ``calibrate``, ``run``, ``study``, ``diagnose``), built from
-shared parts: the strict base, the loader and data paths, and one hysteresis-model spec
-(:class:`HysteresisSpec`) in ``common``; the names configs are checked against in ``names``.
+One schema per command (``fit``, ``calibrate``, ``run``, ``study``, ``diagnose``, and ``predict``
+and ``compensate`` in ``apply``), built from
+shared parts: the strict base, the loader and data paths, one hysteresis-model spec
+(:class:`HysteresisSpec`) and one image-file spec (:class:`ImageFile`, a path or a mapping with the
+metadata a file format may lack) in ``common``; the names configs are checked against in ``names``.
 Errors name the file, the key and the value, and say what is allowed.
 
 This package imports no JAX: checking a YAML file is quick, and every layer's ``run(cfg, ...)``
 job can take its config from here.
 """
 
+from .apply import CompensateConfig, PredictConfig, Trajectory, Triangle
 from .calibrate import (
     CalibrateConfig,
     CalibrationImages,
@@ -21,6 +24,8 @@ from .calibrate import (
 from .common import (
     ConfigError,
     HysteresisSpec,
+    ImageFile,
+    ImagePair,
     RecordData,
     Solver,
     load_config,
@@ -63,6 +68,7 @@ __all__ = [
     "CalibrationImages",
     "CalibrationModel",
     "CalibrationSolver",
+    "CompensateConfig",
     "Compensation",
     "ConfigError",
     "DiagnoseConfig",
@@ -73,11 +79,14 @@ __all__ = [
     "Distribution",
     "Grating",
     "HysteresisSpec",
+    "ImageFile",
+    "ImagePair",
     "LandmarkSpec",
     "LocalScanSpec",
     "ModelSpec",
     "ParticleField",
     "Positioning",
+    "PredictConfig",
     "PushSpec",
     "RecordData",
     "RunConfig",
@@ -89,6 +98,8 @@ __all__ = [
     "Solver",
     "StepA",
     "StudyConfig",
+    "Trajectory",
+    "Triangle",
     "Workspace",
     "check_effect_names",
     "check_landmark_grid",

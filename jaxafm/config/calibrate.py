@@ -8,7 +8,16 @@ from typing import Annotated, Literal, Optional
 
 from pydantic import Field, field_validator, model_validator
 
-from .common import HysteresisKind, HysteresisSpec, ModelName, Operators, Seed, Solver, Strict
+from .common import (
+    HysteresisKind,
+    HysteresisSpec,
+    ImagePair,
+    ModelName,
+    Operators,
+    Seed,
+    Solver,
+    Strict,
+)
 from .names import MODEL_EFFECTS, check_effect_names
 
 
@@ -35,17 +44,15 @@ class SimulatedCalibration(Strict):
         return self
 
 
-class CalibrationImages(Strict):
-    """A measured trace/retrace pair (any format ``jaxafm.instrument.images.read_image`` reads)
-    and how the instrument drove it; the scan is centred on the scanner's zero."""
+class CalibrationImages(ImagePair):
+    """A measured trace/retrace pair (``ImageFile``s: any format
+    ``jaxafm.instrument.images.read_image`` reads), its line rate and how the instrument drove
+    it; the scan is centred on the scanner's zero."""
 
-    trace: str = Field(description="image file, relative to the config file")
-    retrace: str = Field(description="image file, relative to the config file")
     sensitivity_nm_per_v: list[Annotated[float, Field(gt=0)]] = Field(
         min_length=2, max_length=2, description="nominal x, y calibration"
     )
     u_max_v: float = Field(10.0, gt=0)
-    line_rate_hz: float = Field(gt=0)
     history_v: Optional[list[Annotated[list[float], Field(min_length=2, max_length=2)]]] = Field(
         None,
         description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]",

@@ -1,21 +1,24 @@
 """What every command's configuration shares: the strict schema base, the error type, the YAML
-loader, data paths, the hysteresis-model spec and the measured-record spec.
+loader, data paths, the hysteresis-model spec, the measured-record spec and the image-file spec.
 
 Units as everywhere in jaxafm (``docs/conventions.md``): nm, s, V; a key's unit is in its name.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .names import LENGTH_TO_NM, SOLVERS, VOLTAGE_TO_V
 
 Solver = Literal[SOLVERS]  # type: ignore[valid-type]
 HysteresisKind = Literal["pi", "gpi", "preisach"]
+LengthUnit = Literal[tuple(LENGTH_TO_NM)]  # type: ignore[valid-type]
+Length = Annotated[float, Field(gt=0)]
 
 #: The limits of :class:`HysteresisSpec`, the same for every command (see its docstring).
 MAX_OPERATORS = 200
@@ -71,8 +74,76 @@ class RecordData(Strict):
     time_column: Optional[Union[int, str]] = None
     sample_rate_hz: Optional[float] = Field(None, gt=0)
     input_unit: Literal[tuple(VOLTAGE_TO_V)] = "V"  # type: ignore[valid-type]
-    output_unit: Optional[Literal[tuple(LENGTH_TO_NM)]] = None  # type: ignore[valid-type]
+    output_unit: Optional[LengthUnit] = None
     delimiter: Optional[str] = None
+
+
+class ImageFile(Strict):
+    """An AFM image file a config names, with what its format may lack; a plain string is its
+    ``path`` alone. Given metadata wins over the file's and is noted in the image's ``meta``,
+    but a file's own size must agree within 1 % and its own height unit exactly
+    (``jaxafm.instrument.images.read_image``; ``docs/instrument.md``)."""
+
+    path: str = Field(description="image file, relative to the config file, or builtin:NAME")
+    size_nm: Optional[Annotated[list[Length], Field(min_length=1, max_length=2)]] = Field(
+        None,
+        description="nm: [width along the scan lines (x), height across them (y)], or one number "
+        "for a square scan; default: the file's (a TIFF has none)",
+    )
+    z_unit: Optional[LengthUnit] = Field(
+        None, description="unit of the stored heights; default: the file's, nm for a TIFF"
+    )
+    line_rate_hz: Optional[float] = Field(
+        None, gt=0, description="Hz: lines (trace + retrace) per second; default: the file's, if any"
+    )
+    fast_axis: Literal["x", "y"] = Field(
+        "x", description="the image axis the scan lines run along; y: transposed, so that they are rows"
+    )
+    first_row: Optional[Literal["bottom", "top"]] = Field(
+        None,
+        description="where row 0 lies: bottom (the lowest y, scanned first) or top (flipped); "
+        "default: the file's (Gwyddion: top), else bottom",
+    )
+    direction: Optional[Literal["trace", "retrace"]] = Field(
+        None, description="the scan direction the file holds; default: the file's, if any"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _path_alone(cls, value):
+        return {"path": value} if isinstance(value, str) else value
+
+    @field_validator("size_nm", mode="before")
+    @classmethod
+    def _one_number(cls, value):
+        return value if value is None or isinstance(value, (list, tuple)) else [value]
+
+
+class ImagePair(Strict):
+    """A trace/retrace pair of image files and its line rate; an image's own ``direction`` and
+    ``line_rate_hz``, where given, must agree with the pair's."""
+
+    trace: ImageFile = Field(description="the trace image: a path, relative to the config file, or a mapping")
+    retrace: ImageFile = Field(
+        description="the retrace image: a path, relative to the config file, or a mapping"
+    )
+    line_rate_hz: float = Field(gt=0, description="lines (trace + retrace) per second")
+
+    @model_validator(mode="after")
+    def _images_agree(self):
+        for key in ("trace", "retrace"):
+            image = getattr(self, key)
+            if image.direction not in (None, key):
+                raise ValueError(
+                    f"{key}.direction is {image.direction!r}, but the {key} key holds the {key} "
+                    f"image: remove {key}.direction or swap the files"
+                )
+            if image.line_rate_hz is not None and not math.isclose(image.line_rate_hz, self.line_rate_hz):
+                raise ValueError(
+                    f"{key}.line_rate_hz = {image.line_rate_hz:g} Hz disagrees with line_rate_hz = "
+                    f"{self.line_rate_hz:g} Hz: give the pair's line rate once, as line_rate_hz"
+                )
+        return self
 
 
 def _format(error: ValidationError, path: Path) -> str:

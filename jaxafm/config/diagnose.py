@@ -6,7 +6,7 @@ from typing import Literal, Optional
 
 from pydantic import Field, model_validator
 
-from .common import HysteresisKind, HysteresisSpec, RecordData, Seed, Strict
+from .common import HysteresisKind, HysteresisSpec, ImageFile, ImagePair, RecordData, Seed, Strict
 from .names import check_effect_names
 
 
@@ -48,11 +48,10 @@ class DiagnoseSimulation(Strict):
         return self
 
 
-class DiagnoseImage(Strict):
-    """One image of a 1-D grating (any format ``jaxafm.instrument.images.read_image`` reads),
-    lines along the slow axis; rows are taken in scan order (row 0 first)."""
-
-    path: str = Field(description="image file, relative to the config file, or builtin:NAME")
+class DiagnoseImage(ImageFile):
+    """One image of a 1-D grating (an ``ImageFile``: any format
+    ``jaxafm.instrument.images.read_image`` reads), lines along the slow axis; rows are taken in
+    scan order (row 0 first)."""
 
 
 class ScanGrating(Strict):
@@ -63,13 +62,10 @@ class ScanGrating(Strict):
     tip_half_angle_deg: float = Field(20.0, gt=0, lt=90)
 
 
-class ScanFiles(Strict):
-    """One trace/retrace pair (any format ``jaxafm.instrument.images.read_image`` reads), both
-    left to right, row 0 scanned first, and how fast it was scanned."""
+class ScanFiles(ImagePair):
+    """One trace/retrace pair (``ImageFile``s: any format ``jaxafm.instrument.images.read_image``
+    reads), both left to right, row 0 scanned first, and how fast it was scanned."""
 
-    trace: str = Field(description="image file, relative to the config file")
-    retrace: str = Field(description="image file, relative to the config file")
-    line_rate_hz: float = Field(gt=0, description="lines (trace + retrace) per second")
     overscan: float = Field(0.0, ge=0, le=1, description="fraction of the width scanned beyond each end")
 
 

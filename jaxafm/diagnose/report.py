@@ -46,6 +46,8 @@ def autocorrelation(r: np.ndarray, max_lag: int = MAX_LAG) -> np.ndarray:
     """``rho_k``, k = 1..max_lag, of the mean-removed ``r`` (T,)."""
     r = r - r.mean()
     den = float(r @ r)
+    if den == 0:  # a residual without variation (a perfect fit) is correlated with nothing
+        return np.zeros(max_lag)
     return np.array([float(r[:-k] @ r[k:]) / den for k in range(1, max_lag + 1)])
 
 
@@ -53,6 +55,8 @@ def cross_correlation(r: np.ndarray, u: np.ndarray, max_lag: int = MAX_LAG) -> n
     """``rho_ru(k)`` for k = -max_lag..max_lag: ``r`` at t + k against ``u`` at t."""
     r, u = r - r.mean(), u - u.mean()
     den = np.sqrt(float(r @ r) * float(u @ u))
+    if den == 0:
+        return np.zeros(2 * max_lag + 1)
     out = []
     for k in range(-max_lag, max_lag + 1):
         a, b = (r[k:], u[: len(u) - k]) if k >= 0 else (r[:k], u[-k:])

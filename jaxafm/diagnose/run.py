@@ -95,10 +95,9 @@ def _load(cfg, config_path: Path):
 
 
 def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
-    from ..instrument.images import read_image
+    from ..instrument.images import read_image_file
 
-    image = read_image(resolve_data_path(cfg.image.path, config_path))
-    image = dataclasses.replace(image, meta=image.meta | {"source": cfg.image.path})  # as the config gives it
+    image = read_image_file(cfg.image, config_path, "image")
     log(
         f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
         "scanner (fast-axis nonlinearity)"
@@ -115,7 +114,7 @@ def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
 
 def _scan_pairs(sc, config_path: Path, log) -> list:
     """The configured trace/retrace pairs: simulated, or read from files."""
-    from ..instrument.images import read_image
+    from ..instrument.images import read_image_file
 
     if sc.simulate is not None:
         s = sc.simulate
@@ -130,12 +129,14 @@ def _scan_pairs(sc, config_path: Path, log) -> list:
         )
     pairs = []
     for i, p in enumerate(sc.pairs):
-        tr, re = (read_image(resolve_data_path(f, config_path)) for f in (p.trace, p.retrace))
+        tr, re = (
+            read_image_file(getattr(p, k), config_path, f"scans.pairs[{i}].{k}") for k in ("trace", "retrace")
+        )
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
                 "images differ in size"
             )
         dt = 1.0 / (2 * p.line_rate_hz * tr.shape[1] * (1 + 2 * p.overscan))  # s between two pixels
-        pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace))
+        pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace.path))
     return pairs

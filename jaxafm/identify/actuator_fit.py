@@ -12,8 +12,9 @@ import numpy as np
 from .. import plots
 from ..config import ActuatorFitConfig, SimulatedData, resolve_data_path
 from ..instrument.records import Record, read_record
+from ..model.apply import predict
 from ..model.effects import Creep, RateDependence
-from ..model.io import save_model
+from ..model.io import describe, save_model
 from ..model.scanner import Axis, default_scanner
 from .fit import error_metrics, fit_operator, initial_model
 
@@ -58,11 +59,6 @@ def _build(spec, u, d):
         rate_dependence=RateDependence(jnp.asarray(MODEL_LAG_S)) if spec.rate_dependence else None,
         creep=Creep.logarithmic(**MODEL_CREEP) if spec.creep else None,
     )
-
-
-def _predict(model, record: Record, history):
-    """The output (T,) nm of a fitted operator or Axis over the whole record."""
-    return np.asarray(model.predict(jnp.asarray(record.u), jnp.asarray(record.t), history))
 
 
 def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
@@ -119,9 +115,17 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Path, prepare=lambda: No
         )
         if not res.converged:
             log(f"  WARNING: {res.message}")
-        pred = _predict(res.model, record, history)
+        pred = predict(res.model, record.u, record.t, history)
         predictions[spec.name] = pred
-        save_model(res.model, out / f"model_{spec.name}.json")
+        about = describe(
+            res.model,
+            u,
+            d,
+            history=cfg.history_v,
+            source=record.meta["source"],
+            train_fraction=cfg.train_fraction,
+        )
+        save_model(res.model, out / f"model_{spec.name}.json", about)
         train = error_metrics(pred[settle:split], record.d[settle:split], d_range)
         held = error_metrics(pred[split:], record.d[split:], d_range)
         row = {f"{spec.name}_train_{k}": v for k, v in train.items()}

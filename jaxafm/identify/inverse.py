@@ -70,11 +70,11 @@ def _hysteresis_target(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array) 
     return (v - f0) / (f1 - f0)
 
 
-def _step_axis(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array, u_prev: Array, u_max: float):
+def _step_axis(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array, u_prev: Array, lo, hi):
     """One sample of the numerical inverse on one axis: the drive (V) that puts its output at
-    ``v`` nm at time ``t``, the state after it, and whether it saturated at ``+-u_max``."""
+    ``v`` nm at time ``t``, the state after it, and whether it saturated at ``lo`` or ``hi`` V."""
     h = _hysteresis_target(axis, v, t, s, t0)
-    u, saturated = axis.hysteresis.invert_step(h, s.plays, -u_max, u_max, u_prev)
+    u, saturated = axis.hysteresis.invert_step(h, s.plays, lo, hi, u_prev)
     y, plays = axis.hysteresis.step(u, s.plays)
     _, lag, creep = _dynamics(axis, y, t, s, t0)
     return u, AxisState(plays, lag, creep), saturated
@@ -97,12 +97,31 @@ def numerical_inverse(model: Scanner, wanted: Array, t: Array, state: ScannerSta
     def step(carry, inputs):
         sx, sy, t_prev, u_prev = carry
         vn, tn = inputs
-        ux, sx, bad_x = _step_axis(model.x, vn[0], tn, sx, t_prev, u_prev[0], u_max)
-        uy, sy, bad_y = _step_axis(model.y, vn[1], tn, sy, t_prev, u_prev[1], u_max)
+        ux, sx, bad_x = _step_axis(model.x, vn[0], tn, sx, t_prev, u_prev[0], -u_max, u_max)
+        uy, sy, bad_y = _step_axis(model.y, vn[1], tn, sy, t_prev, u_prev[1], -u_max, u_max)
         u = jnp.stack([ux, uy])
         return (sx, sy, tn, u), (u, jnp.stack([bad_x, bad_y]))
 
     _, (u, saturated) = lax.scan(step, (state.x, state.y, state.t, u0), (v, t))
+    return u, saturated
+
+
+@eqx.filter_jit
+def invert_axis(axis: Axis, wanted: Array, t: Array, state: AxisState, t0, u0, lo, hi) -> tuple:
+    """The drive (T,) V that puts one ``axis``, from ``state`` reached at ``t0`` s with the drive
+    at ``u0`` V, at ``wanted`` (T,) nm at times ``t`` (T,) s, sample by sample (the numerical
+    inverse of :func:`numerical_inverse` on one axis), with every drive kept in [``lo``, ``hi``]
+    V; and where each sample saturated there."""
+
+    def step(carry, inputs):
+        s, t_prev, u_prev = carry
+        v, tn = inputs
+        u, s, saturated = _step_axis(axis, v, tn, s, t_prev, u_prev, lo, hi)
+        return (s, tn, u), (u, saturated)
+
+    _, (u, saturated) = lax.scan(
+        step, (state, jnp.asarray(t0, dtype=float), jnp.asarray(u0, dtype=float)), (wanted, t)
+    )
     return u, saturated
 
 

@@ -30,10 +30,9 @@ from ..config import (
     CalibrationSolver,
     Grating,
     SimulatedCalibration,
-    resolve_data_path,
 )
 from ..instrument.afm import AFM, Raster, RasterScan, default_afm, move, raster_scan
-from ..instrument.images import read_image
+from ..instrument.images import read_image_file
 from ..instrument.samples import Lattice, Plane, Tip
 from ..model.io import save_model
 from ..model.scanner import Scanner
@@ -92,12 +91,15 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
 def read_calibration(
     spec: CalibrationImages, grating: Grating, config_path: Path
 ) -> calibration.CalibrationScan:
-    """A measured trace/retrace pair as a :class:`~jaxafm.identify.calibration.CalibrationScan`."""
-    trace, retrace = (read_image(resolve_data_path(p, config_path)) for p in (spec.trace, spec.retrace))
+    """A measured trace/retrace pair (``data:`` of ``config_path``) as a
+    :class:`~jaxafm.identify.calibration.CalibrationScan`."""
+    trace, retrace = (
+        read_image_file(getattr(spec, k), config_path, f"data.{k}") for k in ("trace", "retrace")
+    )
     if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
         raise ValueError(
-            f"trace {spec.trace} ({trace.shape} px, {trace.size} nm) and retrace {spec.retrace} "
-            f"({retrace.shape} px, {retrace.size} nm) must cover the same raster"
+            f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "
+            f"{retrace.meta['source']} ({retrace.shape} px, {retrace.size} nm) must cover the same raster"
         )
     raster = Raster(trace.size, trace.shape[1], trace.shape[0], line_rate=spec.line_rate_hz)
     need = np.asarray(trace.size) / 2 / np.asarray(spec.sensitivity_nm_per_v)

@@ -8,7 +8,9 @@ size (x, y) nm, the position of pixel [0, 0]'s centre, and a ``meta`` dict
 Readers convert to nm and say so in ``meta``: the Nanosurf text export, TIFF
 height maps (whose size the caller gives), and through AFMReader (the
 ``formats`` extra) Bruker .spm, Igor .ibw, JPK .jpk and TopoStats files, and
-Gwyddion .gwy through gwyfile.
+Gwyddion .gwy through gwyfile. What a file lacks (its size, height unit, row
+order, fast axis, line rate, direction) the caller gives, as a config's
+``ImageFile`` does (:func:`read_image_file`).
 
 Saved images (``save_image``/``load_image``) are ``.npz`` files holding ``z``
 (float64, nm) and ``meta_json``, a JSON document ``{"format":
@@ -27,6 +29,7 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
+from ..config.common import ImageFile, resolve_data_path
 from ..config.names import LENGTH_TO_NM
 
 if TYPE_CHECKING:
@@ -41,6 +44,8 @@ AFMREADER_FORMATS = {
     ".topostats": ("topostats", None, "image"),
 }
 FORMATS = (".txt", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
+#: How far (relative, per axis) a given scan size may lie from a file's own before it is refused.
+SIZE_TOLERANCE = 0.01
 
 
 @dataclasses.dataclass
@@ -55,8 +60,7 @@ class AFMImage:
     def __post_init__(self):
         where = self.meta.get("source", "image")
         self.z = np.asarray(self.z, dtype=float)
-        if self.z.ndim != 2 or min(self.z.shape) < 2:
-            raise ValueError(f"{where}: an AFM image needs at least 2 x 2 pixels, got shape {self.z.shape}")
+        _check_shape(self.z, where)
         bad = ~np.isfinite(self.z)
         if bad.any():
             r, c = np.argwhere(bad)[0]
@@ -106,6 +110,11 @@ class AFMImage:
         return HeightMap(jnp.asarray(self.z), jnp.asarray(self.pixel_size), jnp.asarray(self.origin))
 
 
+def _check_shape(z: np.ndarray, where) -> None:
+    if z.ndim != 2 or min(z.shape) < 2:
+        raise ValueError(f"{where}: an AFM image needs at least 2 x 2 pixels, got shape {z.shape}")
+
+
 def from_scan(scan: RasterScan, raster, direction: str = "trace", meta: Optional[dict] = None) -> AFMImage:
     """The ``trace`` or ``retrace`` image of a ``raster_scan`` result, with the scan's metadata."""
     if direction not in ("trace", "retrace"):
@@ -122,29 +131,202 @@ def from_scan(scan: RasterScan, raster, direction: str = "trace", meta: Optional
     return AFMImage(np.asarray(getattr(scan, direction)), raster.pixel_size, raster.origin, info)
 
 
-def read_image(
-    path, channel: Optional[str] = None, size_nm: Optional[tuple] = None, z_unit: str = "nm"
-) -> AFMImage:
-    """Read an AFM image file into nm, choosing the reader by the file's suffix.
+@dataclasses.dataclass
+class _Stored:
+    """An image file as its reader found it: values ``z`` (rows, cols) in ``z_unit``, the size
+    (width, height) nm of the stored columns and rows, the side ``first_row`` of the stored
+    row 0 ("top" or "bottom"), the origin (x, y) nm, and the reader's ``meta``; None where the
+    file does not say."""
 
-    ``channel`` picks the channel of multi-channel files (AFMReader formats);
-    ``size_nm`` (width, height) and ``z_unit`` say what a TIFF cannot.
+    z: np.ndarray
+    z_unit: Optional[str]
+    size_nm: Optional[tuple]
+    meta: dict
+    first_row: Optional[str] = None
+    origin: tuple = (0.0, 0.0)
+
+
+def read_image(
+    path,
+    channel: Optional[str] = None,
+    size_nm=None,
+    z_unit: Optional[str] = None,
+    line_rate_hz: Optional[float] = None,
+    fast_axis: Optional[str] = None,
+    first_row: Optional[str] = None,
+    direction: Optional[str] = None,
+) -> AFMImage:
+    """Read an AFM image file into nm and jaxafm's orientation, choosing the reader by the suffix.
+
+    The arguments after ``channel`` say what the file lacks, and win over what it says (noted in
+    ``meta["given"]``, with the file's replaced values in ``meta["file"]``), except that a
+    file's own size must agree within :data:`SIZE_TOLERANCE` and its own height unit exactly.
+
+    Arguments:
+        path: the file.
+        channel: the channel of multi-channel files (Gwyddion, AFMReader formats).
+        size_nm: (width, height) nm of the image as returned: along its rows (x) and across them
+            (y); one number: a square scan (square pixels needed). Required for a TIFF, which
+            carries no length calibration.
+        z_unit: the unit of the stored heights (``LENGTH_TO_NM``); default nm for a TIFF.
+        line_rate_hz: lines (trace + retrace) per second, Hz; into ``meta``.
+        fast_axis: the image axis the scan lines run along: "x" (rows; the default) or "y"
+            (columns: transposed, so that they are rows).
+        first_row: where row 0 (after ``fast_axis``) lies: "bottom" (the lowest y, scanned
+            first: jaxafm's order, the default for files that do not say) or "top" (flipped).
+        direction: "trace" or "retrace"; into ``meta``.
+
+    Returns:
+        The image: scan lines as rows along x, row 0 at the lowest y, heights in nm.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file and the value: not an image, a unit that is not a length, no
+            size for a TIFF, a size that disagrees with the file's or gives a square scan
+            non-square pixels.
     """
     path = Path(path)
+    names = ("size_nm", "z_unit", "line_rate_hz", "fast_axis", "first_row", "direction")
+    values = (size_nm, z_unit, line_rate_hz, fast_axis, first_row, direction)
+    given = {k: v for k, v in zip(names, values) if v is not None}
+    _check_given(path, given)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
+    return _as_given(_read(path, channel), path, given)
+
+
+def _check_given(path: Path, given: dict) -> None:
+    """Refuse a ``read_image`` argument outside its values, naming it."""
+    choices = {
+        "z_unit": tuple(LENGTH_TO_NM),
+        "fast_axis": ("x", "y"),
+        "first_row": ("bottom", "top"),
+        "direction": ("trace", "retrace"),
+    }
+    for name, allowed in choices.items():
+        if name in given and given[name] not in allowed:
+            raise ValueError(f"{path}: {name}={given[name]!r} is not one of {', '.join(allowed)}")
+    if "line_rate_hz" in given and not 0 < given["line_rate_hz"] < np.inf:
+        raise ValueError(f"{path}: line_rate_hz={given['line_rate_hz']!r} must be a number > 0 Hz")
+    if "size_nm" in given:
+        size = np.ravel(np.asarray(given["size_nm"], dtype=float))
+        if size.size not in (1, 2) or not np.all((size > 0) & (size < np.inf)):
+            raise ValueError(
+                f"{path}: size_nm={given['size_nm']!r} must be one number or [width, height], nm > 0"
+            )
+
+
+def _read(path: Path, channel: Optional[str]) -> _Stored:
+    """The file as stored, by the reader its suffix picks."""
     suffix = path.suffix.lower()
     if suffix == ".txt":
         return _read_nanosurf_text(path)
     if suffix in (".tif", ".tiff"):
-        return _read_tiff(path, size_nm, z_unit)
+        return _read_tiff(path)
     if suffix == ".npz":
-        return load_image(path)
+        image = load_image(path)
+        return _Stored(image.z, "nm", image.size, image.meta, "bottom", image.origin)
     if suffix == ".gwy":
         return _read_gwy(path, channel)
     if suffix in AFMREADER_FORMATS:
         return _read_afmreader(path, channel)
     raise ValueError(f"{path}: unknown AFM image format {suffix!r}; known: {', '.join(FORMATS)}")
+
+
+def _as_given(stored: _Stored, path: Path, given: dict) -> AFMImage:
+    """The stored image in nm and jaxafm's orientation, with the ``given`` metadata over the
+    file's; ``meta["file"]``: the file's values it replaced."""
+    _check_shape(stored.z, path)
+    meta = stored.meta | ({"given": given} if given else {})
+    said = {k: meta.get(k) for k in ("line_rate_hz", "direction")} | {"first_row": stored.first_row}
+    meta |= {k: given[k] for k in ("line_rate_hz", "direction") if k in given}
+    z = stored.z * LENGTH_TO_NM[_z_unit(stored, path, given.get("z_unit"), meta)]
+    size, origin = stored.size_nm, stored.origin
+    if given.get("fast_axis") == "y":
+        z, origin = z.T, origin[::-1]
+        size = None if size is None else size[::-1]
+        meta["fast_axis"] = "y: transposed, the scan lines are the rows"
+    if given.get("first_row", stored.first_row) == "top":
+        z = z[::-1]
+        meta["row_order"] = "flipped: row 0 is the bottom line"
+    pixel = _pixel_size(path, z.shape, given.get("size_nm"), size)
+    if size is not None:
+        said["size_nm"] = [float(v) for v in size]
+    wanted = given | ({"size_nm": list(_size(given["size_nm"]))} if "size_nm" in given else {})
+    file = {k: v for k, v in said.items() if k in given and v is not None and v != wanted[k]}
+    return AFMImage(z, pixel, origin, meta | ({"file": file} if file else {}))
+
+
+def _z_unit(stored: _Stored, path: Path, given: Optional[str], meta: dict) -> str:
+    """The unit of the stored heights: the file's (``given`` must name the same), else ``given``
+    (default nm), noted in ``meta``."""
+    if stored.z_unit is None:
+        unit = given or "nm"
+        meta["converted"] = f"z from {unit} to nm" + ("" if given else " (assumed: the file does not say)")
+        return unit
+    if given is not None and LENGTH_TO_NM[given] != LENGTH_TO_NM[stored.z_unit]:
+        raise ValueError(
+            f"{path}: z_unit = {given!r} disagrees with the file's own height unit {stored.z_unit!r}: "
+            "remove z_unit or correct it"
+        )
+    return stored.z_unit
+
+
+def _size(size_nm) -> np.ndarray:
+    """A given size as (width, height) nm."""
+    return np.broadcast_to(np.asarray(size_nm, dtype=float).ravel(), (2,))
+
+
+def _pixel_size(path: Path, shape: tuple, given, own: Optional[tuple]) -> tuple:
+    """(dx, dy) nm of an image of ``shape`` (rows, cols): from the ``given`` size, checked
+    against the file's ``own`` (width, height) nm, else from the file's."""
+    rows, cols = shape
+    if given is None:
+        if own is None:
+            raise ValueError(
+                f"{path}: the file does not carry its length calibration (a TIFF never does): give "
+                "size_nm, [width, height] nm or one number for a square scan, and z_unit if its "
+                "heights are not in nm"
+            )
+        return (own[0] / cols, own[1] / rows)
+    if np.size(given) == 1 and rows != cols:
+        s = float(np.ravel(given)[0])
+        raise ValueError(
+            f"{path}: size_nm = {s:g} nm gives this {cols} x {rows} px image non-square pixels "
+            f"({s / cols:g} x {s / rows:g} nm): give size_nm: [{s:g}, {s * rows / cols:g}] if {s:g} nm "
+            f"is its width, [{s * cols / rows:g}, {s:g}] if it is its height"
+        )
+    w, h = _size(given)
+    if own is not None and np.any(np.abs(np.array([w, h]) / own - 1) > SIZE_TOLERANCE):
+        raise ValueError(
+            f"{path}: size_nm = [{w:g}, {h:g}] nm disagrees with the file's own size "
+            f"[{own[0]:g}, {own[1]:g}] nm by more than {SIZE_TOLERANCE:.0%}: correct size_nm, or "
+            "remove it to use the file's"
+        )
+    return (w / cols, h / rows)
+
+
+def read_image_file(spec, config_path, key: str) -> AFMImage:
+    """The image a config key names, with the key's metadata (:func:`read_image`).
+
+    Arguments:
+        spec: the key's ``ImageFile``, or its path alone.
+        config_path: the config file; a relative path is relative to it.
+        key: the key as the user wrote it (``data.trace``), named in errors.
+
+    Returns:
+        The image; ``meta["source"]`` is the path as the config gives it.
+
+    Raises:
+        FileNotFoundError, ValueError: naming the config, the key, the file and the value.
+    """
+    spec = ImageFile.model_validate(spec)
+    given = spec.model_dump(exclude={"path"}, exclude_none=True, exclude_unset=True)
+    try:
+        image = read_image(resolve_data_path(spec.path, config_path), **given)
+    except (ValueError, FileNotFoundError) as e:
+        raise type(e)(f"{config_path}: {key}: {e}") from None
+    return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
 
 
 def _length_nm(path: Path, key: str, text: str) -> float:
@@ -156,7 +338,7 @@ def _length_nm(path: Path, key: str, text: str) -> float:
     return float(m.group(1)) * LENGTH_TO_NM[m.group(2)]
 
 
-def _read_nanosurf_text(path: Path) -> AFMImage:
+def _read_nanosurf_text(path: Path) -> _Stored:
     """Nanosurf text export: ``Key : value`` header lines, then the heights row by row."""
     header, values = {}, []
     with open(path, encoding="utf-8", errors="replace") as f:
@@ -201,12 +383,11 @@ def _read_nanosurf_text(path: Path) -> AFMImage:
         "converted": f"x, y from {header['Real Width'].split()[-1]} and z from {z_unit} to nm",
         "row_order": "as stored (row 0 first in the file)",
     }
-    return AFMImage(
-        z.reshape(rows, cols) * LENGTH_TO_NM[z_unit], (width / cols, height / rows), (0.0, 0.0), meta
-    )
+    return _Stored(z.reshape(rows, cols), z_unit, (width, height), meta)
 
 
-def _read_tiff(path: Path, size_nm, z_unit: str) -> AFMImage:
+def _read_tiff(path: Path) -> _Stored:
+    """A TIFF height map: one numeric channel, with no length calibration or height unit."""
     import tifffile
 
     try:
@@ -218,24 +399,8 @@ def _read_tiff(path: Path, size_nm, z_unit: str) -> AFMImage:
         raise ValueError(
             f"{path}: a TIFF height map must be one numeric 2-D channel, got shape {z.shape}, dtype {z.dtype}"
         )
-    if size_nm is None:
-        raise ValueError(
-            f"{path}: a TIFF does not carry its length calibration; pass "
-            "size_nm=(width, height) in nm, and z_unit if heights are not in nm"
-        )
-    if z_unit not in LENGTH_TO_NM:
-        raise ValueError(f"{path}: z_unit={z_unit!r} is not one of {', '.join(LENGTH_TO_NM)}")
-    w, h = np.broadcast_to(np.asarray(size_nm, dtype=float), (2,))
-    meta = {
-        "source": str(path),
-        "reader": "tiff",
-        "converted": f"z from {z_unit} to nm",
-        "size_nm_given": [float(w), float(h)],
-        "row_order": "as stored",
-    }
-    return AFMImage(
-        z.astype(float) * LENGTH_TO_NM[z_unit], (w / z.shape[1], h / z.shape[0]), (0.0, 0.0), meta
-    )
+    meta = {"source": str(path), "reader": "tiff", "row_order": "as stored"}
+    return _Stored(z.astype(float), None, None, meta)
 
 
 def _optional(module: str, path: Path):
@@ -249,7 +414,7 @@ def _optional(module: str, path: Path):
         ) from None
 
 
-def _read_gwy(path: Path, channel: Optional[str]) -> AFMImage:
+def _read_gwy(path: Path, channel: Optional[str]) -> _Stored:
     """A Gwyddion file: the data field titled ``channel`` (default: the first one)."""
     gwyfile = _optional("gwyfile", path)
     try:
@@ -273,20 +438,19 @@ def _read_gwy(path: Path, channel: Optional[str]) -> AFMImage:
                 f"{path}: channel {channel!r} has {axis} unit {unit!r}, not a length "
                 f"({', '.join(LENGTH_TO_NM)})"
             )
-    z = np.flipud(np.asarray(field.data, dtype=float)) * LENGTH_TO_NM[units["z"]]  # Gwyddion: row 0 on top
-    rows, cols = z.shape
     scale = LENGTH_TO_NM[units["xy"]]
     meta = {
         "source": str(path),
         "reader": "gwyfile",
         "channel": channel,
         "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
-        "row_order": "flipped: row 0 is the bottom line",
     }
-    return AFMImage(z, (field.xreal * scale / cols, field.yreal * scale / rows), (0.0, 0.0), meta)
+    size = (field.xreal * scale, field.yreal * scale)
+    first_row = "top"  # Gwyddion's row 0 is the top line
+    return _Stored(np.asarray(field.data, dtype=float), units["z"], size, meta, first_row)
 
 
-def _read_afmreader(path: Path, channel: Optional[str]) -> AFMImage:
+def _read_afmreader(path: Path, channel: Optional[str]) -> _Stored:
     module, loader, default = AFMREADER_FORMATS[path.suffix.lower()]
     reader = _optional(f"AFMReader.{module}", path)
     from loguru import logger  # AFMReader logs every step at DEBUG level
@@ -308,7 +472,9 @@ def _read_afmreader(path: Path, channel: Optional[str]) -> AFMImage:
         "converted": "to nm by AFMReader",
         "row_order": "as AFMReader returns it",
     }
-    return AFMImage(np.asarray(z, dtype=float), (float(px), float(px)), (0.0, 0.0), meta)
+    z = np.asarray(z, dtype=float)
+    _check_shape(z, path)
+    return _Stored(z, "nm", (float(px) * z.shape[1], float(px) * z.shape[0]), meta)
 
 
 def _json_number(value):

@@ -22,11 +22,12 @@ Column = Union[int, str]  # 1-based index or header name
 
 @dataclasses.dataclass(frozen=True)
 class Record:
-    """Samples ``t`` (T,) s, input ``u`` (T,) or (T, k) V, output ``d`` (T,) or (T, k) nm."""
+    """Samples ``t`` (T,) s, input ``u`` (T,) or (T, k) V, output ``d`` (T,) or (T, k) nm (None:
+    a drive without measured output, read with ``require_output=False``)."""
 
     t: np.ndarray
     u: np.ndarray
-    d: np.ndarray
+    d: Optional[np.ndarray]
     meta: dict
 
     def __len__(self) -> int:
@@ -80,7 +81,7 @@ def _name(i: int, header: Optional[list]) -> str:
 
 
 def _check_distinct(path: Path, header: Optional[list], columns: dict) -> None:
-    """No column is both an input and an output (or twice an input or output).
+    """No column is mapped twice (as input, output or time).
 
     Raises:
         ValueError: naming the column and the keys that map it.
@@ -91,7 +92,7 @@ def _check_distinct(path: Path, header: Optional[list], columns: dict) -> None:
             if i in seen:
                 raise ValueError(
                     f"{path}: column {_name(i, header)} is mapped twice ({seen[i]} and {key}); "
-                    "input and output must be different columns"
+                    "input, output and time must be different columns"
                 )
             seen[i] = key
 
@@ -106,11 +107,14 @@ def read_record(
     input_unit: str = "V",
     output_unit: Optional[str] = None,
     delimiter: Optional[str] = None,
+    require_output: bool = True,
 ) -> Record:
     """Read a record, converting input to V, output to nm and time to s.
 
     Columns are 1-based numbers or header names. Without a mapping the header
     must name ``t, u, d`` or ``t, ux, uy, x, y``, values already in s, V, nm.
+    With ``require_output=False`` a record of inputs alone (no ``output_columns``) is read,
+    with ``d`` None.
     """
     path = Path(path)
     if not path.is_file():
@@ -130,11 +134,12 @@ def read_record(
             )
         output_unit = output_unit or "nm"
         time_column = "t" if sample_rate_hz is None else None
-    if not input_columns or not output_columns:
+    if not input_columns or (require_output and not output_columns):
         raise ValueError(f"{path}: give both input_columns and output_columns")
-    if output_unit is None:
+    output_columns = output_columns or []
+    if output_columns and output_unit is None:
         raise ValueError(f"{path}: output_unit is missing; one of {sorted(LENGTH_TO_NM)}")
-    if output_unit not in LENGTH_TO_NM:
+    if output_columns and output_unit not in LENGTH_TO_NM:
         raise ValueError(f"{path}: output_unit={output_unit!r} is not one of {sorted(LENGTH_TO_NM)}")
     if input_unit not in VOLTAGE_TO_V:
         raise ValueError(f"{path}: input_unit={input_unit!r} is not one of {sorted(VOLTAGE_TO_V)}")
@@ -154,18 +159,19 @@ def read_record(
         raise ValueError(f"{path}: no data rows")
     cols = lambda specs, key: [_column(c, header, path, key) for c in specs]
     i_in, i_out = cols(input_columns, "input_columns"), cols(output_columns, "output_columns")
-    for i in i_in + i_out:
+    i_t = [] if time_column is None else [_column(time_column, header, path, "time_column")]
+    for i in i_in + i_out + i_t:
         if i >= data.shape[1]:
             raise ValueError(f"{path}: column {i + 1} requested but the file has {data.shape[1]} columns")
-    _check_distinct(path, header, {"input_columns": i_in, "output_columns": i_out})
+    _check_distinct(path, header, {"input_columns": i_in, "output_columns": i_out, "time_column": i_t})
     u = data[:, i_in] * VOLTAGE_TO_V[input_unit]
-    d = data[:, i_out] * LENGTH_TO_NM[output_unit]
+    d = data[:, i_out] * LENGTH_TO_NM.get(output_unit, 1.0)
     if sample_rate_hz is not None:
         if not 0 < sample_rate_hz < np.inf:
             raise ValueError(f"{path}: sample_rate_hz must be a finite rate > 0 Hz, got {sample_rate_hz}")
         t = np.arange(len(data)) / sample_rate_hz
     else:
-        t = data[:, _column(time_column, header, path, "time_column")]
+        t = data[:, i_t[0]]
     for name, a in (("input", u), ("output", d), ("time", t)):
         if not np.isfinite(a).all():
             row = int(np.argwhere(~np.isfinite(a))[0][0])
@@ -182,9 +188,9 @@ def read_record(
     meta = {
         "source": str(path),
         "samples": len(t),
-        "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g}), "
-        f"output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})",
+        "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g})"
+        + (f", output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})" if i_out else ", no output"),
         "time": f"sample rate {sample_rate_hz} Hz" if sample_rate_hz else f"column {time_column}",
     }
     squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)
-    return Record(t, squeeze(u), d[:, 0] if len(i_out) == 1 else d, meta)
+    return Record(t, squeeze(u), None if not i_out else d[:, 0] if len(i_out) == 1 else d, meta)

@@ -1,8 +1,11 @@
-"""Model parameters to and from JSON: readable, versioned, round-trips exactly.
+"""Model parameters to and from JSON: readable, versioned, self-describing, round-trips exactly.
 
-``{"format": "jaxafm-model", "version": 1, "model": {"type": "PrandtlIshlinskii",
-"fields": {"thresholds": [...], ...}}}``; arrays as nested lists (V, nm, s as in
-the code), nested modules as nested objects, absent effects as ``null``.
+``{"format": "jaxafm-model", "version": 2, "model": {"type": "PrandtlIshlinskii",
+"fields": {"thresholds": [...], ...}}, "about": {...}}``; arrays as nested lists (V, nm, s as
+in the code), nested modules as nested objects, absent effects as ``null``. ``about``
+(:func:`describe`) says how to use the model: units, axes, effects, the input history it
+assumes, the input and output ranges it was fitted on, the data, the jaxafm version.
+Version-1 files (no ``about``) are still read.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import inspect
 import json
 import os
 from pathlib import Path
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -20,7 +24,8 @@ import numpy as np
 
 from . import effects, hysteresis, scanner
 
-FORMAT, VERSION = "jaxafm-model", 1
+FORMAT, VERSION = "jaxafm-model", 2
+READABLE = (1, 2)  # format versions this jaxafm reads
 _TYPES = {
     cls.__name__: cls
     for module in (hysteresis, effects, scanner)
@@ -52,22 +57,53 @@ def _decode(obj):
     return obj
 
 
-def save_model(model, path) -> None:
-    """Write ``model`` (any jaxafm scanner, axis, operator or effect) as JSON, atomically: a
-    reader (or a run killed while writing) sees the old file or the whole new one."""
+def save_model(model, path, about: Optional[dict] = None) -> None:
+    """Write ``model`` (any jaxafm scanner, axis, operator or effect) as JSON, with ``about``
+    (:func:`describe`; default: its units, axes and effects only), atomically: a reader (or a
+    run killed while writing) sees the old file or the whole new one."""
     path = Path(path)
+    doc = {"format": FORMAT, "version": VERSION, "model": _encode(model), "about": about or describe(model)}
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"format": FORMAT, "version": VERSION, "model": _encode(model)}))
+    tmp.write_text(json.dumps(doc, indent=None))
     tmp.replace(path)
 
 
+def describe(model, u=None, d=None, *, history=None, source: str = "", **more) -> dict:
+    """What a model file says about its model: units, ``axes`` (1 or 2), ``effects``, the
+    ``history_v`` it assumes before the first sample (None: at rest at the first input), the
+    ``input_range_v`` and ``output_range_nm`` of the data it was fitted on (``u`` (T,) or
+    (T, 2) V, ``d`` nm; one [min, max] per axis), ``fitted_to`` (``source``, samples), the
+    jaxafm version and anything in ``more``."""
+    from .._version import __version__
+
+    ranges = lambda a: (
+        None if a is None else np.stack([np.min(a, 0), np.max(a, 0)], -1).reshape(-1, 2).tolist()
+    )
+    return {
+        "units": {"input": "V", "output": "nm", "time": "s"},
+        "axes": 2 if isinstance(model, scanner.Scanner) else 1,
+        "effects": sorted(getattr(model, "effects", ())),
+        "history_v": None if history is None else np.asarray(history, dtype=float).tolist(),
+        "input_range_v": ranges(None if u is None else np.asarray(u, dtype=float)),
+        "output_range_nm": ranges(None if d is None else np.asarray(d, dtype=float)),
+        "fitted_to": {"source": source, "samples": None if u is None else len(u)},
+        "jaxafm_version": __version__,
+    } | more
+
+
 def load_model(path):
-    """Read a model written by :func:`save_model`, and check that it can be used.
+    """Read a model written by :func:`save_model`, and check that it can be used (see
+    :func:`read_model_file`, which also returns what the file says about the model)."""
+    return read_model_file(path)[0]
+
+
+def read_model_file(path) -> tuple:
+    """A saved model and its ``about`` (:func:`describe`; ``{}`` in a version-1 file).
 
     Raises:
-        ValueError: naming the file: not a saved model, another format version, broken
-            (truncated, edited into something that cannot be built) or not monotone
-            (:func:`check_monotone`).
+        ValueError: naming the file: not a saved model, a format version this jaxafm does not
+            read, broken (truncated, edited into something that cannot be built) or not
+            monotone (:func:`check_monotone`).
     """
     path = Path(path)
     if not path.is_file():
@@ -79,8 +115,11 @@ def load_model(path):
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
         raise ValueError(f"{path} is not a saved jaxafm model (format {found!r})")
-    if doc.get("version") != VERSION:
-        raise ValueError(f"{path}: model format version {doc.get('version')} is not supported ({VERSION} is)")
+    if doc.get("version") not in READABLE:
+        raise ValueError(
+            f"{path}: model format version {doc.get('version')!r} is not one this jaxafm reads "
+            f"({', '.join(map(str, READABLE))}); it was written by another jaxafm version"
+        )
     try:
         model = _decode(doc["model"])
     except (KeyError, TypeError, ValueError) as e:
@@ -89,7 +128,10 @@ def load_model(path):
         check_monotone(model)
     except ValueError as e:
         raise ValueError(f"{path}: {e}; was the file edited by hand?") from None
-    return model
+    about = doc.get("about") or {}
+    if not isinstance(about, dict):
+        raise ValueError(f"{path}: 'about' must be a mapping, got {type(about).__name__}")
+    return model, about
 
 
 def check_monotone(model) -> None:

@@ -1,0 +1,77 @@
+"""One call to apply any saved model to an input: :func:`predict`.
+
+A model file (:mod:`jaxafm.model.io`) may hold a hysteresis operator (PI, generalised PI,
+Preisach, a straight line), an :class:`~jaxafm.model.scanner.Axis` (hysteresis with creep and
+rate dependence) or a two-axis :class:`~jaxafm.model.scanner.Scanner`; each is applied the same
+way, ``predict(model, u, t, history)``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .hysteresis import AbstractHysteresis
+from .scanner import Axis, Scanner
+
+
+def predict(model, u, t=None, history=None) -> np.ndarray:
+    """The model's output for the input ``u``, starting from rest after ``history``.
+
+    Arguments:
+        model: an operator, an ``Axis`` or a ``Scanner`` (e.g. from ``load_model``).
+        u: the input, (T,) V for one axis, (T, 2) V for a scanner.
+        t: the sample times (T,) s; needed by a model with creep, rate dependence or drift
+            (an operator ignores them).
+        history: the inputs applied before ``u[0]``, (H,) V or (H, 2) V (e.g. the
+            initialisation cycle); None: at rest at ``u[0]``.
+
+    Returns:
+        The output, (T,) nm or (T, 2) nm. A scanner's position noise and drift wander (random)
+        are left out; its mean drift is kept.
+
+    Raises:
+        ValueError: an input of the wrong shape, or a model that needs times without them.
+    """
+    u = jnp.asarray(u, dtype=float)
+    axes = 2 if isinstance(model, Scanner) else 1
+    if u.ndim != axes or (axes == 2 and u.shape[1] != 2):
+        raise ValueError(
+            f"a {type(model).__name__} takes an input u of shape {('(T,)', '(T, 2)')[axes - 1]} V, got {u.shape}"
+        )
+    needs_t = not isinstance(model, AbstractHysteresis)
+    if needs_t and t is None:
+        raise ValueError(
+            f"a {type(model).__name__} (with {', '.join(sorted(model.effects))}) needs the sample times t (s)"
+        )
+    if isinstance(model, AbstractHysteresis):
+        return np.asarray(model(u, history))
+    if isinstance(model, Axis):
+        return np.asarray(model(u, jnp.asarray(t, dtype=float), history))
+    if isinstance(model, Scanner):
+        return np.asarray(_mean_scanner(model)(u, jnp.asarray(t, dtype=float), jax.random.key(0), history))
+    raise ValueError(f"cannot apply a {type(model).__name__}: not a hysteresis operator, axis or scanner")
+
+
+def _mean_scanner(model: Scanner) -> Scanner:
+    """The scanner without its random parts: no position noise, no drift wander."""
+    model = model.without("noise")
+    if model.drift is None:
+        return model
+    return eqx.tree_at(lambda m: m.drift.sigma, model, jnp.zeros_like(model.drift.sigma))
+
+
+def axes_of(model) -> int:
+    """How many axes a model drives: 2 for a scanner, else 1."""
+    return 2 if isinstance(model, Scanner) else 1
+
+
+def input_history(about: dict, override: Optional[list] = None):
+    """The history a prediction starts from: ``override`` if given, else the one the model file
+    says it was fitted with (None: at rest at the first input)."""
+    chosen = override if override is not None else about.get("history_v")
+    return None if chosen is None else jnp.asarray(chosen, dtype=float)
