@@ -138,8 +138,9 @@ def predict(
 def compensate(
     config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG
 ):
-    """The drive that makes a saved one-axis model follow a wanted trajectory (CSV or triangle), after
-    the initialisation cycle; write drive.csv (t_s, u_v), tracking.csv, metrics.json, compensate.png."""
+    """The drive that makes a saved model (one axis or a scanner) follow a wanted trajectory (CSV,
+    triangle or raster), after the initialisation cycle; write drive.csv, tracking.csv, metrics.json
+    and compensate.png."""
     _launch(config, out, dict(overwrite=overwrite, debug=debug), "compensate", "identify.compensate")
 
 

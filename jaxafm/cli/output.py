@@ -50,7 +50,7 @@ FIXED_OUTPUTS = {
     ),
     "diagnose": ("metrics.json", "diagnosis.json", "residuals.png", "report.md"),
     "predict": ("metrics.json", "prediction.csv", "predict*.png"),
-    "compensate": ("metrics.json", "drive.csv", "tracking.csv", "compensate.png"),
+    "compensate": ("metrics.json", "drive.csv", "tracking.csv", "compensate*.png"),
 }  # what each command writes (glob patterns relative to its folder), besides its models
 RESUMABLE = ("study",)
 

@@ -11,7 +11,7 @@ This package imports no JAX: checking a YAML file is quick, and every layer's ``
 job can take its config from here.
 """
 
-from .apply import CompensateConfig, PredictConfig, Trajectory, Triangle
+from .apply import CompensateConfig, PredictConfig, RasterTrajectory, Trajectory, Triangle
 from .calibrate import (
     CalibrateConfig,
     CalibrationImages,
@@ -88,6 +88,7 @@ __all__ = [
     "Positioning",
     "PredictConfig",
     "PushSpec",
+    "RasterTrajectory",
     "RecordData",
     "RunConfig",
     "ScanFiles",

@@ -46,23 +46,38 @@ class Triangle(Strict):
     sample_rate_hz: float = Field(200.0, gt=0, le=1e6)
 
 
+class RasterTrajectory(Strict):
+    """A raster scan of a two-axis scanner (``jaxafm.instrument.afm.Raster``): ``lines`` lines of
+    ``pixels`` samples, each a trace then a retrace along x, over ``size_nm`` (width, height)."""
+
+    size_nm: list[Annotated[float, Field(gt=0)]] = Field(min_length=2, max_length=2)
+    pixels: int = Field(128, ge=2, le=4096)
+    lines: int = Field(128, ge=1, le=4096)
+    line_rate_hz: float = Field(1.0, gt=0, le=1000)
+    centre_nm: Optional[list[float]] = Field(
+        None, min_length=2, max_length=2, description="default: the middle of the fitted output range"
+    )
+    overscan: float = Field(0.05, ge=0, le=0.5, description="fraction of the width added at each end")
+
+
 class Trajectory(Strict):
     """The wanted output: a CSV file with a header ``t_s,x_nm`` (two axes: ``t_s,x_nm,y_nm``;
-    other length units as ``x_um``), or a ``triangle``."""
+    other length units as ``x_um``), a ``triangle`` (on every axis) or a ``raster`` (two axes)."""
 
     path: Optional[str] = Field(None, description="CSV file, relative to the config file")
     triangle: Optional[Triangle] = None
+    raster: Optional[RasterTrajectory] = None
 
     @model_validator(mode="after")
     def _one_source(self):
-        if (self.path is None) == (self.triangle is None):
-            raise ValueError("give exactly one of 'path' (a CSV file) and 'triangle'")
+        if sum(v is not None for v in (self.path, self.triangle, self.raster)) != 1:
+            raise ValueError("give exactly one of 'path' (a CSV file), 'triangle' and 'raster'")
         return self
 
 
 class CompensateConfig(Strict):
-    """The drive voltages that make a saved model follow a wanted trajectory, after the
-    initialisation cycle ``{u2, u1}`` over the model's fitted input range."""
+    """The drive voltages that make a saved model (one axis or a two-axis scanner) follow a
+    wanted trajectory, after the initialisation cycle ``{u2, u1}`` over its fitted input range."""
 
     model: str = Field(description="model file, relative to the config file")
     trajectory: Trajectory

@@ -34,7 +34,7 @@ from ..config import (
 from ..instrument.afm import AFM, Raster, RasterScan, default_afm, move, raster_scan
 from ..instrument.images import read_image_file
 from ..instrument.samples import Lattice, Plane, Tip
-from ..model.io import save_model
+from ..model.io import describe, save_model
 from ..model.scanner import Scanner
 from . import calibration, features
 from .inverse import Compensator, train_neural_inverse
@@ -121,6 +121,14 @@ def read_calibration(
         spec.history_v,
         pits=grating.pits,
     )
+
+
+def calibration_about(model, scan: calibration.CalibrationScan, source: str) -> dict:
+    """What a scanner identified from ``scan`` says about itself in its model file
+    (:func:`~jaxafm.model.io.describe`): the nominal drive (V) and positions (nm) over the
+    calibration raster, over-scan included, as its fitted ranges, and the drive history before it."""
+    wanted = scan.raster.wanted().reshape(-1, 2)
+    return describe(model, wanted / np.asarray(scan.sensitivity), wanted, history=scan.history, source=source)
 
 
 def identify_model(
@@ -352,7 +360,13 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
                 f"{cfg.solver.max_steps} before converging (last loss {ident.stages[-1].loss:.3e}); "
                 "raise solver.max_steps for a tighter fit"
             )
-        save_model(ident.model.scanner, out / f"model_{spec.name}.json")
+        source = (
+            "simulated calibration scan"
+            if sim is not None
+            else f"{cfg.data.trace.path} / {cfg.data.retrace.path}"
+        )
+        about = calibration_about(ident.model.scanner, scan, source)
+        save_model(ident.model.scanner, out / f"model_{spec.name}.json", about)
         metrics |= {
             f"{spec.name}_fit_s": ident.seconds,
             f"{spec.name}_converged": ident.converged,

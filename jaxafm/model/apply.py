@@ -53,11 +53,11 @@ def predict(model, u, t=None, history=None) -> np.ndarray:
     if isinstance(model, Axis):
         return np.asarray(model(u, jnp.asarray(t, dtype=float), history))
     if isinstance(model, Scanner):
-        return np.asarray(_mean_scanner(model)(u, jnp.asarray(t, dtype=float), jax.random.key(0), history))
+        return np.asarray(mean_scanner(model)(u, jnp.asarray(t, dtype=float), jax.random.key(0), history))
     raise ValueError(f"cannot apply a {type(model).__name__}: not a hysteresis operator, axis or scanner")
 
 
-def _mean_scanner(model: Scanner) -> Scanner:
+def mean_scanner(model: Scanner) -> Scanner:
     """The scanner without its random parts: no position noise, no drift wander."""
     model = model.without("noise")
     if model.drift is None:

@@ -33,7 +33,13 @@ from jax import lax
 
 from .. import plots
 from ..config import Positioning, RunConfig, resolve_data_path
-from ..identify.step_a import identify_model, run_cycle, simulate_calibration, twin_state
+from ..identify.step_a import (
+    calibration_about,
+    identify_model,
+    run_cycle,
+    simulate_calibration,
+    twin_state,
+)
 from ..instrument.afm import Raster, RasterScan, default_afm
 from ..instrument.samples import Indented, Particles
 from ..model.io import load_model, save_model
@@ -298,7 +304,9 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
     )
     scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
     model, fit_s = identify_scanner(cfg, scan, config_path, log)
-    save_model(model, out / "model_scanner.json")
+    save_model(
+        model, out / "model_scanner.json", calibration_about(model, scan, "simulated calibration scan")
+    )
     calib_s = scan.raster.lines / scan.raster.line_rate
     start_state = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
     twin = twin_state(model, scan, sim.cycle).scanner
