@@ -27,6 +27,7 @@ from .. import plots
 from ..config import CompensateConfig, Trajectory, resolve_data_path
 from ..config.names import LENGTH_TO_NM
 from ..instrument.afm import Raster
+from ..instrument.records import write_columns
 from ..model.apply import axes_of, mean_scanner, predict
 from ..model.hysteresis import AbstractHysteresis
 from ..model.scanner import Axis, Scanner
@@ -260,7 +261,7 @@ def run(cfg: CompensateConfig, config_path: Path, out: Path, prepare=lambda: Non
             title=f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else ""),
         )
     volts = {"u_v": u[:, 0]} if len(tags) == 1 else {f"u{a}_v": u[:, k] for k, a in enumerate(AXES)}
-    _csv(out / "drive.csv", {"t_s": times} | volts)
+    write_columns(out / "drive.csv", {"t_s": times} | volts)
     tracked = {}
     for k, tag in enumerate(tags):
         tracked |= {
@@ -268,7 +269,7 @@ def run(cfg: CompensateConfig, config_path: Path, out: Path, prepare=lambda: Non
             f"model_{tag}nm": y[:, k],
             f"error_{tag}nm": y[:, k] - x[:, k],
         }
-    _csv(out / "tracking.csv", {"t_s": times[n:]} | tracked)
+    write_columns(out / "tracking.csv", {"t_s": times[n:]} | tracked)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     return metrics
 
@@ -276,9 +277,3 @@ def run(cfg: CompensateConfig, config_path: Path, out: Path, prepare=lambda: Non
 def _output(model, u: np.ndarray, times: np.ndarray) -> np.ndarray:
     """The model's output (T, A) nm for the drive (T, A) V."""
     return predict(model, u if axes_of(model) == 2 else u[:, 0], times).reshape(u.shape)
-
-
-def _csv(path: Path, columns: dict) -> None:
-    names = list(columns)
-    data = np.stack([np.asarray(columns[k], dtype=float) for k in names], -1)
-    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")

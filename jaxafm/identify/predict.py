@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import plots
 from ..config import PredictConfig, resolve_data_path
-from ..instrument.records import Record, read_record
+from ..instrument.records import Record, read_record, write_columns
 from ..model.apply import axes_of, input_history, predict
 from ..model.io import read_model_file
 from .fit import error_metrics
@@ -132,14 +132,10 @@ def _write_csv(path: Path, record: Record, pred: np.ndarray) -> None:
     where the record has it."""
     u, p = (np.reshape(a, (len(record), -1)) for a in (record.u, pred))
     d = None if record.d is None else np.reshape(record.d, (len(record), -1))
-    axes = "" if u.shape[1] == 1 else "xy"
-    names = ["t_s"]
-    columns = [record.t[:, None]]
+    columns = {"t_s": record.t}
     for k in range(u.shape[1]):
-        a = axes[k] if axes else ""
-        names += [f"u{a}_v", f"predicted{a}_nm"]
-        columns += [u[:, k : k + 1], p[:, k : k + 1]]
+        a = "" if u.shape[1] == 1 else "xy"[k]
+        columns |= {f"u{a}_v": u[:, k], f"predicted{a}_nm": p[:, k]}
         if d is not None:
-            names += [f"measured{a}_nm", f"error{a}_nm"]
-            columns += [d[:, k : k + 1], p[:, k : k + 1] - d[:, k : k + 1]]
-    np.savetxt(path, np.hstack(columns), delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+            columns |= {f"measured{a}_nm": d[:, k], f"error{a}_nm": p[:, k] - d[:, k]}
+    write_columns(path, columns)

@@ -194,3 +194,16 @@ def read_record(
     }
     squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)
     return Record(t, squeeze(u), None if not i_out else d[:, 0] if len(i_out) == 1 else d, meta)
+
+
+def write_columns(path: Union[str, Path], columns: dict) -> None:
+    """A CSV file with a header of the column names (units in the names, e.g. ``t_s,u_v``) and
+    one row per sample, 10 significant digits: what :func:`read_record` and a controller read.
+
+    Arguments:
+        path: the file to write.
+        columns: name -> values (T,), all of one length.
+    """
+    names = list(columns)
+    data = np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
+    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")

@@ -37,6 +37,7 @@ from .. import plots
 from ..config import STUDY_PARAMETERS, StudyConfig
 from ..identify.step_a import run_cycle, simulate_calibration, twin_state
 from ..instrument.afm import default_afm
+from ..instrument.records import write_columns
 from ..instrument.samples import Indented, Particles, Plane
 from ..model.io import load_model, save_model
 from ..position.landmarks import LandmarkMap
@@ -447,18 +448,12 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
     _atomic(out / "trials.npz", lambda f: np.savez_compressed(f, **r))
-    _atomic(out / "trials.csv", lambda f: _write_csv(f, r))
+    _atomic(out / "trials.csv", lambda f: write_columns(f, r))
     _atomic(out / "metrics.json", lambda f: f.write_text(json.dumps(metrics, indent=1)))
     errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
     plots.study_errors(errors, r["radius_nm"], out / "errors.png")
     log(table(rows, tol))
     return metrics
-
-
-def _write_csv(path: Path, columns: dict) -> None:
-    names = list(columns)
-    data = np.column_stack([np.asarray(columns[k], dtype=float) for k in names])
-    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
 
 
 def table(rows: dict, tolerance_radii: float) -> str:
