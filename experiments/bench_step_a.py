@@ -46,7 +46,7 @@ def main():
     ap.add_argument("--out", type=Path, default=Path("experiments/results/bench_step_a"))
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
-    scan, sim = simulate_calibration(SimulatedCalibration(pixels=a.pixels), Grating())
+    (scan,), sim = simulate_calibration(SimulatedCalibration(pixels=a.pixels), Grating(rotation_deg=0.0))
     spec = CalibrationModel(name="gpi")
     runs = [
         ("optimistix LM", "optimistix.levenberg_marquardt"),
@@ -62,6 +62,7 @@ def main():
             operators=spec.operators,
             solver=solver,
             max_steps=a.max_steps,
+            hold_out=False,
         )
         results[name] = {
             "seconds": ident.seconds,

@@ -363,3 +363,57 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     fig.suptitle(f"Monte-Carlo positioning study, {len(radii)} trials (simulated AFM)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def step_a_validation(
+    measured, model, extent, sites, raw, corrected, path, title: str = "", held_out: bool = True
+) -> None:
+    """Step A checked on its own data: the measured trace image and the fitted model's, their
+    difference (nm), and the held-out features' distance from their lattice sites (nm) at
+    their nominal positions (raw) and where the model puts the tip (corrected), as arrows
+    from each site, each set magnified to be seen (the factor in the legend). ``extent``: the
+    images' nominal [x0, x1, y0, y1] nm in the scan frame; ``sites``, ``raw``, ``corrected``:
+    (n, 2) nm; ``held_out``: whether those sites were held out of the fit (else they were fitted).
+    """
+    fig, axes = subplots(1, 4, figsize=(17, 4.4), constrained_layout=True)
+    ext = np.asarray(extent) / 1e3
+    lo, hi = np.percentile(measured, [1, 99])
+    for ax, z, name in ((axes[0], measured, "measured trace"), (axes[1], model, "model trace")):
+        im = ax.imshow(z, origin="lower", extent=ext, cmap="afmhot", vmin=lo, vmax=hi)
+        ax.set(title=name, xlabel="fast axis, nominal (µm)", ylabel="slow axis, nominal (µm)")
+    fig.colorbar(im, ax=axes[:2], label="height (nm)", shrink=0.8)
+    d = np.asarray(measured) - np.asarray(model)
+    lim = float(np.percentile(np.abs(d), 99)) or 1.0
+    im = axes[2].imshow(d, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[2].set(
+        title=f"measured - model (rms {np.sqrt(np.mean(d**2)):.3g} nm)",
+        xlabel="fast axis, nominal (µm)",
+    )
+    fig.colorbar(im, ax=axes[2], label="nm", shrink=0.8)
+    ax = axes[3]
+    sites, raw, corrected = (np.asarray(a, dtype=float).reshape(-1, 2) for a in (sites, raw, corrected))
+    if len(sites):
+        spacing = np.median(np.linalg.norm(np.diff(sites, axis=0), axis=1))
+        for e, c, label in ((raw, "C3", "raw (nominal)"), (corrected, "C0", "corrected (model)")):
+            rms = np.sqrt(np.mean(np.sum(e**2, axis=1)))
+            scale = 0.4 * spacing / max(float(np.abs(e).max()), 1e-9)
+            ax.quiver(
+                sites[:, 0] / 1e3,
+                sites[:, 1] / 1e3,
+                e[:, 0] * scale / 1e3,
+                e[:, 1] * scale / 1e3,
+                color=c,
+                angles="xy",
+                scale_units="xy",
+                scale=1,
+                width=0.004,
+                label=f"{label}, x{scale:.3g}: rms {rms:.3g} nm",
+            )
+        ax.plot(sites[:, 0] / 1e3, sites[:, 1] / 1e3, "k.", ms=2)
+        ax.legend(fontsize=8, loc="upper right")
+        what = "held-out features" if held_out else "every other site (fitted: no hold-out)"
+        ax.set_title(f"{what}: error from their sites", fontsize=10)
+    ax.set(xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)

@@ -236,7 +236,7 @@ def test_tiff_pair_with_size_from_the_calibrate_config(tmp_path):
         "line_rate_hz": 2.0,
     }
     cfg, path = _config(tmp_path, {"data": data}, CalibrateConfig)
-    scan = read_calibration(cfg.data, cfg.grating, path)
+    (scan,) = read_calibration(cfg.data, cfg.grating, path)
     assert np.array_equal(np.asarray(scan.trace), Z_UM * 1000)
     assert np.array_equal(np.asarray(scan.retrace), Z_UM[:, ::-1] * 1000)
     assert scan.raster.size == (8000.0, 6000.0) and scan.raster.pixel_size == (1000.0, 1000.0)

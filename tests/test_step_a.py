@@ -245,10 +245,10 @@ def test_position_errors_of_a_known_path():
 
 
 CALIBRATE = """
-simulate: {{pixels: 64, size_nm: 6000, line_rate_hz: 2.0}}
-grating: {{pitch_nm: 1000}}
+simulate: {{pixels: 64, size_nm: 6000, line_rate_hz: 2.0, angles_deg: [0, 90], lattice_rotation_deg: 1.5}}
+grating: {{pitch_nm: 1000, rotation_deg: fit}}
 models: [{{name: pi, kind: pi, operators: 8, effects: [coupling]}}]
-solver: {{max_steps: 8, blur_px: [1.5]}}
+solver: {{max_steps: 25, blur_px: [1.5]}}
 compensate: {{inverses: [analytic], paper_baseline: false}}
 output: {out}
 """
@@ -278,7 +278,11 @@ def cli_calibrate(request, tmp_path_factory):
 
 
 def test_cli_calibrate_identifies_and_compensates(cli_calibrate):
-    """A small simulated step A run: files written, errors smaller with the fitted inverse."""
+    """A small simulated step A run from scans at 0 and 90 degrees of a lattice turned by 1.5
+    degrees: files written, errors smaller with the fitted inverse, the rotation and the
+    coupling found in the gauge that fixes the x axis to the x piezo's motion (to first order
+    a turn ``a`` moves ``coupling.yx`` by ``a`` and ``coupling.xy`` by ``-a``), the held-out
+    features reported."""
     import json
 
     from jaxafm.model.io import load_model
@@ -290,7 +294,16 @@ def test_cli_calibrate_identifies_and_compensates(cli_calibrate):
     m = json.loads((out / "metrics.json").read_text())
     for k in ("trace", "retrace"):
         assert m[f"pi_analytic_linearity_error_{k}_pct"] < 0.5 * m[f"uncompensated_linearity_error_{k}_pct"]
-    assert abs(m["pi_fit_coupling_xy"] - m["pi_true_coupling_xy"]) < 0.005
+    gauge = m["pi_true_coupling_xy"] + m["pi_true_coupling_yx"]
+    assert abs(m["pi_fit_coupling_xy"] - gauge) < 0.005 and m["pi_fit_coupling_yx"] == 0.0
+    assert (
+        abs(m["pi_true_lattice_rotation_deg"] - (1.5 - np.rad2deg(np.arctan(m["pi_true_coupling_yx"]))))
+        < 1e-9
+    )
+    assert abs(m["pi_lattice_rotation_deg"] - m["pi_true_lattice_rotation_deg"]) < 0.1
+    assert m["scan_angles_deg"] == [0.0, 90.0] and m["pi_held_out_features"] > 20
+    assert m["pi_held_out_pitch_std_corrected_pct"] < m["pi_held_out_pitch_std_raw_pct"]
+    assert m["pi_plausible"] and (out / "validation_pi.png").stat().st_size > 0
     assert (out / "compensation.png").stat().st_size > 0
     assert load_model(out / "model_pi.json").coupling is not None
     assert "lin. trace" in output
@@ -332,7 +345,7 @@ def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
         line_rate_hz=2.0,
         history_v=CYCLE.tolist(),
     )
-    back = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
+    (back,) = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
     assert np.array_equal(np.asarray(back.retrace), np.asarray(scan.retrace))
     assert back.raster.pixel_size == pytest.approx(scan.raster.pixel_size)
     assert back.history == scan.history

@@ -4,14 +4,17 @@ are also step A of ``jaxafm run`` and ``jaxafm study``."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Optional
+import math
+from typing import Annotated, Literal, Optional, Union
 
 from pydantic import Field, field_validator, model_validator
 
 from .common import (
     HysteresisKind,
     HysteresisSpec,
+    ImageFile,
     ImagePair,
+    Length,
     ModelName,
     Operators,
     Seed,
@@ -22,10 +25,22 @@ from .names import MODEL_EFFECTS, check_effect_names
 
 
 class Grating(Strict):
-    """The calibration grating: a square lattice of pillars (or pits) of known pitch."""
+    """The calibration grating: a square lattice of pillars (or pits) of known pitch, and its
+    angle on the stage."""
 
     pitch_nm: float = Field(1000.0, gt=0, description="lattice pitch, nm (both axes)")
     pits: bool = Field(False, description="pits instead of pillars")
+    rotation_deg: Union[Literal["fit"], Annotated[float, Field(ge=-45, le=45)]] = Field(
+        "fit",
+        description="the lattice's angle on the stage, degrees anticlockwise from the scanner's x "
+        "axis, if known (e.g. 0 for a grating mounted square); fit: identified with the scanner, "
+        "the x axis then being the direction the x piezo moves the tip (docs/step_a.md)",
+    )
+
+    @property
+    def rotation_rad(self) -> Optional[float]:
+        """The known angle (rad), or ``None`` to fit it."""
+        return None if self.rotation_deg == "fit" else math.radians(self.rotation_deg)
 
 
 class SimulatedCalibration(Strict):
@@ -35,28 +50,102 @@ class SimulatedCalibration(Strict):
     pixels: int = Field(128, ge=32, le=1024, description="pixels per line = lines")
     size_nm: float = Field(8000.0, gt=0, le=9000.0, description="scan width = height, nm")
     line_rate_hz: float = Field(1.0, gt=0, le=50.0)
+    angles_deg: list[Annotated[float, Field(ge=-360, le=360)]] = Field(
+        [0.0],
+        min_length=1,
+        max_length=4,
+        description="scan angles, degrees: one image pair each, each after the initialisation "
+        "cycle; [0, 90] makes both axes reverse in the data",
+    )
+    lattice_rotation_deg: float = Field(
+        0.0, ge=-45, le=45, description="the simulated lattice's true angle on the stage, degrees"
+    )
     withheld: list[str] = Field([], description="effects the simulated instrument does not have")
     seed: Seed = 0
 
     @model_validator(mode="after")
     def _known_effects(self):
         check_effect_names(self.withheld, "withheld")
+        if len(set(self.angles_deg)) != len(self.angles_deg):
+            raise ValueError(f"angles_deg: each scan angle once, got {self.angles_deg}")
         return self
 
 
-class CalibrationImages(ImagePair):
-    """A measured trace/retrace pair (``ImageFile``s: any format
-    ``jaxafm.instrument.images.read_image`` reads), its line rate and how the instrument drove
-    it; the scan is centred on the scanner's zero."""
+class CalibrationPair(ImagePair):
+    """One measured trace/retrace pair of the calibration lattice and how it was scanned."""
 
-    sensitivity_nm_per_v: list[Annotated[float, Field(gt=0)]] = Field(
-        min_length=2, max_length=2, description="nominal x, y calibration"
+    angle_deg: float = Field(0.0, ge=-360, le=360, description="scan angle, degrees anticlockwise")
+    overscan: float = Field(
+        0.1, ge=0, le=1, description="over-scan beyond the image at each end of a line, fraction of the width"
+    )
+    lines: Literal["up", "down"] = Field(
+        "up", description="the order the lines were scanned: up (the image's row 0 first) or down"
+    )
+
+
+class CalibrationImages(Strict):
+    """Measured trace/retrace pairs of one lattice -- one pair as ``trace``, ``retrace``,
+    ``line_rate_hz`` (and its ``angle_deg``, ``overscan``, ``lines``), or several as ``scans`` --
+    and how the instrument drove them; each scan is centred on the scanner's zero. What the
+    files cannot say -- the nominal sensitivity and the drive range -- has defaults
+    (``docs/step_a.md``): ``u_max_v`` 10 V, and a sensitivity of ``scan_range_nm / (2 u_max_v)``
+    or, without a stated range, such that the scans with their over-scan just span the drive."""
+
+    trace: Optional[ImageFile] = Field(None, description="the trace image of a single scan")
+    retrace: Optional[ImageFile] = Field(None, description="the retrace image of a single scan")
+    line_rate_hz: Optional[float] = Field(None, gt=0, description="a single scan's lines per second")
+    angle_deg: float = Field(0.0, ge=-360, le=360, description="a single scan's angle, degrees")
+    overscan: float = Field(0.1, ge=0, le=1, description="a single scan's over-scan, fraction of the width")
+    lines: Literal["up", "down"] = Field("up", description="a single scan's line order")
+    scans: Optional[list[CalibrationPair]] = Field(
+        None, min_length=1, max_length=4, description="several scans, one per scan angle"
+    )
+    sensitivity_nm_per_v: Optional[list[Annotated[float, Field(gt=0)]]] = Field(
+        None, min_length=2, max_length=2, description="nominal x, y calibration; default from the range"
+    )
+    scan_range_nm: Optional[Annotated[list[Length], Field(min_length=1, max_length=2)]] = Field(
+        None, description="the instrument's stated scan range, nm (x, y or one number)"
     )
     u_max_v: float = Field(10.0, gt=0)
     history_v: Optional[list[Annotated[list[float], Field(min_length=2, max_length=2)]]] = Field(
         None,
-        description="drive turning points (x, y) V before the scan, e.g. the cycle [[-10, -10], [10, 10]]",
+        description="drive turning points (x, y) V before each scan, e.g. the cycle [[-10, -10], [10, 10]]",
     )
+
+    @field_validator("scan_range_nm", mode="before")
+    @classmethod
+    def _one_number(cls, value):
+        return value if value is None or isinstance(value, (list, tuple)) else [value]
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        single = {k: getattr(self, k) for k in ("trace", "retrace", "line_rate_hz")}
+        given = [k for k, v in single.items() if v is not None]
+        if self.scans is not None:
+            if given:
+                raise ValueError(
+                    f"give one scan as trace/retrace/line_rate_hz or several as scans, not both ({given[0]})"
+                )
+            angles = [s.angle_deg for s in self.scans]
+            if len(set(angles)) != len(angles):
+                raise ValueError(f"scans: each scan angle once, got angle_deg {angles}")
+        elif len(given) < 3:
+            missing = [k for k in single if k not in given]
+            raise ValueError(
+                f"missing {', '.join(missing)}: a scan needs trace, retrace and line_rate_hz (or give scans)"
+            )
+        else:
+            CalibrationPair(**single)  # the pair's own checks
+        return self
+
+    @property
+    def pairs(self) -> list:
+        """``(key, CalibrationPair)`` per scan, the key as the config wrote it (``data`` or
+        ``data.scans.N``)."""
+        if self.scans is not None:
+            return [(f"data.scans.{i}", s) for i, s in enumerate(self.scans)]
+        fields = ("trace", "retrace", "line_rate_hz", "angle_deg", "overscan", "lines")
+        return [("data", CalibrationPair(**{k: getattr(self, k) for k in fields}))]
 
 
 class CalibrationModel(HysteresisSpec):
@@ -88,6 +177,11 @@ class CalibrationSolver(Strict):
     max_steps: int = Field(100, ge=1, le=10_000, description="per stage")
     blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
         [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
+    )
+    hold_out: bool = Field(
+        True,
+        description="hold out half the lattice sites (a checkerboard) to validate the fit and to "
+        "refuse an image stage that worsens them",
     )
 
 

@@ -42,8 +42,9 @@ from ..model.hysteresis import (
     Preisach,
     softplus_inverse,
 )
+from ..model.io import check_monotone
 from ..model.scanner import Axis, Scanner
-from .features import LatticeFeatures, lattice_features
+from .features import LatticeFeatures, feature_centres, index_lattice, neighbour_distances, pitch_spread
 from .fit import FitResult, _solve, check_solver, free_parameters
 
 Array = jax.Array
@@ -107,40 +108,60 @@ class CalibrationScan(eqx.Module):
 
     def volts(self, rc: np.ndarray) -> np.ndarray:
         """The nominal drive (n, 2) V at fractional pixels ``rc`` (n, 2) (row, col)."""
-        rc = np.asarray(rc, dtype=float)
-        xy = np.asarray(self.raster.origin) + rc[:, ::-1] * np.asarray(self.raster.pixel_size)
-        return xy / np.asarray(self.sensitivity)
+        return self.raster.nominal(rc) / np.asarray(self.sensitivity)
+
+    @property
+    def name(self) -> str:
+        return f"the {self.raster.angle_deg:g} degree scan"
 
     def features(self) -> tuple:
-        """Pillar (or pit) centres of trace and retrace, indexed in one lattice frame."""
+        """Pillar (or pit) centres of trace and retrace, indexed in one lattice frame: the
+        lattice of their nominal stage positions (so images at any scan angle index alike)."""
         sign = -1.0 if self.pits else 1.0
-        ft = lattice_features(sign * np.asarray(self.trace), self.pitch_px, "trace image")
-        fr = lattice_features(sign * np.asarray(self.retrace), self.pitch_px, "retrace image")
-        return ft, _match_indices(ft, fr)
+        found = []
+        for k in ("trace", "retrace"):
+            name = f"{self.name}'s {k} image"
+            rc = feature_centres(sign * np.asarray(getattr(self, k)), name)
+            _check_coverage(rc, self.pitch_px, (self.raster.lines, self.raster.pixels), name)
+            ij, angle = index_lattice(self.raster.nominal(rc), self.pitch, name, "nm")
+            found.append(LatticeFeatures(rc, ij, angle))
+        return found[0], _match_indices(*found, self.pitch_px[0])
 
 
-def _match_indices(ft: LatticeFeatures, fr: LatticeFeatures) -> LatticeFeatures:
-    """Shift the retrace's indices onto the trace's: x columns matched at the right edge, where
-    the trace turns into the retrace and the tip is continuous; y rows by position (same lines)."""
+def _check_coverage(rc: np.ndarray, pitch_px: tuple, shape: tuple, name: str) -> None:
+    """Refuse a lattice that does not fill its image: complete features must come within two
+    pitches of every edge (a feature cut by the edge is dropped, so up to about 1.25 pitches
+    can lie bare there)."""
+    lo, hi = rc.min(axis=0), rc.max(axis=0)
+    pitch = np.asarray(pitch_px)[::-1]  # (row, col)
+    bare = np.concatenate([lo, np.asarray(shape) - 1 - hi]) / np.tile(pitch, 2)
+    if bare.max() > 2:
+        raise ValueError(
+            f"{name}: the lattice covers only rows {lo[0]:.0f}-{hi[0]:.0f} and columns "
+            f"{lo[1]:.0f}-{hi[1]:.0f} of the {shape[0]} x {shape[1]} px image: crop the image to "
+            "the lattice (step A fits every pixel to the lattice)"
+        )
 
-    def line_means(f, axis, col):
-        return {k: f.rc[f.ij[:, axis] == k, col].mean() for k in np.unique(f.ij[:, axis])}
 
-    tx, rx = line_means(ft, 0, 1), line_means(fr, 0, 1)
-    right = max(tx)
-    shift_x = right - min(rx, key=lambda k: abs(rx[k] - tx[right]))
-    ty, ry = line_means(ft, 1, 0), line_means(fr, 1, 0)
-    shift_y = min(ty) - min(ry, key=lambda k: abs(ry[k] - ty[min(ty)]))
-    return LatticeFeatures(fr.rc, fr.ij + np.array([shift_x, shift_y]))
+def _match_indices(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: float) -> LatticeFeatures:
+    """Shift the retrace's indices onto the trace's at the line reversal (the images' last
+    columns), where the trace turns into the retrace and the tip is continuous: there each
+    pillar sits at nearly the same pixel in both images."""
+    turn = ft.rc[:, 1] > ft.rc[:, 1].max() - 0.5 * pitch_px
+    nearest = np.argmin(np.linalg.norm(ft.rc[turn, None, :] - fr.rc[None, :, :], axis=-1), axis=1)
+    shifts, counts = np.unique(ft.ij[turn] - fr.ij[nearest], axis=0, return_counts=True)
+    return LatticeFeatures(fr.rc, fr.ij + shifts[np.argmax(counts)], fr.angle)
 
 
 class ScanModel(eqx.Module):
     """What step A fits: the scanner, the z-feedback lag, and the lattice's unknowns
-    (phase, radius, depth, edge width; the pitch is known)."""
+    (phase, radius, depth, edge width; the pitch is known). ``rotation_free``: the lattice's
+    angle on the stage is fitted too (:func:`parameters` says how that fixes a gauge)."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
     lattice: Lattice
+    rotation_free: bool = eqx.field(static=True, default=False)
 
     def afm(self, scan: CalibrationScan) -> AFM:
         """The simulated AFM with this model as its scanner (tip dilation off)."""
@@ -166,6 +187,15 @@ class ScanModel(eqx.Module):
         afm = self.afm(scan)
         return raster_scan(afm, self.lattice, self._start(afm, scan), scan.raster, key=KEY)
 
+    def site_errors(self, scan: CalibrationScan, images: Sequence) -> list:
+        """Per image of ``scan`` (trace, retrace), where this model puts the tip at each feature
+        ``(rc, ij)`` of ``images`` less that feature's lattice site, in pitches (n, 2) along the
+        lattice's axes."""
+        return [
+            self.lattice.coordinates(_interpolate(path, jnp.asarray(rc))) - jnp.asarray(ij)
+            for (rc, ij), path in zip(images, self.paths(scan))
+        ]
+
 
 def initial_model(
     scan: CalibrationScan,
@@ -174,13 +204,15 @@ def initial_model(
     operators: int = 20,
     deadzones: int = 3,
     levels: int = 20,
+    rotation: Optional[float] = 0.0,
 ) -> ScanModel:
     """The nominal model a fit starts from: the straight calibration line, no other effect yet.
 
     ``kind``: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
     ``deadzones`` dead zones a side, evenly over the imaged half width: beyond it no data
     would hold them) or ``preisach`` (``levels`` levels over ``+-u_max``). ``effects``
-    lists the others to fit (names as in docs/conventions.md).
+    lists the others to fit (names as in docs/conventions.md). ``rotation``: the lattice's
+    known angle on the stage (rad), or ``None`` to fit it.
     """
     unknown = [e for e in effects if e not in MODEL_EFFECTS]
     if unknown:
@@ -224,10 +256,10 @@ def initial_model(
         jnp.asarray(0.25 * min(scan.pitch)),
         jnp.asarray(-depth if scan.pits else depth),
         jnp.asarray(50.0),
-        jnp.zeros(()),
+        jnp.asarray(0.0 if rotation is None else rotation),
         jnp.zeros(2),
     )
-    return ScanModel(scanner, has("feedback_lag", FeedbackLag(jnp.asarray(5e-4))), lattice)
+    return ScanModel(scanner, has("feedback_lag", FeedbackLag(jnp.asarray(5e-4))), lattice, rotation is None)
 
 
 def _field(get: Callable, scale: float, positive: bool = False, shared: bool = False):
@@ -244,8 +276,13 @@ def _field(get: Callable, scale: float, positive: bool = False, shared: bool = F
 def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
     """``(raw, rebuild)``: the fitted parameters at order one, and the map back to a model.
 
-    The hysteresis offsets stay at 0: a translation of the whole image is the
-    lattice's phase, so the scanner's zero stays where its virgin state put it.
+    Two gauges, as no image can tell them apart. The hysteresis offsets stay at 0: a
+    translation of the whole image is the lattice's phase, so the scanner's zero stays
+    where its virgin state put it. With the lattice's rotation fitted, the coupling of y
+    from x (``coupling.yx``) stays 0: turning the lattice by ``a`` and adding ``a`` to
+    ``coupling.yx`` and ``-a`` to ``coupling.xy`` move every image alike (to first order),
+    so the scanner's x axis is defined as the direction its x piezo moves the tip, and
+    the fitted rotation is the lattice's from that axis.
     """
     travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
     pitch = min(scan.pitch)
@@ -256,11 +293,12 @@ def parameters(model: ScanModel, scan: CalibrationScan) -> tuple:
         _field(lambda m: m.lattice.edge_width, 50.0, True),
     ]
     s = model.scanner
+    if model.rotation_free:
+        fields.append(_field(lambda m: m.lattice.angle, 0.01))
     if s.coupling is not None:
-        fields += [
-            _field(lambda m: m.scanner.coupling.xy, 0.01),
-            _field(lambda m: m.scanner.coupling.yx, 0.01),
-        ]
+        fields.append(_field(lambda m: m.scanner.coupling.xy, 0.01))
+        if not model.rotation_free:
+            fields.append(_field(lambda m: m.scanner.coupling.yx, 0.01))
     if s.bow is not None:
         fields += [_field(lambda m: m.scanner.bow.bx, 1e-6), _field(lambda m: m.scanner.bow.by, 1e-6)]
     if s.drift is not None:
@@ -336,47 +374,60 @@ class Identification:
     """What :func:`identify` returns.
 
     Attributes:
-        model: the fitted :class:`ScanModel`.
+        model: the fitted :class:`ScanModel` (the last accepted stage's).
         stages: one :class:`~jaxafm.identify.fit.FitResult` per stage (feature points, then
             each blur), in order.
         seconds: the whole identification's wall time (s).
+        accepted: per stage, whether its result was kept (an image stage that worsens the
+            held-out features is not, :func:`_judge`).
+        held_out_nm: per stage, the held-out features' rms distance from their lattice sites
+            (nm) after it; NaN when no feature is held out.
+        validation: the held-out features' summary (:func:`validate`).
+        failures: what failed the plausibility checks (:func:`implausible`); empty if none.
     """
 
     model: ScanModel
     stages: tuple
     seconds: float
+    accepted: tuple = ()
+    held_out_nm: tuple = ()
+    validation: dict = dataclasses.field(default_factory=dict)
+    failures: tuple = ()
 
     @property
     def converged(self) -> bool:
-        return all(s.converged for s in self.stages)
+        return all(
+            s.converged for s, ok in zip(self.stages, self.accepted or [True] * len(self.stages)) if ok
+        )
+
+    @property
+    def plausible(self) -> bool:
+        return not self.failures
 
 
 def _point_residuals(raw, args) -> Array:
-    """At each feature point, where the model puts the tip less that feature's lattice site
-    ``phase + index * pitch``, in pitches (trace and retrace). Needs only the tip's path."""
-    start, scan, features = args
-    model = parameters(start, scan)[1](raw)
-    paths = model.paths(scan)
-    pitch = jnp.asarray(scan.pitch)
+    """At each training feature point, where the model puts the tip less that feature's lattice
+    site, in pitches along the lattice's axes (every scan, trace and retrace). Needs only the
+    tip's path."""
+    start, scans, points = args
+    model = parameters(start, scans[0])[1](raw)
     return jnp.concatenate(
-        [
-            ((_interpolate(path, rc) - (model.lattice.phase + ij * pitch)) / pitch).ravel()
-            for (rc, ij), path in zip(features, paths)
-        ]
+        [e.ravel() for scan, images in zip(scans, points) for e in model.site_errors(scan, images)]
     )
 
 
 def _image_residuals(raw, args) -> Array:
-    """The model's image less the measured one, both blurred by ``kernel``, trace and retrace,
-    in fractions of the measured depth."""
-    start, scan, kernel = args
-    out = parameters(start, scan)[1](raw).image(scan)
-    return jnp.concatenate(
-        [
-            ((blur(m, kernel) - blur(z, kernel)) / scan.depth_scale).ravel()
-            for m, z in ((out.trace, scan.trace), (out.retrace, scan.retrace))
-        ]
-    )
+    """The model's image less the measured one, both blurred by ``kernel``, weighted by the
+    training ``masks`` (scan, 2, lines, pixels), trace and retrace, in fractions of the
+    measured depth."""
+    start, scans, (kernel, masks) = args
+    model = parameters(start, scans[0])[1](raw)
+    out = []
+    for scan, mask in zip(scans, masks):
+        image = model.image(scan)
+        for w, m, z in zip(mask, (image.trace, image.retrace), (scan.trace, scan.retrace)):
+            out.append((w * (blur(m, kernel) - blur(z, kernel)) / scan.depth_scale).ravel())
+    return jnp.concatenate(out)
 
 
 def _mean_square(residuals: Callable) -> Callable:
@@ -387,7 +438,7 @@ _POINT_LOSS, _IMAGE_LOSS = _mean_square(_point_residuals), _mean_square(_image_r
 
 
 def identify(
-    scan: CalibrationScan,
+    scans,
     model: Optional[ScanModel] = None,
     *,
     kind: str = "gpi",
@@ -395,6 +446,8 @@ def identify(
     operators: int = 20,
     deadzones: int = 3,
     levels: int = 20,
+    rotation: Optional[float] = 0.0,
+    hold_out: bool = True,
     solver: str = "optimistix.levenberg_marquardt",
     blur_px: Sequence[float] = (2.0, 1.0),
     max_steps: int = 100,
@@ -404,13 +457,25 @@ def identify(
 ) -> Identification:
     """Fit the scanner end to end: to the feature points, then to the images at each blur.
 
-    Never returns a silently bad fit: each stage's convergence and last loss
-    are in the result, and a stage whose loss is not finite raises.
+    Several scans (e.g. at scan angles 0 and 90 degrees, so that both axes reverse in the
+    data) are fitted together; the first one's feature fit fixes how the others' lattice
+    indices line up with its own (:func:`_align`). Half the features are held out
+    (``hold_out``) as a checkerboard, those whose lattice indices sum to an odd number, so
+    that every lattice row and column keeps features for both axes; the fit never sees them
+    or the image around them (:func:`_split_masks`). An image stage is kept only if it does not worsen the held-out
+    features' residual (nm, :func:`held_out_rms`) beyond its uncertainty (:func:`_judge`), so
+    no stage leaves the feature fit's valley unnoticed: a slip by a pitch shows there first.
+    The held-out image residual is reported beside it.
+    Never returns a silently bad fit: each stage's convergence, acceptance and loss are in
+    the result, a stage whose loss is not finite raises, and the fitted model is checked
+    (:func:`implausible`).
 
     Arguments:
-        scan: the measured trace/retrace pair and how it was driven.
+        scans: a :class:`CalibrationScan` or several, of one lattice and one instrument.
         model: the start; by default :func:`initial_model` with ``kind``, ``effects``,
-            ``operators``, ``deadzones`` and ``levels``.
+            ``operators``, ``deadzones``, ``levels`` and ``rotation``.
+        rotation: the lattice's known angle on the stage (rad), or ``None`` to fit it.
+        hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
         solver: one of :data:`~jaxafm.identify.fit.SOLVERS`.
         blur_px: the image stages' Gaussian blurs (pixels), widest first.
         max_steps: each stage's step limit.
@@ -419,61 +484,307 @@ def identify(
         log: where each stage's one-line summary goes.
 
     Returns:
-        An :class:`Identification`: the fitted model and one fit result per stage.
+        An :class:`Identification`.
     """
+    scans = (scans,) if isinstance(scans, CalibrationScan) else tuple(scans)
+    _check_set(scans)
     check_solver(solver, max_steps, rtol, atol)
     for b in blur_px:
         if not 0 <= b <= 64:
             raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
     start = time.perf_counter()
-    features = scan.features()
-    model = initial_model(scan, kind, effects, operators, deadzones, levels) if model is None else model
-    model = _start_lattice(model, scan, features)
-    points = tuple((jnp.asarray(f.rc), jnp.asarray(f.ij)) for f in features)
-    plan = [("feature points", _point_residuals, _POINT_LOSS, points)]
+    found = [scan.features() for scan in scans]
+    if model is None:
+        model = initial_model(scans[0], kind, effects, operators, deadzones, levels, rotation)
+    model = _start_lattice(model, scans[0], found[0])
+    held = [[(f.ij.sum(axis=1) % 2 == 1) & hold_out for f in images] for images in found]
+    train = [[(f.rc[~h], f.ij[~h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
+    test = [[(f.rc[h], f.ij[h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
+    plan = [("feature points" + (", first scan" if len(scans) > 1 else ""), scans[:1], train[:1])]
+    if len(scans) > 1:
+        plan.append(("feature points, all scans", scans, train))
     radius = int(np.ceil(3 * max(blur_px, default=0)))
-    plan += [
-        (f"images, blur {b:g} px", _image_residuals, _IMAGE_LOSS, jnp.asarray(gaussian_kernel(b, radius)))
-        for b in blur_px
-    ]
-    stages = []
-    for i, (name, residuals, loss_fn, data) in enumerate(plan):
-        model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
-        args = (model, scan, data)
-        raw0, rebuild = parameters(model, scan)
+    plan += [(f"images, blur {b:g} px", scans, gaussian_kernel(b, radius)) for b in blur_px]
+    stages, accepted, held_nm, masks = [], [], [], None
+    for i, (name, fitted, data) in enumerate(plan):
+        if i == 1 and len(scans) > 1:
+            train, test = _align(model, scans, found, train, test)
+            data = train
+        image = name.startswith("images")
+        if image:
+            masks = masks or _split_masks(model, scans, hold_out)
+            data = (jnp.asarray(data), masks[0])
+        else:
+            data = tuple(tuple((jnp.asarray(rc), jnp.asarray(ij)) for rc, ij in images) for images in data)
+        log(f"  stage {i + 1}/{len(plan)} {name} ...")
         t0 = time.perf_counter()
-        raw, steps, ok = _solve(solver, residuals, loss_fn, raw0, max_steps, rtol, atol, args)
-        loss = float(2 * jax.jit(loss_fn)(raw, args))  # the mean square residual
-        if not np.isfinite(loss):
-            raise RuntimeError(
-                f"step A stage '{name}' diverged with {solver} (loss {loss}); "
-                "try another solver or a smaller model"
-            )
+        fit, steps, ok, loss = _fit_stage(name, model, fitted, data, solver, max_steps, rtol, atol)
         message = (
             f"{solver}: converged in {steps} steps, loss {loss:.3e}"
             if ok
             else f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {loss:.3e}"
         )
-        model = rebuild(raw)
-        stages.append(FitResult(model, solver, ok, steps, loss, time.perf_counter() - t0, message))
+        error = held_out_rms(fit, fitted, test[: len(fitted)])
+        comparable = [e for e, (_, f, _) in zip(held_nm, plan) if len(f) == len(scans)]
+        keep, verdict = _judge(comparable, error, test) if image else (True, "")
+        if not np.isnan(error):
+            message += f", held-out features {error:.2f} nm" + verdict
+        if image and masks[1] is not None:
+            message += f", held-out image {_held_out_image(fit, scans, data[0], masks[1]):.3f} % of depth"
+        model = fit if keep else model
+        stages.append(FitResult(fit, solver, ok, steps, loss, time.perf_counter() - t0, message))
+        accepted.append(keep)
+        held_nm.append(error)
         log(f"  stage {i + 1}/{len(plan)} {name}: {message}, {stages[-1].seconds:.1f} s")
-    return Identification(model, tuple(stages), time.perf_counter() - start)
+    return Identification(
+        model,
+        tuple(stages),
+        time.perf_counter() - start,
+        tuple(accepted),
+        tuple(held_nm),
+        validate(model, scans, test),
+        tuple(implausible(model, scans)),
+    )
+
+
+def _fit_stage(name: str, model: ScanModel, scans: tuple, data, solver: str, max_steps, rtol, atol) -> tuple:
+    """One stage: the feature points (``data``: per scan, per image ``(rc, ij)``) or the images
+    (``data``: ``(kernel, masks)``) of ``scans``, fitted from ``model``; returns ``(fit, steps,
+    converged, mean square residual)``, or raises when the loss is not finite."""
+    residuals, loss_fn = (
+        (_image_residuals, _IMAGE_LOSS)
+        if name.startswith("images")
+        else (
+            _point_residuals,
+            _POINT_LOSS,
+        )
+    )
+    model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
+    args = (model, tuple(scans), data)
+    raw0, rebuild = parameters(model, scans[0])
+    raw, steps, ok = _solve(solver, residuals, loss_fn, raw0, max_steps, rtol, atol, args)
+    loss = float(2 * jax.jit(loss_fn)(raw, args))
+    if not np.isfinite(loss):
+        raise RuntimeError(
+            f"step A stage '{name}' diverged with {solver} (loss {loss}); try another solver or a smaller model"
+        )
+    return rebuild(raw), steps, ok, loss
+
+
+def _check_set(scans: tuple) -> None:
+    """Refuse a set of scans that are not of one lattice on one instrument, or repeat an angle."""
+    if not scans:
+        raise ValueError("step A needs at least one calibration scan")
+    first = scans[0]
+    for s in scans[1:]:
+        for what in ("pitch", "pits", "sensitivity", "u_max"):
+            if getattr(s, what) != getattr(first, what):
+                raise ValueError(
+                    f"{s.name} has {what} {getattr(s, what)}, {first.name} {getattr(first, what)}: "
+                    "the scans of one calibration must share the lattice and the instrument"
+                )
+    angles = [s.raster.angle_deg for s in scans]
+    if len(set(angles)) != len(angles):
+        raise ValueError(f"scan angles {angles} repeat: give each scan angle once")
 
 
 def _start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> ScanModel:
-    """Phase from the feature points through the starting model; radius from the pillars' area."""
+    """Angle from the trace's features (if fitted), phase from them through the starting model,
+    radius from the pillars' area."""
     ft = features[0]
+    if model.rotation_free:
+        model = eqx.tree_at(lambda m: m.lattice.angle, model, jnp.asarray(ft.angle))
+    a = float(model.lattice.angle)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     path = np.asarray(model.paths(scan)[0])
-    phase = np.mean(
-        np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc))) - ft.ij * np.asarray(scan.pitch),
-        axis=0,
-    )
+    at = np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc)))
+    phase = np.mean(at - (ft.ij * np.asarray(scan.pitch)) @ turn.T, axis=0)
     z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
     area = (z > 0.5 * (z.max() + z.min())).mean() * np.prod(scan.pitch)
     radius = float(np.sqrt(area / np.pi))
     return eqx.tree_at(
         lambda m: (m.lattice.phase, m.lattice.radius), model, (jnp.asarray(phase), jnp.asarray(radius))
     )
+
+
+def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list) -> tuple:
+    """Shift each later scan's lattice indices onto the first scan's. Through ``model`` (fitted
+    to the first scan's features) the later scan's trace features land near whole lattice
+    coordinates: its rising fast axis follows the branch that the first scan's slow axis
+    traced, while its retrace follows a branch no earlier image showed (its retrace indices
+    follow the trace's, :func:`_match_indices`). The shift is the nearest whole number of
+    their median; unless four in five trace features round to that same shift, the scans are
+    unmatchable (an error naming the scan)."""
+    train, test = list(train), list(test)
+    for k in range(1, len(scans)):
+        trace = found[k][0]
+        d = np.asarray(model.site_errors(scans[k], [(trace.rc, trace.ij)])[0])
+        shift = np.round(np.median(d, axis=0))
+        agree = float(np.mean(np.all(np.round(d) == shift, axis=1)))
+        if agree < 0.8:
+            raise ValueError(
+                f"{scans[k].name}: only {100 * agree:.0f} % of its trace features lie nearest the same "
+                f"lattice sites through the model fitted to {scans[0].name}: the scans do not image one "
+                "lattice with one scanner (check the scan angles, sizes and centres), or that fit is too "
+                "loose (raise solver.max_steps)"
+            )
+
+        def move(part):
+            return [(rc, ij + shift.astype(int)) for rc, ij in part]
+
+        train[k], test[k] = move(train[k]), move(test[k])
+    return train, test
+
+
+def _split_masks(model: ScanModel, scans: tuple, hold_out: bool) -> tuple:
+    """``(train, held)``: per scan, (2, lines, pixels) weights of the image residuals, split
+    like the features, as a checkerboard of lattice sites: a pixel where ``model`` puts the
+    tip within 0.35 pitch (along both lattice axes) of a site whose indices sum to an even
+    number trains, of an odd one it is held out; the 0.3 pitch between them is a guard band
+    against the blur's reach. Without ``hold_out`` every pixel trains and ``held`` is ``None``."""
+    train, held = [], []
+    for scan in scans:
+        if not hold_out:
+            train.append(jnp.ones((2, scan.raster.lines, scan.raster.pixels)))
+            continue
+        q = np.stack([np.asarray(model.lattice.coordinates(p)) for p in model.paths(scan)])
+        site = np.round(q)
+        near = np.all(np.abs(q - site) < 0.35, axis=-1)
+        odd = site.sum(axis=-1) % 2 == 1
+        train.append(jnp.asarray(near & ~odd, dtype=float))
+        held.append(jnp.asarray(near & odd, dtype=float))
+    return tuple(train), (tuple(held) if hold_out else None)
+
+
+def _held_out_image(model: ScanModel, scans: tuple, kernel: Array, held: tuple) -> float:
+    """The rms of the blurred image residual over the held-out pixels, % of the depth."""
+    raw = parameters(model, scans[0])[0]
+    r = _image_residuals(raw, (model, scans, (kernel, held)))
+    return 100 * float(jnp.sqrt(jnp.sum(r**2) / sum(jnp.sum(h) for h in held)))
+
+
+def _judge(before: list, after: float, test: list) -> tuple:
+    """``(keep, words)``: an image stage is kept unless it raises the held-out feature residual
+    (nm) beyond the best so far over all scans (``before``) by more than that residual's own
+    uncertainty, 3 / sqrt(2 n) of
+    it for n held-out features (the standard error of an rms is about rms / sqrt(2 n)): a
+    stage that left the feature fit's valley misplaces the features by a large part of a
+    pitch, far beyond that."""
+    n = sum(len(rc) for images in test for rc, _ in images)
+    best = min(before, default=np.inf)
+    if not n or after <= best * (1 + 3 / np.sqrt(2 * n)) or not np.isfinite(best):
+        return True, ""
+    return False, f"; REJECTED: the held-out features got worse ({best:.2f} -> {after:.2f} nm)"
+
+
+def held_out_errors(model: ScanModel, scans: tuple, test: list) -> np.ndarray:
+    """How far (nm, (n, 2)) the model misplaces each held-out feature: where the model puts the
+    tip at the feature's centre in the measured image, less where it puts it at the same
+    feature's centre in the model's own image, both centres found alike
+    (:func:`~jaxafm.identify.features.feature_centres`, ``smooth``). A perfect model scores the image
+    noise only: the sub-pixel bias of a centroid (a few % of a pixel) is the same in both
+    images and cancels, which a distance to the lattice site would not. Infinite where the
+    model's image shows no features."""
+    sign = -1.0 if scans[0].pits else 1.0
+    out = []
+    for scan, images in zip(scans, test):
+        if not any(len(rc) for rc, _ in images):
+            continue
+        image = model.image(scan)
+        for (rc, _), path, z, measured in zip(
+            images, model.paths(scan), (image.trace, image.retrace), (scan.trace, scan.retrace)
+        ):
+            if not len(rc):
+                continue
+            mine = feature_centres(sign * np.asarray(measured), scan.name, smooth=True)
+            rc = mine[np.argmin(np.linalg.norm(rc[:, None] - mine[None], axis=-1), axis=1)]
+            try:
+                own = feature_centres(sign * np.asarray(z), f"the model's image of {scan.name}", smooth=True)
+            except ValueError:  # a model whose image shows no lattice misplaces every feature
+                out.append(np.full((len(rc), 2), np.inf))
+                continue
+            nearest = own[np.argmin(np.linalg.norm(rc[:, None] - own[None], axis=-1), axis=1)]
+            out.append(_at(path, rc) - _at(path, nearest))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def _at(path: Array, rc: np.ndarray) -> np.ndarray:
+    """The path (nm) at fractional pixels ``rc``."""
+    return np.asarray(_interpolate(path, jnp.asarray(rc)))
+
+
+def held_out_rms(model: ScanModel, scans: tuple, test: list) -> float:
+    """The rms length (nm) of :func:`held_out_errors`; NaN when no feature is held out."""
+    e = held_out_errors(model, scans, test)
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if len(e) else float("nan")
+
+
+def validate(model: ScanModel, scans: tuple, test: list) -> dict:
+    """The held-out features: how many, their rms residual (nm, :func:`held_out_rms`), and the
+    spread of the local pitch between held-out features two sites apart along a row (the
+    nearest in a checkerboard) raw (at their nominal positions) and corrected (where the model
+    puts the tip at them), % of the mean."""
+    raw, corrected = [], []
+    for scan, images in zip(scans, test):
+        for (rc, ij), path in zip(images, model.paths(scan)):
+            if len(rc):
+                raw.append(neighbour_distances(scan.raster.nominal(rc), ij, step=2))
+                xy = np.asarray(_interpolate(path, jnp.asarray(rc)))
+                corrected.append(neighbour_distances(xy, ij, step=2))
+    n = sum(len(rc) for images in test for rc, _ in images)
+    if not n:
+        return {"held_out_features": 0}
+    out = {"held_out_features": n, "held_out_rms_nm": held_out_rms(model, scans, test)}
+    for name, d in (("raw", raw), ("corrected", corrected)):
+        d = np.concatenate(d)
+        if len(d) > 1:
+            out[f"held_out_pitch_std_{name}_pct"] = pitch_spread(d)["pitch_std_pct"]
+    return out
+
+
+def implausible(model: ScanModel, scans: tuple) -> list:
+    """What makes a fitted model unusable, in words (empty: plausible): per scan, the tip's
+    travel along the fast axis over the image outside 0.5 to 2 times the image's width; a
+    hysteresis branch that falls (:func:`~jaxafm.model.io.check_monotone`); creep of the
+    wrong sign (it must continue the move); a loop wider than the travel."""
+    failures = []
+    for scan in scans:
+        path = np.asarray(model.paths(scan)[0]).reshape(-1, 2)
+        travel = float(np.ptp(path @ scan.raster.rotation[:, 0]))
+        ratio = travel / scan.raster.size[0]
+        if not 0.5 < ratio < 2:
+            failures.append(
+                f"{scan.name}: the tip travels {travel / 1e3:.4g} µm along the fast axis over a "
+                f"{scan.raster.size[0] / 1e3:.4g} µm image ({ratio:.2f} times its width)"
+            )
+    try:
+        check_monotone(model.scanner)
+    except ValueError as e:
+        failures.append(f"a hysteresis branch falls: {e}")
+    for a in ("x", "y"):
+        creep = getattr(model.scanner, a).creep
+        if creep is not None and float(jnp.min(creep.weights)) < 0:
+            failures.append(
+                f"{a} creep runs against the move (weights down to {float(jnp.min(creep.weights)):.3g})"
+            )
+    failures += _loop_widths(model.scanner, scans)
+    return failures
+
+
+def _loop_widths(scanner: Scanner, scans: tuple) -> list:
+    """A loop over the drive the scans used that is wider than its own travel, per axis."""
+    u = np.concatenate([s.raster.wanted().reshape(-1, 2) / np.asarray(s.sensitivity) for s in scans])
+    out = []
+    for k, a in enumerate("xy"):
+        lo, hi = u[:, k].min(), u[:, k].max()
+        sweep = np.concatenate([np.linspace(lo, hi, 200), np.linspace(hi, lo, 200)])
+        h = getattr(scanner, a).hysteresis
+        d = np.asarray(h(jnp.asarray(sweep), jnp.asarray([hi, lo])))
+        up, down = d[:200], d[200:][::-1]
+        travel, width = float(np.ptp(d)), float(np.max(np.abs(down - up)))
+        if width > travel:
+            out.append(f"the {a} loop is {width:.4g} nm wide over a travel of {travel:.4g} nm")
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

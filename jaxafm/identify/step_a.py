@@ -55,8 +55,9 @@ class Simulation:
 
 
 def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Optional[AFM] = None) -> tuple:
-    """The calibration scan of the simulated AFM (``default_afm()`` unless given):
-    ``(CalibrationScan, Simulation)``."""
+    """The calibration scans of the simulated AFM (``default_afm()`` unless given), one per scan
+    angle, each from rest after the initialisation cycle: ``(scans, Simulation)``; the
+    simulation's ``measured`` is the last scan."""
     afm = default_afm() if afm is None else afm
     if spec.withheld:
         afm = afm.without(*spec.withheld)
@@ -66,83 +67,142 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
         jnp.asarray(p / 4),
         jnp.asarray(-100.0 if grating.pits else 100.0),
         jnp.asarray(30.0),
-        jnp.zeros(()),
+        jnp.asarray(np.deg2rad(spec.lattice_rotation_deg)),
         jnp.array([0.13, 0.07]) * p,
     )
-    raster = Raster(spec.size_nm, spec.pixels, spec.pixels, line_rate=spec.line_rate_hz)
     cycle = np.array([[-afm.u_max, -afm.u_max], [afm.u_max, afm.u_max]])
-    key = jax.random.key(spec.seed)
-    out = raster_scan(afm, lattice, afm.initial_state((0.0, 0.0), 0.0, cycle), raster, key=key)
-    scan = calibration.CalibrationScan(
-        out.trace,
-        out.retrace,
-        raster,
-        p,
-        np.asarray(afm.sensitivity),
-        afm.u_max,
-        (0.0, 0.0),
-        0.0,
-        cycle,
-        pits=grating.pits,
-    )
-    return scan, Simulation(afm, lattice, cycle, out, key)
-
-
-def read_calibration(
-    spec: CalibrationImages, grating: Grating, config_path: Path
-) -> calibration.CalibrationScan:
-    """A measured trace/retrace pair (``data:`` of ``config_path``) as a
-    :class:`~jaxafm.identify.calibration.CalibrationScan`."""
-    trace, retrace = (
-        read_image_file(getattr(spec, k), config_path, f"data.{k}") for k in ("trace", "retrace")
-    )
-    if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
-        raise ValueError(
-            f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "
-            f"{retrace.meta['source']} ({retrace.shape} px, {retrace.size} nm) must cover the same raster"
+    key, scans, t0 = jax.random.key(spec.seed), [], 0.0
+    for k, angle in enumerate(spec.angles_deg):
+        raster = Raster(spec.size_nm, spec.pixels, spec.pixels, line_rate=spec.line_rate_hz, angle_deg=angle)
+        key_k = key if k == 0 else jax.random.fold_in(key, k)
+        out = raster_scan(afm, lattice, afm.initial_state((0.0, 0.0), t0, cycle), raster, key=key_k)
+        scans.append(
+            calibration.CalibrationScan(
+                out.trace,
+                out.retrace,
+                raster,
+                p,
+                np.asarray(afm.sensitivity),
+                afm.u_max,
+                (0.0, 0.0),
+                t0,
+                cycle,
+                pits=grating.pits,
+            )
         )
-    raster = Raster(trace.size, trace.shape[1], trace.shape[0], line_rate=spec.line_rate_hz)
-    need = np.asarray(trace.size) / 2 / np.asarray(spec.sensitivity_nm_per_v)
-    if need.max() > spec.u_max_v:
-        raise ValueError(
-            f"data.sensitivity_nm_per_v = {spec.sensitivity_nm_per_v} nm/V needs +-{need.max():.3g} V "
-            f"to scan the {trace.size[0]:g} x {trace.size[1]:g} nm image, beyond data.u_max_v = "
-            f"{spec.u_max_v:g} V: check both against the instrument's scan range"
+        t0 = float(out.state.scanner.t) + SETTLE_S * len(cycle)
+    return tuple(scans), Simulation(afm, lattice, cycle, out, key_k)
+
+
+def read_calibration(spec: CalibrationImages, grating: Grating, config_path: Path, log=print) -> tuple:
+    """The measured trace/retrace pairs (``data`` of ``config_path``) as
+    :class:`~jaxafm.identify.calibration.CalibrationScan`s, with the nominal sensitivity
+    given or its default (:func:`nominal_sensitivity`)."""
+    images, rasters = [], []
+    for key, pair in spec.pairs:
+        trace, retrace = (
+            read_image_file(getattr(pair, k), config_path, f"{key}.{k}") for k in ("trace", "retrace")
         )
-    return calibration.CalibrationScan(
-        trace.z,
-        retrace.z,
-        raster,
-        grating.pitch_nm,
-        spec.sensitivity_nm_per_v,
-        spec.u_max_v,
-        (0.0, 0.0),
-        0.0,
-        spec.history_v,
-        pits=grating.pits,
+        if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
+            raise ValueError(
+                f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "
+                f"{retrace.meta['source']} ({retrace.shape} px, {retrace.size} nm) must cover the same raster"
+            )
+        if images and (trace.shape != images[0][0].shape or not np.allclose(trace.size, images[0][0].size)):
+            first = images[0][0]
+            raise ValueError(
+                f"{key}: {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and "
+                f"data.scans.0: {first.meta['source']} ({first.shape} px, {first.size} nm) differ: "
+                "the scans of one calibration must have one size and one pixel count"
+            )
+        images.append((trace, retrace))
+        rasters.append(
+            Raster(
+                trace.size,
+                trace.shape[1],
+                trace.shape[0],
+                line_rate=pair.line_rate_hz,
+                overscan=pair.overscan,
+                direction=pair.lines,
+                angle_deg=pair.angle_deg,
+            )
+        )
+    sensitivity = nominal_sensitivity(spec, rasters, log)
+    return tuple(
+        calibration.CalibrationScan(
+            trace.z,
+            retrace.z,
+            raster,
+            grating.pitch_nm,
+            sensitivity,
+            spec.u_max_v,
+            (0.0, 0.0),
+            0.0,
+            spec.history_v,
+            pits=grating.pits,
+        )
+        for (trace, retrace), raster in zip(images, rasters)
     )
 
 
-def calibration_about(model, scan: calibration.CalibrationScan, source: str) -> dict:
-    """What a scanner identified from ``scan`` says about itself in its model file
+def nominal_sensitivity(spec: CalibrationImages, rasters: list, log=print) -> tuple:
+    """The nominal calibration (x, y) nm/V: ``data.sensitivity_nm_per_v`` if given; else the
+    instrument's stated range over the drive range, ``scan_range_nm / (2 u_max_v)``; else the
+    largest extent the scans reach (over-scan included, either axis) over ``u_max_v``, so that
+    they just fit the drive. Refuses a given one that needs more than ``u_max_v``."""
+    reach = np.max([np.abs(r.wanted().reshape(-1, 2)).max(axis=0) for r in rasters], axis=0)  # nm
+    if spec.sensitivity_nm_per_v is not None:
+        sensitivity = np.asarray(spec.sensitivity_nm_per_v, dtype=float)
+        need = reach / sensitivity
+        if need.max() > spec.u_max_v:
+            raise ValueError(
+                f"data.sensitivity_nm_per_v = {spec.sensitivity_nm_per_v} nm/V needs +-{need.max():.3g} V "
+                f"to scan the images (+-{reach.max():.4g} nm with their over-scan), beyond data.u_max_v = "
+                f"{spec.u_max_v:g} V: check both against the instrument's scan range"
+            )
+        return tuple(sensitivity)
+    if spec.scan_range_nm is not None:
+        span = np.broadcast_to(np.asarray(spec.scan_range_nm, dtype=float), (2,))
+        sensitivity = span / (2 * spec.u_max_v)
+        if np.any(reach > span / 2):
+            raise ValueError(
+                f"data.scan_range_nm = {spec.scan_range_nm} nm is smaller than the images "
+                f"(+-{reach.max():.4g} nm with their over-scan): give the instrument's full scan range"
+            )
+        why = f"data.scan_range_nm / (2 data.u_max_v) = {spec.scan_range_nm} / (2 x {spec.u_max_v:g} V)"
+    else:
+        sensitivity = np.full(2, reach.max() / spec.u_max_v)
+        why = f"the images' reach +-{reach.max():.4g} nm over data.u_max_v = {spec.u_max_v:g} V"
+    log(
+        f"nominal sensitivity (default): {sensitivity[0]:.4g} x {sensitivity[1]:.4g} nm/V from {why}; "
+        "give data.sensitivity_nm_per_v or data.scan_range_nm if the instrument states them"
+    )
+    return tuple(float(v) for v in sensitivity)
+
+
+def calibration_about(model, scans: tuple, source: str) -> dict:
+    """What a scanner identified from ``scans`` says about itself in its model file
     (:func:`~jaxafm.model.io.describe`): the nominal drive (V) and positions (nm) over the
-    calibration raster, over-scan included, as its fitted ranges, and the drive history before it."""
-    wanted = scan.raster.wanted().reshape(-1, 2)
-    return describe(model, wanted / np.asarray(scan.sensitivity), wanted, history=scan.history, source=source)
+    calibration rasters, over-scan included, as its fitted ranges, and the drive history before them."""
+    wanted = np.concatenate([s.raster.wanted().reshape(-1, 2) for s in scans])
+    sens = np.asarray(scans[0].sensitivity)
+    return describe(model, wanted / sens, wanted, history=scans[0].history, source=source)
 
 
 def identify_model(
-    scan: calibration.CalibrationScan, model: CalibrationModel, solver: CalibrationSolver, log=print
+    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: Grating, log=print
 ) -> calibration.Identification:
     """Step A's identification (:func:`~jaxafm.identify.calibration.identify`) of the configured
-    ``model`` from ``scan`` with the configured ``solver``."""
+    ``model`` from ``scans`` of ``grating`` with the configured ``solver``."""
     return calibration.identify(
-        scan,
+        scans,
         kind=model.kind,
         effects=model.effects,
         operators=model.operators,
         deadzones=model.deadzones,
         levels=model.levels,
+        rotation=grating.rotation_rad,
+        hold_out=solver.hold_out,
         solver=solver.name,
         blur_px=solver.blur_px,
         max_steps=solver.max_steps,
@@ -150,15 +210,10 @@ def identify_model(
     )
 
 
-def drive_range(scan: calibration.CalibrationScan) -> np.ndarray:
-    """The drive (2, 2) V [min, max] per axis that the calibration scan covered, over-scan included."""
-    r = scan.raster
-    return np.stack(
-        [
-            scan.volts(np.array([[0, -r.margin], [0, r.pixels - 1 + r.margin]]))[:, 0],
-            scan.volts(np.array([[0, 0], [r.lines - 1, 0]]))[:, 1],
-        ]
-    )
+def drive_range(scans: tuple) -> np.ndarray:
+    """The drive (2, 2) V [min, max] per axis that the calibration scans covered, over-scan included."""
+    u = np.concatenate([s.raster.wanted().reshape(-1, 2) / np.asarray(s.sensitivity) for s in scans])
+    return np.stack([u.min(axis=0), u.max(axis=0)], axis=-1)
 
 
 def paper_inverse(poly: calibration.BranchPolynomials, sensitivity, samples: int = 400) -> Callable:
@@ -187,20 +242,17 @@ def paper_inverse(poly: calibration.BranchPolynomials, sensitivity, samples: int
 
 
 def position_errors(out: RasterScan, raster: Raster) -> dict:
-    """Linearity error (max |x error| along the fast axis, % of the scan width) and position
-    errors (nm) of a scan against its wanted pixels, trace and retrace. The one whole-image
-    translation that no image observes (the lattice's phase) is removed: errors are about
-    the mean error of trace and retrace together."""
-    wanted = np.stack(
-        np.meshgrid(
-            raster.origin[0] + raster.pixel_size[0] * np.arange(raster.pixels),
-            raster.origin[1] + raster.pixel_size[1] * np.arange(raster.lines),
-        ),
-        -1,
+    """Linearity error (max |error| along the fast axis, % of the scan width) and position
+    errors (nm) of a scan against its wanted pixels, trace and retrace, in the scan's frame
+    (x: its fast axis, y: its slow axis; the stage's x and y at 0 degrees). The one
+    whole-image translation that no image observes (the lattice's phase) is removed: errors
+    are about the mean error of trace and retrace together."""
+    rows, cols = np.meshgrid(np.arange(raster.lines), np.arange(raster.pixels), indexing="ij")
+    wanted = raster.nominal(np.stack([rows.ravel(), cols.ravel()], -1)).reshape(
+        raster.lines, raster.pixels, 2
     )
     e = np.stack([np.asarray(out.path_trace), np.asarray(out.path_retrace)]) - wanted
-    offset = e.reshape(-1, 2).mean(axis=0)
-    e = e - offset
+    e = (e - e.reshape(-1, 2).mean(axis=0)) @ raster.rotation  # stage -> scan frame
     width = raster.size[0]
     return {
         "linearity_error_trace_pct": 100 * float(np.abs(e[0, ..., 0]).max()) / width,
@@ -250,9 +302,11 @@ def compensated_scan(sim: Simulation, raster: Raster, volts: Optional[Callable])
     return raster_scan(sim.afm, sim.lattice, s, raster, volts=timed, key=sim.key), seconds[0]
 
 
-def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.ndarray):
-    """Where a fitted ``scanner`` stands after replaying every drive the instrument saw: the
-    calibration scan, then the initialisation ``cycle`` again (an ``AFMState``)."""
+def twin_state(scanner: Scanner, scans: tuple, cycle: np.ndarray):
+    """Where a fitted ``scanner`` stands after replaying every drive the instrument saw since
+    its last rest: the last calibration scan, then the initialisation ``cycle`` again (an
+    ``AFMState``)."""
+    scan = scans[-1]
     twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
     s = raster_scan(
         twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster, key=calibration.KEY
@@ -261,25 +315,32 @@ def twin_state(scanner: Scanner, scan: calibration.CalibrationScan, cycle: np.nd
 
 
 def model_compensator(
-    model: calibration.ScanModel, scan: calibration.CalibrationScan, sim: Simulation, method: str
+    model: calibration.ScanModel, scans: tuple, sim: Simulation, method: str
 ) -> Compensator:
     """The model's inverse from the state its twin reaches (:func:`twin_state`), so it knows
     where its plays and creep stand."""
-    s = twin_state(model.scanner, scan, sim.cycle)
+    s = twin_state(model.scanner, scans, sim.cycle)
     return Compensator(
         model.scanner,
         s.scanner,
         s.u,
-        drive_range(scan),
+        drive_range(scans),
         method,
         history=jnp.asarray(sim.cycle),
-        u_max=scan.u_max,
+        u_max=scans[0].u_max,
     )
 
 
-def parameters_vs_truth(afm: AFM, model: calibration.ScanModel) -> dict:
-    """Fitted against true values for the parameters both have."""
+def parameters_vs_truth(sim: Simulation, model: calibration.ScanModel) -> dict:
+    """Fitted against true values for the parameters both have. The lattice's true rotation is
+    measured, as the fit's, from the direction the x piezo moves the tip
+    (:func:`~jaxafm.identify.calibration.parameters`): its stage angle less
+    ``atan(coupling.yx)``."""
+    afm = sim.afm
     t, m, out = afm.scanner, model.scanner, {}
+    if model.rotation_free:
+        yx = 0.0 if t.coupling is None else float(t.coupling.yx)
+        out["true_lattice_rotation_deg"] = float(np.rad2deg(float(sim.lattice.angle) - np.arctan(yx)))
     pairs = {
         "coupling_xy": lambda s: s.coupling.xy,
         "coupling_yx": lambda s: s.coupling.yx,
@@ -312,20 +373,32 @@ def _per_decade(creep) -> float:
 
 def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
     """Identify every configured model; on the simulated AFM also compensate and re-image.
-    Writes ``model_NAME.json`` (the fitted scanner), ``metrics.json`` and figures into ``out``."""
+    Writes ``model_NAME.json`` (the fitted scanner; not for a model that fails the
+    plausibility checks), ``metrics.json`` and figures into ``out``.
+
+    Raises:
+        ValueError: after writing the metrics and figures, when a model failed the
+            plausibility checks (naming each failure).
+    """
     if cfg.simulate is not None:
+        sim_spec = cfg.simulate
         log(
-            f"simulating the calibration scan ({cfg.simulate.pixels}² px, {cfg.simulate.size_nm / 1e3:g} µm) ..."
+            f"simulating the calibration scan(s) ({sim_spec.pixels}² px, {sim_spec.size_nm / 1e3:g} µm, "
+            f"scan angle(s) {', '.join(f'{a:g}' for a in sim_spec.angles_deg)} deg) ..."
         )
-        scan, sim = simulate_calibration(cfg.simulate, cfg.grating)
+        scans, sim = simulate_calibration(sim_spec, cfg.grating)
     else:
-        scan, sim = read_calibration(cfg.data, cfg.grating, config_path), None
-    scan.features()  # bad images fail here, before the output folder is touched
+        scans, sim = read_calibration(cfg.data, cfg.grating, config_path, log), None
+    for scan in scans:
+        scan.features()  # bad images fail here, before the output folder is touched
     prepare()
+    first = scans[0]
     metrics: dict = {
-        "pixels": scan.raster.pixels,
-        "calibration_size_nm": scan.raster.size[0],
+        "pixels": first.raster.pixels,
+        "calibration_size_nm": first.raster.size[0],
         "pitch_nm": cfg.grating.pitch_nm,
+        "scan_angles_deg": [s.raster.angle_deg for s in scans],
+        "sensitivity_nm_per_v": list(first.sensitivity),
     }
     comp = cfg.compensate if sim is not None else None
     if cfg.compensate is not None and sim is None:
@@ -334,25 +407,30 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
         None
         if comp is None
         else Raster(
-            comp.scan_fraction * scan.raster.size[0],
-            scan.raster.pixels,
-            scan.raster.lines,
-            line_rate=scan.raster.line_rate,
+            comp.scan_fraction * first.raster.size[0],
+            first.raster.pixels,
+            first.raster.lines,
+            line_rate=first.raster.line_rate,
             overscan=comp.overscan,
         )
     )
-    rows, images = [], {}
+    rows, images, failed = [], {}, {}
     if comp is not None:
         images["uncompensated"] = _measure(sim, work, None, "uncompensated", 0.0, metrics, rows)
-        if comp.paper_baseline:
+        if comp.paper_baseline and first.raster.angle_deg == 0:
             start = time.perf_counter()
-            volts = paper_inverse(calibration.fit_polynomials(scan), np.asarray(sim.afm.sensitivity))
+            volts = paper_inverse(calibration.fit_polynomials(first), np.asarray(sim.afm.sensitivity))
             fit_s = time.perf_counter() - start
             log(f"paper: polynomials + networks in {fit_s:.1f} s")
             images["paper (poly + NN)"] = _measure(sim, work, volts, "paper", fit_s, metrics, rows)
+    source = (
+        "simulated calibration scan"
+        if sim is not None
+        else " + ".join(f"{p.trace.path} / {p.retrace.path}" for _, p in cfg.data.pairs)
+    )
     for spec in cfg.models:
         log(f"identifying {spec.name} ({spec.kind}, {', '.join(spec.effects) or 'no other effects'}) ...")
-        ident = identify_model(scan, spec, cfg.solver, log)
+        ident = identify_model(scans, spec, cfg.solver, cfg.grating, log)
         if not ident.converged:
             n = sum(not s.converged for s in ident.stages)
             log(
@@ -360,24 +438,24 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
                 f"{cfg.solver.max_steps} before converging (last loss {ident.stages[-1].loss:.3e}); "
                 "raise solver.max_steps for a tighter fit"
             )
-        source = (
-            "simulated calibration scan"
-            if sim is not None
-            else f"{cfg.data.trace.path} / {cfg.data.retrace.path}"
-        )
-        about = calibration_about(ident.model.scanner, scan, source)
-        save_model(ident.model.scanner, out / f"model_{spec.name}.json", about)
-        metrics |= {
-            f"{spec.name}_fit_s": ident.seconds,
-            f"{spec.name}_converged": ident.converged,
-            f"{spec.name}_stages": [s.message for s in ident.stages],
-            f"{spec.name}_image_rms_pct": 100 * float(np.sqrt(ident.stages[-1].loss)),
-        }
+        metrics |= {f"{spec.name}_{k}": v for k, v in identification_metrics(ident).items()}
         if sim is not None:
-            metrics |= {f"{spec.name}_{k}": v for k, v in parameters_vs_truth(sim.afm, ident.model).items()}
+            metrics |= {f"{spec.name}_{k}": v for k, v in parameters_vs_truth(sim, ident.model).items()}
+        log(_validation_line(spec.name, ident))
+        _validation_figure(
+            scans[0], ident.model, out / f"validation_{spec.name}.png", spec.name, source, cfg.solver.hold_out
+        )
+        if not ident.plausible:
+            failed[spec.name] = ident.failures
+            log(f"  FAILED: {spec.name} is not a usable scanner, not saved:")
+            for f in ident.failures:
+                log(f"    - {f}")
+            continue
+        about = calibration_about(ident.model.scanner, scans, source)
+        save_model(ident.model.scanner, out / f"model_{spec.name}.json", about)
         if comp is not None:
             for method in comp.inverses:
-                volts = model_compensator(ident.model, scan, sim, method)
+                volts = model_compensator(ident.model, scans, sim, method)
                 name = f"{spec.name}_{method}"
                 image = _measure(sim, work, volts, name, ident.seconds, metrics, rows)
                 if spec is cfg.models[0]:
@@ -392,7 +470,76 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
             "without (paper Fig. 6) and with compensation (Fig. 7)",
         )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    if failed:
+        raise ValueError(
+            "step A failed the plausibility checks, no model file saved for "
+            + "; ".join(f"{name}: {', '.join(f)}" for name, f in failed.items())
+            + f" (metrics.json and validation figures in {out})"
+        )
     return metrics
+
+
+def identification_metrics(ident: calibration.Identification) -> dict:
+    """What ``metrics.json`` keeps of one identification: time, convergence, each stage's
+    message, acceptance and held-out residual (nm), the held-out validation, the fitted lattice
+    rotation, and the plausibility checks."""
+    kept = [s for s, ok in zip(ident.stages, ident.accepted) if ok]
+    lattice = ident.model.lattice
+    out = {
+        "fit_s": ident.seconds,
+        "converged": ident.converged,
+        "stages": [s.message for s in ident.stages],
+        "stages_accepted": list(ident.accepted),
+        "held_out_nm_by_stage": [None if not np.isfinite(v) else v for v in ident.held_out_nm],
+        "image_rms_pct": 100 * float(np.sqrt(kept[-1].loss)),
+        "lattice_rotation_deg": float(np.rad2deg(lattice.angle)),
+        "plausible": ident.plausible,
+        "failures": list(ident.failures),
+    }
+    return out | ident.validation
+
+
+def _validation_line(name: str, ident: calibration.Identification) -> str:
+    v = ident.validation
+    if not v.get("held_out_features"):
+        return f"  {name}: no features held out"
+    return (
+        f"  {name}: {v['held_out_features']} held-out features, residual {v['held_out_rms_nm']:.2f} nm rms; "
+        f"their local pitch spread {v.get('held_out_pitch_std_raw_pct', float('nan')):.2f} % raw -> "
+        f"{v.get('held_out_pitch_std_corrected_pct', float('nan')):.2f} % corrected; lattice rotation "
+        f"{float(np.rad2deg(ident.model.lattice.angle)):.3f} deg"
+    )
+
+
+def _validation_figure(
+    scan: calibration.CalibrationScan, model: calibration.ScanModel, path, name, source, held_out: bool
+):
+    """:func:`~jaxafm.plots.step_a_validation` for the first scan: measured against model
+    trace, and its held-out features (the odd sites of a checkerboard) raw and corrected."""
+    ft, _ = scan.features()
+    held = ft.ij.sum(axis=1) % 2 == 1
+    rc, ij = ft.rc[held], ft.ij[held]
+    a = float(model.lattice.angle)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    sites = np.asarray(model.lattice.phase) + (ij * np.asarray(scan.pitch)) @ turn.T
+    path_t = model.paths(scan)[0]
+    corrected = np.asarray(calibration._interpolate(path_t, jnp.asarray(rc))) - sites
+    raw = scan.raster.nominal(rc) - sites
+    r = scan.raster
+    extent = [r.origin[0] - r.pixel_size[0] / 2, r.origin[0] + r.size[0] - r.pixel_size[0] / 2]
+    extent += [r.origin[1] - r.pixel_size[1] / 2, r.origin[1] + r.size[1] - r.pixel_size[1] / 2]
+    plots.step_a_validation(
+        np.asarray(scan.trace),
+        np.asarray(model.image(scan).trace),
+        extent,
+        sites,
+        raw - raw.mean(axis=0),
+        corrected - corrected.mean(axis=0),
+        path,
+        f"Step A, {name}, on {source} ({scan.name}): the image fit and its "
+        + ("held-out features" if held_out else "features"),
+        held_out,
+    )
 
 
 def _measure(sim, work, volts, name, fit_s, metrics, rows) -> dict:

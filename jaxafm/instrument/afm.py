@@ -265,12 +265,16 @@ def line_scan(
 @dataclasses.dataclass(frozen=True)
 class Raster:
     """A raster scan: ``size`` (width, height) nm centred on ``centre`` (nm), ``pixels`` per
-    line, ``lines``, ``line_rate`` Hz (trace + retrace of one line per period), and
-    ``overscan``, the fraction of the width added at each end of a line.
+    line, ``lines``, ``line_rate`` Hz (trace + retrace of one line per period),
+    ``overscan``, the fraction of the width added at each end of a line, and the scan
+    angle ``angle_deg``.
 
-    The fast axis is x: each line is a trace (x rising), then a retrace, at the
-    line's y; the slow axis steps from bottom to top (``direction="up"``) or
-    top to bottom. Images are stored with row 0 at the lowest y.
+    In the scan's own frame the fast axis is its x: each line is a trace (x rising),
+    then a retrace, at the line's y; the slow axis steps from bottom to top
+    (``direction="up"``) or top to bottom. Images are stored with row 0 at the lowest
+    scan-frame y. The scan frame is the stage frame turned anticlockwise by
+    ``angle_deg`` about ``centre``, as an AFM's scan rotation turns it: at 0 degrees the
+    fast axis is the scanner's x, at 90 degrees its y (the lines then step towards -x).
     """
 
     size: tuple
@@ -280,6 +284,7 @@ class Raster:
     centre: tuple = (0.0, 0.0)
     overscan: float = 0.1
     direction: str = "up"
+    angle_deg: float = 0.0
 
     def __post_init__(self):
         size = tuple(float(s) for s in np.broadcast_to(np.asarray(self.size, dtype=float), (2,)))
@@ -307,6 +312,26 @@ class Raster:
             raise ValueError(f"Raster.overscan is a fraction of the width, 0 to 1, got {self.overscan}")
         if self.direction not in ("up", "down"):
             raise ValueError(f"Raster.direction must be 'up' or 'down', got {self.direction!r}")
+        if not np.isfinite(self.angle_deg):
+            raise ValueError(f"Raster.angle_deg must be a finite angle in degrees, got {self.angle_deg}")
+        object.__setattr__(self, "angle_deg", float(self.angle_deg))
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The (2, 2) matrix turning scan-frame vectors into stage-frame ones."""
+        a = np.deg2rad(self.angle_deg)
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    def nominal(self, rc: np.ndarray) -> np.ndarray:
+        """Nominal stage positions (n, 2) nm of fractional pixels ``rc`` (n, 2) (row, col)
+        of this raster's images."""
+        rc = np.asarray(rc, dtype=float).reshape(-1, 2)
+        scan = np.asarray(self.origin) + rc[:, ::-1] * np.asarray(self.pixel_size)
+        return self._to_stage(scan)
+
+    def _to_stage(self, scan: np.ndarray) -> np.ndarray:
+        c = np.asarray(self.centre)
+        return c + (scan - c) @ self.rotation.T
 
     @property
     def pixel_size(self) -> tuple:
@@ -319,7 +344,7 @@ class Raster:
 
     @property
     def origin(self) -> tuple:
-        """Nominal position of pixel [0, 0]'s centre, nm."""
+        """Nominal position of pixel [0, 0]'s centre in the scan frame, nm (the stage's at 0 degrees)."""
         return tuple(c - s / 2 + p / 2 for c, s, p in zip(self.centre, self.size, self.pixel_size))
 
     @property
@@ -327,7 +352,7 @@ class Raster:
         return 1.0 / (2 * self.line_rate * (self.pixels + 2 * self.margin))
 
     def wanted(self) -> np.ndarray:
-        """Wanted positions (lines, 2, n, 2) nm: per line, trace then retrace samples."""
+        """Wanted stage positions (lines, 2, n, 2) nm: per line, trace then retrace samples."""
         m, dx, dy = self.margin, *self.pixel_size
         x = self.origin[0] + dx * np.arange(-m, self.pixels + m)
         y = self.origin[1] + dy * np.arange(self.lines)
@@ -337,7 +362,7 @@ class Raster:
         out = np.empty((self.lines, 2, x.size, 2))
         out[..., 0] = xs
         out[..., 1] = y[:, None, None]
-        return out
+        return out if self.angle_deg == 0 else self._to_stage(out)
 
 
 class RasterScan(eqx.Module):

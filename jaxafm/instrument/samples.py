@@ -173,6 +173,11 @@ class Lattice(AbstractSample):
         checks.positive("Lattice.edge_width", self.edge_width)
         checks.finite("Lattice.depth", self.depth)
 
+    def coordinates(self, xy: Array) -> Array:
+        """Lattice coordinates (..., 2) of positions ``xy`` (..., 2) nm: in pitches along the
+        lattice's axes from the feature at ``phase``; whole numbers at feature centres."""
+        return _rotate(xy - self.phase, self.angle) / self.pitch
+
     def height(self, xy: Array) -> Array:
         off = _nearest_offset(_rotate(xy, self.angle), self.pitch, _rotate(self.phase, self.angle))
         r = jnp.sqrt(jnp.sum(off**2, axis=-1) + 1e-12)

@@ -94,15 +94,21 @@ def read_model_file(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
     return model
 
 
-def identify_scanner(cfg: Positioning, scan, config_path: Path, log) -> tuple:
-    """Step A's model: identified from ``scan``, or read from ``model_file``; and the seconds."""
+def identify_scanner(cfg: Positioning, scans: tuple, config_path: Path, log) -> tuple:
+    """Step A's model: identified from ``scans``, or read from ``model_file``; and the seconds.
+
+    Raises:
+        ValueError: when the identified model fails step A's plausibility checks.
+    """
     spec = cfg.calibration
     if spec.model_file is not None:
         log(f"step A: the scanner model from {resolve_data_path(spec.model_file, config_path)}")
         return read_model_file(cfg, config_path), 0.0
     m = spec.model
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
-    ident = identify_model(scan, m, spec.solver, log)
+    ident = identify_model(scans, m, spec.solver, spec.grating, log)
+    if not ident.plausible:
+        raise ValueError(f"step A identified no usable scanner: {'; '.join(ident.failures)}")
     if not ident.converged:
         log(
             f"  WARNING: identification stopped at max_steps={spec.solver.max_steps} (last loss "
@@ -302,14 +308,14 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         f"step A: the calibration scan ({cfg.calibration.simulate.pixels}² px, "
         f"{cfg.calibration.simulate.size_nm / 1e3:g} µm) ..."
     )
-    scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
-    model, fit_s = identify_scanner(cfg, scan, config_path, log)
+    scans, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
+    model, fit_s = identify_scanner(cfg, scans, config_path, log)
     save_model(
-        model, out / "model_scanner.json", calibration_about(model, scan, "simulated calibration scan")
+        model, out / "model_scanner.json", calibration_about(model, scans, "simulated calibration scan")
     )
-    calib_s = scan.raster.lines / scan.raster.line_rate
+    calib_s = sum(s.raster.lines / s.raster.line_rate for s in scans)
     start_state = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
-    twin = twin_state(model, scan, sim.cycle).scanner
+    twin = twin_state(model, scans, sim.cycle).scanner
     metrics = {
         "step_a_fit_s": fit_s,
         "step_a_scan_s": calib_s,

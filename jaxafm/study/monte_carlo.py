@@ -127,7 +127,7 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
     survey did not find every landmark) and what is worth keeping about it."""
     work, grid, D = _layout(cfg)
     afm = default_afm(**params)
-    scan, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
+    scans, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
     start = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
     stages = [st for st in SURVEYS if st in cfg.stages or (st == "A+B" and "A+B+C" in cfg.stages)]
     info = {"scanner": s, **params, "step_a_fit_s": 0.0}
@@ -137,9 +137,9 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
         if saved.is_file():
             model = load_model(saved)
         else:
-            model, info["step_a_fit_s"] = identify_scanner(cfg, scan, config_path, lambda m: None)
+            model, info["step_a_fit_s"] = identify_scanner(cfg, scans, config_path, lambda m: None)
             _atomic(saved, lambda f: save_model(model, f))
-        twin = twin_state(model, scan, sim.cycle).scanner
+        twin = twin_state(model, scans, sim.cycle).scanner
     contexts = {}
     for i, st in enumerate(stages):
         with_a, with_b = SURVEYS[st]

@@ -1,0 +1,287 @@
+"""Step A from sets of scans: scan angles, turned lattices, held-out features, plausibility,
+default calibration, and what a set of measured images may not be."""
+
+import functools
+import subprocess
+import sys
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxafm.config import CalibrationImages, Grating, SimulatedCalibration
+from jaxafm.identify import calibration, features, step_a
+from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
+from jaxafm.instrument.samples import Grating as LineGrating
+from jaxafm.instrument.samples import Tip
+
+
+def test_a_90_degree_raster_runs_its_lines_along_y():
+    """Closed form: at 90 degrees the scan frame's (s, l) is the stage's (-l, s)."""
+    r = Raster((100.0, 50.0), 10, 5, centre=(7.0, -3.0), angle_deg=90.0)
+    flat = Raster((100.0, 50.0), 10, 5, centre=(7.0, -3.0))
+    w, w0 = r.wanted(), flat.wanted() - np.array([7.0, -3.0])
+    assert np.allclose(w[..., 0], 7.0 - w0[..., 1]) and np.allclose(w[..., 1], -3.0 + w0[..., 0])
+    assert np.allclose(r.nominal([[0.0, 0.0]]), [[7.0 + 20.0, -3.0 - 45.0]])
+
+
+def test_a_rotated_raster_images_a_line_grating_along_its_slow_axis():
+    """Lines along y: at 0 degrees each image row crosses them; at 90 degrees every row runs
+    along the lines, so the image changes from row to row, not along a row."""
+    afm = AFM(default_afm().scanner.without("noise", "drift"), Tip(), jnp.full(2, 500.0), None, dilate=False)
+    grating = LineGrating(jnp.asarray(1000.0), jnp.asarray(100.0))
+    state = afm.initial_state()
+    z = {
+        a: np.asarray(raster_scan(afm, grating, state, Raster(4000.0, 32, 32, angle_deg=a)).trace)
+        for a in (0.0, 90.0)
+    }
+    along_rows, across_rows = ({a: np.abs(np.diff(z[a], axis=k)).mean() for a in z} for k in (1, 0))
+    # at 0 degrees only coupling (2 %) tilts the lines across the rows; at 90 degrees the other way
+    assert along_rows[0.0] > 10 * across_rows[0.0] and np.ptp(z[0.0], axis=1).min() > 90
+    assert across_rows[90.0] > 10 * along_rows[90.0] and np.ptp(z[90.0], axis=0).min() > 90
+
+
+def _turned_points(angle_deg, pitch=(40.0, 40.0), n=7, noise=0.3, seed=0):
+    """Sites of a lattice turned by ``angle_deg``, drawn without jaxafm, with centroid noise."""
+    a = np.deg2rad(angle_deg)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    ij = np.stack([i.ravel(), j.ravel()], -1)
+    q = ij * np.asarray(pitch)
+    xy = q @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) + [13.0, 21.0]
+    return xy + np.random.default_rng(seed).normal(0, noise, xy.shape), ij
+
+
+@pytest.mark.parametrize("angle", [0.0, 1.0, 3.0, -4.0, 30.0])
+def test_a_turned_lattice_is_indexed_along_its_own_axes(angle):
+    xy, ij = _turned_points(angle)
+    found, a = features.index_lattice(xy, (40.0, 40.0), units="nm")
+    # each of the 2 x 7 x 6 neighbour vectors' angle has noise 0.3 sqrt(2) / 40 rad: 3 sigma of the mean
+    assert abs(np.rad2deg(a) - angle) < np.rad2deg(3 * 0.3 * np.sqrt(2) / 40 / np.sqrt(84))
+    assert np.all(np.ptp(found - ij, axis=0) == 0)  # one whole-lattice shift at most
+
+
+def test_a_wrong_pitch_names_the_pitch_the_features_show():
+    xy, _ = _turned_points(2.0)
+    with pytest.raises(
+        ValueError, match=r"lie 39\.\d nm apart \(median\), but the stated pitch is 64 x 64 nm"
+    ):
+        features.index_lattice(xy, (64.0, 64.0), units="nm")
+
+
+@functools.cache
+def _scans(angles=(0.0, 90.0), rotation=2.0, pits=False):
+    spec = SimulatedCalibration(
+        pixels=64, size_nm=6000, angles_deg=list(angles), lattice_rotation_deg=rotation
+    )
+    return step_a.simulate_calibration(spec, Grating(pitch_nm=1000, pits=pits, rotation_deg="fit"))
+
+
+def _true_model(sim):
+    return calibration.ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, True)
+
+
+@pytest.mark.parametrize("pits", [False, True])
+def test_features_of_both_scans_sit_on_the_true_lattice(pits):
+    """Through the true scanner every feature of both scans (trace and retrace, indexed in
+    nominal stage coordinates) lies near a whole lattice coordinate, one shift per scan."""
+    scans, sim = _scans(pits=pits)
+    true = _true_model(sim)
+    for scan in scans:
+        ft, fr = scan.features()
+        e = np.concatenate([np.asarray(x) for x in true.site_errors(scan, [(ft.rc, ft.ij), (fr.rc, fr.ij)])])
+        shift = np.round(np.median(e, axis=0))
+        assert np.abs(e - shift).max() < 0.15  # pitches: centroid noise of 8 px features
+
+
+def test_held_out_residual_separates_the_true_scanner_from_a_wrong_one():
+    """The true scanner scores the centroid noise (a few nm at 94 nm pixels); one whose x gain
+    is 2 % off misplaces the held-out features by about 2 % of their distance from the centre."""
+    scans, sim = _scans(angles=(0.0,), rotation=0.0)
+    ft, fr = scans[0].features()
+    test = [[(f.rc[f.ij[:, 1] % 2 == 1], f.ij[f.ij[:, 1] % 2 == 1]) for f in (ft, fr)]]
+    true = _true_model(sim)
+    wrong = eqx.tree_at(
+        lambda m: m.scanner.x.hysteresis.pi.weights, true, 1.02 * true.scanner.x.hysteresis.pi.weights
+    )
+    floor, off = calibration.held_out_rms(true, scans, test), calibration.held_out_rms(wrong, scans, test)
+    assert floor < 12.0 and off > 25.0
+
+
+def test_training_masks_cover_a_quarter_pitch_about_even_rows():
+    """Closed form: bands of half a pitch about every other row are a quarter of the area (up
+    to the partial bands at the image's ends: half a band each over more than 5 pitches)."""
+    scans, sim = _scans(angles=(0.0,), rotation=0.0)
+    (train,), (held,) = calibration._split_masks(_true_model(sim), scans, hold_out=True)
+    assert abs(float(np.mean(train)) - 0.25) < 0.5 / 5 and abs(float(np.mean(held)) - 0.25) < 0.5 / 5
+    assert float(np.max(train * held)) == 0.0
+    (full,), none = calibration._split_masks(_true_model(sim), scans, hold_out=False)
+    assert float(np.min(full)) == 1.0 and none is None
+
+
+def test_an_image_stage_that_worsens_the_held_out_features_is_not_kept(monkeypatch):
+    """Rejected beyond 3 / sqrt(2 n) of the best: 10 nm -> 50 nm is far beyond it."""
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    after_each_stage = iter([10.0, 50.0])  # nm: the feature stage, then the image stage
+    monkeypatch.setattr(calibration, "held_out_rms", lambda *a: next(after_each_stage))
+    monkeypatch.setattr(calibration, "validate", lambda *a: {})
+    ident = calibration.identify(
+        scans, kind="pi", effects=(), operators=4, max_steps=3, blur_px=(1.5,), log=lambda *_: None
+    )
+    assert ident.accepted == (True, False) and ident.held_out_nm == (10.0, 50.0)
+    assert eqx.tree_equal(ident.model, ident.stages[0].model)
+    assert "REJECTED: the held-out features got worse (10.00 -> 50.00 nm)" in ident.stages[1].message
+
+
+def test_implausible_models_are_named():
+    scans, sim = _scans(angles=(0.0,), rotation=0.0)
+    true = _true_model(sim)
+    assert calibration.implausible(true, scans) == []
+    pi = lambda m: m.scanner.x.hysteresis.pi
+    weights = pi(true).weights
+    tripled = eqx.tree_at(lambda m: pi(m).weights, true, 3 * weights)
+    falling = eqx.tree_at(lambda m: pi(m).weights, true, weights.at[0].set(-1.0))
+    creep = true.scanner.x.creep
+    backwards = eqx.tree_at(lambda m: m.scanner.x.creep.weights, true, -jnp.abs(creep.weights) - 0.01)
+    assert any("times its width" in f for f in calibration.implausible(tripled, scans))
+    assert any("creep runs against the move" in f for f in calibration.implausible(backwards, scans))
+    assert any("branch falls" in f for f in calibration.implausible(falling, scans))
+
+
+def test_default_sensitivity_from_the_stated_range_or_the_images():
+    # pixel centres reach +-(4000 - 62.5) nm, the over-scan 6 px of 125 nm more: +-4687.5 nm
+    rasters = [Raster(8000.0, 64, 64, overscan=0.1)]
+    ranged = CalibrationImages(
+        scans=[{"trace": "t", "retrace": "r", "line_rate_hz": 1}], scan_range_nm=100_000
+    )
+    assert step_a.nominal_sensitivity(ranged, rasters, log=lambda *_: None) == (5000.0, 5000.0)
+    bare = ranged.model_copy(update={"scan_range_nm": None})
+    assert step_a.nominal_sensitivity(bare, rasters, log=lambda *_: None) == pytest.approx((468.75, 468.75))
+    given = ranged.model_copy(update={"sensitivity_nm_per_v": [400.0, 400.0]})
+    with pytest.raises(ValueError, match=r"needs \+-11.7 V"):
+        step_a.nominal_sensitivity(given, rasters, log=lambda *_: None)
+    small = ranged.model_copy(update={"scan_range_nm": [5000.0]})
+    with pytest.raises(ValueError, match="smaller than the images"):
+        step_a.nominal_sensitivity(small, rasters, log=lambda *_: None)
+
+
+def _write_pair(tmp_path, name, z, size):
+    from jaxafm.instrument.images import AFMImage, save_image
+
+    for k, zz in (("trace", z), ("retrace", z)):
+        save_image(
+            AFMImage(
+                np.asarray(zz, dtype=float), (size / z.shape[1], size / z.shape[0]), meta={"direction": k}
+            ),
+            tmp_path / f"{name}_{k}.npz",
+        )
+
+
+def _calibrate(tmp_path, data: str, extra: str = ""):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"data: {data}\ngrating: {{pitch_nm: 1000}}\n{extra}output: {tmp_path / 'out'}\n")
+    return subprocess.run(
+        [sys.executable, "-c", "from jaxafm.cli import main; main()", "calibrate", str(cfg)],
+        capture_output=True,
+        text=True,
+    )
+
+
+def test_a_set_of_measured_scans_of_different_sizes_is_refused(tmp_path):
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    z = np.asarray(scans[0].trace)
+    _write_pair(tmp_path, "a", z, 6000.0)
+    _write_pair(tmp_path, "b", z[:48, :48], 4500.0)
+    pair = "{{trace: {n}_trace.npz, retrace: {n}_retrace.npz, line_rate_hz: 1, angle_deg: {a}}}"
+    data = f"{{scans: [{pair.format(n='a', a=0)}, {pair.format(n='b', a=90)}]}}"
+    proc = _calibrate(tmp_path, data)
+    assert proc.returncode == 2 and "data.scans.1" in proc.stderr and "must have one size" in proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_real_1d_grating_is_refused_with_the_reason(tmp_path):
+    """The shipped Nanosurf image (lines, retrace only) cannot identify a 2-D scanner: step A
+    says why before it touches the output folder."""
+    image = "{path: builtin:grating_1d_nanosurf.txt, direction: %s}"
+    data = f"{{trace: {image % 'trace'}, retrace: {image % 'retrace'}, line_rate_hz: 1}}"
+    proc = _calibrate(tmp_path, data)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "lines of a 1-D grating" in proc.stderr and "fit_line_grating" in proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_lattice_that_does_not_fill_the_image_is_refused():
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    z = np.asarray(scans[0].trace).copy()
+    z[:, 40:] = np.median(z)  # the right third bare
+    bare = calibration.CalibrationScan(z, z, scans[0].raster, 1000.0, (500.0, 500.0), 10.0)
+    with pytest.raises(ValueError, match=r"the lattice covers only rows .* crop the image"):
+        bare.features()
+
+
+def test_an_implausible_fit_saves_no_model(tmp_path, monkeypatch):
+    from jaxafm.config import CalibrateConfig
+
+    monkeypatch.setattr(calibration, "implausible", lambda *a: ["the tip travels 9 µm over a 3 µm image"])
+    cfg = CalibrateConfig(
+        simulate={"pixels": 32, "size_nm": 4000},
+        models=[{"name": "pi", "kind": "pi", "operators": 4, "effects": []}],
+        solver={"max_steps": 2, "blur_px": []},
+        compensate=None,
+    )
+    with pytest.raises(ValueError, match="failed the plausibility checks.*pi: the tip travels 9 µm"):
+        step_a.run(cfg, tmp_path / "c.yaml", tmp_path, log=lambda *_: None)
+    assert not (tmp_path / "model_pi.json").exists() and (tmp_path / "metrics.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        (
+            "{scans: [{trace: a, retrace: b, line_rate_hz: 1, angle_deg: 90}, "
+            "{trace: c, retrace: d, line_rate_hz: 1, angle_deg: 90}]}",
+            r"data: .*each scan angle once, got angle_deg \[90.0, 90.0\]",
+        ),
+        (
+            "{trace: a, retrace: b, line_rate_hz: 1, scans: [{trace: a, retrace: b, line_rate_hz: 1}]}",
+            "not both",
+        ),
+        ("{trace: a, retrace: b}", "missing line_rate_hz"),
+        ("{trace: a, retrace: b, line_rate_hz: 1, scan_range_nm: -5}", "data.scan_range_nm.0"),
+    ],
+)
+def test_a_bad_scan_set_names_the_key(tmp_path, data, match):
+    from jaxafm.config import CalibrateConfig, ConfigError, load_config
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"data: {data}\n")
+    with pytest.raises(ConfigError, match=match):
+        load_config(cfg, CalibrateConfig)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("simulate: {angles_deg: [0, 0]}\n", "simulate: .*each scan angle once"),
+        ("simulate: {lattice_rotation_deg: 60}\n", "simulate.lattice_rotation_deg"),
+        ("simulate: {}\ngrating: {rotation_deg: 50}\n", "grating.rotation_deg"),
+        ("simulate: {}\ngrating: {rotation_deg: fitted}\n", "grating.rotation_deg"),
+    ],
+)
+def test_bad_angles_name_the_key(tmp_path, text, match):
+    from jaxafm.config import CalibrateConfig, ConfigError, load_config
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        load_config(cfg, CalibrateConfig)
+
+
+def test_an_image_without_its_size_is_refused_before_the_run(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    for k in ("t", "r"):
+        tifffile.imwrite(tmp_path / f"{k}.tif", np.asarray(scans[0].trace, dtype=np.float32))
+    proc = _calibrate(tmp_path, "{trace: t.tif, retrace: r.tif, line_rate_hz: 1}")
+    assert proc.returncode == 2 and "size" in proc.stderr and "t.tif" in proc.stderr, proc.stderr[-1500:]
+    assert not (tmp_path / "out").exists()
