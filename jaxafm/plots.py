@@ -412,7 +412,7 @@ def step_a_validation(
         ax.plot(sites[:, 0] / 1e3, sites[:, 1] / 1e3, "k.", ms=2)
         ax.legend(fontsize=8, loc="upper right")
         what = "held-out features" if held_out else "every other site (fitted: no hold-out)"
-        ax.set_title(f"{what}: error from their sites", fontsize=10)
+        ax.set_title(f"{what}:\nerror from their sites", fontsize=10)
     ax.set(xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
     if title:
         fig.suptitle(title)
