@@ -61,6 +61,32 @@ def test_a_turned_lattice_is_indexed_along_its_own_axes(angle):
     assert np.all(np.ptp(found - ij, axis=0) == 0)  # one whole-lattice shift at most
 
 
+def test_a_turned_lattice_image_drawn_without_jaxafm_gives_its_angle_and_sites():
+    """Pillars of radius 3 px every 12 px on a lattice turned by 2.5 degrees, drawn with NumPy:
+    the features sit on the drawn sites, indexed along the turned axes."""
+    a, pitch = np.deg2rad(2.5), 12.0
+    r, c = np.mgrid[:96, :96].astype(float)
+    u, v = np.cos(a) * c + np.sin(a) * r, -np.sin(a) * c + np.cos(a) * r  # lattice axes, px
+    du, dv = (np.mod(w - 5.0 + pitch / 2, pitch) - pitch / 2 for w in (u, v))
+    f = features.lattice_features(np.clip(3.0 - np.hypot(du, dv) + 0.5, 0, 1), (pitch, pitch))
+    assert abs(np.rad2deg(f.angle) - 2.5) < 0.1
+    q = f.rc[:, ::-1] @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])  # (u, v) px
+    offset = (q - 5.0) / pitch - f.ij
+    assert np.ptp(np.round(offset), axis=0).max() == 0 and np.abs(offset - np.round(offset)).max() < 0.02
+
+
+def test_lattice_sites_invert_its_coordinates():
+    from jaxafm.instrument.samples import Lattice
+
+    lattice = Lattice(
+        jnp.array([1000.0, 800.0]), jnp.asarray(200.0), jnp.asarray(50.0), angle=jnp.asarray(0.3)
+    )
+    lattice = eqx.tree_at(lambda m: m.phase, lattice, jnp.array([130.0, -70.0]))
+    ij = jnp.array([[0.0, 0.0], [2.0, -1.0], [-3.0, 4.0]])
+    assert np.allclose(lattice.coordinates(lattice.sites(ij)), ij, atol=1e-12)
+    assert np.allclose(lattice.height(lattice.sites(ij)), 50.0)
+
+
 def test_a_wrong_pitch_names_the_pitch_the_features_show():
     xy, _ = _turned_points(2.0)
     with pytest.raises(

@@ -594,11 +594,9 @@ def _start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> 
     ft = features[0]
     if model.rotation_free:
         model = eqx.tree_at(lambda m: m.lattice.angle, model, jnp.asarray(ft.angle))
-    a = float(model.lattice.angle)
-    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    path = np.asarray(model.paths(scan)[0])
-    at = np.asarray(_interpolate(jnp.asarray(path), jnp.asarray(ft.rc)))
-    phase = np.mean(at - (ft.ij * np.asarray(scan.pitch)) @ turn.T, axis=0)
+    lattice = model.lattice
+    from_phase = np.asarray(lattice.sites(ft.ij)) - np.asarray(lattice.phase)
+    phase = np.mean(_at(model.paths(scan)[0], ft.rc) - from_phase, axis=0)
     z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
     area = (z > 0.5 * (z.max() + z.min())).mean() * np.prod(scan.pitch)
     radius = float(np.sqrt(area / np.pi))

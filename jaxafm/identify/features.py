@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial import cKDTree
 from skimage import filters, measure
 
 
@@ -87,8 +88,6 @@ def lattice_angle(xy: np.ndarray, pitch, name: str = "image", units: str = "px")
     Every vector between nearest neighbours (scaled to unit pitch) lies along a lattice axis
     up to a multiple of 90 degrees; the angle is the circular mean of four times their
     angles, divided by four."""
-    from scipy.spatial import cKDTree
-
     q = np.asarray(xy, dtype=float) / np.asarray(pitch, dtype=float)
     dist, idx = cKDTree(q).query(q, k=min(5, len(q)))
     nearest = float(np.median(dist[:, 1]))

@@ -519,11 +519,8 @@ def _validation_figure(
     ft, _ = scan.features()
     held = ft.ij.sum(axis=1) % 2 == 1
     rc, ij = ft.rc[held], ft.ij[held]
-    a = float(model.lattice.angle)
-    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-    sites = np.asarray(model.lattice.phase) + (ij * np.asarray(scan.pitch)) @ turn.T
-    path_t = model.paths(scan)[0]
-    corrected = np.asarray(calibration._interpolate(path_t, jnp.asarray(rc))) - sites
+    sites = np.asarray(model.lattice.sites(ij))
+    corrected = calibration._at(model.paths(scan)[0], rc) - sites
     raw = scan.raster.nominal(rc) - sites
     r = scan.raster
     extent = [r.origin[0] - r.pixel_size[0] / 2, r.origin[0] + r.size[0] - r.pixel_size[0] / 2]

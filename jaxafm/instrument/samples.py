@@ -178,6 +178,11 @@ class Lattice(AbstractSample):
         lattice's axes from the feature at ``phase``; whole numbers at feature centres."""
         return _rotate(xy - self.phase, self.angle) / self.pitch
 
+    def sites(self, ij: Array) -> Array:
+        """Positions (..., 2) nm of the feature centres with lattice indices ``ij`` (..., 2): the
+        inverse of :meth:`coordinates`."""
+        return self.phase + _rotate(jnp.asarray(ij) * self.pitch, -self.angle)
+
     def height(self, xy: Array) -> Array:
         off = _nearest_offset(_rotate(xy, self.angle), self.pitch, _rotate(self.phase, self.angle))
         r = jnp.sqrt(jnp.sum(off**2, axis=-1) + 1e-12)
