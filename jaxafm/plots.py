@@ -176,7 +176,8 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
 
 def landmarks(panels: dict, raster, path) -> None:
     """Step B: each workspace image with the indents intended (``D``, +) and found (``M``, o),
-    their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M)``."""
+    their displacement magnified to be seen. ``panels`` maps a title to ``(images, D, M,
+    D_found)``: ``D_found`` the intended positions of the indents found, pair by pair with ``M``."""
     panels = {k: v for k, v in panels.items() if v is not None}
     fig, axes = subplots(1, len(panels), figsize=(6.5 * len(panels), 6.2), squeeze=False)
     x0, y0 = raster.origin
@@ -184,21 +185,21 @@ def landmarks(panels: dict, raster, path) -> None:
     extent = np.array(
         [x0 - dx / 2, x0 + dx * (raster.pixels - 0.5), y0 - dy / 2, y0 + dy * (raster.lines - 0.5)]
     )
-    for ax, (title, (images, D, M)) in zip(axes[0], panels.items()):
+    for ax, (title, (images, D, M, D_found)) in zip(axes[0], panels.items()):
         z = np.asarray(images.trace)
         lo, hi = np.percentile(z, [1, 99.5])
         ax.imshow(z, origin="lower", extent=extent / 1e3, cmap="afmhot", vmin=lo, vmax=hi)
         ax.plot(D[:, 0] / 1e3, D[:, 1] / 1e3, "+", color="c", ms=10, mew=1.5, label="intended D")
         ax.plot(M[:, 0] / 1e3, M[:, 1] / 1e3, "o", mfc="none", color="lime", ms=9, label="found M")
-        if M.shape == D.shape:
-            err = np.linalg.norm(M - D, axis=1)
+        if len(M):
+            err = np.linalg.norm(M - D_found, axis=1)
             spacing = np.median(np.linalg.norm(np.diff(D, axis=0), axis=1))
             gain = float(np.clip(0.4 * spacing / max(err.max(), 1e-9), 1, 20)) // 1
             ax.quiver(
-                D[:, 0] / 1e3,
-                D[:, 1] / 1e3,
-                (M - D)[:, 0] / 1e3,
-                (M - D)[:, 1] / 1e3,
+                D_found[:, 0] / 1e3,
+                D_found[:, 1] / 1e3,
+                (M - D_found)[:, 0] / 1e3,
+                (M - D_found)[:, 1] / 1e3,
                 angles="xy",
                 scale_units="xy",
                 scale=1 / gain,
@@ -207,8 +208,8 @@ def landmarks(panels: dict, raster, path) -> None:
                 label=f"M - D (x{gain:g})",
             )
             title += f"\n|M - D|: rms {np.sqrt(np.mean(err**2)):.0f} nm, max {err.max():.0f} nm"
-        else:
-            title += f"\nonly {len(M)} of {len(D)} landmarks in the image"
+        if len(M) < len(D):
+            title += f"; {len(M)} of {len(D)} landmarks found"
         ax.set(title=title, xlabel="x [µm]", ylabel="y [µm]")
         ax.legend(fontsize=8, loc="upper right", framealpha=0.6)
     fig.suptitle("Step B: landmark grid pressed, re-scanned and found (particles are the bright dots)")
@@ -225,7 +226,7 @@ def _examples(radii: np.ndarray, k: int = 3) -> np.ndarray:
 def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     """Step C: the local-scan lines of three targets, about the centre each scan found, with
     the particle where it truly lies relative to the tip after the final move."""
-    names = {0: ("search (x)", "0.6"), 1: ("centre (y)", "tab:blue"), 2: ("verify (x)", "tab:red")}
+    names = {0: ("search (x)", "0.6"), 1: ("centre (y)", "tab:blue"), 2: ("centre (x)", "tab:red")}
     picks = _examples(radii)
     fig, axes = subplots(1, len(picks), figsize=(5.2 * len(picks), 5.4))
     for ax, i in zip(np.atleast_1d(axes), picks):
@@ -269,7 +270,7 @@ def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     for ax, i in zip(axes, picks):
         o = truth[i]
         tip = r["push_path"][i] - o
-        ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true)")
+        ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true), first push")
         ax.add_patch(
             Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before")
         )

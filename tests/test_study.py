@@ -21,6 +21,7 @@ from jaxafm.cli import app
 from jaxafm.config import ConfigError, StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
 from jaxafm.model.io import save_model
+from jaxafm.position import strategy
 from jaxafm.study import monte_carlo as study
 from jaxafm.study.monte_carlo import image_position, run
 
@@ -182,20 +183,37 @@ def test_outputs_and_trial_file(baseline):
 
 def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     """The nominal scanner (step A's model misses its loop width), four trials through A+B,
-    the local scan and the push: step C brings the tip within 0.1 R of the true centre, far closer
-    than A+B alone, and the push carries the particle to near its goal (100-300 nm away)."""
+    the local scan and the push, with two of the nine landmarks (a corner and the centre) lost
+    from the survey image: step B maps on the seven left, step C brings the tip within 0.1 R of
+    the true centre, far closer than A+B alone, and the push carries the particle to near its
+    goal (100-300 nm away)."""
     path = write(
         tmp_path, trials=4, trials_per_scanner=4, chunk=4, stages=["A+B", "A+B+C", "push"], scanner={}
     )
     cfg = load_config(path, StudyConfig)
-    contexts, _ = study.prepare_scanner(cfg, path, 0, study.scanner_draws(cfg)[0], tmp_path, lambda m: None)
+    D = study._layout(cfg)[2]
+    find = strategy.find_features
+
+    def losing_two(z, raster, count, pits, *args, **kwargs):
+        found = find(z, raster, count, pits, *args, **kwargs)
+        lost = np.linalg.norm(found[:, None] - D[[0, 4]][None], axis=-1).min(axis=1) < 150.0  # nm
+        return found[~lost] if pits else found
+
+    monkeypatch.setattr(strategy, "find_features", losing_two)
+    contexts, info = study.prepare_scanner(
+        cfg, path, 0, study.scanner_draws(cfg)[0], tmp_path, lambda m: None
+    )
+    assert info["AB_landmarks_found"] == 7 and not isinstance(contexts["A+B"], str)
+    np.testing.assert_allclose(
+        np.sort(np.asarray(contexts["A+B"][0].frame.commands), 0), np.sort(D[[1, 2, 3, 5, 6, 7, 8]], 0)
+    )
     draws = study.trial_draws(cfg, study._layout(cfg)[2])
     mesh = Mesh(np.array(jax.devices()[:1]), ("trials",))
-    # a first pass of 2 lines stops every local scan early (each takes 3 or more), so every
-    # trial runs again, alone, from the start with every line
-    monkeypatch.setattr(study, "FIRST_PASS_LINES", 2)
+    # a first pass of 1 line stops every local scan early (each takes 2 or more: one per axis),
+    # so every trial runs again, alone, from the start with every line
+    monkeypatch.setattr(study, "FIRST_PASS_LINES", 1)
     r = study.run_chunk(cfg, contexts, draws, mesh)
-    assert np.all(r["ABC_lines"] > 2)
+    assert np.all(r["ABC_lines"] > 1)
     # measured: A+B 26-30 nm, A+B+C 0.3-0.6 nm in 3 lines each, push misses 5-12 nm
     assert np.all(r["ABC_found"])
     assert np.all(r["ABC_error_nm"] < 0.1 * draws["radius_nm"])

@@ -72,6 +72,13 @@ class LandmarkSpec(Strict):
     )
     m: int = Field(4, ge=2, description="nearest landmarks in the pairwise interpolation")
     degree: int = Field(3, ge=1, le=6, description="polynomial surface degree")
+    approach_nm: float = Field(
+        0.0,
+        ge=0,
+        le=5000,
+        description="every press and every move to a target passes through target + (a, a) and "
+        "target - (a, a) first, so that landmarks and targets are reached alike (0: straight, the paper's)",
+    )
 
 
 class LocalScanSpec(Strict):
@@ -79,9 +86,26 @@ class LocalScanSpec(Strict):
 
     points: int = Field(192, ge=16, le=4096, description="samples per line")
     line_time_s: float = Field(0.5, gt=0, description="one direction of a line")
-    margin_nm: float = Field(40.0, gt=0, description="how far beyond its expected place to search")
+    margin_nm: float = Field(
+        40.0,
+        gt=0,
+        description="how far beyond its expected place to search (keep a line clear of the neighbouring "
+        "particles: its pulse is taken from the first to the last sample above half height)",
+    )
     max_lines: int = Field(24, ge=3, le=1000)
-    width_tolerance: float = Field(0.1, gt=0, lt=1, description="accepted pulse-width mismatch, fraction")
+    width_tolerance: float = Field(
+        0.5,
+        gt=0,
+        lt=1,
+        description="pulse width of a centred line, fraction from the expected: a check that the particle "
+        "is the one sought, loose enough for the frame's scale error",
+    )
+    centre_tolerance: float = Field(
+        0.1, gt=0, le=1, description="a line is centred when its pulse's middle lies this close, in R"
+    )
+    centre_floor_nm: float = Field(
+        1.0, ge=0, description="... or this close, nm, if more: the frame's repeatability from line to line"
+    )
 
 
 class PushSpec(Strict):
@@ -91,6 +115,13 @@ class PushSpec(Strict):
     distance_nm: list[float] = Field([100.0, 300.0], min_length=2, max_length=2)
     speed_nm_per_s: float = Field(200.0, gt=0)
     tolerance_radii: float = Field(1.0, gt=0)
+    corrections: int = Field(
+        1,
+        ge=0,
+        le=4,
+        description="local scans at the goal after a push, each followed by a corrective push when the "
+        "particle lies over a quarter of its radius from the goal (0: the single push)",
+    )
 
     @model_validator(mode="after")
     def _range(self):

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from scipy.optimize import linear_sum_assignment
 from skimage import feature
 
 from .. import checks
@@ -90,21 +91,44 @@ def find_features(
     return np.asarray(centres).reshape(-1, 2)
 
 
-def order_grid(points: np.ndarray, n: int) -> np.ndarray:
-    """``n * n`` points sorted into grid order: rows by y from the lowest, each row by x,
-    alternating direction as :meth:`LandmarkGrid.positions` presses them."""
-    points = np.asarray(points, dtype=float)
-    if points.shape != (n * n, 2):
-        raise ValueError(
-            f"found {len(points)} landmarks in the re-scan, expected N x N = {n * n}: check the indent "
-            "depth against the image's noise, and that no other pits lie in the area"
-        )
-    rows = points[np.argsort(points[:, 1])].reshape(n, n, 2)
-    out = []
-    for i, row in enumerate(rows):
-        row = row[np.argsort(row[:, 0])]
-        out.append(row if i % 2 == 0 else row[::-1])
-    return np.concatenate(out)
+def match_grid(found: np.ndarray, wanted: np.ndarray, spacing: float) -> np.ndarray:
+    """The grid slot of each indent ``found`` (k, 2) nm in the re-scan: an index into ``wanted``
+    ``D`` (N*N, 2) nm, or -1 for a find that matches no slot. Holes in the grid are allowed.
+
+    One-to-one nearest slots (``scipy.optimize.linear_sum_assignment``), first against ``D``
+    moved by the median offset of each find from its nearest slot (the grid's shift, which an
+    uncompensated drive makes a large part of the spacing), then twice against ``D`` through the
+    affine map the matched pairs give (the scan's scale, skew and offset), keeping pairs closer
+    than ``spacing / 3`` nm.
+    """
+    found, wanted = np.asarray(found, float).reshape(-1, 2), np.asarray(wanted, float)
+    slot = np.full(len(found), -1)
+    if len(found) == 0:
+        return slot
+    offsets = found[:, None] - wanted[None]
+    nearest = offsets[np.arange(len(found)), np.argmin(np.linalg.norm(offsets, axis=-1), axis=1)]
+    predicted = wanted + np.median(nearest, axis=0)
+    for _ in range(3):
+        d = np.linalg.norm(found[:, None] - predicted[None], axis=-1)
+        rows, cols = linear_sum_assignment(d)
+        close = d[rows, cols] < spacing / 3
+        slot[:] = -1
+        slot[rows[close]] = cols[close]
+        ok = slot >= 0
+        if ok.sum() < 3:
+            break
+        A = np.column_stack([wanted[slot[ok]], np.ones(ok.sum())])
+        affine = np.linalg.lstsq(A, found[ok], rcond=None)[0]
+        predicted = np.column_stack([wanted, np.ones(len(wanted))]) @ affine
+    return slot
+
+
+def usable_degree(count: int, degree: int) -> int:
+    """The highest polynomial degree up to ``degree`` whose surface ``count`` landmarks
+    over-determine (terms ``(d + 1)(d + 2) / 2`` at most ``count - 2``); 0 when not even a plane's."""
+    while degree >= 1 and (degree + 1) * (degree + 2) // 2 > count - 2:
+        degree -= 1
+    return max(degree, 0)
 
 
 class LandmarkMap(eqx.Module):

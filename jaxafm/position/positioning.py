@@ -84,17 +84,28 @@ def goto(
     move_time: float = 0.1,
     dwell: float = 0.2,
     samples: int = 64,
+    approach: float = 0.0,
 ) -> tuple:
     """Move straight to ``target`` (2,) nm over ``move_time`` s and dwell there ``dwell`` s.
 
-    Returns the true tip position (2,) nm at the end of the dwell, the true path
-    and the next stand.
+    With ``approach`` a > 0 nm the move first passes through ``target + (a, a)`` and
+    ``target - (a, a)`` (a leg of ``move_time`` each) and reaches the target rising on both
+    axes: whatever came before, every hysteresis operator narrower than a arrives in the same
+    state, so two arrivals at one place agree however the tip came there (step B: landmarks
+    and targets reached alike). Returns the true tip position (2,) nm at the end of the
+    dwell, the true path and the next stand.
     """
+    target = jnp.asarray(target, dtype=float)
+    points = [stand.wanted] + ([target + approach, target - approach] if approach > 0 else []) + [target]
     n_move = samples // 2
-    frac = jnp.concatenate([jnp.arange(1, n_move + 1) / n_move, jnp.ones(samples - n_move)])
-    wanted = stand.wanted + frac[:, None] * (jnp.asarray(target, dtype=float) - stand.wanted)
+    frac = (jnp.arange(1, n_move + 1) / n_move)[:, None]
+    legs = [a + frac * (b - a) for a, b in zip(points[:-1], points[1:])]
+    wanted = jnp.concatenate(legs + [jnp.broadcast_to(target, (samples - n_move, 2))])
     dt = jnp.concatenate(
-        [jnp.full(n_move, move_time / n_move), jnp.full(samples - n_move, dwell / (samples - n_move))]
+        [
+            jnp.full(n_move * len(legs), move_time / n_move),
+            jnp.full(samples - n_move, dwell / (samples - n_move)),
+        ]
     )
     t = stand.afm.scanner.t + jnp.cumsum(dt)
     path, _, stand = pos.drive(sample, stand, wanted, t, key)
@@ -102,11 +113,18 @@ def goto(
 
 
 def press_at(
-    pos: Positioner, sample, stand: Stand, target: Array, depth: float, key: Array, dwell: float = 0.2
+    pos: Positioner,
+    sample,
+    stand: Stand,
+    target: Array,
+    depth: float,
+    key: Array,
+    dwell: float = 0.2,
+    approach: float = 0.0,
 ) -> tuple:
-    """Move to ``target`` (2,) nm, dwell, and indent ``depth`` nm where the tip really is.
-    Returns ``(sample with the indent, stand, true xy)``."""
-    xy, _, stand = goto(pos, sample, stand, target, key, dwell=dwell)
+    """Move to ``target`` (2,) nm (:func:`goto`, with its ``approach``), dwell, and indent
+    ``depth`` nm where the tip really is. Returns ``(sample with the indent, stand, true xy)``."""
+    xy, _, stand = goto(pos, sample, stand, target, key, dwell=dwell, approach=approach)
     return sample.press(xy, depth), stand, xy
 
 
@@ -131,15 +149,25 @@ class LocalScan(eqx.Module):
     """The local scan's settings: ``points`` per line, each line scanned there and back in
     ``line_time`` s per direction (the mean of both cancels the feedback lag), a move of
     ``move_time`` s to each line; the search reaches ``margin`` nm beyond the particle's
-    expected place; at most ``max_lines`` lines in all; accept when the pulse width through
-    the centre is within ``width_tolerance`` of that of a centred line."""
+    expected place, a line through the estimate ``line_margin`` nm beyond the particle's reach
+    (short: the move from its end to the centre found crosses the frame's scale error over that
+    length); at most ``max_lines`` lines in all. A line is *centred* when its pulse's
+    middle lies within ``centre_tolerance`` R, or ``centre_floor`` nm if more, of the line's
+    centre, and its width within ``width_tolerance`` of that of a centred line (a check that it
+    is the particle sought, loose enough for the scale error of a poorly identified axis); two
+    centred lines in a row, one along each axis, verify the centre. The floor is the frame's
+    repeatability from line to line: with step A's model, successive lines along the slow axis
+    measured the same particle 0.4-1 nm apart (``jaxafm run configs/paper.yaml``)."""
 
     points: int = eqx.field(static=True, default=192)
     line_time: float = eqx.field(static=True, default=0.5)
     move_time: float = eqx.field(static=True, default=0.05)
     margin: float = eqx.field(static=True, default=40.0)
+    line_margin: float = eqx.field(static=True, default=40.0)
     max_lines: int = eqx.field(static=True, default=24)
-    width_tolerance: float = eqx.field(static=True, default=0.1)
+    width_tolerance: float = eqx.field(static=True, default=0.5)
+    centre_tolerance: float = eqx.field(static=True, default=0.1)
+    centre_floor: float = eqx.field(static=True, default=1.0)
 
     @classmethod
     def from_config(cls, spec: LocalScanSpec) -> LocalScan:
@@ -150,17 +178,20 @@ class LocalScan(eqx.Module):
             margin=spec.margin_nm,
             max_lines=spec.max_lines,
             width_tolerance=spec.width_tolerance,
+            centre_tolerance=spec.centre_tolerance,
+            centre_floor=spec.centre_floor_nm,
         )
 
-    def half_length(self, radius: Array, tip: Tip) -> Array:
-        """Half the length of a line, nm: the search margin plus the imaged particle's reach."""
-        return self.margin + 2 * (radius + tip.radius)
+    def half_length(self, radius: Array, tip: Tip, search: bool = True) -> Array:
+        """Half the length of a line, nm: the imaged particle's reach plus the search margin
+        (``search``), or plus ``line_margin`` (a line through the estimate)."""
+        return 2 * (radius + tip.radius) + jnp.where(search, self.margin, self.line_margin)
 
 
 class ScanResult(eqx.Module):
     """What the local scan found: ``centre`` (2,) nm in the wanted frame, ``found`` (verified),
     the ``lines`` scanned, their ``starts``/``ends`` (max_lines, 2) nm and kind ``phases``
-    (0 search, 1 along y, 2 verification; -1 unused), the scanning ``seconds``."""
+    (0 search, 1 along y, 2 along x through the estimate; -1 unused), the scanning ``seconds``."""
 
     centre: Array
     found: Array
@@ -204,8 +235,15 @@ def centred_width(radius: Array, tip: Tip, samples: int = 4001) -> Array:
     return pulse(h, s, radius)[2]
 
 
+def search_spacing(radius: Array, tip: Tip) -> Array:
+    """The local search's line spacing, nm: 3/4 of the band ``2 sqrt(R^2 + 2 R r)`` of lines
+    whose heights rise more than R (the detection threshold) over a particle of radius R imaged
+    by a tip of radius r: a line at ``d`` from the centre peaks at ``R - r + sqrt((R + r)^2 - d^2)``."""
+    return 1.5 * jnp.sqrt(radius**2 + 2 * radius * tip.radius)
+
+
 def _offset(k: Array) -> Array:
-    """Search order of line offsets, in units of 0.75 R: 0, +1, -1, +2, -2, ..."""
+    """Search order of line offsets, in units of the search's line spacing: 0, +1, -1, +2, -2, ..."""
     m = (k + 1) // 2
     return jnp.where(k % 2 == 1, m, -m)
 
@@ -221,32 +259,39 @@ def local_scan(
 ) -> tuple:
     """Find the centre of a particle of ``radius`` nm expected near ``guess`` (2,) nm (paper III-C).
 
-    x lines through the guess, shifted by 0.75 R in y until the heights show
-    the particle; the middle of that pulse; a y line through it to the centre;
-    a verification x line through the centre, accepted when its pulse width is
-    within ``spec.width_tolerance`` of a centred line's, else the y and
-    verification lines again. A line that loses the particle restarts the
-    search from the current estimate. At most ``spec.max_lines`` lines: then
-    ``found`` is false. Returns ``(ScanResult, stand)``.
+    The search: x lines through the guess, shifted in y by ``search_spacing``
+    (three quarters of the band of lines that show the particle) until the
+    heights show the particle; the estimate moves to the middle of that pulse.
+    Then lines through the estimate, along y and x in turn, each moving the
+    estimate to its pulse's middle. The middle of a chord of a round particle is
+    its centre's coordinate along the line, whatever the chord; so a line whose
+    middle lies within ``spec.centre_tolerance`` R (at least ``spec.centre_floor``
+    nm) of where it was aimed confirms
+    the estimate on its axis, in any frame a scale error stretches. Two such
+    lines in a row, one per axis, with pulse widths within
+    ``spec.width_tolerance`` of a centred line's, verify the centre. A line that
+    loses the particle restarts the search from the estimate. At most
+    ``spec.max_lines`` lines: then ``found`` is false. Returns ``(ScanResult, stand)``.
     """
     radius = jnp.asarray(radius, dtype=float)
     if checks.is_concrete(radius):
         checks.positive("particle radius R (nm)", radius)
     tip = pos.afm.tip
-    L = spec.half_length(radius, tip)
     width0 = centred_width(radius, tip)
     P = spec.points
-    s = jnp.linspace(-1.0, 1.0, P) * L
+    unit = jnp.linspace(-1.0, 1.0, P)
     dt_line = spec.line_time / (P - 1)
-    n_search = 2 * jnp.ceil(spec.margin / (0.75 * radius)) + 1
+    spacing = search_spacing(radius, tip)
+    n_search = 2 * jnp.ceil(spec.margin / spacing) + 1
     ex, ey = jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])
     n_move = 16
     frac_move = jnp.arange(1, n_move + 1) / n_move
 
-    def scan_line(stand, centre, along, k):
-        """Move to the line's start, scan to its end and back: heights (2, P), new stand."""
+    def scan_line(stand, centre, along, L, k):
+        """Move to the line's start, scan ``L`` nm either side of ``centre`` and back: heights
+        (2, P), new stand."""
         start, end = centre - L * along, centre + L * along
-        there = start + (s[:, None] + L) / (2 * L) * (end - start)
+        there = start + (unit[:, None] + 1) / 2 * (end - start)
         wanted = jnp.concatenate(
             [stand.wanted + frac_move[:, None] * (start - stand.wanted), there, there[::-1]]
         )
@@ -256,19 +301,24 @@ def local_scan(
         return jnp.stack([h[n_move : n_move + P], h[n_move + P :][::-1]]), start, end, stand
 
     def body(c):
-        stand, key, phase, k, origin, est, n, _, _, starts, ends, phases = c  # done, verified: outputs only
+        stand, key, phase, k, origin, est, n, _, _, confirmed, starts, ends, phases = c
         key, sub = jax.random.split(key)
-        centre = jnp.where(phase == 0, origin + _offset(k) * 0.75 * radius * ey, est)
+        centre = jnp.where(phase == 0, origin + _offset(k) * spacing * ey, est)
         along = jnp.where(phase == 1, ey, ex)
-        h, start, end, stand = scan_line(stand, centre, along, sub)
-        f1, mid1, w1 = pulse(h[0], s, radius)
-        f2, mid2, w2 = pulse(h[1], s, radius)
+        L = spec.half_length(radius, tip, search=phase == 0)
+        h, start, end, stand = scan_line(stand, centre, along, L, sub)
+        f1, mid1, w1 = pulse(h[0], unit * L, radius)
+        f2, mid2, w2 = pulse(h[1], unit * L, radius)
         seen, mid, width = f1 & f2, (mid1 + mid2) / 2, (w1 + w2) / 2
-        hit = centre + mid * along
-        verified = (phase == 2) & seen & (jnp.abs(width - width0) <= spec.width_tolerance * width0)
-        next_est = jnp.where(seen, hit, est)
-        # search: next offset or on to y; y or verification: on, or restart the search from the estimate
-        next_phase = jnp.where(seen, jnp.where(phase == 2, 1, phase + 1), 0)
+        centred = (
+            seen
+            & (jnp.abs(mid) <= jnp.maximum(spec.centre_tolerance * radius, spec.centre_floor))
+            & (jnp.abs(width - width0) <= spec.width_tolerance * width0)
+        )
+        verified = centred & confirmed & (phase > 0)
+        next_est = jnp.where(seen, centre + mid * along, est)
+        # seen: on to a line along the other axis (after the search: along y); lost: search from the estimate
+        next_phase = jnp.where(seen, jnp.where(phase == 1, 2, 1), 0)
         next_k = jnp.where(seen | (phase > 0), 0, k + 1)
         next_origin = jnp.where(seen | (phase == 0), origin, est)
         exhausted = (phase == 0) & ~seen & (k + 1 >= n_search)
@@ -285,6 +335,7 @@ def local_scan(
             n,
             done,
             verified,
+            centred,
             starts,
             ends,
             phases,
@@ -293,10 +344,24 @@ def local_scan(
     guess = jnp.asarray(guess, dtype=float)
     t0 = stand.afm.scanner.t
     empty = jnp.zeros((spec.max_lines, 2))
-    init = (stand, key, 0, 0, guess, guess, 0, False, False, empty, empty, jnp.full(spec.max_lines, -1))
+    init = (
+        stand,
+        key,
+        0,
+        0,
+        guess,
+        guess,
+        0,
+        False,
+        False,
+        False,
+        empty,
+        empty,
+        jnp.full(spec.max_lines, -1),
+    )
     out = lax.while_loop(lambda c: ~c[7], body, init)
     stand, est, n, ok = out[0], out[5], out[6], out[8]
-    result = ScanResult(est, ok, n, out[9], out[10], out[11], stand.afm.scanner.t - t0)
+    result = ScanResult(est, ok, n, out[10], out[11], out[12], stand.afm.scanner.t - t0)
     return result, stand
 
 
@@ -306,18 +371,23 @@ def local_scan(
 
 class Push(eqx.Module):
     """The pushing task's settings: start ``gap`` nm behind the contact, push at ``speed``
-    nm/s in ``samples`` steps. The particle model: the tip touches a particle of radius R
+    nm/s in ``samples`` steps; then up to ``corrections`` checks (:func:`push_and_check`), each
+    a local scan at the goal and, when the particle lies more than ``correct_beyond`` R from
+    it, a corrective push. The particle model: the tip touches a particle of radius R
     when their centres come within ``R + tip radius``; from then on the particle moves
     with the tip (rigidly), and it stays where it is when the tip retracts."""
 
     gap: float = eqx.field(static=True, default=20.0)
     speed: float = eqx.field(static=True, default=200.0)
     samples: int = eqx.field(static=True, default=512)
+    corrections: int = eqx.field(static=True, default=1)
+    correct_beyond: float = eqx.field(static=True, default=0.25)
 
     @classmethod
     def from_config(cls, spec: PushSpec) -> Push:
-        """The settings a config's ``push`` gives (``gap`` and ``samples`` keep their defaults)."""
-        return cls(speed=spec.speed_nm_per_s)
+        """The settings a config's ``push`` gives (``gap``, ``samples`` and ``correct_beyond``
+        keep their defaults)."""
+        return cls(speed=spec.speed_nm_per_s, corrections=spec.corrections)
 
 
 def push(
@@ -355,3 +425,72 @@ def push(
     moved = touching.any()
     final = jnp.where(moved, particle + path[-1] - path[contact], particle)
     return final, moved, path, stand
+
+
+def moved(sample: Particles, particle: Array, final: Array) -> Particles:
+    """``sample`` with the particle truly at ``particle`` (2,) nm (the nearest there) moved to ``final``."""
+    i = jnp.argmin(jnp.sum((sample.centres - particle) ** 2, axis=-1))
+    return Particles(sample.centres.at[i].set(final), sample.radii, sample.substrate)
+
+
+def push_and_check(
+    pos: Positioner,
+    sample: Particles,
+    stand: Stand,
+    centre: Array,
+    particle: Array,
+    radius: Array,
+    direction: Array,
+    distance: Array,
+    key: Array,
+    spec: Push = Push(),
+    local: LocalScan = LocalScan(),
+    approach: float = 0.0,
+    home: Array = None,
+) -> tuple:
+    """The push (:func:`push`), then up to ``spec.corrections`` rounds of: a move that arrives
+    at the goal ``centre + distance * direction`` as the tip arrived at the particle, a local
+    scan there (paper III-C applied again) and, when the particle it finds lies more than
+    ``spec.correct_beyond`` R from the goal, a push from there by what remains. Arriving alike:
+    with ``approach`` > 0 the goal is reached by :func:`goto` with that approach; without, the
+    tip first goes back to ``home`` (2,) nm, where it came to the particle from (default: where
+    the push started from). Straight after the push the frame carries the push's own travel
+    error, and a scan there finds the particle at the goal however short it fell; arriving
+    alike gives the check the frame the particle was seen in. Returns the true final centre
+    (2,) nm, whether the first push touched it, the first push's true path, the true centre
+    after the first push, the corrective pushes made, and the next stand."""
+    direction = direction / jnp.linalg.norm(direction)
+    goal = centre + distance * direction
+    home = stand.wanted if home is None else home
+    keys = jax.random.split(key, 1 + 3 * spec.corrections)
+    final, touched, path, stand = push(
+        pos, sample, stand, centre, particle, radius, direction, distance, keys[0], spec
+    )
+    first, made = final, jnp.asarray(0)
+    for i in range(spec.corrections):
+        sample = moved(sample, particle, final)
+        particle = final
+        _, _, stand = goto(
+            pos, sample, stand, goal if approach > 0 else home, keys[1 + 3 * i], approach=approach
+        )
+        seen, stand = local_scan(pos, sample, stand, goal, radius, keys[2 + 3 * i], local)
+        rest = goal - seen.centre
+        far = jnp.linalg.norm(rest)
+        again = seen.found & (far > spec.correct_beyond * radius)
+        unit = jnp.where(again, rest / jnp.where(far > 0, far, 1.0), direction)
+        pushed, _, _, after = push(
+            pos,
+            sample,
+            stand,
+            seen.centre,
+            particle,
+            radius,
+            unit,
+            jnp.where(again, far, 0.0),
+            keys[3 + 3 * i],
+            spec,
+        )
+        final = jnp.where(again, pushed, final)
+        stand = jax.tree_util.tree_map(lambda a, b: jnp.where(again, a, b), after, stand)
+        made = made + again
+    return final, touched, path, first, made, stand

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from skimage import registration
 
 from .. import plots
 from ..config import Positioning, RunConfig, resolve_data_path
@@ -44,7 +45,7 @@ from ..instrument.afm import Raster, RasterScan, default_afm
 from ..instrument.samples import Indented, Particles
 from ..model.io import load_model, save_model
 from ..model.scanner import Scanner
-from .landmarks import LandmarkGrid, LandmarkMap, find_features, order_grid
+from .landmarks import LandmarkGrid, LandmarkMap, find_features, match_grid, usable_degree
 from .positioning import (
     LocalScan,
     Positioner,
@@ -52,7 +53,7 @@ from .positioning import (
     goto,
     local_scan,
     press_at,
-    push,
+    push_and_check,
     raster,
 )
 
@@ -71,6 +72,10 @@ def particle_field(cfg: RunConfig, grid: LandmarkGrid, D: np.ndarray) -> Particl
     centres = sites + rng.uniform(-a / 8, a / 8, sites.shape)
     radii = rng.uniform(*spec.radius_nm, len(centres))
     return Particles(jnp.asarray(centres), jnp.asarray(radii))
+
+
+class ImplausibleModel(ValueError):
+    """Step A's identified model failed its plausibility checks (the message says which)."""
 
 
 def read_model_file(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
@@ -108,7 +113,7 @@ def identify_scanner(cfg: Positioning, scans: tuple, config_path: Path, log) -> 
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
     ident = identify_model(scans, m, spec.solver, spec.grating, log)
     if not ident.plausible:
-        raise ValueError(f"step A identified no usable scanner: {'; '.join(ident.failures)}")
+        raise ImplausibleModel(f"step A identified no usable scanner: {'; '.join(ident.failures)}")
     if not ident.converged:
         log(
             f"  WARNING: identification stopped at max_steps={spec.solver.max_steps} (last loss "
@@ -140,14 +145,16 @@ def trials(
     keys,
     local: LocalScan = None,
     push_spec: Push = None,
+    approach: float = 0.0,
 ) -> dict:
     """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``), with
     ``seen`` (batched over the trials) the particles each trial's tip meets; with ``local``,
-    then step C, and with ``push_spec`` the push. Errors against the true centres ``truth``."""
+    then step C, and with ``push_spec`` the push. The move to the target makes ``approach``
+    (:func:`~jaxafm.position.positioning.goto`). Errors against the true centres ``truth``."""
 
     def one(near, target, p, R, d, dist, key):
         k = jax.random.split(key, 4)
-        xy, _, s = goto(pos, near, stand, target, k[0])
+        xy, _, s = goto(pos, near, stand, target, k[0], approach=approach)
         out = {"tip": xy, "error_nm": jnp.linalg.norm(xy - p)}
         if local is None:
             return out
@@ -166,10 +173,14 @@ def trials(
         }
         if push_spec is None:
             return out
-        final, moved, path, s = push(pos, near, s, res.centre, p, R, d, dist, k[3], push_spec)
+        final, touched, path, first, made, s = push_and_check(
+            pos, near, s, res.centre, p, R, d, dist, k[3], push_spec, local, approach, stand.wanted
+        )
         return out | {
             "push_final": final,
-            "push_contact": moved,
+            "push_first": first,
+            "push_corrections": made,
+            "push_contact": touched,
             "push_goal": p + dist * d,
             "push_path": path[::8],
         }
@@ -177,13 +188,20 @@ def trials(
     return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys)
 
 
-def _trace_and_retrace(images: RasterScan, find, tolerance: float) -> np.ndarray:
-    """Features found in both the trace and the retrace image (within ``tolerance`` nm), at
-    the mean of the two: the feedback lag shifts them equally in opposite directions."""
+def _trace_and_retrace(images: RasterScan, work: Raster, find, tolerance: float) -> np.ndarray:
+    """Features found in both the trace and the retrace image, at the mean of the two: the feedback
+    lag and the hysteresis left in the drive shift them in opposite directions. The retrace's finds
+    are first moved by the shift that registers the whole retrace image onto the trace
+    (``skimage.registration.phase_cross_correlation``), then paired with the trace's as mutual
+    nearest neighbours within ``tolerance`` nm."""
     ft, fr = find(images.trace), find(images.retrace)
     if len(ft) == 0 or len(fr) == 0:
         return np.zeros((0, 2))
-    d = np.linalg.norm(ft[:, None] - fr[None], axis=-1)
+    rows_cols = registration.phase_cross_correlation(
+        np.asarray(images.trace), np.asarray(images.retrace), upsample_factor=4
+    )[0]
+    shift = rows_cols[::-1] * np.asarray(work.pixel_size)  # (x, y) nm that carries the retrace onto the trace
+    d = np.linalg.norm(ft[:, None] - (fr + shift)[None], axis=-1)
     j, i = np.argmin(d, axis=1), np.argmin(d, axis=0)
     ok = (i[j] == np.arange(len(ft))) & (d[np.arange(len(ft)), j] < tolerance)  # mutual nearest neighbours
     return (ft[ok] + fr[j[ok]]) / 2
@@ -196,6 +214,7 @@ def find_targets(images: RasterScan, work: Raster, particles: Particles, cfg: Ru
     spacing = cfg.particle_spacing_nm
     found = _trace_and_retrace(
         images,
+        work,
         lambda z: find_features(
             z,
             work,
@@ -216,11 +235,16 @@ def find_targets(images: RasterScan, work: Raster, particles: Particles, cfg: Ru
     return found[ok], which[ok]
 
 
-def find_landmarks(images: RasterScan, work: Raster, grid: LandmarkGrid, depth: float) -> np.ndarray:
-    """The indents found in the workspace image (k <= N*N, 2) nm, in pressing order when all are found."""
+def find_landmarks(
+    images: RasterScan, work: Raster, grid: LandmarkGrid, D: np.ndarray, depth: float
+) -> tuple:
+    """The indents found in the workspace image, ``M`` (k, 2) nm, and the wanted positions
+    ``D`` (k, 2) nm they were pressed at (:func:`~jaxafm.position.landmarks.match_grid`); k <= N*N,
+    with the grid's holes left out."""
     spacing = grid.step_px * min(work.pixel_size)
     found = _trace_and_retrace(
         images,
+        work,
         lambda z: find_features(
             z,
             work,
@@ -232,7 +256,20 @@ def find_landmarks(images: RasterScan, work: Raster, grid: LandmarkGrid, depth: 
         ),
         spacing / 2,
     )
-    return order_grid(found, grid.n) if len(found) == grid.n**2 else found
+    slot = match_grid(found, D, spacing)
+    return found[slot >= 0], D[slot[slot >= 0]]
+
+
+def landmark_maps(M: np.ndarray, D: np.ndarray, spec) -> dict:
+    """Step B's maps ``{method: LandmarkMap}`` on the landmarks found, ``M`` seen where ``D`` was
+    pressed: the polynomial at the highest degree up to ``spec.degree`` that they over-determine,
+    the pairwise map over at most as many as were found. Empty when fewer than 3 were found.
+    Where the found landmarks do not cover a target, the polynomial extrapolates (the nearest
+    usable map)."""
+    if len(M) < 3:
+        return {}
+    degree = max(usable_degree(len(M), spec.degree), 1)  # 3 or 4 landmarks: a plane through them
+    return {m: LandmarkMap(M, D, m, min(spec.m, len(M)), degree) for m in spec.interpolation}
 
 
 def stage_key(label: str) -> str:
@@ -280,7 +317,13 @@ def survey(
     if with_b:
         for j, d in enumerate(D):
             sample, stand, _ = press_at(
-                pos, sample, stand, jnp.asarray(d), cfg.landmarks.depth_nm, jax.random.fold_in(k_press, j)
+                pos,
+                sample,
+                stand,
+                jnp.asarray(d),
+                cfg.landmarks.depth_nm,
+                jax.random.fold_in(k_press, j),
+                approach=cfg.landmarks.approach_nm,
             )
     images, stand = raster(pos, sample, stand, work, k_scan)
     return images, sample, stand, float(stand.afm.scanner.t) - t0
@@ -349,23 +392,19 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
         found = f"{len(targets)} of the {len(particles.radii)} particles found"
         maps = {"": None}
         if with_b:
-            M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
-            figures["landmarks" + ("_A" if with_a else "")] = (images, D, M)
+            M, D_found = find_landmarks(images, work, grid, D, cfg.landmarks.depth_nm)
+            figures["landmarks" + ("_A" if with_a else "")] = (images, D, M, D_found)
             metrics[f"{stage_key(name)}_landmarks_found"] = len(M)
+            found_maps = landmark_maps(M, D_found, cfg.landmarks)
             if len(M) < grid.n**2:
-                log(
-                    f"  {name}: only {len(M)} of the {grid.n**2} landmarks lie in the workspace image: "
-                    "step B cannot map targets (no results for this stage)"
-                )
+                log(f"  {name}: {len(M)} of the {grid.n**2} landmarks found in the workspace image")
+            if not found_maps:
                 rows += [
-                    (name + f" ({m})", None, "landmarks missing from the image")
+                    (name + f" ({m})", None, "too few landmarks in the image")
                     for m in cfg.landmarks.interpolation
                 ]
                 continue
-            maps = {
-                f" ({m})": LandmarkMap(M, D, m, cfg.landmarks.m, cfg.landmarks.degree)
-                for m in cfg.landmarks.interpolation
-            }
+            maps = {f" ({m})": lm for m, lm in found_maps.items()}
             inside = np.all((targets >= M.min(0)) & (targets <= M.max(0)), axis=1)
             targets, which = targets[inside], which[inside]
             found += f", {len(targets)} inside the landmark grid"
@@ -396,6 +435,7 @@ def run(cfg: RunConfig, config_path: Path, out: Path, prepare=lambda: None, log=
                     keys,
                     local if with_c else None,
                     Push.from_config(cfg.push) if with_c else None,
+                    cfg.landmarks.approach_nm if with_b else 0.0,
                 ),
             )
             label = name + suffix
@@ -435,6 +475,9 @@ def _step_c_metrics(r: dict, radii: np.ndarray, tolerance_radii: float) -> dict:
     e_c = r["c_error_nm"]
     push_err = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1)
     success = r["push_contact"] & (push_err <= tolerance_radii * radii)
+    first = r["push_contact"] & (
+        np.linalg.norm(r["push_first"] - r["push_goal"], axis=-1) <= tolerance_radii * radii
+    )
     return {
         "ABC_error_over_radius_median": float(np.median(e_c / radii)),
         "ABC_error_over_radius_max": float(np.max(e_c / radii)),
@@ -445,6 +488,8 @@ def _step_c_metrics(r: dict, radii: np.ndarray, tolerance_radii: float) -> dict:
         "push_trials": int(radii.size),
         "push_tolerance_radii": tolerance_radii,
         "push_success_pct": 100 * float(np.mean(success)),
+        "push_first_success_pct": 100 * float(np.mean(first)),
+        "push_corrections_mean": float(np.mean(r["push_corrections"])),
         "push_error_median_nm": float(np.median(push_err)),
         "push_error_max_nm": float(np.max(push_err)),
     }
@@ -475,7 +520,9 @@ def _table(rows, metrics) -> str:
         lines.append(
             f"push: {metrics['push_success_pct']:.1f} % of {metrics['push_trials']} particles end within "
             f"{metrics['push_tolerance_radii']:g} R of the goal (median miss "
-            f"{metrics['push_error_median_nm']:.1f} nm, worst {metrics['push_error_max_nm']:.1f} nm)"
+            f"{metrics['push_error_median_nm']:.1f} nm, worst {metrics['push_error_max_nm']:.1f} nm); "
+            f"{metrics['push_first_success_pct']:.1f} % after the first push, "
+            f"{metrics['push_corrections_mean']:.2f} corrective pushes per particle"
         )
     return "\n".join(lines)
 

@@ -40,11 +40,12 @@ from ..instrument.afm import default_afm
 from ..instrument.records import write_columns
 from ..instrument.samples import Indented, Particles, Plane
 from ..model.io import load_model, save_model
-from ..position.landmarks import LandmarkMap
 from ..position.positioning import LocalScan, Positioner, Push
 from ..position.strategy import (
+    ImplausibleModel,
     find_landmarks,
     identify_scanner,
+    landmark_maps,
     read_model_file,
     stage_key,
     survey,
@@ -54,6 +55,8 @@ from ..position.strategy import workspace_layout as _layout
 
 #: survey stages: name -> (step A, step B); A+B+C and the push go on from A+B's survey
 SURVEYS = {"open_loop": (False, False), "A": (True, False), "B": (False, True), "A+B": (True, True)}
+#: why a scanner's stage has no survey (its trials fail)
+REFUSED, TOO_FEW = "step A refused its model", "too few landmarks"
 
 
 def scanner_draws(cfg: StudyConfig) -> list:
@@ -123,8 +126,8 @@ def image_position(mean_path: jax.Array, origin: jax.Array, pixel: jax.Array, ce
 def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, out: Path, log) -> tuple:
     """Scanner ``s``: its calibration scan, step A's model (identified, or read from ``scanners/``
     when a resumed study saved it, or from ``calibration.model_file``) and one survey per stage.
-    Returns ``{stage: (positioner, stand, mean path (rows, cols, 2) nm) or None}`` (``None``: the
-    survey did not find every landmark) and what is worth keeping about it."""
+    Returns ``{stage: (positioner, stand, mean path (rows, cols, 2) nm) or why there is none}``
+    (:data:`REFUSED` or :data:`TOO_FEW`: the stage's trials fail) and what is worth keeping about it."""
     work, grid, D = _layout(cfg)
     afm = default_afm(**params)
     scans, sim = simulate_calibration(cfg.calibration.simulate, cfg.calibration.grating, afm)
@@ -137,12 +140,20 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
         if saved.is_file():
             model = load_model(saved)
         else:
-            model, info["step_a_fit_s"] = identify_scanner(cfg, scans, config_path, lambda m: None)
-            _atomic(saved, lambda f: save_model(model, f))
-        twin = twin_state(model, scans, sim.cycle).scanner
+            began = time.perf_counter()
+            try:
+                model, info["step_a_fit_s"] = identify_scanner(cfg, scans, config_path, lambda m: None)
+                _atomic(saved, lambda f: save_model(model, f))
+            except ImplausibleModel as e:
+                info |= {"step_a_fit_s": time.perf_counter() - began, "step_a_refused": str(e)}
+                log(f"scanner {s}: {e}: its trials through step A fail")
+        twin = None if model is None else twin_state(model, scans, sim.cycle).scanner
     contexts = {}
     for i, st in enumerate(stages):
         with_a, with_b = SURVEYS[st]
+        if with_a and model is None:
+            contexts[st] = REFUSED
+            continue
         pos = Positioner(afm, model if with_a else None)
         images, _, stand, info[f"{stage_key(st)}_survey_s"] = survey(
             cfg,
@@ -156,14 +167,16 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
             jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), 1 + s), i),
         )
         if with_b:
-            M = find_landmarks(images, work, grid, cfg.landmarks.depth_nm)
+            M, D_found = find_landmarks(images, work, grid, D, cfg.landmarks.depth_nm)
             info[f"{stage_key(st)}_landmarks_found"] = len(M)
-            if len(M) < grid.n**2:
-                log(f"scanner {s}, {st}: {len(M)} of the {grid.n**2} landmarks found: its trials fail")
-                contexts[st] = None
+            maps = landmark_maps(M, D_found, cfg.landmarks)
+            if not maps:
+                log(
+                    f"scanner {s}, {st}: {len(M)} of the {grid.n**2} landmarks found, too few to map: its trials fail"
+                )
+                contexts[st] = TOO_FEW
                 continue
-            lm = cfg.landmarks
-            pos = Positioner(afm, pos.model, LandmarkMap(M, D, lm.interpolation[0], lm.m, lm.degree))
+            pos = Positioner(afm, pos.model, maps[cfg.landmarks.interpolation[0]])
         mean_path = (images.path_trace + images.path_retrace) / 2
         contexts[st] = (pos, stand, mean_path)
     return contexts, info
@@ -213,6 +226,8 @@ def stage_trials(
         mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"])
     )
     x = x | {"target": np.asarray(target)}
+    frame = context[0].frame
+    box = (np.asarray(frame.measured).min(0), np.asarray(frame.measured).max(0)) if frame else None
     root = jax.random.fold_in(jax.random.key(cfg.seed), 0)
 
     def call(idx, spec, size):
@@ -234,14 +249,20 @@ def stage_trials(
                 keys,
                 spec,
                 push_spec if spec else None,
+                cfg.landmarks.approach_nm if pos.frame is not None else 0.0,
             ),
             len(idx),
         )
 
     every = np.arange(len(x["trial"]))
     first = -(-every.size // mesh.size) * mesh.size
+    outside = (
+        np.zeros(len(every), bool)
+        if box is None
+        else np.any((x["target"] < box[0]) | (x["target"] > box[1]), axis=1)
+    )
     if local is None or local.max_lines <= FIRST_PASS_LINES:
-        return _unseen(call(every, local, first), np.asarray(seen))
+        return _unseen(call(every, local, first), np.asarray(seen)) | {"outside_grid": outside}
     r = call(every, dataclasses.replace(local, max_lines=FIRST_PASS_LINES), first)
     again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
     size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
@@ -251,7 +272,7 @@ def stage_trials(
         r = {k: v for k, v in r.items() if v.shape[1:] == r2[k].shape[1:]}  # drops the per-line records
         for k in r:
             r[k][idx] = r2[k]
-    return _unseen(r, np.asarray(seen))
+    return _unseen(r, np.asarray(seen)) | {"outside_grid": outside}
 
 
 def _unseen(r: dict, seen: np.ndarray) -> dict:
@@ -281,21 +302,40 @@ def run_chunk(cfg: StudyConfig, contexts: dict, draws: dict, mesh: Mesh) -> dict
     out = {}
     for j, (st, ctx) in enumerate(contexts.items()):
         with_c = st == "A+B" and "A+B+C" in cfg.stages
-        if ctx is None:  # the survey missed landmarks: every trial of this scanner fails the stage
+        if isinstance(ctx, str):  # step A refused its model or the survey found too few landmarks
             r = {
+                "modelled": np.full(n, ctx != REFUSED),
+                "surveyed": np.zeros(n, bool),
+                "seen": np.zeros(n, bool),
+                "outside_grid": np.zeros(n, bool),
                 "error_nm": np.full(n, np.nan),
                 "c_error_nm": np.full(n, np.nan),
                 "c_found": np.zeros(n, bool),
                 "c_lines": np.zeros(n, int),
                 "c_seconds": np.full(n, np.nan),
                 "push_error_nm": np.full(n, np.nan),
+                "push_along_nm": np.full(n, np.nan),
+                "push_first_error_nm": np.full(n, np.nan),
+                "push_corrections": np.zeros(n, int),
                 "push_contact": np.zeros(n, bool),
             }
         else:
             r = stage_trials(cfg, ctx, x, j, mesh, local if with_c else None, push_spec)
+            r |= {
+                "modelled": np.ones(n, bool),
+                "surveyed": np.ones(n, bool),
+                "seen": np.isfinite(r["error_nm"]),
+            }
             if with_c and push_spec:
-                r["push_error_nm"] = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1)
+                miss = r["push_final"] - r["push_goal"]
+                r |= {
+                    "push_error_nm": np.linalg.norm(miss, axis=-1),
+                    "push_along_nm": np.sum(miss * x["direction"], axis=-1),
+                    "push_first_error_nm": np.linalg.norm(r["push_first"] - r["push_goal"], axis=-1),
+                }
         out[f"{stage_key(st)}_error_nm"] = r["error_nm"]
+        if st == "A+B":
+            out |= {f"AB_{k}": r[k] for k in ("modelled", "surveyed", "seen", "outside_grid")}
         if with_c:
             out |= {
                 "ABC_error_nm": r["c_error_nm"],
@@ -304,7 +344,16 @@ def run_chunk(cfg: StudyConfig, contexts: dict, draws: dict, mesh: Mesh) -> dict
                 "ABC_local_scan_s": r["c_seconds"],
             }
         if with_c and push_spec:
-            out |= {"push_error_nm": r["push_error_nm"], "push_contact": r["push_contact"]}
+            out |= {
+                k: r[k]
+                for k in (
+                    "push_error_nm",
+                    "push_along_nm",
+                    "push_first_error_nm",
+                    "push_corrections",
+                    "push_contact",
+                )
+            }
     return out
 
 
@@ -396,7 +445,7 @@ STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC"
 
 
 def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dict:
-    """Error quantiles (nm) over the trials that ran (NaN: the survey missed landmarks, or the
+    """Error quantiles (nm) over the trials that ran (NaN: no model, no landmark map, or the
     particle lay outside its image), the share that ran, and the success rate over all trials."""
     e = errors[np.isfinite(errors)]
     q = np.percentile(e, [50, 95, 99]) if e.size else np.full(3, np.nan)
@@ -442,18 +491,92 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
     }
     for label, s in rows.items():
         metrics |= {f"{stage_key(label.replace('open loop', 'open_loop'))}_{k}": v for k, v in s.items()}
+    if "push_first_error_nm" in r:
+        first = r["push_contact"] & (r["push_first_error_nm"] <= tol * r["radius_nm"])
+        metrics |= {
+            "push_first_success_pct": 100 * float(np.mean(first)),
+            "push_corrections_mean": float(np.mean(r["push_corrections"])),
+        }
     if "ABC_found" in r:
         metrics |= {
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
+    modes = failure_modes(r, cfg)
+    metrics["failure_modes"] = modes
     _atomic(out / "trials.npz", lambda f: np.savez_compressed(f, **r))
     _atomic(out / "trials.csv", lambda f: write_columns(f, r))
     _atomic(out / "metrics.json", lambda f: f.write_text(json.dumps(metrics, indent=1)))
     errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
     plots.study_errors(errors, r["radius_nm"], out / "errors.png")
     log(table(rows, tol))
+    if "push_first_success_pct" in metrics:
+        log(
+            f"push: {metrics['push_first_success_pct']:.1f} % within {tol:g} R after the first push, "
+            f"{metrics['push_success_pct']:.1f} % after the checks ({metrics['push_corrections_mean']:.2f} "
+            "corrective pushes per trial)"
+        )
+    if modes:
+        log(failure_table(modes, cfg.trials))
     return metrics
+
+
+def failure_modes(r: dict, cfg: StudyConfig) -> dict:
+    """Why trials failed, stage by stage (counts of trials; the reasons of a stage exclude each other).
+
+    A+B: step A refused its model (:func:`~jaxafm.identify.calibration.implausible`), the survey
+    found too few landmarks for a map, the particle lay outside the survey image,
+    the target lay outside the landmarks found (the map extrapolated), or the error left is beyond
+    the local scan's search margin. A+B+C: the search found no particle, the verification did not
+    pass within ``max_lines``, or it passed on a centre more than 0.1 R off. Push: the tip missed the
+    particle, or the particle ended more than the tolerance from its goal: short or long (along the
+    push) or off the line (across it more than along).
+    """
+    if "AB_surveyed" not in r:
+        return {}
+    R = r["radius_nm"]
+    ran = r["AB_surveyed"] & r["AB_seen"]
+    e = r["AB_error_nm"]
+    ab = {
+        "step A: model refused (implausible)": ~r["AB_modelled"],
+        "survey: too few landmarks": r["AB_modelled"] & ~r["AB_surveyed"],
+        "particle outside the survey image": r["AB_surveyed"] & ~r["AB_seen"],
+        "target outside the landmarks found": ran & r["AB_outside_grid"] & ~(e <= 0.1 * R),
+        "error beyond the local scan's margin": ran & ~r["AB_outside_grid"] & (e > cfg.local_scan.margin_nm),
+    }
+    modes = {"A+B": ab}
+    not_run = {"not run (A+B above)": ~ran}
+    if "ABC_error_nm" in r:
+        bad = ran & ~(r["ABC_error_nm"] <= 0.1 * R)
+        found, full = r["ABC_found"], r["ABC_lines"] >= cfg.local_scan.max_lines
+        modes["A+B+C"] = not_run | {
+            "search found no particle": bad & ~found & ~full,
+            f"not verified within {cfg.local_scan.max_lines} lines": bad & ~found & full,
+            "verified on a centre > 0.1 R off": bad & found,
+        }
+    if "push_error_nm" in r:
+        tol = cfg.push.tolerance_radii * R
+        missed = ran & ~r["push_contact"]
+        off = ran & r["push_contact"] & ~(r["push_error_nm"] <= tol)
+        along = r["push_along_nm"]
+        across = np.sqrt(np.maximum(r["push_error_nm"] ** 2 - along**2, 0))
+        modes["push"] = not_run | {
+            "tip missed the particle": missed,
+            "short": off & (along < 0) & (-along >= across),
+            "long": off & (along > 0) & (along >= across),
+            "off the line": off & (across > np.abs(along)),
+        }
+    return {stage: {k: int(v.sum()) for k, v in reasons.items()} for stage, reasons in modes.items()}
+
+
+def failure_table(modes: dict, trials: int) -> str:
+    """The failure modes as a table: stage, reason, trials, share of all trials."""
+    lines = [f"{'stage':7s} {'why a trial failed':42s} {'trials':>7s} {'share':>7s}"]
+    lines.append("-" * len(lines[0]))
+    for stage, reasons in modes.items():
+        for why, n in reasons.items():
+            lines.append(f"{stage:7s} {why:42s} {n:7d} {100 * n / trials:6.1f}%")
+    return "\n".join(lines)
 
 
 def table(rows: dict, tolerance_radii: float) -> str:
@@ -470,7 +593,7 @@ def table(rows: dict, tolerance_radii: float) -> str:
             f"{s['scan_time_s']:8.0f}s"
         )
     lines.append(
-        f"ran: trials whose survey found every landmark and imaged their particle; error (over those): "
+        f"ran: trials with a model, a landmark map (B) and their particle in the survey image; error (over those): "
         f"true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
         f"centre to its goal); success (over all): error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
         "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
