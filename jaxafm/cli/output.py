@@ -10,7 +10,9 @@ the config (as validated), the jaxafm version, the files that were in the folder
 - an incomplete folder is replaced by the next run of any command without a flag, except a
   study with the same config, which resumes; a study with another config needs ``--overwrite``;
 - a run killed outright (its manifest says ``running``, its process is gone) counts as
-  incomplete; its files are those not foreign and written after it started.
+  incomplete; its files are those not foreign and written after it started;
+- a run in several JAX processes (``jax.distributed``; :func:`shared_run_folder`): process 0 alone
+  checks, prepares and records the folder and writes the results; the others never write into it.
 """
 
 from __future__ import annotations
@@ -131,6 +133,9 @@ class RunFolder:
     Raises:
         ValueError: the folder cannot take the run; the message says why and what to do.
     """
+
+    #: whether this process writes the run's results (:class:`Follower`: it does not)
+    writes = True
 
     def __init__(self, path, command, config_file, config, overwrite=False, resume=False, log=print):
         self.path, self.command, self.log = Path(path), command, log
@@ -282,11 +287,64 @@ class RunFolder:
         return shlex.join(["jaxafm", self.command, str(self.config_file), "--out", str(self.path)])
 
 
+class Follower:
+    """The output folder as a process other than process 0 of a run in several JAX processes
+    sees it: it neither checks, prepares nor records it (process 0 does), and writes nothing."""
+
+    writes, prepared, resuming, saved = False, False, False, []
+
+    def __init__(self, path, command, config_file):
+        self.path, self.command, self.config_file = Path(path), command, Path(config_file)
+
+    def prepare(self) -> None:
+        """Nothing: process 0 prepares the folder."""
+
+    def end(self, status: str, error: str = "") -> list:
+        """Nothing: process 0 records the run."""
+        return []
+
+    again = RunFolder.again
+
+
+@contextmanager
+def shared_run_folder(path, command, config_file, config, overwrite=False, resume=False, log=print):
+    """:func:`run_folder` for a run in several JAX processes (``jax.distributed`` initialised):
+    process 0 checks the folder as :class:`RunFolder` does and tells the others whether it may
+    be used (a collective: every process enters this together); they get a :class:`Follower`.
+
+    Raises:
+        ValueError: the folder cannot take the run (process 0 says why; the others say so).
+    """
+    import jax
+    import numpy as np
+    from jax.experimental.multihost_utils import broadcast_one_to_all
+
+    if jax.process_index() == 0:
+        try:
+            folder = RunFolder(path, command, config_file, config, overwrite, resume, log)
+        except BaseException:
+            broadcast_one_to_all(np.int32(0))  # the others stop too
+            raise
+        broadcast_one_to_all(np.int32(1))
+    elif broadcast_one_to_all(np.int32(0)) == 1:
+        folder = Follower(path, command, config_file)
+    else:
+        raise ValueError(f"process 0 cannot use the output folder {path}: its message says why")
+    with _recorded(folder):
+        yield folder
+
+
 @contextmanager
 def run_folder(path, command, config_file, config, overwrite=False, resume=False, log=print):
     """A :class:`RunFolder` for the ``with`` block's run: marked ``complete`` when the block
     ends, ``failed`` or ``interrupted`` (and the error re-raised) when it does not."""
-    folder = RunFolder(path, command, config_file, config, overwrite, resume, log)
+    with _recorded(RunFolder(path, command, config_file, config, overwrite, resume, log)) as folder:
+        yield folder
+
+
+@contextmanager
+def _recorded(folder):
+    """``folder`` for the ``with`` block: ended ``complete``, ``failed`` or ``interrupted``."""
     try:
         yield folder
     except KeyboardInterrupt:

@@ -11,10 +11,12 @@ least-squares problem is well posed from any positive start.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from typing import Optional
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxopt
@@ -241,10 +243,15 @@ def _solve(
     compiled solver is then reused for other data of the same shapes.
     """
     library, method = solver.split(".")
+    flat0, unravel = ravel_pytree(raw0)  # jaxopt's and scipy's solvers want one flat vector
+    # optimistix and scipy get one flat vector too (a Jacobian of many leaves compiles once per
+    # leaf); the function and the tree's layout travel in args, so their compilation is reused
+    leaves, tree = jax.tree_util.tree_flatten(raw0)
+    packed = (tree, tuple(jnp.shape(v) for v in leaves), args)
     if library == "optimistix":
         if method == "bfgs":
             sol = optx.minimise(
-                loss, optx.BFGS(rtol=rtol, atol=atol), raw0, args, max_steps=max_steps, throw=False
+                _flat(loss), optx.BFGS(rtol=rtol, atol=atol), flat0, packed, max_steps=max_steps, throw=False
             )
         else:
             cls = {
@@ -254,18 +261,16 @@ def _solve(
             }[method]
             # normal equations + Cholesky: the parameters are few, the residuals many (7x faster than QR)
             opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-            sol = optx.least_squares(residuals, opt, raw0, args, max_steps=max_steps, throw=False)
-        return sol.value, int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
-    flat0, unravel = ravel_pytree(raw0)  # jaxopt's and scipy's solvers want one flat vector
+            sol = optx.least_squares(_flat(residuals), opt, flat0, packed, max_steps=max_steps, throw=False)
+        return unravel(sol.value), int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
     if library == "scipy":  # trust-region reflective, the Jacobian by jax (forward mode), on the host
         from scipy.optimize import least_squares
 
-        fun = jax.jit(lambda x, a: residuals(unravel(x), a))
-        jac = jax.jit(jax.jacfwd(lambda x, a: residuals(unravel(x), a)))
+        fun, jac = _jitted(residuals)
         res = least_squares(
-            lambda x: np.asarray(fun(x, args)),
+            lambda x: np.asarray(fun(x, packed)),
             np.asarray(flat0),
-            jac=lambda x: np.asarray(jac(x, args)),
+            jac=lambda x: np.asarray(jac(x, packed)),
             method="trf",
             max_nfev=max_steps,
             xtol=rtol,
@@ -290,6 +295,26 @@ def _solve(
     flat, state = opt.run(flat0, args)
     steps = int(state.iter_num)
     return unravel(flat), steps, bool(steps < max_steps)
+
+
+@functools.lru_cache(maxsize=64)
+def _flat(fn: Callable) -> Callable:
+    """``fn(raw, args)`` as a function of one flat vector ``x``, called with ``(tree, shapes,
+    args)``: the same function object for the same ``fn``, so a solver compiled for it is reused."""
+
+    def flat(x, packed):
+        tree, shapes, args = packed
+        sizes = np.cumsum([int(np.prod(s)) for s in shapes])[:-1]
+        leaves = [v.reshape(s) for v, s in zip(jnp.split(x, sizes), shapes)]
+        return fn(jax.tree_util.tree_unflatten(tree, leaves), args)
+
+    return flat
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted(residuals: Callable) -> tuple:
+    """``residuals`` (:func:`_flat`) and its forward-mode Jacobian, jitted once."""
+    return eqx.filter_jit(_flat(residuals)), eqx.filter_jit(jax.jacfwd(_flat(residuals)))
 
 
 def bic(rss: float, n: int, k: int) -> float:

@@ -1,20 +1,29 @@
 """Inverse models: the drive ``u(t)`` (V) that puts the tip at wanted positions (nm).
 
 Step A's compensation. The fitted scanner is inverted stage by stage, in the
-reverse order of the forward model, one sample at a time so that every
-stateful stage carries its state:
+reverse order of the forward model:
 
 1. drift: subtract the model's drift velocity times the time since its origin;
-2. coupling and bow: a fixed-point solve of ``v + C(v) = q`` (C is a few % of v);
-3. creep and rate lag: one step of a first-order lag is affine in its input, so
-   the hysteresis output that gives ``v`` is ``(v - f(0)) / (f(1) - f(0))``;
+2. coupling and bow: a fixed-point solve of ``v + C(v) = q`` (C is a few % of v), every
+   sample at once;
+3. creep and rate lag: one step of a first-order lag is affine in its input,
+   ``v_n = alpha_n h_n + f_n(0)``, so the hysteresis output that gives ``v_n`` is
+   ``h_n = (v_n - f_n(0)) / alpha_n``; the decays and ``alpha_n`` depend only on the sample
+   times and are computed for all samples at once, only the lags' small state steps;
 4. hysteresis, one of
    - ``"analytic"``: the operator's exact inverse (``inverse()``, for a PI or
      generalised-PI model: Kuhnen & Janocha), run after the initialisation cycle
      on the output history;
-   - ``"numerical"``: per sample from the plays' state (``invert_step``), exact
-     for a PI or generalised-PI model, else a safeguarded Newton root find of the
-     monotone map ``u -> H[u; plays]`` (Preisach too).
+   - ``"numerical"``: from the plays' state, any state. An operator whose inverse is again
+     a play operator (``block_inverse``: PI, generalised PI, linear) is inverted over blocks
+     of samples as the forward model runs (one scan for both axes: per sample the lags and
+     the inverse plays, per block the drives), from the inverse plays that stand where the
+     model's plays stand. Where that does not hold (a drive beyond the limits, a state the
+     closed form does not cover) and for other operators, the axis steps sample by sample:
+     ``invert_step`` (exact for a PI or generalised-PI model, else a safeguarded Newton root
+     find of the monotone map ``u -> H[u; plays]``, Preisach too), the lags following the
+     output the drive really gives. Both give the same drive (to rounding) and the model's
+     state after it (:func:`inverse_and_state`), so a twin need not run the model again.
 
 The paper's baseline, a neural network trained on (position, voltage) pairs per
 branch, is :class:`NeuralInverse`.
@@ -52,34 +61,6 @@ def _undo_coupling(model: Scanner, q: Array, iterations: int = 8) -> Array:
     return lax.fori_loop(0, iterations, lambda _, v: q - forward_extra(v), q)
 
 
-def _dynamics(axis: Axis, h: Array, t: Array, s: AxisState, t0: Array) -> tuple:
-    """One sample of the axis's lag and creep after the hysteresis output ``h``: (output, lag, creep)."""
-    v, lag, creep = jnp.reshape(h, (1,)), s.lag, s.creep
-    tt = jnp.reshape(t, (1,))
-    if axis.rate_dependence is not None:
-        v, lag = axis.rate_dependence.run(v, tt, lag, t0)
-    if axis.creep is not None:
-        v, creep = axis.creep.run(v, tt, creep, t0)
-    return v[0], lag, creep
-
-
-def _hysteresis_target(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array) -> Array:
-    """The hysteresis output that makes the axis output ``v`` at time ``t`` (affine solve)."""
-    f0 = _dynamics(axis, jnp.zeros(()), t, s, t0)[0]
-    f1 = _dynamics(axis, jnp.ones(()), t, s, t0)[0]
-    return (v - f0) / (f1 - f0)
-
-
-def _step_axis(axis: Axis, v: Array, t: Array, s: AxisState, t0: Array, u_prev: Array, lo, hi):
-    """One sample of the numerical inverse on one axis: the drive (V) that puts its output at
-    ``v`` nm at time ``t``, the state after it, and whether it saturated at ``lo`` or ``hi`` V."""
-    h = _hysteresis_target(axis, v, t, s, t0)
-    u, saturated = axis.hysteresis.invert_step(h, s.plays, lo, hi, u_prev)
-    y, plays = axis.hysteresis.step(u, s.plays)
-    _, lag, creep = _dynamics(axis, y, t, s, t0)
-    return u, AxisState(plays, lag, creep), saturated
-
-
 def _targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -> Array:
     """Axis outputs (T, 2) nm wanted before coupling, bow and drift."""
     q = wanted
@@ -88,63 +69,212 @@ def _targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -> Ar
     return jax.vmap(lambda p: _undo_coupling(model, p))(q)
 
 
+def _lag_factors(axis: Axis, t: Array, t0) -> tuple:
+    """Per sample, the decays ``a = exp(-dt / tau)`` of the rate lag (T,) and of the creep lags
+    (T, K), and the gain ``alpha`` (T,) of the hysteresis output in the axis output,
+    ``alpha = (1 - a_rate) (1 + sum_k g_k (1 - a_k))`` (:func:`~jaxafm.model.effects.lowpass`'s
+    step; a missing stage is a factor 1)."""
+    dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))
+    rate = creep = None
+    gain = jnp.ones_like(dt)
+    if axis.rate_dependence is not None:
+        rate = jnp.exp(-dt / axis.rate_dependence.tau)
+        gain = gain * (1 - rate)
+    if axis.creep is not None:
+        creep = jnp.exp(-dt[:, None] / axis.creep.taus)
+        gain = gain * (1 + (1 - creep) @ axis.creep.weights)
+    return rate, creep, gain
+
+
+def _lag_step(axis: Axis, lag: Array, creep: tuple, h, a_rate, a_creep) -> tuple:
+    """One sample of the rate lag and creep after the hysteresis output ``h`` nm, every lag
+    ``z <- a z + (1 - a) x``: (output, lag, creep). Sums written out, not as matrix products:
+    inside a scan over samples this fuses into one loop."""
+    v = h
+    if axis.rate_dependence is not None:
+        lag = a_rate * lag + (1 - a_rate) * v
+        v = lag[0]
+    if axis.creep is not None:
+        z, rest = creep
+        z = a_creep * z + (1 - a_creep) * v
+        v = v + jnp.sum(z * axis.creep.weights, axis=-1) - rest * jnp.sum(axis.creep.weights)
+        creep = (z, rest)
+    return v, lag, creep
+
+
+def _lag_target(axis: Axis, v, lag, creep, a_rate, a_creep, gain):
+    """The hysteresis output that puts the axis output at ``v`` nm: ``(v - f(0)) / alpha``."""
+    return (v - _lag_step(axis, lag, creep, 0.0, a_rate, a_creep)[0]) / gain
+
+
+def _lag_inverse(axis: Axis, v: Array, t: Array, state: AxisState, t0) -> Array:
+    """The hysteresis outputs (T,) nm that put ``axis``'s output at ``v`` (T,) nm at times ``t``
+    from ``state`` reached at ``t0``, the lags following those outputs: one scan over the lags'
+    small state (the hysteresis does not enter it)."""
+    if axis.rate_dependence is None and axis.creep is None:
+        return v
+    factors = _lag_factors(axis, t, t0)
+
+    def step(carry, inputs):
+        vn, a_rate, a_creep, gain = inputs
+        h = _lag_target(axis, vn, *carry, a_rate, a_creep, gain)
+        return _lag_step(axis, *carry, h, a_rate, a_creep)[1:], h
+
+    return lax.scan(step, (state.lag, state.creep), (v, *factors))[1]
+
+
+def _per_sample(axis: Axis, v: Array, t: Array, state: AxisState, t0, u0, lo, hi) -> tuple:
+    """The drive (T,) V for the axis outputs ``v`` (T,) nm sample by sample: each sample's
+    hysteresis output from the lags (:func:`_lag_target`), the drive from the plays
+    (``invert_step``, kept in [``lo``, ``hi``]), then the lags follow the output that drive
+    really gives. Returns the drive, where it saturated and the axis's state after it."""
+    H = axis.hysteresis
+
+    def step(carry, inputs):
+        s, u_prev = carry
+        vn, a_rate, a_creep, gain = inputs
+        h = _lag_target(axis, vn, s.lag, s.creep, a_rate, a_creep, gain)
+        u, saturated = H.invert_step(h, s.plays, lo, hi, u_prev)
+        y, plays = H.step(u, s.plays)
+        _, lag, creep = _lag_step(axis, s.lag, s.creep, y, a_rate, a_creep)
+        return (AxisState(plays, lag, creep), u), (u, saturated)
+
+    carry = (state, jnp.asarray(u0, dtype=float))
+    (state, _), (u, saturated) = lax.scan(step, carry, (v, *_lag_factors(axis, t, t0)))
+    return u, saturated, state
+
+
+def _blocks(tree, T: int, block: int):
+    """Every (T, ...) array of ``tree`` padded to whole blocks (its last sample repeated) and cut
+    into (blocks, block, ...)."""
+    nb = -(-T // block)
+
+    def cut(a):
+        a = jnp.concatenate([a, jnp.repeat(a[-1:], nb * block - T, axis=0)])
+        return a.reshape((nb, block) + a.shape[1:])
+
+    return jax.tree_util.tree_map(cut, tree)
+
+
+def _blocked(axes: list, v: list, t: Array, states: list, t0, block: int = 16) -> list:
+    """The drives for axis outputs ``v`` (one (T,) nm per axis) of axes whose hysteresis has a
+    :meth:`~jaxafm.model.hysteresis.AbstractHysteresis.block_inverse`, all axes in one scan
+    over blocks of ``block`` samples: per sample the lags' target ``h`` (:func:`_lag_target`),
+    the lags following it and the inverse plays ``q <- clip(q, pre(h) - r', pre(h) + r')``;
+    per block the drives ``readout(Q)``. Returns per axis (drive (T,) V, whether it is exact,
+    the axis's state after it)."""
+    T = t.shape[0]
+    inverses = [a.hysteresis.block_inverse(s.plays) for a, s in zip(axes, states)]
+    inputs = [(vk, *_lag_factors(a, t, t0)) for a, vk in zip(axes, v)]
+    live = _blocks(jnp.ones(T, bool), T, block).at[-1, (T - 1) % block + 1 :].set(False)
+
+    def sample(carry, x):
+        xs, keep = x
+        new = []
+        for a, b, (lag, creep, q), (vn, a_rate, a_creep, gain) in zip(axes, inverses, carry, xs):
+            h = _lag_target(a, vn, lag, creep, a_rate, a_creep, gain)
+            _, lag, creep = _lag_step(a, lag, creep, h, a_rate, a_creep)
+            z = b.pre(h)
+            new.append((lag, creep, jnp.clip(q, z - b.radii, z + b.radii)))
+        new = jax.tree_util.tree_map(lambda n, o: jnp.where(keep, n, o), new, carry)  # padding: no move
+        return new, [c[2] for c in new]
+
+    def run_block(carry, x):
+        carry, Q = lax.scan(sample, carry, x)
+        return carry, [b.readout(Qk) for b, Qk in zip(inverses, Q)]
+
+    start = [(s.lag, s.creep, b.plays) for s, b in zip(states, inverses)]
+    end, u = lax.scan(run_block, start, (_blocks(inputs, T, block), live))
+    out = []
+    for b, uk, (lag, creep, q) in zip(inverses, u, end):
+        uk = uk.reshape(-1)[:T]
+        out.append((uk, b.exact & jnp.all(jnp.isfinite(uk)), AxisState(b.state(q), lag, creep)))
+    return out
+
+
+def _or_per_sample(axis: Axis, v: Array, t: Array, state: AxisState, t0, u0, lo, hi, blocked) -> tuple:
+    """The blocked result ``(u, exact, next state)`` of one axis where it holds (exact, every drive
+    in [``lo``, ``hi``]), else the axis inverted again sample by sample: a ``while_loop`` that
+    runs no iteration when it is not needed, also under ``vmap``. Returns (drive, saturated,
+    next state)."""
+    u, exact, after = blocked
+    saturated = (u < lo) | (u > hi)
+
+    def again(c):
+        # v read through the carry (the flag is true here): else XLA hoists the loop-invariant
+        # sample-by-sample scan out of the loop and runs it whether it is needed or not
+        w = jnp.where(c[3], v, c[0])
+        return (*_per_sample(axis, w, t, state, t0, u0, lo, hi), jnp.zeros((), bool))
+
+    redo = ~exact | jnp.any(saturated)
+    return lax.while_loop(lambda c: c[3], again, (u, saturated, after, redo))[:3]
+
+
+def _invert(axes: list, v: Array, t: Array, states: list, t0, u0: Array, lo, hi) -> list:
+    """Per axis (drive (T,) V in [``lo``, ``hi``], where it saturated, state after it) for the
+    axis outputs ``v`` (T, A) nm: the axes with a block inverse together (:func:`_blocked`),
+    each checked (:func:`_or_per_sample`); the others sample by sample (:func:`_per_sample`)."""
+    fast = [k for k, a in enumerate(axes) if a.hysteresis.has_block_inverse]
+    out = {
+        k: _per_sample(a, v[:, k], t, states[k], t0, u0[k], lo, hi)
+        for k, a in enumerate(axes)
+        if k not in fast
+    }
+    if fast:
+        blocked = _blocked([axes[k] for k in fast], [v[:, k] for k in fast], t, [states[k] for k in fast], t0)
+        for k, b in zip(fast, blocked):
+            out[k] = _or_per_sample(axes[k], v[:, k], t, states[k], t0, u0[k], lo, hi, b)
+    return [out[k] for k in range(len(axes))]
+
+
+def _scanner_inverse(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max) -> tuple:
+    """:func:`numerical_inverse`'s drive and saturation, and the axes' states after the drive."""
+    v = _targets(model, wanted, t, state)
+    u0 = jnp.asarray(u0, dtype=float)
+    out = _invert([model.x, model.y], v, t, [state.x, state.y], state.t, u0, -u_max, u_max)
+    return jnp.stack([o[0] for o in out], axis=-1), jnp.stack([o[1] for o in out], axis=-1), out
+
+
 @eqx.filter_jit
 def numerical_inverse(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max: float):
     """The drive (T, 2) V that puts ``model``, from ``state`` with the drive at ``u0``, at ``wanted``
-    (T, 2) nm at times ``t``, sample by sample, and where each sample saturated at ``+-u_max``."""
-    v = _targets(model, wanted, t, state)
+    (T, 2) nm at times ``t``, and where each sample saturated at ``+-u_max`` (there the drive
+    stops at the limit and the model follows what it gives). The drive of stepping sample by
+    sample, computed over blocks of samples where that is exact (:func:`_invert`)."""
+    return _scanner_inverse(model, wanted, t, state, u0, u_max)[:2]
 
-    def step(carry, inputs):
-        sx, sy, t_prev, u_prev = carry
-        vn, tn = inputs
-        ux, sx, bad_x = _step_axis(model.x, vn[0], tn, sx, t_prev, u_prev[0], -u_max, u_max)
-        uy, sy, bad_y = _step_axis(model.y, vn[1], tn, sy, t_prev, u_prev[1], -u_max, u_max)
-        u = jnp.stack([ux, uy])
-        return (sx, sy, tn, u), (u, jnp.stack([bad_x, bad_y]))
 
-    _, (u, saturated) = lax.scan(step, (state.x, state.y, state.t, u0), (v, t))
-    return u, saturated
+@eqx.filter_jit
+def inverse_and_state(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max: float):
+    """:func:`numerical_inverse` ``(u, saturated)`` and the model's state after the drive ``u``:
+    ``model.run(u, t, state)[1]`` (to rounding) without running the model again. For a model
+    without drift and noise, as a twin of the instrument is (their state needs a key)."""
+    if model.drift is not None or model.noise is not None:
+        raise ValueError("the state after a drive of a model with drift or noise needs model.run with a key")
+    u, saturated, out = _scanner_inverse(model, wanted, t, state, u0, u_max)
+    return u, saturated, ScannerState(out[0][2], out[1][2], state.wander, t[-1], state.origin)
 
 
 @eqx.filter_jit
 def invert_axis(axis: Axis, wanted: Array, t: Array, state: AxisState, t0, u0, lo, hi) -> tuple:
     """The drive (T,) V that puts one ``axis``, from ``state`` reached at ``t0`` s with the drive
-    at ``u0`` V, at ``wanted`` (T,) nm at times ``t`` (T,) s, sample by sample (the numerical
-    inverse of :func:`numerical_inverse` on one axis), with every drive kept in [``lo``, ``hi``]
-    V; and where each sample saturated there."""
-
-    def step(carry, inputs):
-        s, t_prev, u_prev = carry
-        v, tn = inputs
-        u, s, saturated = _step_axis(axis, v, tn, s, t_prev, u_prev, lo, hi)
-        return (s, tn, u), (u, saturated)
-
-    _, (u, saturated) = lax.scan(
-        step, (state, jnp.asarray(t0, dtype=float), jnp.asarray(u0, dtype=float)), (wanted, t)
-    )
+    at ``u0`` V, at ``wanted`` (T,) nm at times ``t`` (T,) s (the numerical inverse of
+    :func:`numerical_inverse` on one axis), with every drive kept in [``lo``, ``hi``] V; and where
+    each sample saturated there."""
+    u0 = jnp.reshape(jnp.asarray(u0, dtype=float), (1,))
+    t0 = jnp.asarray(t0, dtype=float)
+    ((u, saturated, _),) = _invert([axis], wanted[:, None], t, [state], t0, u0, lo, hi)
     return u, saturated
 
 
 @eqx.filter_jit
 def _analytic(model: Scanner, wanted: Array, t: Array, state: ScannerState, history: Array):
     v = _targets(model, wanted, t, state)
-
-    def step(carry, inputs):
-        sx, sy, t_prev = carry
-        vn, tn = inputs
-        hs, new = [], []
-        for axis, s, vk in ((model.x, sx, vn[0]), (model.y, sy, vn[1])):
-            h = _hysteresis_target(axis, vk, tn, s, t_prev)
-            _, lag, creep = _dynamics(axis, h, tn, s, t_prev)
-            hs.append(h)
-            new.append(AxisState(s.plays, lag, creep))
-        return (new[0], new[1], tn), jnp.stack(hs)
-
-    _, h = lax.scan(step, (state.x, state.y, state.t), (v, t))
     u = []
-    for k, axis in enumerate((model.x, model.y)):
+    for k, (axis, s) in enumerate(((model.x, state.x), (model.y, state.y))):
         H = axis.hysteresis
-        u.append(H.inverse()(h[:, k], history=H(history[:, k])))
+        h = _lag_inverse(axis, v[:, k], t, s, state.t)
+        u.append(H.inverse()(h, history=H(history[:, k])))
     return jnp.stack(u, axis=-1)
 
 

@@ -23,7 +23,8 @@ Every operator is an :class:`AbstractHysteresis`. Besides running from a state
 (``initial_state``, ``run``, ``step``) it names the effects it holds
 (``effects``, ``without``), hands its fitted parameters out and back
 (``free_parameters``, ``evaluator``, ``design_matrix``, ``with_weights``) and
-inverts itself where it can (``inverse``, ``has_inverse``, ``invert_step``).
+inverts itself where it can (``inverse``, ``has_inverse``, ``invert_step``, and over a whole
+input at once ``block_inverse``, ``invert_run``, ``has_block_inverse``).
 The scanner, the fits and the inverses ask the operator instead of testing its
 type, so a new operator is one class in this file.
 """
@@ -32,6 +33,7 @@ type, so a new operator is one class in this file.
 # of AbstractHysteresis when the class is made, and cannot read it from a string
 import abc
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -129,6 +131,24 @@ def _weight_maps(positive: bool) -> tuple:
     if positive:
         return softplus_inverse, jax.nn.softplus
     return (lambda w: w), (lambda p: p)
+
+
+class BlockInverse(NamedTuple):
+    """An operator's inverse as plays (:meth:`AbstractHysteresis.block_inverse`).
+
+    ``pre``: the memoryless map from the operator's output (nm) to the plays' input;
+    ``radii`` (m,) and ``plays`` (m,): the inverse plays and where they stand;
+    ``readout``: plays (..., m) -> the operator's input (...) V; ``state``: the inverse
+    plays (m,) -> the operator's state standing there; ``exact``: whether this describes the
+    inverse from that state (a bool array).
+    """
+
+    pre: Callable
+    radii: Array
+    plays: Array
+    readout: Callable
+    state: Callable
+    exact: Array
 
 
 class AbstractHysteresis(eqx.Module):
@@ -245,6 +265,41 @@ class AbstractHysteresis(eqx.Module):
     def has_inverse(self) -> bool:
         """Whether ``inverse()`` exists for this kind of operator."""
         return type(self).inverse is not AbstractHysteresis.inverse
+
+    def block_inverse(self, state: Array) -> "BlockInverse":
+        """The inverse as plays standing where the operator stands, for a whole input at once.
+
+        For operators whose inverse is again a play operator (PI, generalised PI, linear):
+        ``u = readout(play(pre(y); radii, plays))``, run over blocks of samples as the
+        forward model runs (:func:`play_map`) instead of ``invert_step`` sample by sample.
+
+        Arguments:
+            state: where the operator stands.
+
+        Returns:
+            A :class:`BlockInverse`; its ``exact`` is false where this state or these
+            parameters lie outside what the closed form covers (then invert sample by sample).
+        """
+        raise TypeError(
+            f"{type(self).__name__} has no inverse over a block of samples: invert it sample by sample "
+            "(invert_step)"
+        )
+
+    @property
+    def has_block_inverse(self) -> bool:
+        """Whether ``block_inverse`` exists for this kind of operator."""
+        return type(self).block_inverse is not AbstractHysteresis.block_inverse
+
+    def invert_run(self, y: Array, state: Array) -> tuple:
+        """The inputs ``u`` (T,) V whose ``run`` from ``state`` outputs ``y`` (T,) nm, all at once
+        (:meth:`block_inverse` run by :func:`play_map`).
+
+        Returns:
+            ``(u, exact)``: the inputs (T,) V, not bounded, and whether they are exact.
+        """
+        b = self.block_inverse(state)
+        u, _ = play_map(b.pre(y), b.radii, b.readout, b.plays)
+        return u, b.exact & jnp.all(jnp.isfinite(u))
 
     def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array, tol: float = 1e-7) -> tuple:
         """The input ``u`` in ``[lo, hi]`` V whose ``step`` from ``state`` outputs ``y`` nm.
@@ -402,6 +457,12 @@ class Linear(AbstractHysteresis):
         checks.positive("Linear.gain", self.gain)
         return Linear(1.0 / self.gain, -self.offset / self.gain)
 
+    def block_inverse(self, state: Array) -> BlockInverse:
+        """``u = (y - offset) / gain`` through one play of radius 0 (the identity), exact for a
+        rising line; the state stays empty."""
+        readout = lambda Q: (Q[..., 0] - self.offset) / self.gain
+        return BlockInverse(lambda y: y, jnp.zeros(1), jnp.zeros(1), readout, lambda q: state, self.gain > 0)
+
 
 class PrandtlIshlinskii(PlayOperator):
     """Classical PI operator ``y = offset + sum_k w_k p_{r_k}[u]`` with ``r_0 = 0``.
@@ -517,11 +578,47 @@ class PrandtlIshlinskii(PlayOperator):
                 f"for every i, but at i={i} it is {float(W[i])!r} nm/V (the loading curve "
                 "stops rising). Constrain the weights to keep it positive."
             )
+        return PrandtlIshlinskii(*self._inverse_parameters())
+
+    def _inverse_parameters(self) -> tuple:
+        """The inverse operator's thresholds, weights and offset (:meth:`inverse`), unchecked."""
+        r, w = self.thresholds, self.weights
+        W = jnp.cumsum(w)
         r_inv = W * r - jnp.cumsum(w * r)
         W_prev = jnp.concatenate([jnp.ones(1), W[:-1]])
         w_inv = jnp.where(jnp.arange(r.size) == 0, 1.0 / w[0], -w / (W * W_prev))
         # plays are shift-equivariant and sum(w') = 1/W_last, so the offset folds in
-        return PrandtlIshlinskii(r_inv, w_inv, -self.offset / W[-1])
+        return r_inv, w_inv, -self.offset / W[-1]
+
+    def inverse_state(self, plays: Array) -> Array:
+        """The plays (n,) nm of :meth:`inverse` that stand where the forward ``plays`` (n,) V stand.
+
+        ``q_i = offset + W_i p_i + sum_{j>i} w_j p_j`` (``W_i = sum_{j<=i} w_j``): the output
+        with every play narrower than ``r_i`` moved onto ``p_i``. Driven by the forward
+        operator's output, they move exactly as the plays of radius ``r'_i`` (:meth:`inverse`)
+        while the forward plays come from one input history (:func:`_one_history`).
+        """
+        wp = self.weights * plays
+        wider = jnp.concatenate([jnp.cumsum(wp[::-1])[::-1][1:], jnp.zeros(1)])  # sum_{j>i} w_j p_j
+        return self.offset + jnp.cumsum(self.weights) * plays + wider
+
+    def forward_state(self, q: Array) -> Array:
+        """The forward plays (n,) V where the inverse plays ``q`` (n,) nm stand, inverting
+        :meth:`inverse_state`: ``q_i - q_{i+1} = W_i (p_i - p_{i+1})`` and
+        ``p_{n-1} = (q_{n-1} - offset) / W_{n-1}``."""
+        W = jnp.cumsum(self.weights)
+        step = (q[:-1] - q[1:]) / W[:-1]
+        return (q[-1] - self.offset) / W[-1] + jnp.concatenate([jnp.cumsum(step[::-1])[::-1], jnp.zeros(1)])
+
+    def block_inverse(self, plays: Array) -> BlockInverse:
+        """The inverse operator (:meth:`inverse`) from :meth:`inverse_state`. Exact while
+        ``r_0 = 0``, every ``W_i > 0`` and the plays come from one input history (every state
+        the model reaches does)."""
+        r_inv, w_inv, offset = self._inverse_parameters()
+        r, W = self.thresholds, jnp.cumsum(self.weights)
+        exact = (r[0] == 0) & jnp.all(W > 0) & _one_history(r, plays, jnp.max(W) / jnp.min(W))
+        readout = lambda Q: Q @ w_inv + offset
+        return BlockInverse(lambda y: y, r_inv, self.inverse_state(plays), readout, self.forward_state, exact)
 
     def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array = None, tol: float = 1e-7) -> tuple:
         """The input ``u`` in ``[lo, hi]`` V with ``step(u, state)`` outputting ``y``, exactly.
@@ -547,6 +644,15 @@ class PrandtlIshlinskii(PlayOperator):
         j = jnp.argmax(jnp.where(passed, sign * b, -jnp.inf))
         u = b[j] + (y - Y[j]) / W[j]
         return jnp.clip(u, lo, hi), (u < lo) | (u > hi)
+
+
+def _one_history(radii: Array, plays: Array, condition=1.0) -> Array:
+    """Whether ``plays`` (n,) could come from one input history: a play state is then 1-Lipschitz
+    in the radius, ``|p_{k+1} - p_k| <= r_{k+1} - r_k``, to float64 rounding of plays that were
+    computed through a map of ``condition`` number (:meth:`PrandtlIshlinskii.forward_state`)."""
+    scale = jnp.max(jnp.abs(plays)) + jnp.max(jnp.abs(radii))
+    slack = 16 * jnp.finfo(float).eps * scale * condition
+    return jnp.all(jnp.abs(jnp.diff(plays)) <= jnp.diff(radii) + slack)
 
 
 def _deadzone_side_inverse(slope, d, g):
@@ -685,6 +791,30 @@ class GeneralizedPI(PlayOperator):
     def invert_step(self, y: Array, state: Array, lo, hi, u_guess: Array = None, tol: float = 1e-7) -> tuple:
         """Exactly, as the PI operator's :meth:`PrandtlIshlinskii.invert_step` of ``S^-1[y]``."""
         return self.pi.invert_step(self.deadzone.inverse()(y), state, lo, hi, u_guess, tol)
+
+    def block_inverse(self, plays: Array) -> BlockInverse:
+        """``PI^-1[S^-1[y]]``: the PI operator's (:meth:`PrandtlIshlinskii.block_inverse`) after
+        the dead zones' inverse; exact where that is and every partial slope of the dead zones
+        is positive."""
+        dz = self.deadzone
+        b = self.pi.block_inverse(plays)
+        rising = [jnp.all(dz.slope + jnp.cumsum(g) > 0) for g in (dz.upper_weights, dz.lower_weights)]
+        return b._replace(
+            pre=_elementwise(dz.inverse()), exact=b.exact & (dz.slope > 0) & rising[0] & rising[1]
+        )
+
+
+def _elementwise(dz: Deadzone) -> Callable:
+    """``dz`` as a function of one sample, its sums over thresholds written out instead of as
+    matrix products: inside a scan over samples this fuses into one loop (the same map)."""
+
+    def S(z):
+        x = (z - dz.centre)[..., None]
+        up = jnp.sum(jax.nn.relu(x - dz.upper) * dz.upper_weights, axis=-1)
+        down = jnp.sum(jax.nn.relu(dz.lower - x) * dz.lower_weights, axis=-1)
+        return dz.centre + dz.slope * x[..., 0] + up - down
+
+    return S
 
 
 class _InverseGeneralizedPI(eqx.Module):

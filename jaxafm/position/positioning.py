@@ -24,7 +24,7 @@ from jax import lax
 
 from .. import checks
 from ..config import LocalScanSpec, PushSpec
-from ..identify.inverse import numerical_inverse
+from ..identify.inverse import inverse_and_state
 from ..instrument.afm import AFM, AFMState, Raster, raster_images, raster_times
 from ..instrument.samples import Particles, Tip, surface
 from ..model.scanner import Scanner, ScannerState
@@ -63,8 +63,8 @@ class Positioner(eqx.Module):
         command = wanted if self.frame is None else self.frame(wanted)
         if self.model is None:
             return self.afm.nominal_volts(command), stand.twin
-        u, _ = numerical_inverse(self.model, command, t, stand.twin, stand.afm.u, self.afm.u_max)
-        return u, self.model.run(u, t, stand.twin)[1]
+        u, _, twin = inverse_and_state(self.model, command, t, stand.twin, stand.afm.u, self.afm.u_max)
+        return u, twin
 
     def drive(self, sample, stand: Stand, wanted: Array, t: Array, key: Array) -> tuple:
         """Follow ``wanted`` (T, 2) nm at times ``t`` (T,) s: true path (T, 2) nm, recorded

@@ -17,11 +17,21 @@ key is ``fold_in(seed, trial)``, and its draws are fixed before any runs, so the
 results do not depend on the chunk size or the device count. Each chunk's
 results are written atomically to ``chunks/``; a resumed study reuses them and
 the identified models in ``scanners/``.
+
+In several JAX processes (``jax.distributed``; ``jaxafm study --coordinator``), the mesh spans
+every process's devices and each chunk's trials are split over them all. Every process computes
+each scanner's calibration scan, step A and surveys itself (deterministic: the same on the same
+kind of CPU; :func:`_check_same` checks that they agree, and that all run the same config), and
+takes the decisions that depend on the output folder (which chunks are done, which models are
+saved) from process 0 (:func:`_from_process_0`), so all of them make the same collective calls
+in the same order. Process 0 alone logs and writes: chunks, models, ``scanners.json`` and the
+summary.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import time
@@ -137,8 +147,8 @@ def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, o
     model = twin = None
     if any(SURVEYS[st][0] for st in stages):
         saved = out / "scanners" / f"model_{s:05d}.json"
-        if saved.is_file():
-            model = load_model(saved)
+        if _from_process_0(saved.is_file()):
+            model = _load_saved(saved)
         else:
             began = time.perf_counter()
             try:
@@ -195,17 +205,75 @@ def _shard(arrays: dict, mesh: Mesh, size: int) -> dict:
 
 
 def _replicate(tree, mesh: Mesh):
-    """Every array of ``tree`` copied to each of the mesh's devices."""
+    """Every array of ``tree`` copied to each of the mesh's devices. With several processes, each
+    puts its own copy once one collective has checked that all hold the same (:func:`_check_same`;
+    ``jax.device_put`` would check each array on its own, a collective and a compilation each)."""
     arrays, rest = eqx.partition(tree, eqx.is_array)
-    return eqx.combine(jax.device_put(arrays, NamedSharding(mesh, PartitionSpec())), rest)
+    sharding = NamedSharding(mesh, PartitionSpec())
+    if jax.process_count() == 1:
+        return eqx.combine(jax.device_put(arrays, sharding), rest)
+    host = jax.tree_util.tree_map(np.asarray, arrays)
+    _check_same(
+        host,
+        "computed another survey or step A model than process 0: each process computes them itself, "
+        "so all must run the same JAX on the same kind of CPU",
+    )
+    put = lambda a: jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
+    return eqx.combine(jax.tree_util.tree_map(put, host), rest)
+
+
+def _check_same(tree, differs: str) -> None:
+    """Check that every process holds the same NumPy arrays ``tree``: one gather of a SHA-256
+    digest of them.
+
+    Raises:
+        RuntimeError: on every process, where one holds other values than process 0: naming
+            them, then ``differs``.
+    """
+    from jax.experimental import multihost_utils
+
+    digest = hashlib.sha256()
+    for a in jax.tree_util.tree_leaves(tree):
+        digest.update(f"{a.shape}{a.dtype}".encode() + np.ascontiguousarray(a).tobytes())
+    every = multihost_utils.process_allgather(np.frombuffer(digest.digest(), np.uint32))
+    other = [p for p in range(len(every)) if not np.array_equal(every[p], every[0])]
+    if other:
+        raise RuntimeError(f"process(es) {', '.join(map(str, other))} {differs}")
 
 
 def _gather(tree, n: int) -> dict:
-    if jax.process_count() > 1:  # pragma: no cover - several hosts
+    """The first ``n`` trials of ``tree`` (arrays split over the mesh) as NumPy arrays, on every
+    process (gathered from all of them: a collective)."""
+    if jax.process_count() > 1:  # pragma: no cover - several processes
         from jax.experimental import multihost_utils
 
         tree = multihost_utils.process_allgather(tree, tiled=True)
     return jax.tree_util.tree_map(lambda a: np.array(a)[:n], tree)
+
+
+def _from_process_0(value) -> np.ndarray:
+    """``value`` (a NumPy scalar or array of the same shape on every process) as process 0 has it,
+    on every process: a collective with several processes, ``np.asarray(value)`` with one."""
+    if jax.process_count() == 1:
+        return np.asarray(value)
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.broadcast_one_to_all(np.asarray(value))
+
+
+def _load_saved(path: Path):
+    """A scanner model that process 0 saw in ``scanners/`` (the other processes read it there).
+
+    Raises:
+        OSError: another process cannot read it: the output folder is not on a shared filesystem.
+    """
+    try:
+        return load_model(path)
+    except FileNotFoundError:
+        raise OSError(
+            f"process {jax.process_index()}: {path} (saved by process 0) is missing here: the output "
+            "folder must be on a filesystem that every process sees"
+        ) from None
 
 
 #: A vmapped local scan runs as many lines as its slowest trial, and most end within 3-4 lines:
@@ -393,25 +461,43 @@ def run(
 
     ``resume``: keep the chunks and scanner models already in ``out`` (the caller has checked
     that they come from the same config: ``jaxafm study`` does, through the run manifest).
+
+    In several JAX processes, every process calls it alike; only process 0 logs, writes and
+    returns the metrics (the others return ``{}`` once it has written them).
     """
     from tqdm.auto import tqdm
 
+    writer = jax.process_index() == 0
+    log = log if writer else lambda message: None
     work, grid, D = _layout(cfg)
     default_afm().check_range(default_afm().nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
     read_model_file(cfg, config_path)
+    if jax.process_count() > 1:
+        from .._version import __version__
+
+        text = json.dumps([cfg.model_dump(mode="json"), __version__], sort_keys=True)
+        _check_same(
+            np.frombuffer(text.encode(), np.uint8),
+            "run another config or jaxafm version than process 0: give them all the same",
+        )
     prepare()
-    todo = [c for c in _chunks(cfg) if not chunk_path(out, c[1], c[2]).is_file()]
+    chunks = _chunks(cfg)
+    finished = _from_process_0(np.array([chunk_path(out, a, b).is_file() for _, a, b in chunks]))
+    todo = [c for c, f in zip(chunks, finished) if not f]
     done = cfg.trials - sum(b - a for _, a, b in todo)
-    info = _read_json(out / "scanners.json")
+    info = _read_json(out / "scanners.json") if writer else {}
+    processes = f" in {jax.process_count()} processes" if jax.process_count() > 1 else ""
     log(
-        f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s), chunks of {cfg.chunk}"
+        f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s){processes}, chunks of {cfg.chunk}"
         + (f"; resuming: {done} done" if done else "")
     )
     start = time.perf_counter()
-    with tqdm(total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1) as bar:
+    with tqdm(
+        total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1, disable=not writer
+    ) as bar:
         for s in sorted({c[0] for c in todo}):
             bar.set_postfix_str(f"scanner {s}: step A and surveys")
             contexts, now = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
@@ -428,7 +514,26 @@ def run(
                 r = run_chunk(cfg, contexts, {k: v[a:b] for k, v in draws.items()}, mesh)
                 _atomic(chunk_path(out, a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
-    return summarise(cfg, out, draws, info, time.perf_counter() - start, log)
+    return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
+
+
+def _summarise_on_process_0(
+    cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: float, log
+) -> dict:
+    """:func:`summarise` on process 0 (``{}`` on the others), which then tells the others whether
+    it succeeded, so that every process ends together (or fails, naming process 0)."""
+    if jax.process_count() == 1:
+        return summarise(cfg, out, draws, info, seconds, log)
+    metrics = {}
+    try:
+        if jax.process_index() == 0:
+            metrics = summarise(cfg, out, draws, info, seconds, log)
+    except BaseException:
+        _from_process_0(np.int32(0))
+        raise
+    if not _from_process_0(np.int32(1)):
+        raise RuntimeError("process 0 failed to summarise the study: its message says why")
+    return metrics
 
 
 def _read_json(path: Path) -> dict:
