@@ -4,14 +4,16 @@ Records: a two-axis record of the simulated symmetric-PI scanner (2 nm noise, 20
 100 Hz, jaxafm.diagnose.withheld.simulate_record) with one effect the nominal model (symmetric PI,
 20 plays per axis) lacks. Scans: trace/retrace images of a 1-D grating at 1 and 4 lines/s
 (jaxafm.diagnose.withheld.simulate_scans, 0.5 nm lateral noise) with an imaging effect the
-nominal model (hysteresis only, ideal tip and feedback) lacks. Each effect at three
-magnitudes, several seeds each, plus controls with no extra effect. The diagnosis sees
+nominal model (hysteresis only, ideal tip and feedback) lacks. Lattice: the same scan sets of
+a 2-D lattice of round pits (400 nm square lattice, 150 nm radius, 30 nm deep) instead of the
+grating. Each effect at three magnitudes, several seeds each, plus controls with no extra effect. The diagnosis sees
 only the data. Writes, into experiments/results/withheld_effects/: cases.json (one row
 per case, written as it goes), summary.json (confusion matrix, top-1 accuracy per
 magnitude, false alarms, shrink; overall and per kind of data) and confusion.png.
 
     python experiments/withheld_effects.py                      # records and scans
-    python experiments/withheld_effects.py --kind scans         # re-run the scans, keep the records' cases
+    python experiments/withheld_effects.py --kind scans         # re-run the scans, keep the other kinds' cases
+    python experiments/withheld_effects.py --kind lattice       # the scan sets of the pit lattice
     python experiments/withheld_effects.py --seeds 1 --controls 2   # a quick look
 """
 
@@ -28,6 +30,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from jaxafm.config.names import EFFECTS
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose import scans as S
 from jaxafm.diagnose import withheld as W
@@ -39,7 +42,9 @@ OUT = Path(__file__).parent / "results" / "withheld_effects"
 #: scanner's bow and asymmetry x 0.5); drift is larger than a real one (1-6 nm/min), which would
 #: stay under the 2 nm noise in a 20 s record. Scans: a feedback lag of 0.1-1 ms (a 0.2-2 kHz
 #: loop), tips of 10 nm (new) to 50 nm (worn), and the records' scanner lag, which shifts edges as
-#: a feedback lag does.
+#: a feedback lag does; a feedback asymmetry ("parachuting") of tau_fall 0.3 / 1 / 3 ms with
+#: tau_rise = 0.1 tau_fall (jaxafm.diagnose.withheld.RISE_RATIO): the falling side of a loop
+#: whose rising side is as fast as the feedback lag's low to middle magnitude. Lattice: the scans'.
 MAGNITUDES = {
     "record": {
         "asymmetry": (0.25, 0.5, 1.0),
@@ -53,10 +58,14 @@ MAGNITUDES = {
         "feedback_lag": (1e-4, 3e-4, 1e-3),
         "tip": (10.0, 25.0, 50.0),
         "rate_dependence": (0.001, 0.003, 0.01),
+        "feedback_asymmetry": (3e-4, 1e-3, 3e-3),
     },
 }
+MAGNITUDES["lattice"] = dict(MAGNITUDES["scans"])
 LEVELS = ("low", "middle", "high")
-LABELS = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "feedback_lag", "tip", "none")
+#: Every effect a record or a scan set can be diagnosed with (not a record's mode: it has its
+#: own check, experiments/independent_check.py), then "none".
+LABELS = tuple(e for e in EFFECTS if e not in ("hysteresis", "vibration", "noise")) + ("none",)
 
 
 def cases(kind: str, seeds: int, controls: int) -> list:
@@ -81,8 +90,9 @@ def run_case(kind, effect, magnitude, seed) -> dict:
             W.simulate_record(effect, magnitude, seed), D.Nominal(), D.RECORD_CANDIDATES, log=lambda s: None
         )
     else:
+        sample, grating = ("lattice", W.SIM_LATTICE) if kind == "lattice" else ("lines", W.SIM_GRATING)
         res = S.diagnose_scans(
-            W.simulate_scans(effect, magnitude, seed), W.SIM_GRATING, S.CANDIDATES, 0.6, D.Rules()
+            W.simulate_scans(effect, magnitude, seed, sample=sample), grating, S.CANDIDATES, 0.6, D.Rules()
         )
     rows = {r.effect: r for r in res.candidates}
     verdict = res.verdict
@@ -104,7 +114,7 @@ def run_case(kind, effect, magnitude, seed) -> dict:
                 else 0.0,
                 "heldout_rms_before_nm": res.nominal.heldout_rms_nm,
             }
-            if kind == "scans"
+            if kind in ("scans", "lattice")
             else {}
         ),
         "ranking": [[r.effect, r.shrink_pct, r.delta_bic, r.significant] for r in res.candidates],
@@ -173,10 +183,10 @@ def figure(summary: dict, path: Path) -> None:
         ax.set_xticks(range(len(labels)), labels, rotation=45, ha="right")
         ax.set_yticks(range(len(labels)), labels)
         acc = summary.get(f"top1_accuracy_{lv}_pct", float("nan"))
-        both = [e for e in MAGNITUDES["record"] if e in MAGNITUDES["scans"]]
+        kinds = [k for k in MAGNITUDES if k in summary]
         ax.set(
             xlabel="verdict",
-            ylabel=f"withheld effect (truth; {', '.join(both)}: records and scan sets)",
+            ylabel=f"withheld effect (truth; {', '.join(kinds)} together)",
             title=f"{lv} magnitude (+ controls): top-1 {acc:.0f} %",
         )
     fig.tight_layout()
@@ -217,7 +227,7 @@ def main() -> None:
             saved.write_text(json.dumps(rows, indent=1))
     summary = summarise(rows) | {
         "magnitudes": MAGNITUDES,
-        "units": {"record": W.RECORD_UNITS, "scans": W.SCAN_UNITS},
+        "units": {"record": W.RECORD_UNITS, "scans": W.SCAN_UNITS, "lattice": W.SCAN_UNITS},
     }
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     figure(summary, args.out / "confusion.png")

@@ -966,6 +966,20 @@ DIAGNOSE = [
         "diagnose-scans.grating.edge_width_nm-.inf", "diagnose-scans", "scans.grating.edge_width_nm", INF
     ),
     case(
+        "diagnose-scans.grating.lattice-pitch-unknown",
+        "diagnose-scans",
+        {"scans.grating.kind": "lattice", "scans.grating.pitch_nm": "unknown"},
+        (key("scans.grating.pitch_nm"), value("unknown"), "allowed"),
+        overwrite=False,
+    ),
+    case(
+        "diagnose-scans.grating.lattice-pitch-missing",
+        "diagnose-scans",
+        {"scans.grating.kind": "lattice", "scans.grating.pitch_nm": DELETE},
+        (key("scans.grating.pitch_nm"), "lattice", "allowed"),
+        overwrite=False,
+    ),
+    case(
         "diagnose-scans.simulate.line_rates_hz-.nan",
         "diagnose",
         {

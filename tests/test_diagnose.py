@@ -46,7 +46,9 @@ def test_withheld_effect_is_found_with_its_size(effect, magnitude):
 def test_control_gives_no_significant_effect():
     res = D.diagnose_record(record(seed=8), D.Nominal(), CANDIDATES, log=quiet)
     assert res.verdict is None
-    assert all(r.shrink_pct < 5 for r in res.candidates)
+    # no candidate passes both rules; a creep stage whose lags start free (a record may begin in
+    # mid-motion) shrinks this control's held-out gap by 6.8 % but raises the training BIC
+    assert not any(r.significant for r in res.candidates)
     noise = 2.0  # nm, the simulator's white noise: the held-out gap is near it
     assert noise < res.nominal.heldout_gap_nm < 2 * noise
 

@@ -15,8 +15,11 @@ from jaxafm.config import ConfigError, DiagnoseConfig, ScanGrating, load_config
 from jaxafm.diagnose import scans as S
 from jaxafm.diagnose import withheld as W
 from jaxafm.diagnose.core import Rules
+from jaxafm.diagnose.image import diagnose_image
+from jaxafm.instrument.afm import AFM
 from jaxafm.instrument.images import AFMImage, save_image
 from jaxafm.instrument.samples import Grating, Tip
+from jaxafm.model.effects import FeedbackAsymmetry, FeedbackLag
 
 runner = CliRunner()
 SMALL = dict(lines=12)  # 12 lines of 512 pixels over 2 um per image
@@ -96,6 +99,41 @@ def test_edge_shape_closed_forms():
     )  # retrace: left
 
 
+def test_edge_shape_asymmetric_feedback_closed_form():
+    """FeedbackAsymmetry on a sharp step, fine sampling: the recorded height approaches the
+    surface as exp(-t / tau), tau_fall where the tip goes down (a falling edge in trace, a rising
+    one in retrace), tau_rise where it goes up. Level l of a step up in time crosses
+    tau ln(1 / (1 - l)) after the step, of a step down tau ln(1 / l), along the scan."""
+    levels = np.array((0.3, 0.5, 0.7))
+    dx, rise, fall = 0.05, 20.0, 100.0
+    grating = ScanGrating(pitch_nm=400.0, edge_width_nm=0.01)
+    step = S.edge_shape(grating, 30.0, dx, tuple(levels), asymmetry_samples=(rise, fall))
+    up, down = np.log(1 / (1 - levels)), np.log(1 / levels)
+    np.testing.assert_allclose(step[0, 0], rise * dx * up, atol=2 * dx)  # rising edge, trace: up
+    np.testing.assert_allclose(step[1, 0], fall * dx * down, atol=2 * dx)  # falling edge, trace: down
+    np.testing.assert_allclose(step[0, 1], -fall * dx * down, atol=2 * dx)  # rising edge, retrace: down
+    np.testing.assert_allclose(step[1, 1], -rise * dx * up, atol=2 * dx)  # falling edge, retrace: up
+
+
+def test_afm_names_and_drops_the_feedback_asymmetry():
+    afm = AFM(
+        W.simulated_scanner(None, 0.0, 0.0), Tip(jnp.asarray(10.0), jnp.asarray(0.3)), jnp.full(2, 500.0)
+    )
+    asym = eqx_replace(afm, FeedbackAsymmetry(jnp.asarray(1e-4), jnp.asarray(1e-3)))
+    lag = eqx_replace(afm, FeedbackLag(jnp.asarray(1e-3)))
+    assert "feedback_asymmetry" in asym.effects and "feedback_lag" not in asym.effects
+    assert "feedback_lag" in lag.effects and "feedback_asymmetry" not in lag.effects
+    assert asym.without("feedback_asymmetry").feedback is None
+    assert asym.without("feedback_lag").feedback is not None
+    assert lag.without("feedback_asymmetry").feedback is not None
+
+
+def eqx_replace(afm, feedback):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda a: a.feedback, afm, feedback, is_leaf=lambda v: v is None)
+
+
 @pytest.fixture(scope="module")
 def control():
     return S.diagnose_scans(
@@ -116,6 +154,8 @@ def test_control_gives_no_significant_effect(control):
         ("feedback_lag", 3e-4, 3e-4, "tau_s", 0.1),
         ("tip", 25.0, 25.0, "tip_radius_nm", 0.25),
         ("rate_dependence", 3e-3, 3e-3, "tau_s", 0.1),
+        # tau_fall 1 ms, tau_rise 0.1 ms: the falling edges smear by 5-20 nm at 5-20 um/s
+        ("feedback_asymmetry", 1e-3, 1e-3, "tau_fall_s", 0.1),
     ],
 )
 def test_withheld_imaging_effect_is_found_with_its_size(effect, magnitude, fitted, key, rtol):
@@ -126,6 +166,60 @@ def test_withheld_imaging_effect_is_found_with_its_size(effect, magnitude, fitte
     top = res.candidates[0]
     assert top.effect == effect and top.shrink_pct > 60
     assert top.fit.fitted[key] == pytest.approx(fitted, rel=rtol)
+
+
+LOOKALIKES = ("rate_dependence", "feedback_lag", "coupling")
+
+
+def test_lattice_scan_set_finds_a_withheld_feedback_lag():
+    """A 2-D pit lattice (rows between the pits' rows cross none): the rows across the pits are
+    used, each with its own chord, and a 0.3 ms lag is found with its size."""
+    pairs = W.simulate_scans("feedback_lag", 3e-4, 4, sample="lattice")
+    res = S.diagnose_scans(pairs, W.SIM_LATTICE, LOOKALIKES, 0.6, Rules())
+    assert res.verdict == "feedback_lag"
+    assert res.data.groups is not None and res.data.describe()["source"].endswith("2-D lattice")
+    assert len(np.unique(res.data.f["row"])) < pairs[0].trace.shape[0]  # rows between pits left out
+    top = res.candidates[0]
+    assert top.shrink_pct > 60 and top.fit.fitted["tau_s"] == pytest.approx(3e-4, rel=0.1)
+
+
+def test_short_rows_and_unequal_line_counts():
+    """Rows with about 2.3 periods (1200 nominal nm, 920 nm of a 400 nm grating), the speeds with 12
+    and 16 lines: the lag is found; one short-row image is diagnosed too."""
+    slow = W.simulate_scans("feedback_lag", 1e-3, 6, line_rates_hz=(1.0,), lines=12, size_nm=1200.0)
+    fast = W.simulate_scans("feedback_lag", 1e-3, 7, line_rates_hz=(4.0,), lines=16, size_nm=1200.0)
+    res = S.diagnose_scans(slow + fast, W.SIM_GRATING, LOOKALIKES, 0.6, Rules())
+    assert [p.trace.shape[0] for p in res.data.pairs] == [12, 16]
+    assert res.verdict == "feedback_lag"
+    assert res.candidates[0].fit.fitted["tau_s"] == pytest.approx(1e-3, rel=0.15)
+    image = diagnose_image(AFMImage(fast[0].trace, fast[0].pixel_size), ["coupling"], 0.6)
+    assert image.nominal.heldout_gap_nm < 2.0
+
+
+def test_lattice_needs_its_pitch(tmp_path):
+    """A lattice whose pitch is unknown: the key, the value and what is allowed, before any work."""
+    cfg = tmp_path / "c.yaml"
+    pairs = (
+        "  pairs:\n    - {trace: a.txt, retrace: b.txt, line_rate_hz: 1}\n"
+        "    - {trace: c.txt, retrace: d.txt, line_rate_hz: 4}\n"
+    )
+    for pitch, shown in (
+        ("", "None"),
+        ("  pitch_nm: unknown\n", "'unknown'"),
+        ("  pitch_nm: [400, 0]\n", "0"),
+    ):
+        cfg.write_text(
+            "scans:\n  grating:\n    kind: lattice\n    edge_width_nm: 17\n"
+            + pitch.replace("  p", "    p")
+            + pairs
+        )
+        with pytest.raises(ConfigError) as err:
+            load_config(cfg, DiagnoseConfig)
+        text = str(err.value)
+        assert "scans.grating.pitch_nm" in text and shown in text and "allowed" in text, text
+    cfg.write_text("image:\n  path: g.txt\n  kind: lattice\n")
+    with pytest.raises(ConfigError, match=r"image\.pitch_nm[^\n]*lattice[^\n]*None[^\n]*allowed"):
+        load_config(cfg, DiagnoseConfig)
 
 
 def test_scan_set_needs_two_speeds():

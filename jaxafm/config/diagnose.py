@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+import math
+from typing import Any, Literal, Optional
 
 from pydantic import Field, model_validator
 
 from .common import HysteresisKind, HysteresisSpec, ImageFile, ImagePair, RecordData, Seed, Strict
-from .names import check_effect_names
+from .names import EFFECTS, check_effect_names
 
 
 class DiagnoseNominal(HysteresisSpec):
@@ -48,18 +49,77 @@ class DiagnoseSimulation(Strict):
         return self
 
 
+GratingKind = Literal["lines", "lattice"]
+_PITCH_ALLOWED = "a length > 0 nm, or [x, y] nm for a lattice whose pitches differ"
+
+
+def _pitch(value, kind: str, where: str):
+    """``value`` as a pitch (nm, one number or [x, y]), or a ValueError naming ``where``, the
+    value and what is allowed; ``None`` stays ``None`` for a 1-D image (its pitch is fitted)."""
+    bad = lambda why: ValueError(f"{where}: {why}, got {value!r}; allowed: {_PITCH_ALLOWED}")
+    if value is None:
+        return None
+    items = list(value) if isinstance(value, (list, tuple)) else [value]
+    if not 1 <= len(items) <= 2 or (kind == "lines" and len(items) != 1):
+        raise bad(f"a {'1-D grating has one pitch' if kind == 'lines' else 'lattice has one or two pitches'}")
+    out = []
+    for v in items:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise bad("the pitch must be a number of nm")
+        if not (math.isfinite(v) and v > 0):
+            raise bad("the pitch must be finite and > 0 nm")
+        out.append(float(v))
+    return out
+
+
 class DiagnoseImage(ImageFile):
-    """One image of a 1-D grating (an ``ImageFile``: any format
-    ``jaxafm.instrument.images.read_image`` reads), lines along the slow axis; rows are taken in
+    """One image of a 1-D grating (``kind: lines``, lines along the slow axis) or of a 2-D
+    lattice of pits or pillars (``kind: lattice``, whose ``pitch_nm`` is required), an
+    ``ImageFile``: any format ``jaxafm.instrument.images.read_image`` reads; rows are taken in
     scan order (row 0 first)."""
+
+    kind: GratingKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
+    pitch_nm: Any = Field(
+        None,
+        description="nm: the pitch along x (or [x, y]); required for a lattice, fitted for lines",
+    )
+
+    @model_validator(mode="after")
+    def _lattice_pitch(self):
+        object.__setattr__(self, "pitch_nm", _pitch(self.pitch_nm, self.kind, "image.pitch_nm"))
+        if self.kind == "lattice" and self.pitch_nm is None:
+            raise ValueError(
+                f"image.pitch_nm: a lattice needs its pitch (from its datasheet) to tell its rows' "
+                f"features apart, got None; allowed: {_PITCH_ALLOWED}"
+            )
+        return self
 
 
 class ScanGrating(Strict):
-    """The calibration grating a scan set images (its datasheet) and the tip's cone."""
+    """The calibration sample a scan set images (its datasheet) and the tip's cone: a 1-D
+    grating (``kind: lines``) or a 2-D lattice of pits or pillars (``kind: lattice``); the
+    pitch along the fast axis x (``pitch_nm``: one number, or [x, y] for a lattice)."""
 
-    pitch_nm: float = Field(gt=0)
+    kind: GratingKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
+    pitch_nm: Any = Field(None, description=f"nm: {_PITCH_ALLOWED}")
     edge_width_nm: float = Field(gt=0, description="width of an edge's linear ramp (nm)")
     tip_half_angle_deg: float = Field(20.0, gt=0, lt=90)
+
+    @model_validator(mode="after")
+    def _known_pitch(self):
+        pitch = _pitch(self.pitch_nm, self.kind, "scans.grating.pitch_nm")
+        if pitch is None:
+            raise ValueError(
+                f"scans.grating.pitch_nm: a {'lattice' if self.kind == 'lattice' else '1-D grating'} "
+                f"needs its pitch (from its datasheet), got None; allowed: {_PITCH_ALLOWED}"
+            )
+        object.__setattr__(self, "pitch_nm", pitch[0] if len(pitch) == 1 else pitch)
+        return self
+
+    @property
+    def pitch_x_nm(self) -> float:
+        """The pitch along the fast axis x (nm)."""
+        return float(self.pitch_nm[0] if isinstance(self.pitch_nm, list) else self.pitch_nm)
 
 
 class ScanFiles(ImagePair):
@@ -72,10 +132,13 @@ class ScanFiles(ImagePair):
 class ScanSimulation(Strict):
     """Trace/retrace pairs of the simulated AFM (``jaxafm.diagnose.withheld.simulate_scans``)."""
 
-    withheld: Optional[Literal["feedback_lag", "tip", "rate_dependence"]] = Field(
+    withheld: Optional[Literal["feedback_lag", "feedback_asymmetry", "tip", "rate_dependence"]] = Field(
         None, description="the effect switched on; none: a control"
     )
     magnitude: float = Field(0.0, ge=0, description="units: jaxafm.diagnose.withheld.SCAN_UNITS")
+    sample: GratingKind = Field(
+        "lines", description="lines: the 1-D grating; lattice: the 2-D pit lattice (withheld.SIM_LATTICE)"
+    )
     line_rates_hz: list[float] = Field([1.0, 4.0], min_length=2)
     lines: int = Field(24, ge=8, le=4096)
     pixels: int = Field(512, ge=64, le=8192)
@@ -94,7 +157,7 @@ class ScanSimulation(Strict):
 
 
 class DiagnoseScans(Strict):
-    """Trace/retrace images of a 1-D grating at two or more scan speeds (``jaxafm.diagnose``):
+    """Trace/retrace images of a 1-D grating or a 2-D lattice at two or more scan speeds (``jaxafm.diagnose``):
     ``pairs`` from files, or ``simulate``; ``grating`` is required with files."""
 
     grating: Optional[ScanGrating] = None
@@ -123,7 +186,7 @@ class DiagnoseConfig(Strict):
     scans: Optional[DiagnoseScans] = None
     nominal: DiagnoseNominal = DiagnoseNominal()
     candidates: list[str] = Field(
-        ["asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "feedback_lag", "tip"],
+        [e for e in EFFECTS if e not in ("hysteresis", "noise")],
         min_length=1,
     )
     history_v: Optional[list[float]] = Field(
@@ -133,6 +196,12 @@ class DiagnoseConfig(Strict):
     train_fraction: float = Field(
         0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows"
     )
+    split: Literal["later", "blocked"] = Field(
+        "later",
+        description="records: hold out the part after train_fraction (later), or every other of "
+        "'blocks' equal blocks in time (blocked; train_fraction unused)",
+    )
+    blocks: int = Field(5, ge=3, description="records, split: blocked: an odd number of blocks")
     min_shrink_pct: float = Field(
         5.0, ge=0, description="held-out gap shrink a significant candidate needs, %"
     )
@@ -147,4 +216,11 @@ class DiagnoseConfig(Strict):
                 "give exactly one of 'data' (an actuator record), 'simulate', 'image' and 'scans'"
             )
         check_effect_names(self.candidates, "candidates")
+        if self.split == "blocked" and self.blocks % 2 == 0:
+            raise ValueError(
+                f"blocks: {self.blocks}; a blocked split needs an odd number (>= 3) of blocks, so that "
+                "training blocks sit at both ends"
+            )
+        if self.split == "blocked" and self.data is None and self.simulate is None:
+            raise ValueError("split: blocked applies to records (data or simulate), not to images or scans")
         return self

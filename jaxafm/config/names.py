@@ -9,7 +9,7 @@ that validating a YAML file never imports JAX. Effect names and units: ``docs/co
 from __future__ import annotations
 
 #: Every effect name the project knows (configs, the simulated instrument, diagnosis output).
-#: The AFM layer (imaging) owns the last two.
+#: The AFM layer (imaging) owns the last three.
 EFFECTS = (
     "hysteresis",
     "asymmetry",
@@ -18,8 +18,10 @@ EFFECTS = (
     "drift",
     "coupling",
     "bow",
+    "vibration",
     "noise",
     "feedback_lag",
+    "feedback_asymmetry",
     "tip",
 )
 

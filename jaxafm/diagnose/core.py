@@ -19,7 +19,17 @@ is here, the same for all:
   *and* lowers the BIC by at least ``Rules.min_delta_bic`` against the nominal model (Kass &
   Raftery: 10 is "very strong" evidence);
 - candidates are ranked by shrink, best first; the verdict is the top significant one, or none;
-- a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`).
+- a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
+- before the effects, a kind may try richer hysteresis operators, one rung at a time
+  (:attr:`DataKind.shapes`: symmetric PI -> generalised PI -> Preisach for records): a rung that
+  is significant against the one below replaces it, and the effects are then compared against
+  the richest significant rung, so an effect is blamed only for what a richer hysteresis cannot
+  explain. When a rung is found and no effect on top of it, each effect is also added to the
+  nominal model: one that is significant there, with a training BIC and a held-out gap no worse
+  than the rung's, explains the misfit more simply, and the effects are ranked on the nominal.
+  When an effect is found with a rung, the rung is checked once more with the effect in both
+  models; a rung that is no longer significant then is dropped from the finding (its misfit was
+  the effect's).
 
 The writer of ``diagnosis.json``, ``metrics.json``, ``report.md`` and ``residuals.png`` is
 :func:`jaxafm.diagnose.report.write`. Units: nm, s, V (``docs/conventions.md``).
@@ -47,10 +57,12 @@ _REPEATED = "needs an actuator record or images repeated over minutes"
 NOT_TRIED = {
     "record": {
         "feedback_lag": _IMAGING,
+        "feedback_asymmetry": _IMAGING,
         "tip": _IMAGING,
         "coupling": _TWO_AXES,
         "bow": _TWO_AXES,
-        "asymmetry": "a Preisach density holds its own asymmetry",
+        "asymmetry": "a hysteresis shape, not an effect: tried on the shape ladder (symmetric PI -> "
+        "generalised PI -> Preisach), where a Preisach density holds its own asymmetry",
     },
     "image": {
         "drift": "in one image a steady x drift shifts each row in proportion to its time, the same column "
@@ -60,6 +72,8 @@ NOT_TRIED = {
         "rate_dependence": "needs images at two scan speeds",
         "feedback_lag": "its edge shift v tau is the same on every edge of one image and the edge phases "
         "absorb it: needs trace and retrace, or two scan speeds",
+        "feedback_asymmetry": "in one image it moves every falling edge alike (by about v tau_fall) and the "
+        "falling edges' phase absorbs it: needs trace and retrace (the slow side swaps) at two scan speeds",
         "tip": "its widening of the grooves is the same on every row and the two edge phases absorb it: "
         "needs a tip characteriser or a sample of known width",
     },
@@ -69,6 +83,10 @@ NOT_TRIED = {
         "drift": _REPEATED,
     },
 }
+
+
+#: The richer hysteresis operators a diagnosis may find, in words.
+SHAPE_NAMES = {"gpi": "asymmetric (generalised PI)", "preisach": "Preisach"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,9 +253,26 @@ class DataKind(abc.ABC):
     def tries(self) -> tuple:
         """The effects that can be tried on this data (the others: :data:`NOT_TRIED`)."""
 
+    #: Richer hysteresis operators to try before the effects, in order (none by default).
+    shapes: ClassVar[tuple] = ()
+
     def nominal_effects(self, nominal: Fit) -> frozenset:
         """The effects the fitted ``nominal`` model has (default: hysteresis alone)."""
         return frozenset({"hysteresis"})
+
+    def fit_shape(self, kind: str, nominal: Fit) -> Fit:
+        """``nominal`` with its hysteresis replaced by the richer operator ``kind`` (one of
+        :attr:`shapes`), fitted to the training part."""
+        raise NotImplementedError(f"{self.name} data have no hysteresis shapes to try")
+
+    def warnings(self) -> list:
+        """Sentences on what the split cannot test (default: none)."""
+        return []
+
+    def cannot(self, effect: str) -> Optional[str]:
+        """Why ``effect`` (one of :attr:`tries`) cannot be tried on these particular data, or
+        ``None`` (default: it can)."""
+        return None
 
     @abc.abstractmethod
     def fit_nominal(self) -> Fit:
@@ -271,6 +306,11 @@ class Diagnosis:
         skipped: the candidates not tried, with the reason.
         verdict: the top significant candidate's effect, or ``None``.
         rules: the :class:`Rules` applied.
+        shapes: the hysteresis rungs tried (:class:`Candidate` s named by the operator's kind),
+            each against the rung below it, and the recheck of the rung found, if any.
+        shape: the richer hysteresis operator the data need (its kind), or ``None``.
+        base: the fit the effects were compared against (the nominal, or the rung found).
+        warnings: sentences on what the split cannot test.
     """
 
     data: DataKind
@@ -279,6 +319,10 @@ class Diagnosis:
     skipped: dict
     verdict: Optional[str]
     rules: Rules
+    shapes: tuple = ()
+    shape: Optional[str] = None
+    base: Optional[Fit] = None
+    warnings: tuple = ()
 
     @property
     def kind(self) -> str:
@@ -290,14 +334,26 @@ class Diagnosis:
         """The verdict's candidate, or ``None``."""
         return next((c for c in self.candidates if c.effect == self.verdict), None)
 
+    @property
+    def text(self) -> str:
+        """The verdict in words: the effect (or none) and the hysteresis shape found, if any."""
+        text = self.verdict or "no significant unmodelled effect"
+        if self.shape:
+            text += f"; hysteresis shape: {SHAPE_NAMES[self.shape]} instead of the nominal's"
+        return text
+
     def verdict_json(self) -> dict:
-        """The ``verdict`` section of ``diagnosis.json``: effect, text and, if any, its gaps."""
+        """The ``verdict`` section of ``diagnosis.json``: effect, shape, text and, if any, the
+        effect's gaps (against the model it was added to) and the gap left against the nominal's."""
         top = self.top
         gaps = ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")
+        final = top.fit if top else (self.base or self.nominal)
         return {
             "effect": self.verdict,
-            "text": self.verdict or "no significant unmodelled effect",
+            "hysteresis_shape": self.shape,
+            "text": self.text,
             **({k: getattr(top, k) for k in gaps} if top else {}),
+            "total_shrink_pct": 100 * (1 - final.heldout_gap_nm / self.nominal.heldout_gap_nm),
         }
 
     def metrics(self) -> dict:
@@ -309,12 +365,14 @@ class Diagnosis:
             "nominal_heldout_gap_nm": nominal.heldout_gap_nm,
             "nominal_parameters": nominal.parameters,
             "verdict": self.verdict or "no significant unmodelled effect",
+            "hysteresis_shape": self.shape or "nominal",
             "verdict_shrink_pct": top.shrink_pct if top else 0.0,
             "verdict_heldout_gap_after_nm": top.heldout_gap_after_nm if top else nominal.heldout_gap_nm,
         }
-        for c in self.candidates:
-            for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
-                out[f"{c.effect}_{k}"] = getattr(c, k)
+        for prefix, rows in (("", self.candidates), ("shape_", self.shapes)):
+            for c in rows:
+                for k in ("heldout_gap_after_nm", "shrink_pct", "delta_bic"):
+                    out[f"{prefix}{c.effect}_{k}"] = getattr(c, k)
         return out
 
 
@@ -323,21 +381,33 @@ def skip_reason(data: DataKind, effect: str, nominal: Fit) -> Optional[str]:
     if effect in data.nominal_effects(nominal):
         return IN_NOMINAL
     if effect in data.tries:
-        return None
+        return data.cannot(effect)
     if effect == "noise":
         return NOISE
     return NOT_TRIED[data.name].get(effect, f"no candidate model of it for a {data.name}")
 
 
-def rank(candidates) -> tuple:
+def rank(candidates, rules: Rules = Rules()) -> tuple:
     """The candidates by shrink, best first (ties keep their order), and the verdict: the top
-    significant one's effect, or ``None``."""
+    significant one's effect, or ``None`` -- unless a significant candidate with fewer extra
+    parameters comes within ``rules.min_shrink_pct`` % of its held-out gap: the richer one is
+    then not significant against the simpler one, and the simpler one is the verdict (a heavily
+    damped mode, two parameters per axis, can follow a first-order lag as well as the lag does)."""
     ranked = tuple(sorted(candidates, key=lambda c: -c.shrink_pct))
-    return ranked, next((c.effect for c in ranked if c.significant), None)
+    significant = [c for c in ranked if c.significant]
+    if not significant:
+        return ranked, None
+    top = significant[0]
+    for c in significant[1:]:
+        shrink = 100 * (1 - top.heldout_gap_after_nm / c.heldout_gap_after_nm)
+        if c.extra_parameters < top.extra_parameters and shrink < rules.min_shrink_pct:
+            top = c
+    return ranked, top.effect
 
 
 def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Diagnosis:
-    """Fit the nominal model, then nominal + each candidate that can be tried; rank them.
+    """Fit the nominal model, climb the hysteresis shapes, then add each candidate effect that
+    can be tried to the richest significant shape; rank them (module docstring).
 
     Arguments:
         data: the data, as a :class:`DataKind`.
@@ -353,18 +423,65 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
     """
     check_effect_names(candidates, "candidates")
     log = log or (lambda _: None)
+    warnings = tuple(data.warnings())
+    for w in warnings:
+        log(f"warning: {w}")
     nominal = data.fit_nominal()
     log(
         f"nominal ({data.label}): train rms {nominal.train_rms_nm:.3g} nm, "
         f"held-out gap {nominal.heldout_gap_nm:.3g} nm"
     )
+    base, shape, shapes = _climb(data, nominal, rules, log)
     tried, skipped = [], {}
     for effect in candidates:
         why = skip_reason(data, effect, nominal)
         if why:
             skipped[effect] = why
             continue
-        tried.append(Candidate.compare(effect, nominal, data.fit_candidate(effect, nominal), rules))
+        tried.append(Candidate.compare(effect, base, data.fit_candidate(effect, base), rules))
         log(tried[-1].line())
-    ranked, verdict = rank(tried)
-    return Diagnosis(data, nominal, ranked, skipped, verdict, rules)
+    ranked, verdict = rank(tried, rules)
+    with_shape = {c.effect: c.fit for c in ranked}
+    if shape and not verdict and tried:
+        ranked, verdict, base = _simpler(data, nominal, base, ranked, verdict, rules, log)
+    if verdict and shape:  # is the richer shape still needed once the effect is in?
+        plain = next((c.fit for c in ranked if c.effect == verdict and base is nominal), None)
+        recheck = Candidate.compare(
+            shape, plain or data.fit_candidate(verdict, nominal), with_shape[verdict], rules
+        )
+        shapes.append(dataclasses.replace(recheck, effect=f"{shape} (with {verdict})"))
+        log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
+        shape = shape if recheck.significant else None
+    return Diagnosis(data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings)
+
+
+def _climb(data: DataKind, nominal: Fit, rules: Rules, log) -> tuple:
+    """The hysteresis rungs of ``data.shapes``, each against the richest significant one below
+    it: ``(that richest fit, its kind or None, the rungs tried)``."""
+    base, shape, shapes = nominal, None, []
+    for kind in data.shapes:
+        shapes.append(Candidate.compare(kind, base, data.fit_shape(kind, nominal), rules))
+        log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
+        if shapes[-1].significant:
+            base, shape = shapes[-1].fit, kind
+    return base, shape, shapes
+
+
+def _simpler(data: DataKind, nominal: Fit, rung: Fit, ranked, verdict, rules: Rules, log) -> tuple:
+    """A rung was found and no effect on top of it: each effect is added to the nominal model
+    instead. One that is significant there with a training BIC and a held-out gap no worse than
+    the rung's explains the misfit more simply; the effects are then ranked on the nominal.
+    Returns ``(ranked, verdict, base)``, unchanged when no effect does."""
+    plain = [
+        Candidate.compare(c.effect, nominal, data.fit_candidate(c.effect, nominal), rules) for c in ranked
+    ]
+    for c in plain:
+        log(c.line().replace("+ ", "+ (on the nominal) ", 1))
+    rivals = [
+        c
+        for c in plain
+        if c.significant and c.fit.bic <= rung.bic and c.heldout_gap_after_nm <= rung.heldout_gap_nm
+    ]
+    if not rivals:
+        return ranked, verdict, rung
+    return rank(plain, rules)[0], rank(rivals, rules)[1], nominal

@@ -1,6 +1,7 @@
-"""Diagnosis on one image of a 1-D grating: edge positions against the scanner's distortion.
+"""Diagnosis on one image of a 1-D grating or a 2-D lattice: edge positions against the scanner's distortion.
 
-The edges of every row (``line_grating.grating_edges``) are fitted by linear least squares,
+The edges of every row (:func:`jaxafm.diagnose.scans.row_edges`: no full periods needed) are
+fitted by linear least squares,
 ``x_nom = phase + n p - sum_k c_k P_k(s) - [candidate terms]`` (``line_grating``'s model):
 the nominal, hysteresis-only scanner has the fast-axis nonlinearity ``c_2, c_3`` (one branch
 of the loop) and the grating's pitch ``p`` and two edge phases. Candidates add one column
@@ -8,6 +9,10 @@ each: ``coupling`` the skew ``x += s y``, ``bow`` ``x += b P_2(y)``, ``creep`` a
 that changes over the frame. Training rows: the first ``train_fraction`` in scan order;
 held out: the later rows. Gap: rms edge residual (nm) on the held-out rows; BIC,
 significance, ranking and verdict are the core's (:mod:`jaxafm.diagnose.core`).
+
+A 2-D lattice of pits or pillars: only the rows across the features are used, and each row
+has its own feature width (``line_grating``'s ``widths``: a row grazing a pit sees a shorter
+chord), projected out row by row; the edge phases become one centre phase.
 """
 
 from __future__ import annotations
@@ -16,11 +21,13 @@ import dataclasses
 
 import numpy as np
 
-from ..identify.line_grating import GratingEdges, _design, grating_edges
+from ..identify.line_grating import GratingEdges, _design
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
 from .report import autocorrelation, binned_rms, rms
+from .scans import row_edges
 
 NOMINAL = ("c2", "c3", "phase_rise", "phase_fall", "pitch")
+NOMINAL_LATTICE = ("c2", "c3", "phase", "pitch")
 COLUMN = {"coupling": "skew", "bow": "bow", "creep": "drift"}
 
 
@@ -60,6 +67,7 @@ class GratingImage(DataKind):
     first_heldout_row: int
     design: np.ndarray
     columns: list
+    lattice: bool = False
 
     name = "image"
     gap_label = "held-out gap (rms edge residual) [nm]"
@@ -68,14 +76,16 @@ class GratingImage(DataKind):
     tries = tuple(COLUMN)
 
     @classmethod
-    def split_off(cls, image, train_fraction: float) -> GratingImage:
-        """``image`` with its first ``train_fraction`` of the rows (with edges) to train on.
+    def split_off(cls, image, train_fraction: float, kind: str = "lines", pitch_nm=None) -> GratingImage:
+        """``image`` with its first ``train_fraction`` of the rows (with edges) to train on;
+        ``kind``: ``lines`` (a 1-D grating) or ``lattice``, whose ``pitch_nm`` (x) indexes rows
+        with one feature.
 
         Raises:
             ValueError: with fewer than 8 rows with edges or 20 edges in either part.
         """
         name = str(image.meta.get("source", "image"))
-        e = grating_edges(image.z, image.pixel_size, name)
+        e = row_edges(image.z, image.pixel_size, name, kind, pitch_nm).edges
         rows = np.unique(e.row)
         cut = rows[int(round(train_fraction * len(rows)))] if len(rows) > 1 else 0
         train = e.row < cut
@@ -85,34 +95,55 @@ class GratingImage(DataKind):
                 f"{int((~train).sum())} held-out edges at train_fraction={train_fraction}): too few to "
                 "split; scan more lines or change train_fraction in the config"
             )
-        a, names, _, _ = _design(e, 3, True, False)
-        return cls(image, e, train, int(cut), a, names)
+        lattice = kind == "lattice"
+        a, names, _, _ = _design(e, 3, True, lattice)
+        return cls(image, e, train, int(cut), a, names, lattice)
+
+    def _within(self, v: np.ndarray) -> np.ndarray:
+        """Lattice: ``v`` (edges, ...) less its projection on a width per row (rising edges
+        +1/2, falling -1/2; Frisch-Waugh-Lovell, as ``line_grating._solve``); else ``v``."""
+        if not self.lattice:
+            return v
+        e = self.edges
+        sign = np.where(e.rising, 0.5, -0.5)
+        flat = v.reshape(len(v), -1)
+        n = e.row.max() + 1
+        ss = np.bincount(e.row, sign**2, n)
+        proj = (
+            np.stack([np.bincount(e.row, sign * c, n) for c in flat.T], -1) / np.maximum(ss, 1e-12)[:, None]
+        )
+        return (flat - sign[:, None] * proj[e.row]).reshape(v.shape)
 
     def _fit(self, cols: list) -> ImageFit:
         """Least squares on the training edges; residual (all edges) nm, gap and BIC."""
-        x = self.design[:, [self.columns.index(c) for c in cols]]
-        b, train = self.edges.x_nm, self.train
+        x = self._within(self.design[:, [self.columns.index(c) for c in cols]])
+        b, train = self._within(self.edges.x_nm), self.train
         theta = np.linalg.lstsq(x[train], b[train], rcond=None)[0]
         r = b - x @ theta
         rss = float(r[train] @ r[train])
+        widths = len(np.unique(self.edges.row[train])) if self.lattice else 0
         return ImageFit(
             residual=r,
             heldout_gap_nm=float(np.sqrt(np.mean(r[~train] ** 2))),
             fitted=dict(zip(cols, theta.tolist())),
-            **Fit.scores(rss, int(train.sum()), len(cols)),
+            **Fit.scores(rss, int(train.sum()), len(cols) + widths),
         )
 
+    @property
+    def nominal_columns(self) -> list:
+        return list(NOMINAL_LATTICE if self.lattice else NOMINAL)
+
     def fit_nominal(self) -> ImageFit:
-        return self._fit(list(NOMINAL))
+        return self._fit(self.nominal_columns)
 
     def fit_candidate(self, effect: str, nominal: ImageFit) -> ImageFit:
-        return self._fit(list(NOMINAL) + [COLUMN[effect]])
+        return self._fit(self.nominal_columns + [COLUMN[effect]])
 
     def describe(self) -> dict:
         n_train = int(self.train.sum())
         return {
             "source": str(self.image.meta.get("source", "image")),
-            "kind": "1-D grating image",
+            "kind": "2-D lattice image" if self.lattice else "1-D grating image",
             "pixels": list(self.image.shape),
             "pixel_size_nm": list(self.image.pixel_size),
             "train_samples": n_train,
@@ -233,18 +264,29 @@ class GratingImage(DataKind):
         a.legend(fontsize=8)
 
 
-def diagnose_image(image, candidates, train_fraction: float, rules: Rules = Rules(), log=None) -> Diagnosis:
+def diagnose_image(
+    image,
+    candidates,
+    train_fraction: float,
+    rules: Rules = Rules(),
+    log=None,
+    kind: str = "lines",
+    pitch_nm=None,
+) -> Diagnosis:
     """Nominal and nominal + candidate fits to the edges of ``image`` (an ``AFMImage``).
 
     Arguments:
-        image: one image of a 1-D grating, lines along the slow axis, rows in scan order.
+        image: one image of a 1-D grating, lines along the slow axis, or of a 2-D lattice
+            (``kind="lattice"``, ``pitch_nm`` its pitch along x), rows in scan order.
         candidates: effect names to try (those one image cannot show are skipped with the reason).
         train_fraction: the first part of the rows the fits train on.
         rules: when a candidate is significant.
         log: called with a line per fit (``None``: quiet).
+        kind: ``lines`` or ``lattice``.
+        pitch_nm: the lattice's pitch along x (nm), for rows that show one feature.
 
     Returns:
         The :class:`~jaxafm.diagnose.core.Diagnosis`; its ``data`` is a :class:`GratingImage`,
         its fits are :class:`ImageFit` s.
     """
-    return diagnose(GratingImage.split_off(image, train_fraction), candidates, rules, log)
+    return diagnose(GratingImage.split_off(image, train_fraction, kind, pitch_nm), candidates, rules, log)

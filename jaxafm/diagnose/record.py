@@ -1,11 +1,15 @@
 """Diagnosis of an actuator record: where the nominal model misses, which effect is missing.
 
 The nominal model (:class:`~jaxafm.diagnose.plant.Plant`) is fitted to the training part of a
-record (the first ``train_fraction`` of it, after ``settle`` samples); each candidate effect is
-then added -- the same module the simulator uses -- and the model refitted, warm-started from
-the nominal fit. The gap is the rms residual ``sqrt(mean((d - model)^2))`` (nm) on the held-out
-part, a later time window the fits never saw; BIC, significance, ranking and verdict are the
-core's (:mod:`jaxafm.diagnose.core`).
+record (the first ``train_fraction`` of it, after ``settle`` samples; or, with ``blocks``, every
+other of that many equal blocks in time); the richer hysteresis operators are tried (symmetric
+PI -> generalised PI -> Preisach), then each candidate effect is added -- the same module the
+simulator uses -- and the model refitted, warm-started from the richest significant shape. The
+gap is the rms residual ``sqrt(mean((d - model)^2))`` (nm) on the held-out part, which the fits
+never saw; BIC, significance, ranking and verdict are the core's (:mod:`jaxafm.diagnose.core`).
+
+What the split cannot test is said (:meth:`ActuatorRecord.warnings`): held-out inputs beyond the
+training range (the fits extrapolate there) and a held-out part that is nearly a flat hold.
 
 Where the nominal model misses: its residual by time (rms and mean), by input level on the
 ascending and descending branch (the sign of ``du/dt``), by input rate; its whiteness and its
@@ -20,18 +24,36 @@ from typing import Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import signal
 
 from ..instrument.records import Record
+from ..model.effects import Vibration
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
-from .plant import Nominal, Plant, fit_plant, n_parameters, nominal_plant, title, with_effect
+from .plant import (
+    CREEP_TAU_MIN,
+    Nominal,
+    Plant,
+    fit_plant,
+    n_parameters,
+    nominal_plant,
+    sizes,
+    title,
+    with_effect,
+)
 from .report import MAX_LAG, binned_rms, residual_tests, rms
 
 Array = jax.Array
-#: Candidates for actuator records; the last two need two axes.
-RECORD_CANDIDATES = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow")
+#: Candidate effects for actuator records; the last two need two axes (asymmetry is a hysteresis
+#: shape: :data:`SHAPES`).
+RECORD_CANDIDATES = ("rate_dependence", "creep", "vibration", "drift", "coupling", "bow")
 TWO_AXIS = ("coupling", "bow")
+#: The richer hysteresis operators tried after each nominal kind, in order.
+SHAPES = {"pi": ("gpi", "preisach"), "gpi": ("preisach",), "preisach": ()}
 MIN_EXPLAINED = 0.5  # the nominal fit must explain this fraction of the output variance
 BINS = 8  # input-level and input-rate bins of the residual decomposition
+RANGE_WARN_PCT = 2.0  # held-out inputs beyond the training range by more than this % of it: warn
+FLAT_WARN_PCT = 5.0  # held-out input span below this % of the training span: a flat hold
+VIBRATION_BAND = (10.0, 0.45)  # a mode is sought above 10 x the drive's frequency, below 0.45 x the rate
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -41,13 +63,27 @@ class RecordFit(Fit):
     Attributes:
         plant: the fitted :class:`~jaxafm.diagnose.plant.Plant`.
         solver_steps: the Levenberg-Marquardt steps it took.
+        step_limit: the steps it was allowed (reaching them: stopped before converging).
     """
 
     plant: Plant
     solver_steps: int
+    step_limit: int
+
+    @property
+    def at_step_limit(self) -> bool:
+        """Whether the fit stopped at its step limit rather than converging."""
+        return self.solver_steps >= self.step_limit
 
     def shown(self) -> dict:
-        return {"solver_steps": self.solver_steps}
+        return {
+            "solver_steps": self.solver_steps,
+            "stopped_at_step_limit": self.at_step_limit,
+            "fitted": sizes(self.plant),
+        }
+
+    def summary(self) -> dict:
+        return super().summary() | self.shown()
 
 
 def _columns(a) -> np.ndarray:
@@ -63,19 +99,21 @@ class ActuatorRecord(DataKind):
         record: the record; ``u`` (T,) or (T, k) V, ``d`` (T,) or (T, k) nm.
         spec: the nominal model.
         train: (T,) True on the training samples.
-        split: index of the first held-out sample.
+        heldout: (T,) True on the held-out samples.
         settle: samples at the start left out of the training loss and the analysis.
         history: inputs (H, k) V applied before ``t[0]``, or ``None``.
         max_steps: Levenberg-Marquardt steps per fit.
+        blocks: the number of alternating blocks of a blocked split, 0 for a later held-out part.
     """
 
     record: Record
     spec: Nominal
     train: np.ndarray
-    split: int
+    heldout: np.ndarray
     settle: int = 0
     history: Optional[Array] = None
     max_steps: int = 300
+    blocks: int = 0
 
     name = "record"
     gap_label = "held-out gap (rms) [nm]"
@@ -91,30 +129,49 @@ class ActuatorRecord(DataKind):
         settle: int = 0,
         history=None,
         max_steps: int = 300,
+        blocks: int = 0,
     ) -> ActuatorRecord:
-        """``record`` with its first ``train_fraction`` (from sample ``settle`` on) to train on.
+        """``record`` with its first ``train_fraction`` (from sample ``settle`` on) to train on,
+        or with ``blocks`` > 0, every other of ``blocks`` equal blocks in time (the first, third,
+        ...: training; the others held out, each between two training blocks).
 
         Arguments:
             record: the record.
             spec: the nominal model.
-            train_fraction: the training part, in (0, 1).
+            train_fraction: the training part, in (0, 1) (without ``blocks``).
             settle: samples at the start left out of training.
             history: inputs (H,) V applied before ``t[0]`` (the same on every axis), or ``None``.
             max_steps: Levenberg-Marquardt steps per fit.
+            blocks: 0, or an odd number >= 3 of alternating blocks.
 
         Raises:
-            ValueError: when either part would have fewer than 10 samples.
+            ValueError: when either part would have fewer than 10 samples, or for an even
+                ``blocks``.
         """
-        split = record.split(train_fraction)
-        train = np.zeros(len(record), bool)
-        train[settle:split] = True
+        n = len(record)
+        if blocks:
+            if blocks < 3 or blocks % 2 == 0 or n // blocks < 10:
+                raise ValueError(
+                    f"split blocks: {blocks} blocks of a {n}-sample record; an odd number >= 3 of "
+                    "blocks of at least 10 samples each (training blocks at both ends)"
+                )
+            train = (np.arange(n) * blocks // n) % 2 == 0
+        else:
+            train = np.arange(n) < record.split(train_fraction)
+        heldout = ~train
+        train[:settle] = False
         k = _columns(record.u).shape[1]
         hist = (
             None
             if history is None
             else jnp.broadcast_to(jnp.asarray(history, dtype=float)[:, None], (len(history), k))
         )
-        return cls(record, spec, train, split, settle, hist, max_steps)
+        return cls(record, spec, train, heldout, settle, hist, max_steps, blocks)
+
+    @property
+    def split_s(self) -> float:
+        """Where the held-out part starts (s): its first sample's time."""
+        return float(self.record.t[np.argmax(self.heldout)])
 
     @property
     def u(self) -> np.ndarray:
@@ -137,14 +194,57 @@ class ActuatorRecord(DataKind):
     @property
     def tries(self) -> tuple:
         one_axis = self.d.shape[1] < 2
-        return tuple(
-            e
-            for e in RECORD_CANDIDATES
-            if not (e in TWO_AXIS and one_axis) and not (e == "asymmetry" and self.spec.kind == "preisach")
-        )
+        return tuple(e for e in RECORD_CANDIDATES if not (e in TWO_AXIS and one_axis))
+
+    @property
+    def kind(self) -> str:
+        """The nominal hysteresis operator's kind (a symmetric PI with asymmetry is a gpi)."""
+        return "gpi" if self.spec.kind == "pi" and "asymmetry" in self.spec.effects else self.spec.kind
+
+    @property
+    def shapes(self) -> tuple:
+        return SHAPES[self.kind]
 
     def nominal_effects(self, nominal: Fit) -> frozenset:
         return nominal.plant.effects | frozenset(self.spec.effects)
+
+    def cannot(self, effect: str) -> Optional[str]:
+        t = self.record.t
+        if effect == "creep" and t[-1] - t[0] < 10 * CREEP_TAU_MIN:
+            return (
+                f"the record lasts {t[-1] - t[0]:.3g} s, less than one decade above the shortest creep "
+                f"lag ({CREEP_TAU_MIN:g} s)"
+            )
+        if effect == "vibration" and self.mode_band()[0] >= self.mode_band()[1]:
+            lo, hi = self.mode_band()
+            return (
+                f"sampled at {1 / np.median(np.diff(t)):.3g} Hz: no band left for a mode between 10 x the "
+                f"drive's frequency ({lo:.3g} Hz) and 0.45 x the sample rate ({hi:.3g} Hz)"
+            )
+        return None
+
+    def mode_band(self) -> tuple:
+        """Where a mechanical mode is sought (Hz): above ten times the drive's strongest frequency,
+        below 0.45 times the sample rate."""
+        fs = 1 / float(np.median(np.diff(self.record.t)))
+        f, p = signal.welch(self.u - self.u.mean(0), fs, axis=0, nperseg=min(len(self.u), 4096))
+        drive = float(f[1:][np.argmax(p[1:].sum(-1))])
+        return VIBRATION_BAND[0] * drive, VIBRATION_BAND[1] * fs
+
+    def _mode_start(self, base: RecordFit) -> tuple:
+        """A vibration candidate's start per axis, frequency (Hz) and damping: the pair on a grid
+        (40 log-spaced frequencies over :meth:`mode_band`, dampings 0.02-0.4) whose mode, put after
+        the ``base`` model's output, best fits the training outputs (the other parameters held)."""
+        lo, hi = self.mode_band()
+        t = jnp.asarray(self.record.t)
+        grid = jnp.asarray([(f, z) for f in np.geomspace(lo, hi, 40) for z in (0.02, 0.05, 0.1, 0.2, 0.4)])
+        out = []
+        for k in range(self.d.shape[1]):
+            p = jnp.asarray(self.d[:, k] - base.residual[:, k])
+            ringing = jax.vmap(lambda fz, p=p: Vibration(fz[0], fz[1])(p, t))(grid)
+            loss = np.sum((np.asarray(ringing)[:, self.train] - self.d[self.train, k]) ** 2, axis=1)
+            out.append(tuple(float(x) for x in grid[int(np.argmin(loss))]))
+        return tuple(out)
 
     def _fit(self, plant: Plant) -> RecordFit:
         """Fit ``plant`` on the training samples; residuals ``d - model`` (T, k) nm, gaps and BIC."""
@@ -162,9 +262,10 @@ class ActuatorRecord(DataKind):
         rss = float(np.sum(r[self.train] ** 2))
         return RecordFit(
             residual=r,
-            heldout_gap_nm=float(np.sqrt(np.mean(r[self.split :] ** 2))),
+            heldout_gap_nm=float(np.sqrt(np.mean(r[self.heldout] ** 2))),
             plant=fitted,
             solver_steps=int(steps),
+            step_limit=self.max_steps,
             **Fit.scores(rss, int(self.train.sum()) * d.shape[1], n_parameters(plant, u, t, d)),
         )
 
@@ -174,7 +275,7 @@ class ActuatorRecord(DataKind):
         Raises:
             ValueError: when it explains less than :data:`MIN_EXPLAINED` of the output variance.
         """
-        fit = self._fit(nominal_plant(self.spec, self.u, self.d, self.train, self.history))
+        fit = self._fit(nominal_plant(self.spec, self.u, self.d, self.record.t, self.train, self.history))
         r, d = fit.residual[self.train], self.d[self.train]
         explained = 1 - np.sum(r**2) / np.sum((d - d.mean(0)) ** 2)
         if not np.isfinite(explained) or explained < MIN_EXPLAINED:
@@ -186,20 +287,58 @@ class ActuatorRecord(DataKind):
             )
         return fit
 
+    def fit_shape(self, kind: str, nominal: RecordFit) -> RecordFit:
+        """The nominal model with a richer hysteresis: ``gpi`` adds dead zones to the fitted PI
+        (started where they change nothing), ``preisach`` starts afresh from a Preisach plane of
+        ``spec.levels`` levels; the nominal's other effects kept."""
+        if kind == "gpi":
+            return self._fit(with_effect(nominal.plant, "asymmetry", self.u, self.d, self.record.t))
+        spec = self.spec.model_copy(update={"kind": kind})
+        return self._fit(nominal_plant(spec, self.u, self.d, self.record.t, self.train, self.history))
+
     def fit_candidate(self, effect: str, nominal: RecordFit) -> RecordFit:
-        s = self.split
-        return self._fit(with_effect(nominal.plant, effect, self.u[:s], self.d[:s]))
+        mode = self._mode_start(nominal) if effect == "vibration" else None
+        plant = with_effect(
+            nominal.plant, effect, self.u[self.train], self.d[self.train], self.record.t, mode
+        )
+        return self._fit(plant)
+
+    def warnings(self) -> list:
+        """Held-out inputs beyond the training range (by how much), and a held-out part that is
+        nearly a flat hold, per input; each with the split that fixes it."""
+        out = []
+        u_train, u_held = self.u[self.train], self.u[self.heldout]
+        fix = "a blocked split (split: blocked) puts training data on both sides of every held-out block"
+        for i in range(self.u.shape[1]):
+            lo, hi = u_train[:, i].min(), u_train[:, i].max()
+            span = max(hi - lo, 1e-12)
+            beyond = max(lo - u_held[:, i].min(), u_held[:, i].max() - hi, 0.0)
+            if 100 * beyond / span > RANGE_WARN_PCT:
+                out.append(
+                    f"input {i + 1}: the held-out inputs leave the training range [{lo:.3g}, {hi:.3g}] V by "
+                    f"up to {beyond:.3g} V ({100 * beyond / span:.0f} % of it): the fits extrapolate there; {fix}"
+                )
+            held_span = np.ptp(u_held[:, i])
+            if 100 * held_span / span < FLAT_WARN_PCT:
+                out.append(
+                    f"input {i + 1}: the held-out part is nearly a flat hold (its input spans {held_span:.3g} V, "
+                    f"{100 * held_span / span:.1f} % of the training span): it tests creep and drift, not the "
+                    f"hysteresis; {fix}"
+                )
+        return out
 
     def describe(self) -> dict:
-        n, s = len(self.record), self.split
         return {
             "source": self.record.meta["source"],
-            "samples": n,
+            "samples": len(self.record),
             "outputs": self.d.shape[1],
-            "train_samples": int(s - self.settle),
-            "heldout_samples": int(n - s),
-            "heldout_from_s": float(self.record.t[s]),
+            "train_samples": int(self.train.sum()),
+            "heldout_samples": int(self.heldout.sum()),
+            "split": f"blocked, {self.blocks} blocks" if self.blocks else "later",
+            "heldout_from_s": self.split_s,
+            "duration_s": float(self.record.t[-1] - self.record.t[0]),
             "counts": "samples",
+            "heldout_where": "every other block in time" if self.blocks else "later in time",
             "units": "nm (gaps, residuals), V, s",
         }
 
@@ -209,10 +348,7 @@ class ActuatorRecord(DataKind):
         r, u, t = diagnosis.nominal.residual[s:], self.u[s:], self.record.t[s:]
         test, dec = residual_tests(r, u, t), decompose(r, u, t)
         m = test["metrics"]
-        metrics = {
-            "train_samples": int(self.split - s),
-            "heldout_samples": int(len(self.record) - self.split),
-        }
+        metrics = {"train_samples": int(self.train.sum()), "heldout_samples": int(self.heldout.sum())}
         notes = [
             f"- Whiteness: lag-1 autocorrelation {m['residual_acf_lag1']:.2f}, "
             f"{m['residual_acf_outside_band_pct']:.0f} % of lags 1-{MAX_LAG} outside the 95 % band "
@@ -222,7 +358,7 @@ class ActuatorRecord(DataKind):
         ]
         return Findings(
             metrics | m | concentration(dec),
-            where(dec, float(self.record.t[self.split])),
+            where(dec, self.split_s),
             notes,
             dec,
             {"test": test, "dec": dec},
@@ -241,9 +377,11 @@ class ActuatorRecord(DataKind):
             a.plot(
                 t, top.fit.residual[s:, 0], lw=0.6, color="k", alpha=0.7, label=f"with {top.effect}, output 1"
             )
-        split = self.split - s
-        a.axvline(t[split], color="k", ls="--", lw=1)
-        a.text(t[split], 0.97, "  train | held out", transform=a.get_xaxis_transform(), va="top")
+        held = self.heldout[s:]
+        starts = np.flatnonzero(np.diff(np.r_[0, held.astype(int)]) == 1)
+        ends = np.flatnonzero(np.diff(np.r_[held.astype(int), 0]) == -1)
+        for i, (a0, a1) in enumerate(zip(starts, ends)):
+            a.axvspan(t[a0], t[a1], color="0.9", zorder=0, label="held out" if i == 0 else None)
         a.set(xlabel="time [s]", ylabel="residual measured - model [nm]", title="residual against time")
         a.legend(fontsize=7)
         a = axes[1]
@@ -282,6 +420,7 @@ def diagnose_record(
     history=None,
     rules: Rules = Rules(),
     log=print,
+    blocks: int = 0,
 ) -> Diagnosis:
     """Fit the nominal model to ``record``, then nominal + each candidate; rank the candidates.
 
@@ -294,12 +433,14 @@ def diagnose_record(
         history: inputs (H,) V applied before ``t[0]``, or ``None``.
         rules: when a candidate is significant, and the solver's step limit.
         log: called with a line per fit.
+        blocks: 0 (hold out the later part), or an odd number of alternating blocks
+            (:meth:`ActuatorRecord.split_off`).
 
     Returns:
         The :class:`~jaxafm.diagnose.core.Diagnosis`; its ``data`` is an :class:`ActuatorRecord`,
         its fits are :class:`RecordFit` s.
     """
-    data = ActuatorRecord.split_off(record, spec, train_fraction, settle, history, rules.max_steps)
+    data = ActuatorRecord.split_off(record, spec, train_fraction, settle, history, rules.max_steps, blocks)
     return diagnose(data, candidates, rules, log)
 
 
@@ -313,7 +454,7 @@ def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
 
     Returns:
         ``edges`` and ``rms_nm`` per bin (all axes together) and ``overall_rms_nm``; branches
-        split at the sign of ``du/dt`` (ascending: > 0).
+        split at the sign of ``du/dt`` (ascending: > 0); rate bins hold equal numbers of samples.
     """
     rate = np.gradient(u, t, axis=0)
     tt = np.repeat(t[:, None], u.shape[1], 1)
@@ -321,7 +462,8 @@ def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
     out = {
         "time_s": np.linspace(t[0], t[-1], 11),
         "input_v": np.linspace(u_.min(), u_.max(), BINS + 1),
-        "input_rate_v_per_s": np.linspace(0, np.abs(v_).max(), BINS + 1),
+        # by quantiles: a step's rate would otherwise put every other sample in the first bin
+        "input_rate_v_per_s": np.unique(np.quantile(np.abs(v_), np.linspace(0, 1, BINS + 1))),
     }
     idx = np.clip(np.digitize(t_, out["time_s"][1:-1]), 0, 9)
     table = {

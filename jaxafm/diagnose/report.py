@@ -119,38 +119,69 @@ def figure(diagnosis: Diagnosis, findings, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def markdown(doc: dict, notes: list) -> str:
-    """The one-minute report: title, verdict, candidate table, where the gap is, the kind's
-    ``notes``, the figure."""
-    v = doc["verdict"]
-    head = (
-        f"**Verdict: {v['effect']}** - adding it shrinks the held-out gap from "
-        f"{v['heldout_gap_before_nm']:.3g} nm to {v['heldout_gap_after_nm']:.3g} nm rms ({v['shrink_pct']:.1f} %)."
-        if v["effect"]
-        else f"**Verdict: {v['text']}** (held-out gap {doc['nominal']['heldout_gap_nm']:.3g} nm rms)."
+def _sizes(row: dict) -> str:
+    """A fit's fitted sizes (``fitted`` in ``diagnosis.json``), in a few words with units."""
+    return "; ".join(
+        f"{k.replace('_', ' ')} " + ", ".join(f"{x:.3g}" for x in np.ravel(v))
+        for k, v in row.get("fitted", {}).items()
     )
+
+
+def _table(rows: list, skipped: dict) -> list:
+    """The candidates' Markdown table rows (rank, gaps, shrink, delta BIC, parameters, fitted sizes)."""
     lines = [
-        f"# Sim-to-real gap diagnosis: {doc['data']['source']}",
-        "",
-        head,
-        "",
-        f"Nominal model: {doc['nominal']['model']}; trained on {doc['data']['train_samples']} {doc['data']['counts']}, "
-        f"held out {doc['data']['heldout_samples']} (later in the scan). A candidate is significant when "
-        f"it shrinks the held-out gap by >= {doc['rules']['min_shrink_pct']:g} % and lowers the training BIC "
-        f"by >= {doc['rules']['min_delta_bic']:g}.",
-        "",
         "| rank | effect | held-out gap before [nm] | after [nm] | shrink [%] | delta BIC (train) "
-        "| extra params | significant |",
-        "|---|---|---|---|---|---|---|---|",
+        "| extra params | fitted | significant |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    for i, r in enumerate(doc["candidates"], 1):
+    for i, r in enumerate(rows, 1):
         lines.append(
             f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
-            f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | "
-            f"{'yes' if r['significant'] else 'no'} |"
+            f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | {_sizes(r) or '-'} | "
+            f"{'yes' if r['significant'] else 'no'}"
+            + (" (stopped at its step limit)" if r.get("stopped_at_step_limit") else "")
+            + " |"
         )
-    for name, why in doc["skipped"].items():
-        lines.append(f"| - | {name} | - | - | - | - | - | not tried: {why} |")
+    for name, why in skipped.items():
+        lines.append(f"| - | {name} | - | - | - | - | - | - | not tried: {why} |")
+    return lines
+
+
+def markdown(doc: dict, notes: list) -> str:
+    """The one-minute report: title, verdict, warnings on the split, the hysteresis shapes and the
+    candidate tables, where the gap is, the kind's ``notes``, the figure."""
+    v = doc["verdict"]
+    head = (
+        f"**Verdict: {v['text']}** - adding {v['effect']} shrinks the held-out gap from "
+        f"{v['heldout_gap_before_nm']:.3g} nm to {v['heldout_gap_after_nm']:.3g} nm rms ({v['shrink_pct']:.1f} %; "
+        f"{v['total_shrink_pct']:.1f} % from the nominal model's {doc['nominal']['heldout_gap_nm']:.3g} nm)."
+        if v["effect"]
+        else f"**Verdict: {v['text']}** (held-out gap {doc['nominal']['heldout_gap_nm']:.3g} nm rms"
+        + (
+            f", {v['total_shrink_pct']:.1f} % less with the richer hysteresis)."
+            if v["hysteresis_shape"]
+            else ")."
+        )
+    )
+    lines = [f"# Sim-to-real gap diagnosis: {doc['data']['source']}", "", head, ""]
+    lines += [f"> **Warning:** {w}" for w in doc["warnings"]] + ([""] if doc["warnings"] else [])
+    lines += [
+        f"Nominal model: {doc['nominal']['model']}; trained on {doc['data']['train_samples']} {doc['data']['counts']}, "
+        f"held out {doc['data']['heldout_samples']} ({doc['data'].get('heldout_where', 'later in the scan')}). "
+        f"A candidate is significant when it shrinks the held-out gap by >= {doc['rules']['min_shrink_pct']:g} % "
+        f"and lowers the training BIC by >= {doc['rules']['min_delta_bic']:g}.",
+        "",
+    ]
+    if doc["hysteresis_shapes"]:
+        lines += [
+            "## Hysteresis shape",
+            "",
+            "Each richer operator against the one below it (the effects are then added to the richest "
+            "significant one; a last row rechecks that operator with the effect found in both models):",
+            "",
+        ] + _table(doc["hysteresis_shapes"], {})
+        lines += ["", "## Effects", ""]
+    lines += _table(doc["candidates"], doc["skipped"])
     lines += ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
     return "\n".join(lines + list(notes) + ["", "![residuals](residuals.png)", ""])
 
@@ -174,6 +205,8 @@ def write(diagnosis: Diagnosis, out: Path, log=print) -> dict:
         "data": data.describe(),
         "nominal": {"model": data.model, **nominal.summary()},
         "verdict": diagnosis.verdict_json(),
+        "warnings": list(diagnosis.warnings),
+        "hysteresis_shapes": [c.to_json() for c in diagnosis.shapes],
         "candidates": [c.to_json() for c in diagnosis.candidates],
         "skipped": dict(diagnosis.skipped),
         "rules": dataclasses.asdict(diagnosis.rules),

@@ -17,7 +17,7 @@ from ..config import resolve_data_path
 from . import withheld
 from .core import Diagnosis, Rules
 from .image import diagnose_image
-from .record import diagnose_record
+from .record import ActuatorRecord, diagnose_record
 from .report import write
 from .scans import ScanPair, diagnose_scans
 
@@ -53,24 +53,31 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
 
 def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     record = _load(cfg, config_path)
+    blocks = cfg.blocks if cfg.split == "blocked" else 0
     try:
-        split = record.split(cfg.train_fraction)
-    except ValueError as e:
-        raise ValueError(f"{e}: give a longer record, or change train_fraction in {config_path}") from None
-    settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
-    if split - settle < 10:
-        raise ValueError(
-            f"settle_s={cfg.settle_s} s leaves {split - settle} training samples: lower settle_s "
-            f"or raise train_fraction in {config_path}"
+        data = ActuatorRecord.split_off(
+            record, cfg.nominal, cfg.train_fraction, 0, None, rules.max_steps, blocks
         )
+    except ValueError as e:
+        key = "blocks" if blocks else "train_fraction"
+        raise ValueError(f"{e}: give a longer record, or change {key} in {config_path}") from None
+    settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
+    if int(data.train[settle:].sum()) < 10:
+        raise ValueError(
+            f"settle_s={cfg.settle_s} s leaves {int(data.train[settle:].sum())} training samples: lower "
+            f"settle_s or raise train_fraction in {config_path}"
+        )
+    if "creep" in cfg.nominal.effects and (reason := data.cannot("creep")):
+        raise ValueError(f"nominal.effects in {config_path}: 'creep' cannot be fitted: {reason}")
     history = None if cfg.history_v is None else np.asarray(cfg.history_v, dtype=float)
     outputs = np.asarray(record.d).reshape(len(record), -1).shape[1]
     log(
         f"record: {record.meta['source']} - {len(record)} samples x {outputs} output(s); train "
-        f"{split - settle}, hold out {len(record) - split}"
+        f"{int(data.train[settle:].sum())}, hold out {int(data.heldout.sum())}"
+        + (f" ({blocks} alternating blocks)" if blocks else "")
     )
     return diagnose_record(
-        record, cfg.nominal, cfg.candidates, cfg.train_fraction, settle, history, rules, log
+        record, cfg.nominal, cfg.candidates, cfg.train_fraction, settle, history, rules, log, blocks
     )
 
 
@@ -95,19 +102,25 @@ def _load(cfg, config_path: Path):
 
 
 def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+    from ..config.common import ImageFile
     from ..instrument.images import read_image_file
 
-    image = read_image_file(cfg.image, config_path, "image")
+    im = cfg.image
+    spec = ImageFile.model_validate(im.model_dump(exclude={"kind", "pitch_nm"}, exclude_unset=True))
+    image = read_image_file(spec, config_path, "image")
     log(
-        f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px; nominal: hysteresis-only "
-        "scanner (fast-axis nonlinearity)"
+        f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px"
+        f"{' of a 2-D lattice' if im.kind == 'lattice' else ''}; nominal: hysteresis-only scanner "
+        "(fast-axis nonlinearity)"
     )
-    return diagnose_image(image, cfg.candidates, cfg.train_fraction, rules, log)
+    pitch = None if im.pitch_nm is None else im.pitch_nm[0]
+    return diagnose_image(image, cfg.candidates, cfg.train_fraction, rules, log, im.kind, pitch)
 
 
 def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     sc = cfg.scans
-    grating = withheld.SIM_GRATING if sc.grating is None else sc.grating
+    sim = {"lines": withheld.SIM_GRATING, "lattice": withheld.SIM_LATTICE}
+    grating = sim[sc.simulate.sample] if sc.grating is None else sc.grating
     pairs = _scan_pairs(sc, config_path, log)
     return diagnose_scans(pairs, grating, cfg.candidates, cfg.train_fraction, rules, log)
 
@@ -125,7 +138,14 @@ def _scan_pairs(sc, config_path: Path, log) -> list:
         )
         log(f"simulating trace/retrace pairs at {', '.join(f'{r:g}' for r in s.line_rates_hz)} Hz{what}")
         return withheld.simulate_scans(
-            s.withheld, s.magnitude, s.seed, s.line_rates_hz, s.lines, s.pixels, noise_nm=s.noise_nm
+            s.withheld,
+            s.magnitude,
+            s.seed,
+            s.line_rates_hz,
+            s.lines,
+            s.pixels,
+            noise_nm=s.noise_nm,
+            sample=s.sample,
         )
     pairs = []
     for i, p in enumerate(sc.pairs):

@@ -39,19 +39,27 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from numpy.polynomial import legendre
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
 from ..config import ScanGrating  # the grating and tip of a scan set: its config schema
-from ..identify.line_grating import grating_edges
+from ..identify.features import _check_image, edge_crossings
+from ..identify.line_grating import MIN_ROWS, GratingEdges
 from ..instrument.samples import Tip
+from ..model.effects import FeedbackAsymmetry
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
 
 LEVELS = (0.1, 0.3, 0.5, 0.7, 0.9)
-CANDIDATES = ("rate_dependence", "feedback_lag", "tip", "coupling", "bow")
+CANDIDATES = ("rate_dependence", "feedback_lag", "feedback_asymmetry", "tip", "coupling", "bow")
+ASYMMETRY_RATIOS = (0.01, 0.5)  # tau_rise / tau_fall searched: a parachute falls at least 2x slower
+LATTICE_CHORD = 0.7  # lattice rows used: a feature chord >= this fraction of the longest (near centres)
+LATTICE_DEPTH = 0.8  # ... and a contrast >= this fraction of the deepest rows'
+BAND = 0.2  # an edge: the profile passes from below mid - BAND c to above mid + BAND c (c the contrast)
 PHASES = 8  # where the pixels fall on an edge, averaged
 FINE_NM = 0.25  # grid of the modelled edge profile
 TIP_RADII_NM = (0.5, 500.0)  # the tip search's bounds
@@ -77,7 +85,114 @@ class ScanPair:
 # ----------------------------------------------------------------------------- data
 
 
-def crossings(pairs, levels=LEVELS) -> dict:
+@dataclasses.dataclass(frozen=True)
+class RowEdges:
+    """The edges of one image (:func:`row_edges`): ``edges`` (a ``GratingEdges``: row, nominal
+    x and y nm, rising, line index), per image row the levels ``lo``, ``hi`` (nm) the crossing
+    levels are fractions of (NaN on rows not used), and the pitch (nominal nm) the indices count."""
+
+    edges: GratingEdges
+    lo: np.ndarray
+    hi: np.ndarray
+    pitch_nm: float
+
+
+def row_edges(z, pixel_size, name: str = "image", kind: str = "lines", pitch_nm=None) -> RowEdges:
+    """The rising and falling edges of every row of an image of a 1-D grating (``kind="lines"``,
+    lines along the slow axis) or of a 2-D lattice of pits or pillars (``"lattice"``), each with
+    an index that is the same for the same feature in every row.
+
+    No full periods are needed: a row counts when it shows an edge of each kind. Each low
+    region (a falling edge, then a rising one) has a centre; the centres of the image lie on a
+    lattice of the pitch (the median spacing of neighbouring centres in a row; ``pitch_nm``
+    nominal nm where no row has two), and each edge's index is its centre's place on it. Lines:
+    every row is used, its levels the 10th and 90th percentiles (as ``features.edge_crossings``).
+    Lattice: a row between the features' rows crosses none and a row grazing them sees shallow
+    or stretched walls, so only the rows with a contrast (2nd to 98th percentile) of at least
+    ``LATTICE_DEPTH`` of the deepest rows' and a mean low-region width of at least
+    ``LATTICE_CHORD`` of the widest row's are used, their levels those percentiles.
+
+    Raises:
+        ValueError: for an image that is not 2-D and finite, a non-positive pixel size, or
+            fewer than ``MIN_ROWS`` rows with edges of both kinds, with what to change.
+    """
+    z = _check_image(np.asarray(z, dtype=float), name)
+    dx, dy = (float(p) for p in np.broadcast_to(np.asarray(pixel_size, dtype=float), (2,)))
+    if not (dx > 0 and dy > 0):
+        raise ValueError(f"{name}: pixel size must be > 0 nm on both axes, got {pixel_size}")
+    lattice = kind == "lattice"
+    q = (2, 98) if lattice else (10, 90)
+    lo, hi = np.percentile(z, q, axis=1)
+    use = np.ones(len(z), bool)
+    if lattice:
+        contrast = hi - lo
+        use = contrast >= LATTICE_DEPTH * np.percentile(contrast, 95)
+    rows = [
+        edge_crossings(z[r], BAND, (lo[r], hi[r])) if use[r] else (np.empty(0), np.empty(0, bool))
+        for r in range(len(z))
+    ]
+    both = np.array([r.any() and not r.all() for _, r in rows])
+    if lattice and both.any():  # rows near the features' centres: their low regions are widest
+        width = np.full(len(z), np.nan)
+        for j in np.flatnonzero(both):
+            w = _low_regions(*rows[j])[1]
+            width[j] = np.mean(w) if w.size else np.nan
+        wide = width >= LATTICE_CHORD * np.nanpercentile(width, 95)
+        both &= wide
+    if both.sum() < MIN_ROWS:
+        raise ValueError(
+            f"{name}: only {int(both.sum())} scan line(s) show both rising and falling edges"
+            + (" across the lattice's features" if lattice else "")
+            + f"; the fit needs at least {MIN_ROWS}: "
+            + (
+                "scan more lines, or check the lattice's pitch and that the image shows its pits or pillars"
+                if lattice
+                else "check that the lines run along the slow axis (rows), or scan more lines"
+            )
+        )
+    centres = {j: _centres(*rows[j]) for j in np.flatnonzero(both)}
+    gaps = np.concatenate([np.diff(np.unique(c)) for c in centres.values()])
+    if gaps.size:
+        p0 = float(np.median(gaps))
+    elif pitch_nm is not None:
+        p0 = float(pitch_nm) / dx
+    else:
+        raise ValueError(
+            f"{name}: no row shows two features, so the pitch cannot be measured: give the "
+            "grating's pitch_nm, or scan a wider area"
+        )
+    allc = np.concatenate(list(centres.values()))
+    phase = p0 / (2 * np.pi) * np.angle(np.mean(np.exp(2j * np.pi * allc / p0)))
+    found = []
+    for j, c in centres.items():
+        x, r = rows[j]
+        found.append((np.full(x.size, j), x, r, np.round((c - phase) / p0).astype(int)))
+    row, x, rising, index = (np.concatenate(v) for v in zip(*found))
+    for t in (True, False):
+        index[rising == t] -= index[rising == t].min()
+    lo[~both], hi[~both] = np.nan, np.nan
+    e = GratingEdges(row, x * dx, row * dy, rising, index, z.shape, (dx, dy))
+    return RowEdges(e, lo, hi, p0 * dx)
+
+
+def _low_regions(x: np.ndarray, rising: np.ndarray) -> tuple:
+    """(centres, widths) px of a row's low regions: a falling edge followed by a rising one."""
+    k = np.flatnonzero(~rising[:-1] & rising[1:])
+    return 0.5 * (x[k] + x[k + 1]), x[k + 1] - x[k]
+
+
+def _centres(x: np.ndarray, rising: np.ndarray) -> np.ndarray:
+    """Per edge of a row, the centre (px) of its low region; an edge with no partner in the row
+    (at either end) is put half the row's median low-region width beyond it."""
+    c, w = _low_regions(x, rising)
+    half = 0.5 * (np.median(w) if w.size else 0.0)
+    out = np.where(rising, x - half, x + half)
+    k = np.flatnonzero(~rising[:-1] & rising[1:])
+    out[k], out[k + 1] = c, c
+    return out
+
+
+def crossings(pairs, levels=LEVELS, kind: str = "lines", pitch_nm=None) -> dict:
     """Level crossings of every edge: flat arrays (one entry per edge and level) of ``x``
     (nominal nm), ``level``, ``pair``, ``retrace``, ``row``, ``y`` nm, ``index``, ``rising``.
 
@@ -85,17 +200,21 @@ def crossings(pairs, levels=LEVELS) -> dict:
     periods that bring its edges nearest to the reference image's -- the trace of the same pair
     for a retrace, the same direction of the pair before (``pairs`` slowest first) otherwise.
     An image shifted by more than half a period against its reference is misindexed.
+    ``kind``, ``pitch_nm``: :func:`row_edges`.
     """
     edges = {}
     for p, pair in enumerate(pairs):
         for retrace, z in ((False, pair.trace), (True, pair.retrace)):
-            e = grating_edges(z, pair.pixel_size, f"{pair.name} ({'retrace' if retrace else 'trace'})")
+            e = row_edges(
+                z, pair.pixel_size, f"{pair.name} ({'retrace' if retrace else 'trace'})", kind, pitch_nm
+            )
             ref = edges.get((p - 1, retrace) if p else (0, False))
             edges[p, retrace] = e if ref is None else _align(e, ref)
     cols = {k: [] for k in ("x", "level", "pair", "retrace", "row", "y", "index", "rising")}
-    for (p, retrace), e in edges.items():
+    for (p, retrace), re in edges.items():
+        e = re.edges
         z = pairs[p].retrace if retrace else pairs[p].trace
-        x = _edge_levels(np.asarray(z, float), e, levels) * e.pixel_size[0]
+        x = _edge_levels(np.asarray(z, float), re, levels, kind) * e.pixel_size[0]
         ok = np.isfinite(x)
         for k, v in (("row", e.row), ("y", e.y_nm), ("index", e.index), ("rising", e.rising)):
             cols[k].append(np.repeat(v, len(levels))[ok.ravel()])
@@ -106,27 +225,39 @@ def crossings(pairs, levels=LEVELS) -> dict:
     return {k: np.concatenate(v) for k, v in cols.items()}
 
 
-def _align(e, ref):
-    """``e`` with each kind's line indices shifted to match ``ref``'s (see :func:`crossings`)."""
+def _align(re: RowEdges, ref: RowEdges) -> RowEdges:
+    """``re`` with each kind's line indices shifted to match ``ref``'s (see :func:`crossings`)."""
+    e, r = re.edges, ref.edges
     index = e.index.copy()
+    pitch = ref.pitch_nm
     for rising in (True, False):
-        a, b = e.rising == rising, ref.rising == rising
-        pitch = np.median(np.diff(np.sort(ref.x_nm[b & (ref.row == ref.row[b][0])])))
+        a, b = e.rising == rising, r.rising == rising
         phase = lambda g, s: np.median(g.x_nm[s] - g.index[s] * pitch)
-        index[a] += int(np.round((phase(e, a) - phase(ref, b)) / pitch))
-    return dataclasses.replace(e, index=index)
+        index[a] += int(np.round((phase(e, a) - phase(r, b)) / pitch))
+    return dataclasses.replace(re, edges=dataclasses.replace(e, index=index))
 
 
-def _edge_levels(z: np.ndarray, e, levels) -> np.ndarray:
-    """(edges, levels) px: per edge, the mean crossing of each level within a quarter period."""
+def _edge_levels(z: np.ndarray, re: RowEdges, levels, kind: str = "lines") -> np.ndarray:
+    """(edges, levels) px: per edge, the mean crossing of each level of its row's ``lo`` to
+    ``hi`` within a quarter period (lines), or within half the way to its neighbouring edges in
+    the row (lattice: a pit's or pillar's walls may be closer than a quarter period)."""
+    e = re.edges
     out = np.full((len(e.row), len(levels)), np.nan)
     centre = e.x_nm / e.pixel_size[0]
-    half = 0.25 * np.median(np.diff(np.sort(centre[(e.row == e.row[0]) & e.rising]))) if len(e.row) else 1
+    quarter = 0.25 * re.pitch_nm / e.pixel_size[0]
     for r in np.unique(e.row):
         row = z[r]
-        lo, hi = np.percentile(row, [10, 90])
-        for i in np.flatnonzero(e.row == r):
-            a, b = int(max(np.floor(centre[i] - half), 0)), int(min(np.ceil(centre[i] + half), len(row) - 1))
+        lo, hi = re.lo[r], re.hi[r]
+        mine = np.flatnonzero(e.row == r)
+        order = mine[np.argsort(centre[mine])]
+        c = centre[order]
+        if kind == "lattice":
+            left = np.concatenate([[0.0], 0.5 * (c[1:] + c[:-1])])
+            right = np.concatenate([0.5 * (c[1:] + c[:-1]), [len(row) - 1.0]])
+        else:
+            left, right = c - quarter, c + quarter
+        for i, a0, b0 in zip(order, left, right):
+            a, b = int(max(np.floor(a0), 0)), int(min(np.ceil(b0), len(row) - 1))
             seg = row[a : b + 1]
             for j, lv in enumerate(levels):
                 s = seg - (lo + lv * (hi - lo))
@@ -146,13 +277,16 @@ def edge_shape(
     levels,
     radius: Optional[float] = None,
     lag_samples: float = 0.0,
+    asymmetry_samples: Optional[tuple] = None,
 ) -> np.ndarray:
     """Crossings (2 kinds, 2 directions, levels) nm of the imaged ramp edge relative to its centre.
 
     Kinds: rising, falling; directions: trace (samples taken with x rising), retrace. The ramp
     is dilated by the tip (``radius`` nm, or none), sampled every ``dx`` nm, passed through
     ``z_n = a z_{n-1} + (1 - a) h_n`` (``a = exp(-1 / lag_samples)``, as ``effects.lowpass``)
-    in the scan direction, and its linear-interpolation crossings averaged over :data:`PHASES`.
+    in the scan direction, or through ``effects.FeedbackAsymmetry`` (the simulator's module)
+    with ``asymmetry_samples = (tau_rise, tau_fall)`` in samples, and its linear-interpolation
+    crossings averaged over :data:`PHASES`.
     """
     w = grating.edge_width_nm
     reach = (
@@ -160,7 +294,8 @@ def edge_shape(
         if radius is None
         else min(3 * radius + depth * np.tan(np.deg2rad(grating.tip_half_angle_deg)), 400.0)
     )
-    span = w / 2 + reach + 12 * lag_samples * dx + 4 * dx + 20
+    slowest = lag_samples if asymmetry_samples is None else max(lag_samples, *asymmetry_samples)
+    span = w / 2 + reach + 12 * slowest * dx + 4 * dx + 20
     xi = FINE_NM * np.arange(-int(span / FINE_NM), int(span / FINE_NM) + 1)  # 0 on the grid
     out = np.empty((2, 2, len(levels)))
     for kind, sign in ((0, 1.0), (1, -1.0)):
@@ -168,6 +303,9 @@ def edge_shape(
         if radius is not None:
             h = _dilate(h, radius, np.deg2rad(grating.tip_half_angle_deg), reach)
         for d in (0, 1):
+            if asymmetry_samples is not None:
+                out[kind, d] = _asymmetric_crossings(xi, h, depth, dx, asymmetry_samples, d, levels)
+                continue
             out[kind, d] = np.mean(
                 [
                     _crossings(xi, h, depth, dx, (m + 0.5) / PHASES * dx, lag_samples, d, levels)
@@ -175,6 +313,42 @@ def edge_shape(
                 ],
                 axis=0,
             )
+    return out
+
+
+@eqx.filter_jit
+def _follow(feedback: FeedbackAsymmetry, v: jax.Array) -> jax.Array:
+    """The heights ``feedback`` records of the profiles ``v`` (N, L), sampled at t = 0, 1, ..."""
+    t = jnp.arange(v.shape[1], dtype=float)
+    return jax.vmap(lambda row: feedback.run(row, t, feedback.initial_state(row[0]), t[0])[0])(v)
+
+
+def _asymmetric_crossings(xi, h, depth, dx, taus, retrace, levels) -> np.ndarray:
+    """As :func:`_crossings` averaged over the phases, the profiles recorded through
+    ``FeedbackAsymmetry(*taus)`` (samples) in the scan direction, all phases in one call."""
+    seqs = [np.interp(np.arange(xi[0] + (m + 0.5) / PHASES * dx, xi[-1], dx), xi, h) for m in range(PHASES)]
+    n = max(len(q) for q in seqs)
+    size = 1 << int(np.ceil(np.log2(n)))  # few shapes, few compilations
+    v = np.empty((PHASES, size))
+    for m, q in enumerate(seqs):  # in time order; padded after the end with the last height
+        q = q[::-1] if retrace else q
+        v[m] = np.concatenate([q, np.full(size - len(q), q[-1])])
+    z = np.asarray(_follow(FeedbackAsymmetry(jnp.asarray(taus[0]), jnp.asarray(taus[1])), jnp.asarray(v)))
+    out = np.empty((PHASES, len(levels)))
+    for m, q in enumerate(seqs):
+        zm = z[m, : len(q)]
+        zm = zm[::-1] if retrace else zm
+        xs = xi[0] + (m + 0.5) / PHASES * dx + dx * np.arange(len(q))
+        out[m] = _level_crossings(xs, zm, depth, dx, levels)
+    return out.mean(axis=0)
+
+
+def _level_crossings(xs, v, depth, dx, levels) -> np.ndarray:
+    out = np.empty(len(levels))
+    for j, lv in enumerate(levels):
+        s = v - lv * depth
+        k = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
+        out[j] = np.mean(xs[k] + dx * s[k] / (s[k] - s[k + 1])) if k.size else np.nan
     return out
 
 
@@ -199,12 +373,7 @@ def _crossings(xi, h, depth, dx, phase, lag_samples, retrace, levels) -> np.ndar
         seq = v[::-1] if retrace else v
         z = lfilter([1 - a], [1, -a], seq, zi=[a * seq[0]])[0]
         v = z[::-1] if retrace else z
-    out = np.empty(len(levels))
-    for j, lv in enumerate(levels):
-        s = v - lv * depth
-        k = np.flatnonzero((s[:-1] > 0) != (s[1:] > 0))
-        out[j] = np.mean(xs[k] + dx * s[k] / (s[k] - s[k + 1])) if k.size else np.nan
-    return out
+    return _level_crossings(xs, v, depth, dx, levels)
 
 
 # ----------------------------------------------------------------------------- fits
@@ -265,6 +434,9 @@ class ScanSet(DataKind):
         depth: the edges' depth (nm), the median 10-90 % contrast of the rows.
         train: (crossings,) True on the crossings of the training rows.
         scale: the calibration scale ``k = p / pitch_nm`` of the nominal fit without edge shape.
+        groups: lattice: (crossings,) the scan row of each crossing, the same number for the
+            same row in every image where all images have the same rows; each row's feature
+            width and wall slope are its own (:func:`_within`). ``None`` for a 1-D grating.
     """
 
     f: dict
@@ -273,6 +445,7 @@ class ScanSet(DataKind):
     depth: float
     train: np.ndarray
     scale: float = 1.0
+    groups: Optional[np.ndarray] = None
 
     name = "scans"
     gap_label = "held-out systematic gap [nm]"
@@ -304,7 +477,7 @@ class ScanSet(DataKind):
                 f"all pairs have the scan speed {speeds[0]:.4g} nm/s; telling a lag from hysteresis needs "
                 "two speeds: give a pair scanned at another line rate"
             )
-        f = crossings(pairs)
+        f = crossings(pairs, kind=grating.kind, pitch_nm=grating.pitch_x_nm)
         rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
         train = f["row"] < np.round(train_fraction * rows)
         if train.sum() < 50 or (~train).sum() < 50:
@@ -312,9 +485,14 @@ class ScanSet(DataKind):
                 f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
                 f"train_fraction={train_fraction}: too few to split; scan more lines or change train_fraction"
             )
-        depth = float(np.median([np.subtract(*np.percentile(p.trace, [90, 10], axis=1)) for p in pairs]))
-        data = cls(f, list(pairs), grating, depth, train)
-        scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0).theta["pitch"] / grating.pitch_nm
+        q = (2, 98) if grating.kind == "lattice" else (10, 90)
+        contrast = np.concatenate([np.subtract(*np.percentile(p.trace, q[::-1], axis=1)) for p in pairs])
+        if grating.kind == "lattice":  # the rows across the features (those between show none)
+            contrast = contrast[contrast >= LATTICE_DEPTH * np.percentile(contrast, 95)]
+        data = cls(
+            f, list(pairs), grating, float(np.median(contrast)), train, groups=_groups(f, pairs, grating)
+        )
+        scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0).theta["pitch"] / grating.pitch_x_nm
         return dataclasses.replace(data, scale=scale)
 
     @property
@@ -360,6 +538,14 @@ class ScanSet(DataKind):
                 lambda r: _solve(self, cols, _shape(self, scale, radius=r), scale, 1), *TIP_RADII_NM
             )
             return dataclasses.replace(fit, fitted={"tip_radius_nm": radius})
+        if effect == "feedback_asymmetry":
+            dt = min(p.sample_time_s for p in self.pairs)
+            (rise, fall), fit = _search_asymmetry(
+                lambda r, f: _solve(self, cols, _shape(self, scale, asymmetry_s=(r, f)), scale, 2),
+                LAG_SAMPLES[0] * dt,
+                LAG_SAMPLES[1] * dt,
+            )
+            return dataclasses.replace(fit, fitted={"tau_rise_s": rise, "tau_fall_s": fall})
         if effect == "feedback_lag":
             dt = min(p.sample_time_s for p in self.pairs)
             tau, fit = _search(
@@ -383,8 +569,9 @@ class ScanSet(DataKind):
             }
             for p in self.pairs
         ]
+        what = "a 2-D lattice" if self.groups is not None else "a 1-D grating"
         return {
-            "source": f"{len(pairs)} trace/retrace pairs of a 1-D grating",
+            "source": f"{len(pairs)} trace/retrace pairs of {what}",
             "kind": "scan set",
             "pairs": pairs,
             "grating": self.grating.model_dump(),
@@ -459,7 +646,7 @@ class ScanSet(DataKind):
             a.set(
                 xlabel="level [% of the step]",
                 ylabel="mean held-out crossing residual [nm]",
-                title=f"{label}: - trace, -- retrace; ^ rising, v falling edges",
+                title=f"{label}\n- trace, -- retrace; ^ rising, v falling edges",
             )
             a.legend(fontsize=8)
         if top is None:
@@ -477,13 +664,21 @@ class ScanSet(DataKind):
         a.legend(fontsize=8, markerscale=4)
 
 
-def _shape(data: ScanSet, scale: float, radius=None, tau_s: float = 0.0) -> np.ndarray:
-    """The edge-shape term ``S_l`` (true nm) of every crossing."""
+def _shape(data: ScanSet, scale: float, radius=None, tau_s: float = 0.0, asymmetry_s=None) -> np.ndarray:
+    """The edge-shape term ``S_l`` (true nm) of every crossing; ``asymmetry_s``: (tau_rise,
+    tau_fall) s of a ``FeedbackAsymmetry``."""
     f, out = data.f, np.empty(len(data.f["x"]))
     li = np.searchsorted(LEVELS, f["level"])
     for p, pair in enumerate(data.pairs):
+        dt = pair.sample_time_s
         table = edge_shape(
-            data.grating, data.depth, pair.pixel_size[0] / scale, LEVELS, radius, tau_s / pair.sample_time_s
+            data.grating,
+            data.depth,
+            pair.pixel_size[0] / scale,
+            LEVELS,
+            radius,
+            tau_s / dt,
+            None if asymmetry_s is None else (asymmetry_s[0] / dt, asymmetry_s[1] / dt),
         )
         sel = f["pair"] == p
         out[sel] = table[(~f["rising"][sel]).astype(int), f["retrace"][sel].astype(int), li[sel]]
@@ -495,11 +690,11 @@ def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched:
     converted to nominal nm by ``k / g`` (two passes: the gain comes from the first);
     ``searched``: parameters of ``shape`` found by a search, counted in the BIC."""
     table = data.linear_columns()
-    a = np.stack([table[c] for c in cols], -1)
+    a = _within(data, np.stack([table[c] for c in cols], -1))
     s, ds = data.field()
     gain = np.ones_like(s)
     for _ in range(2):
-        b = data.f["x"] - shape * scale / gain
+        b = _within(data, data.f["x"] - shape * scale / gain)
         theta = np.linalg.lstsq(a[data.train], b[data.train], rcond=None)[0]
         th = dict(zip(cols, theta))
         for d, sel in (("trace", ~data.f["retrace"]), ("retrace", data.f["retrace"])):
@@ -514,8 +709,50 @@ def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched:
         fitted={},
         rss=rss,
         heldout_rms_nm=float(np.sqrt(np.mean(r[~data.train] ** 2))),
-        **Fit.scores(rss, int(data.train.sum()), len(cols) + searched),
+        **Fit.scores(rss, int(data.train.sum()), len(cols) + searched + _nuisance(data)),
     )
+
+
+def _groups(f: dict, pairs, grating: ScanGrating) -> Optional[np.ndarray]:
+    """For a lattice, each crossing's row group (:attr:`ScanSet.groups`); ``None`` for lines."""
+    if grating.kind != "lattice":
+        return None
+    same = len({(p.trace.shape[0], round(p.pixel_size[1], 9)) for p in pairs}) == 1
+    return f["row"] if same else f["pair"] * (1 + f["row"].max()) + f["row"]
+
+
+def _nuisance_columns(data: ScanSet) -> np.ndarray:
+    """(crossings, 2): a row's feature width (+-1/2 on rising and falling edges) and its walls'
+    slope along the row (the same times the level's offset from mid-level)."""
+    sign = np.where(data.f["rising"], 0.5, -0.5)
+    return np.stack([sign, sign * (data.f["level"] - 0.5)], -1)
+
+
+def _within(data: ScanSet, v: np.ndarray) -> np.ndarray:
+    """``v`` (crossings, ...) less its projection, row group by row group, on the lattice's
+    per-row columns (:func:`_nuisance_columns`; Frisch-Waugh-Lovell: the fit is then the full
+    one with a width and a wall slope per row, the held-out rows' own from their own edges).
+    A lattice row grazes or crosses its features where it happens to lie, so each row's feature
+    chord and apparent wall are its own; what moves with the scan direction or speed is not.
+    Unchanged for a 1-D grating."""
+    if data.groups is None:
+        return v
+    g = np.unique(data.groups, return_inverse=True)[1]
+    z = _nuisance_columns(data)
+    n = g.max() + 1
+    zz = np.zeros((n, 2, 2))
+    np.add.at(zz, g, z[:, :, None] * z[:, None, :])
+    inv = np.linalg.pinv(zz)
+    flat = v.reshape(len(v), -1)
+    zv = np.zeros((n, 2, flat.shape[1]))
+    np.add.at(zv, g, z[:, :, None] * flat[:, None, :])
+    coef = inv @ zv  # (groups, 2, columns)
+    return (flat - np.einsum("ij,ijk->ik", z, coef[g])).reshape(v.shape)
+
+
+def _nuisance(data: ScanSet) -> int:
+    """The per-row parameters of a lattice's training rows (2 per row group), for the BIC."""
+    return 0 if data.groups is None else 2 * len(np.unique(data.groups[data.train]))
 
 
 def _systematic(data: ScanSet, r: np.ndarray) -> float:
@@ -553,6 +790,32 @@ def _search(fit_at, lo: float, hi: float) -> tuple:
     )
     v = float(np.exp(best.x)) if best.fun <= rss[i] else float(grid[i])
     return v, fit_at(v)
+
+
+def _search_asymmetry(fit_at, lo: float, hi: float) -> tuple:
+    """Minimise ``fit_at(tau_rise, tau_fall).rss`` over ``tau_fall`` in [lo, hi] and
+    ``tau_rise / tau_fall`` in :data:`ASYMMETRY_RATIOS`: a log grid, then Nelder-Mead in logs."""
+    r0, r1 = np.log(ASYMMETRY_RATIOS)
+    f0, f1 = np.log(lo), np.log(hi)
+    at = lambda p: fit_at(np.exp(p[0] + p[1]), np.exp(p[0]))
+    cost = lambda p: at(np.clip(p, [f0, r0], [f1, r1])).rss
+    grid = [(f, r) for f in np.linspace(f0, f1, 11) for r in np.linspace(r0, r1, 3)]
+    rss = [cost(np.array(p)) for p in grid]
+    start = np.array(grid[int(np.argmin(rss))])
+    step = np.array([(f1 - f0) / 10, (r1 - r0) / 2])
+    best = minimize(
+        cost,
+        start,
+        method="Nelder-Mead",
+        options={
+            "initial_simplex": [start, start + [step[0], 0], start + [0, step[1]]],
+            "xatol": 0.01,
+            "fatol": 1e-3,
+            "maxfev": 50,
+        },
+    )
+    p = np.clip(best.x, [f0, r0], [f1, r1]) if best.fun <= min(rss) else start
+    return (float(np.exp(p[0] + p[1])), float(np.exp(p[0]))), at(p)
 
 
 def diagnose_scans(

@@ -2,7 +2,8 @@
 
 Actuator records (:func:`simulate_record`) come from the default scanner reduced to symmetric
 PI hysteresis and white noise; scan sets (:func:`simulate_scans`) are trace/retrace images of a
-1-D grating by the simulated AFM with that scanner, an ideal tip and an ideal z-feedback. One
+1-D grating (or a 2-D pit lattice) by the simulated AFM with that scanner, an ideal tip and an
+ideal z-feedback. One
 ``withheld`` effect is switched on at a ``magnitude`` (units: :data:`RECORD_UNITS`,
 :data:`SCAN_UNITS`); none makes a control.
 """
@@ -19,8 +20,8 @@ import numpy as np
 from ..config import ScanGrating
 from ..instrument.afm import AFM, Raster, raster_scan
 from ..instrument.records import Record
-from ..instrument.samples import Grating, Tip
-from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
+from ..instrument.samples import Grating, Lattice, Tip
+from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackAsymmetry, FeedbackLag, RateDependence
 from ..model.scanner import Scanner, default_scanner
 from .scans import ScanPair
 
@@ -104,10 +105,21 @@ def simulate_record(
 
 
 #: Unit of the ``magnitude`` of a withheld effect in :func:`simulate_scans`.
-SCAN_UNITS = {"feedback_lag": "s", "tip": "nm (apex radius)", "rate_dependence": "s"}
+SCAN_UNITS = {
+    "feedback_lag": "s",
+    "feedback_asymmetry": "s (tau_fall; tau_rise = 0.1 tau_fall)",
+    "tip": "nm (apex radius)",
+    "rate_dependence": "s",
+}
+#: tau_rise / tau_fall of a simulated ``feedback_asymmetry``.
+RISE_RATIO = 0.1
 #: The simulated calibration grating: 400 nm pitch, 30 nm deep, 60-degree walls (17.3 nm ramps).
 SIM_GRATING = ScanGrating(pitch_nm=400.0, edge_width_nm=30.0 / np.tan(np.deg2rad(60.0)))
 SIM_DEPTH_NM = 30.0
+#: The simulated 2-D lattice: round pits 150 nm in radius, 30 nm deep, with the grating's walls,
+#: on a square lattice of 400 nm.
+SIM_LATTICE = ScanGrating(kind="lattice", pitch_nm=[400.0, 400.0], edge_width_nm=SIM_GRATING.edge_width_nm)
+SIM_PIT_RADIUS_NM = 150.0
 SETTLE_LINES = 2  # the first lines run while the scanner's loop settles: dropped
 
 
@@ -120,11 +132,13 @@ def simulate_scans(
     pixels: int = 512,
     size_nm: float = 2000.0,
     noise_nm: float = 0.5,
+    sample: str = "lines",
 ) -> list:
-    """Trace/retrace images of :data:`SIM_GRATING` by the simulated AFM at each line rate (slowest
-    first, one scan after the other): the symmetric-PI scanner of :func:`simulated_scanner`
-    (``noise_nm`` lateral noise), an ideal tip and feedback, plus ``withheld`` at ``magnitude``
-    (:data:`SCAN_UNITS`). Returns :class:`ScanPair` s."""
+    """Trace/retrace images of :data:`SIM_GRATING` (``sample="lines"``) or :data:`SIM_LATTICE`
+    (``"lattice"``) by the simulated AFM at each line rate (slowest first, one scan after the
+    other): the symmetric-PI scanner of :func:`simulated_scanner` (``noise_nm`` lateral noise),
+    an ideal tip and feedback, plus ``withheld`` at ``magnitude`` (:data:`SCAN_UNITS`). Returns
+    :class:`ScanPair` s."""
     if withheld is not None and withheld not in SCAN_UNITS:
         raise ValueError(
             f"simulate.withheld: {withheld!r} cannot be simulated in a scan set; "
@@ -135,14 +149,29 @@ def simulate_scans(
     )
     radius = float(magnitude) if withheld == "tip" else 10.0
     tip = Tip(jnp.asarray(radius), jnp.asarray(np.deg2rad(SIM_GRATING.tip_half_angle_deg)))
-    feedback = FeedbackLag(jnp.asarray(float(magnitude))) if withheld == "feedback_lag" else None
+    m = jnp.asarray(float(magnitude))
+    feedback = {
+        "feedback_lag": lambda: FeedbackLag(m),
+        "feedback_asymmetry": lambda: FeedbackAsymmetry(RISE_RATIO * m, m),
+    }.get(withheld, lambda: None)()
     afm = AFM(scanner, tip, jnp.full(2, 500.0), feedback, u_max=10.0, dilate=withheld == "tip")
-    sample = Grating(
-        jnp.asarray(SIM_GRATING.pitch_nm),
-        jnp.asarray(SIM_DEPTH_NM),
-        edge_width=jnp.asarray(SIM_GRATING.edge_width_nm),
-        phase=jnp.asarray(37.0),
-    )
+    if sample not in ("lines", "lattice"):
+        raise ValueError(f"simulate.sample: {sample!r} is no simulated sample; one of lines, lattice")
+    if sample == "lattice":
+        sample = Lattice(
+            jnp.asarray(SIM_LATTICE.pitch_nm),
+            jnp.asarray(SIM_PIT_RADIUS_NM),
+            jnp.asarray(-SIM_DEPTH_NM),
+            edge_width=jnp.asarray(SIM_LATTICE.edge_width_nm),
+            phase=jnp.asarray([37.0, 20.0]),
+        )
+    else:
+        sample = Grating(
+            jnp.asarray(SIM_GRATING.pitch_nm),
+            jnp.asarray(SIM_DEPTH_NM),
+            edge_width=jnp.asarray(SIM_GRATING.edge_width_nm),
+            phase=jnp.asarray(37.0),
+        )
     state = afm.initial_state()
     out = []
     for i, rate in enumerate(line_rates_hz):

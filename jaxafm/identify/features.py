@@ -167,7 +167,7 @@ def neighbour_distances(xy: np.ndarray, ij: np.ndarray, step: int = 1) -> np.nda
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def edge_crossings(row: np.ndarray, band: float = 0.2) -> tuple:
+def edge_crossings(row: np.ndarray, band: float = 0.2, levels=None) -> tuple:
     """Sub-pixel edges of one grating profile: where ``row`` crosses its mid-level.
 
     The mid-level is halfway between the row's 10th and 90th percentiles. An
@@ -175,11 +175,12 @@ def edge_crossings(row: np.ndarray, band: float = 0.2) -> tuple:
     to above ``level + band * c`` (or back), ``c`` the 10-90 % contrast, so that
     noise on a slope gives one edge, not three; its position is the mean of the
     mid-level crossings (linear interpolation between samples) on that passage.
-    Returns ``(positions, rising)``: fractional indices, ascending, and whether
-    the profile rises there.
+    ``levels``: ``(lo, hi)`` to use instead of the percentiles (e.g. the depth of a
+    lattice's pit rows). Returns ``(positions, rising)``: fractional indices,
+    ascending, and whether the profile rises there.
     """
     row = np.asarray(row, dtype=float)
-    lo, hi = np.percentile(row, [10, 90])
+    lo, hi = np.percentile(row, [10, 90]) if levels is None else levels
     level, half = 0.5 * (lo + hi), band * (hi - lo)
     state = np.where(row > level + half, 1, np.where(row < level - half, -1, 0))
     k = np.flatnonzero(state)

@@ -107,10 +107,23 @@ def _lag_target(axis: Axis, v, lag, creep, a_rate, a_creep, gain):
     return (v - _lag_step(axis, lag, creep, 0.0, a_rate, a_creep)[0]) / gain
 
 
+def _invertible(axis: Axis) -> None:
+    """Raise for a stage the inverses do not undo: a mechanical mode (``vibration``) needs the
+    wanted path's second derivative (``v = x + 2 zeta x' / w0 + x'' / w0^2``), which a sampled
+    path does not give without filtering it."""
+    if axis.vibration is not None:
+        raise ValueError(
+            "this model has a vibration stage (a mechanical mode), which the inverses do not undo; "
+            "compensate with model.without('vibration') and keep the wanted path's rate well below "
+            "the mode's frequency"
+        )
+
+
 def _lag_inverse(axis: Axis, v: Array, t: Array, state: AxisState, t0) -> Array:
     """The hysteresis outputs (T,) nm that put ``axis``'s output at ``v`` (T,) nm at times ``t``
     from ``state`` reached at ``t0``, the lags following those outputs: one scan over the lags'
     small state (the hysteresis does not enter it)."""
+    _invertible(axis)
     if axis.rate_dependence is None and axis.creep is None:
         return v
     factors = _lag_factors(axis, t, t0)
@@ -214,6 +227,8 @@ def _invert(axes: list, v: Array, t: Array, states: list, t0, u0: Array, lo, hi)
     """Per axis (drive (T,) V in [``lo``, ``hi``], where it saturated, state after it) for the
     axis outputs ``v`` (T, A) nm: the axes with a block inverse together (:func:`_blocked`),
     each checked (:func:`_or_per_sample`); the others sample by sample (:func:`_per_sample`)."""
+    for a in axes:
+        _invertible(a)
     fast = [k for k, a in enumerate(axes) if a.hysteresis.has_block_inverse]
     out = {
         k: _per_sample(a, v[:, k], t, states[k], t0, u0[k], lo, hi)

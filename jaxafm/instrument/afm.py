@@ -4,7 +4,8 @@ An action (a raster scan, a line scan, a move, a press) is a drive ``u(t)`` (V)
 run from where the instrument stands (``AFMState``). The scanner turns it into
 the true tip path (nm); the probe follows the sample, dilated by the tip
 (effect ``tip``), and the z-feedback records that height through a lag
-(effect ``feedback_lag``). Every action returns the state after it, so actions
+(effect ``feedback_lag``), or through a lag that follows falling steps more
+slowly than rising ones (effect ``feedback_asymmetry``). Every action returns the state after it, so actions
 chain in real time: creep and drift carry on from one to the next.
 
 Voltages come from wanted positions through ``volts(xy, t)`` (nm and s -> V): by
@@ -30,7 +31,7 @@ from jax import lax
 
 from .. import checks
 from ..config.names import check_effect_names
-from ..model.effects import FeedbackLag
+from ..model.effects import FeedbackAsymmetry, FeedbackLag
 from ..model.scanner import Scanner, ScannerState, default_scanner
 from .samples import Indented, Tip, surface
 
@@ -52,14 +53,15 @@ class AFM(eqx.Module):
     ``sensitivity`` (2,) nm/V: the linear calibration turning wanted positions
     into voltages; ``u_max`` V: the drive range, ``|u| <= u_max`` on each axis.
     ``tip`` is the probe's shape (pressing always uses it); ``dilate`` says
-    whether images see it (effect ``tip``); ``feedback`` (effect ``feedback_lag``)
-    or ``None`` for a perfect feedback.
+    whether images see it (effect ``tip``); ``feedback`` a :class:`FeedbackLag` (effect
+    ``feedback_lag``), a :class:`FeedbackAsymmetry` (effect ``feedback_asymmetry``) or ``None``
+    for a perfect feedback.
     """
 
     scanner: Scanner
     tip: Tip
     sensitivity: Array
-    feedback: Optional[FeedbackLag] = None
+    feedback: Optional[FeedbackLag | FeedbackAsymmetry] = None
     u_max: float = eqx.field(static=True, default=10.0)
     dilate: bool = eqx.field(static=True, default=True)
 
@@ -72,14 +74,14 @@ class AFM(eqx.Module):
     def effects(self) -> frozenset:
         own = {"tip"} if self.dilate else set()
         if self.feedback is not None:
-            own.add("feedback_lag")
+            own.add(_FEEDBACK[type(self.feedback)])
         return frozenset(own) | self.scanner.effects
 
     def without(self, *names: str) -> AFM:
         """The same instrument with the named effects switched off."""
         check_effect_names(names, "AFM.without")
         afm = eqx.tree_at(lambda a: a.scanner, self, self.scanner.without(*names))
-        if "feedback_lag" in names:
+        if self.feedback is not None and _FEEDBACK[type(self.feedback)] in names:
             afm = eqx.tree_at(lambda a: a.feedback, afm, None, is_leaf=lambda v: v is None)
         if "tip" in names:
             afm = dataclasses.replace(afm, dilate=False)
@@ -129,6 +131,10 @@ class AFM(eqx.Module):
                 f"(about +-{self.u_max * float(np.min(self.sensitivity)):.0f} nm): make the scan smaller, "
                 "move its centre inward or reduce the overscan"
             )
+
+
+#: The effect name of each kind of z-feedback.
+_FEEDBACK = {FeedbackLag: "feedback_lag", FeedbackAsymmetry: "feedback_asymmetry"}
 
 
 @eqx.filter_jit

@@ -147,7 +147,9 @@ def read_record(
         raise ValueError(f"{path}: give exactly one of time_column and sample_rate_hz")
 
     try:
-        data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2)
+        # an empty field (a column a spreadsheet left blank) reads as NaN; the columns used are checked below
+        blank = lambda s: float(s) if s.strip() else np.nan
+        data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2, converters=blank)
     except ValueError as e:
         hint = (
             " (set delimiter: ',' for a CSV file)"

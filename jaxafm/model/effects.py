@@ -2,7 +2,8 @@
 
 Each module is a pure function of its parameters, the signal and the sample
 times ``t`` (s); lengths are nm. The scanner composes them in the order
-hysteresis -> rate_dependence -> creep -> coupling -> bow -> drift -> noise.
+hysteresis -> rate_dependence -> creep -> vibration -> coupling -> bow -> drift -> noise;
+the AFM records heights through ``FeedbackLag`` or ``FeedbackAsymmetry``.
 """
 
 from __future__ import annotations
@@ -126,6 +127,98 @@ class FeedbackLag(FirstOrderLag):
     Scanning at ``v`` nm/s shifts an edge by about ``v tau`` along the scan, one
     way in trace and the other in retrace, so the two images differ.
     """
+
+
+class FeedbackAsymmetry(eqx.Module):
+    """z-feedback asymmetry (effect ``feedback_asymmetry``): "parachuting".
+
+    The recorded height ``z`` follows the surface ``h`` through a first-order lag whose time
+    constant depends on the direction: ``dz/dt = (h - z) / tau``, ``tau = tau_rise`` while the
+    surface is above the recorded height (the tip is pressed: the error signal is large and the
+    loop reacts fast), ``tau = tau_fall`` while it is below (the tip loses contact and the error
+    saturates at the set point, so the loop retracts slowly and the tip "parachutes" off a
+    downward edge). Exact for ``h`` held over each step: ``z`` approaches ``h`` monotonically,
+    so the direction does not change within a step. Down-step edges smear by about
+    ``v tau_fall`` at scan speed ``v`` while up-step edges stay sharp; ``tau_rise = tau_fall``
+    is a :class:`FeedbackLag`.
+    """
+
+    tau_rise: Array  # s
+    tau_fall: Array  # s
+
+    def __check_init__(self):
+        checks.positive("FeedbackAsymmetry.tau_rise", self.tau_rise)
+        checks.positive("FeedbackAsymmetry.tau_fall", self.tau_fall)
+
+    def initial_state(self, v0) -> Array:
+        return jnp.reshape(jnp.asarray(v0, dtype=float), (1,))
+
+    def run(self, v: Array, t: Array, z0: Array, t0) -> tuple:
+        """Recorded heights (T,) and the final state (1,), continuing from ``z0`` at time ``t0``."""
+        dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))
+
+        def step(z, inputs):
+            vn, h = inputs
+            tau = jnp.where(vn >= z, self.tau_rise, self.tau_fall)
+            z = vn + (z - vn) * jnp.exp(-h / tau)
+            return z, z[0]
+
+        z, out = lax.scan(step, jnp.reshape(z0, (1,)), (v, dt))
+        return out, z
+
+    def __call__(self, v: Array, t: Array) -> Array:
+        return self.run(v, t, self.initial_state(v[0]), t[0])[0]
+
+
+class Vibration(eqx.Module):
+    """The scanner's lowest mechanical mode after the actuator (effect ``vibration``; the paper's
+    "structural vibration").
+
+    ``x'' + 2 zeta w0 x' + w0^2 x = w0^2 v`` with ``w0 = 2 pi frequency``: the actuator's
+    displacement ``v`` (nm) drives a mass on a spring, under-damped (``0 < zeta < 1``). Exact for
+    ``v`` held over each step: the deviation from the rest point ``(v, 0)`` evolves by
+    ``exp(A dt)``, ``A = [[0, 1], [-w0^2, -2 sigma]]``, ``sigma = zeta w0``,
+    ``wd = w0 sqrt(1 - zeta^2)``:
+
+        exp(A dt) = e^(-sigma dt) [[c + sigma s / wd, s / wd], [-w0^2 s / wd, c - sigma s / wd]],
+
+    ``c = cos(wd dt)``, ``s = sin(wd dt)``. A step rings at ``wd`` and overshoots by
+    ``exp(-pi zeta / sqrt(1 - zeta^2))``; slow drives pass with gain 1.
+    """
+
+    frequency: Array  # Hz
+    damping: Array  # zeta, dimensionless, in (0, 1)
+
+    def __check_init__(self):
+        checks.positive("Vibration.frequency (Hz)", self.frequency)
+        checks.positive("Vibration.damping", self.damping)
+        if checks.is_concrete(self.damping) and not np.all(np.asarray(self.damping) < 1):
+            raise ValueError(f"Vibration.damping must be < 1 (an under-damped mode), got {self.damping}")
+
+    def initial_state(self, v0) -> Array:
+        """At rest at ``v0``: position ``v0`` nm, velocity 0 nm/s."""
+        return jnp.stack([jnp.asarray(v0, dtype=float), jnp.zeros(())])
+
+    def run(self, v: Array, t: Array, state: Array, t0) -> tuple:
+        """Positions (T,) nm and the final (position, velocity) (2,), from ``state`` at ``t0``."""
+        dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))
+        w0 = 2 * jnp.pi * self.frequency
+        sigma = self.damping * w0
+        wd = w0 * jnp.sqrt(1 - self.damping**2)
+
+        def step(s, inputs):
+            vn, h = inputs
+            e, c, sn = jnp.exp(-sigma * h), jnp.cos(wd * h), jnp.sin(wd * h)
+            x, xd = s[0] - vn, s[1]
+            x1 = e * (x * (c + sigma * sn / wd) + xd * sn / wd)
+            xd1 = e * (-x * w0**2 * sn / wd + xd * (c - sigma * sn / wd))
+            return jnp.stack([x1 + vn, xd1]), x1 + vn
+
+        s, out = lax.scan(step, state, (v, dt))
+        return out, s
+
+    def __call__(self, v: Array, t: Array) -> Array:
+        return self.run(v, t, self.initial_state(v[0]), t[0])[0]
 
 
 class Coupling(eqx.Module):

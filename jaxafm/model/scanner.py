@@ -24,38 +24,46 @@ from .effects import (
     Drift,
     Noise,
     RateDependence,
+    Vibration,
 )
 from .hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii
 
 Array = jax.Array
 
 
+#: The linear dynamic stages of an axis after its hysteresis, in order.
+STAGES = ("rate_dependence", "creep", "vibration")
+
+
 class AxisState(eqx.Module):
     """Where one axis stands: its hysteresis operator's state (the plays, V; empty for a
-    memoryless operator), the lag (nm) and the creep lags plus rest level (nm)."""
+    memoryless operator), the lag (nm), the creep lags plus rest level (nm) and the mechanical
+    mode's position (nm) and velocity (nm/s) (empty without one)."""
 
     plays: Array
     lag: Array
     creep: tuple
+    vibration: tuple = ()
 
 
 class Axis(eqx.Module):
-    """One actuator axis: ``y = creep(lag(H[u]))`` in nm, for ``u`` in V and ``t`` in s."""
+    """One actuator axis: ``y = vibration(creep(lag(H[u])))`` in nm, for ``u`` in V and ``t`` in s."""
 
     hysteresis: AbstractHysteresis
     rate_dependence: Optional[RateDependence] = None
     creep: Optional[Creep] = None
+    vibration: Optional[Vibration] = None
 
     @property
     def effects(self) -> frozenset:
         """The hysteresis operator's effects (a Preisach density holds its asymmetry itself,
-        unnamed), plus ``rate_dependence`` and ``creep`` when present."""
-        stages = {n for n in ("rate_dependence", "creep") if getattr(self, n) is not None}
+        unnamed), plus ``rate_dependence``, ``creep`` and ``vibration`` when present."""
+        stages = {n for n in STAGES if getattr(self, n) is not None}
         return self.hysteresis.effects | stages
 
     def without(self, name: str) -> Axis:
         """The same axis with the effect ``name`` switched off (unchanged if it does not hold it)."""
-        if name in ("rate_dependence", "creep"):
+        if name in STAGES:
             return eqx.tree_at(lambda a: getattr(a, name), self, None, is_leaf=lambda v: v is None)
         h = self.hysteresis.without(name)
         return self if h is self.hysteresis else eqx.tree_at(lambda a: a.hysteresis, self, h)
@@ -71,7 +79,8 @@ class Axis(eqx.Module):
         v0 = self.hysteresis.run(jnp.reshape(jnp.asarray(u0, dtype=float), (1,)), plays)[0][0]
         lag = jnp.zeros((0,)) if self.rate_dependence is None else self.rate_dependence.initial_state(v0)
         creep = () if self.creep is None else self.creep.initial_state(v0)
-        return AxisState(plays, lag, creep)
+        vibration = () if self.vibration is None else self.vibration.initial_state(v0)
+        return AxisState(plays, lag, creep, vibration)
 
     def run(self, u: Array, t: Array, state: AxisState, t0) -> tuple:
         """Positions (T,) nm and the next state, continuing from ``state`` reached at time ``t0``."""
@@ -81,7 +90,10 @@ class Axis(eqx.Module):
             v, lag = self.rate_dependence.run(v, t, lag, t0)
         if self.creep is not None:
             v, creep = self.creep.run(v, t, creep, t0)
-        return v, AxisState(plays, lag, creep)
+        vibration = state.vibration
+        if self.vibration is not None:
+            v, vibration = self.vibration.run(v, t, vibration, t0)
+        return v, AxisState(plays, lag, creep, vibration)
 
     def __call__(self, u: Array, t: Array, history=None) -> Array:
         t = jnp.asarray(t, dtype=float)
@@ -96,6 +108,8 @@ class Axis(eqx.Module):
             v = self.rate_dependence(v, t)
         if self.creep is not None:
             v = self.creep(v, t)
+        if self.vibration is not None:
+            v = self.vibration(v, t)
         return v
 
 

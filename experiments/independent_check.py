@@ -1,0 +1,241 @@
+"""jaxafm's record diagnosis on records from an independent generator (tests/independent.py).
+
+The records do not come from jaxafm's simulator: tests/independent.py writes the physics anew in
+NumPy/SciPy (its docstring states every equation): a two-axis piezo actuator, 6 s at 1 kHz,
+triangle drives of varying amplitude and frequency, a Prandtl-Ishlinskii or a smooth Preisach
+hysteresis, and one effect (asymmetry, rate dependence, creep, drift, coupling, bow, vibration)
+at three magnitudes (independent.MAGNITUDES), several seeds each, plus controls with none. In
+half of the cases the nominal model's class differs from the truth's (a Preisach truth diagnosed
+with a PI nominal, or the reverse); the diagnosis has to find the effect anyway, and not blame
+an effect for a control whose only "gap" is the hysteresis class.
+
+A case is right when the verdict is its effect; an asymmetry case also when the diagnosis's
+hysteresis-shape finding (``res.shape``) is a richer operator ("gpi" or "preisach": both
+hold an asymmetric loop). A control is flagged when it gets any
+verdict. Writes, into experiments/results/independent_check/: cases.json (one row per case,
+written as it goes), summary.json (confusion matrices, top-1 per level, same-class and
+different-class nominal apart, controls flagged, median shrink of correctly named cases) and
+confusion.png.
+
+    python experiments/independent_check.py                    # 5 seeds, 20 controls: ~1 h
+    python experiments/independent_check.py --limit 4          # the first 4 cases, a quick look
+    python experiments/independent_check.py --effects creep control --limit 6
+    python experiments/independent_check.py --seeds 2 --controls 6 --levels middle control   # ~30 min
+    python experiments/independent_check.py --summarise        # only rebuild summary and figure
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import benchutil  # noqa: F401  (puts tests/ on sys.path)
+import matplotlib.pyplot as plt
+from independent import EFFECTS, LEVELS, MAGNITUDES, UNITS, cases, make_case
+
+from jaxafm.diagnose import record as D
+from jaxafm.instrument.records import Record
+
+OUT = Path(__file__).parent / "results" / "independent_check"
+CANDIDATES = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "vibration")
+LABELS = (*EFFECTS, "none")
+CLASSES = ("same", "different")
+
+
+def diagnose(case: dict, candidates: tuple):
+    """Run the diagnosis; returns (result, the candidates it accepted)."""
+    rec = make_case(case["effect"], case["level"], case["seed"], case["truth_hysteresis"])
+    record = Record(
+        t=rec["t"],
+        u=rec["u"],
+        d=rec["d"],
+        meta={
+            "source": f"independent generator: {case['effect'] or 'control'} {case['level']} "
+            f"seed {case['seed']}, truth {case['truth_hysteresis']}",
+            "truth": rec["truth"],
+        },
+    )
+    spec = D.Nominal(kind=case["nominal_kind"])
+    try:
+        return D.diagnose_record(record, spec, candidates, log=lambda s: None), candidates
+    except ValueError as err:
+        if "vibration" not in candidates or "vibration" not in str(err):
+            raise
+        # 'vibration' is not (yet) a candidate jaxafm knows: drop it for now
+        print(f"  diagnose_record rejected 'vibration' ({err}); running without it", flush=True)
+        kept = tuple(c for c in candidates if c != "vibration")
+        return D.diagnose_record(record, spec, kept, log=lambda s: None), kept
+
+
+def run_case(case: dict, candidates: tuple) -> tuple:
+    start = time.perf_counter()
+    res, used = diagnose(case, candidates)
+    rows = {r.effect: r for r in res.candidates}
+    effect, verdict, shape = case["effect"], res.verdict, getattr(res, "shape", None)
+    if effect == "asymmetry":
+        correct = verdict == "asymmetry" or shape in ("gpi", "preisach")
+        named = "asymmetry" if correct else verdict
+    else:
+        correct = verdict == effect
+        named = verdict
+    shrink_of = lambda e: rows[e].shrink_pct if e in rows else None
+    row = case | {
+        "class": "same" if case["truth_hysteresis"] == case["nominal_kind"] else "different",
+        "verdict": verdict,
+        "shape": shape,
+        "named": named,
+        "correct": bool(correct) if effect else None,
+        "flagged": verdict is not None if effect is None else None,
+        "seconds": time.perf_counter() - start,
+        "heldout_gap_before_nm": res.nominal.heldout_gap_nm,
+        "verdict_shrink_pct": shrink_of(verdict) if verdict else 0.0,
+        "total_shrink_pct": res.verdict_json()["total_shrink_pct"],
+        "shapes": [[r.effect, r.shrink_pct, r.delta_bic, bool(r.significant)] for r in res.shapes],
+        "truth_shrink_pct": shrink_of(effect) if effect else None,
+        "candidates_used": list(used),
+        "skipped": {k: str(v) for k, v in res.skipped.items()},
+        "ranking": [[r.effect, r.shrink_pct, r.delta_bic, bool(r.significant)] for r in res.candidates],
+    }
+    return row, used
+
+
+def _scores(rows: list) -> dict:
+    labels = list(LABELS)
+    name = lambda v: v or "none"
+    matrix = {lv: np.zeros((len(labels), len(labels)), int) for lv in (*LEVELS, "control")}
+    for r in rows:
+        matrix[r["level"]][labels.index(name(r["effect"])), labels.index(name(r["named"]))] += 1
+    out = {"cases": len(rows), "confusion": {k: v.tolist() for k, v in matrix.items()}}
+    withheld = [r for r in rows if r["effect"] is not None]
+    for lv in LEVELS:
+        sel = [r for r in withheld if r["level"] == lv]
+        if sel:
+            out[f"top1_{lv}_pct"] = float(100 * np.mean([r["correct"] for r in sel]))
+            out[f"cases_{lv}"] = len(sel)
+    out["top1_all_pct"] = float(100 * np.mean([r["correct"] for r in withheld])) if withheld else None
+    per_effect = {}
+    for e in EFFECTS:
+        sel = [r for r in withheld if r["effect"] == e]
+        if sel:
+            per_effect[e] = {lv: [bool(r["correct"]) for r in sel if r["level"] == lv] for lv in LEVELS}
+    out["correct_by_effect_and_level"] = per_effect
+    ctrl = [r for r in rows if r["effect"] is None]
+    out["controls"] = len(ctrl)
+    out["controls_flagged"] = int(sum(r["flagged"] for r in ctrl))
+    out["controls_flagged_as"] = sorted({r["verdict"] for r in ctrl if r["flagged"]})
+    right = [r for r in withheld if r["correct"] and r["truth_shrink_pct"] is not None]
+    out["median_shrink_correct_pct"] = (
+        float(np.median([r["truth_shrink_pct"] for r in right])) if right else None
+    )
+    out["shape_findings"] = {
+        str(s): int(sum(str(r["shape"]) == s for r in rows)) for s in sorted({str(r["shape"]) for r in rows})
+    }
+    out["seconds_per_case_median"] = float(np.median([r["seconds"] for r in rows])) if rows else None
+    return out
+
+
+def summarise(rows: list) -> dict:
+    """Scores over all cases, then for the same-class and the different-class nominal apart."""
+    out = {"labels": list(LABELS), "all": _scores(rows)}
+    for c in CLASSES:
+        out[c] = _scores([r for r in rows if r["class"] == c])
+    return out
+
+
+def figure(summary: dict, path: Path) -> None:
+    labels = summary["labels"]
+    fig, axes = plt.subplots(2, 3, figsize=(19, 12.5))
+    for row, cls in zip(axes, CLASSES):
+        s = summary[cls]
+        for ax, lv in zip(row, LEVELS):
+            m = np.array(s["confusion"][lv]) + np.array(s["confusion"]["control"])
+            ax.imshow(m, cmap="Blues", vmin=0, vmax=max(m.max(), 1))
+            for i in range(len(labels)):
+                for j in range(len(labels)):
+                    if m[i, j]:
+                        dark = m[i, j] > 0.6 * m.max()
+                        ax.text(j, i, m[i, j], ha="center", va="center", color="w" if dark else "k")
+            ax.set_xticks(range(len(labels)), labels, rotation=40, ha="right")
+            ax.set_yticks(range(len(labels)), labels)
+            acc = s.get(f"top1_{lv}_pct")
+            acc_s = "-" if acc is None else f"{acc:.0f} %"
+            ax.set(
+                xlabel="verdict (asymmetry cases: also the shape finding)",
+                ylabel="effect in the record (truth)",
+                title=f"{cls} class nominal, {lv} magnitude + controls\n"
+                f"top-1 {acc_s}; controls flagged {s['controls_flagged']}/{s['controls']}",
+            )
+    fig.suptitle("jaxafm record diagnosis on the independent generator's records", fontsize=14)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--controls", type=int, default=20)
+    ap.add_argument("--limit", type=int, default=None, help="run only the first LIMIT cases")
+    ap.add_argument(
+        "--effects", nargs="+", default=None, help="run only these effects ('control' for the controls)"
+    )
+    ap.add_argument(
+        "--levels", nargs="+", default=None, help="run only these levels (low, middle, high, control)"
+    )
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json"
+    )
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    saved = args.out / "cases.json"
+    if args.summarise:
+        rows = json.loads(saved.read_text())
+    else:
+        rows = []
+        todo = cases(args.seeds, args.controls)
+        if args.effects:
+            todo = [c for c in todo if (c["effect"] or "control") in args.effects]
+        if args.levels:
+            todo = [c for c in todo if c["level"] in args.levels]
+        todo = todo[: args.limit]
+        candidates = CANDIDATES
+        for i, case in enumerate(todo):
+            row, candidates = run_case(case, candidates)
+            rows.append(row)
+            if row["effect"] is None:
+                mark = "flagged" if row["flagged"] else "ok"
+            else:
+                mark = "right" if row["correct"] else "wrong"
+            print(
+                f"[{i + 1}/{len(todo)}] {case['effect'] or 'control'} {case['level']} seed {case['seed']} "
+                f"(truth {case['truth_hysteresis']}, nominal {case['nominal_kind']}): verdict {row['verdict']}, "
+                f"shape {row['shape']} -> {mark} "
+                f"(gap {row['heldout_gap_before_nm']:.1f} nm, shrink {row['verdict_shrink_pct']:.1f} %, "
+                f"{row['seconds']:.0f} s)",
+                flush=True,
+            )
+            saved.write_text(json.dumps(rows, indent=1))
+    summary = summarise(rows) | {"magnitudes": MAGNITUDES, "units": UNITS, "candidates": list(CANDIDATES)}
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
+    figure(summary, args.out / "confusion.png")
+    print(
+        json.dumps(
+            {
+                k: {kk: vv for kk, vv in v.items() if kk != "confusion"}
+                for k, v in summary.items()
+                if k in ("all", *CLASSES)
+            },
+            indent=1,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
