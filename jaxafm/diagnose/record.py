@@ -394,7 +394,8 @@ class ActuatorRecord(DataKind):
         a = axes[2]
         e = np.array(dec["edges"]["input_rate_v_per_s"])
         a.plot(0.5 * (e[1:] + e[:-1]), dec["rms_nm"]["input_rate_v_per_s"], "o-")
-        a.set(xlabel="|du/dt| [V/s]", ylabel="rms residual [nm]", title="by input rate")
+        a.set(xlabel="|du/dt| [V/s]", ylabel="rms residual [nm]", title="by input rate (equal-count bins)")
+        a.set_xscale("log")
         a = axes[3]
         for i, acf in enumerate(test["acf"]):
             a.plot(np.arange(1, acf.size + 1), acf, lw=1, label=f"output {i + 1}")

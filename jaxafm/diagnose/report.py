@@ -93,19 +93,19 @@ def residual_tests(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
     return out
 
 
-def candidate_bars(a, candidates, nominal_gap_nm: float, xlabel: str) -> None:
-    """Each candidate's held-out gap after refitting (red: significant), against the nominal's
-    ``nominal_gap_nm`` (nm), on the axes ``a``."""
+def candidate_bars(a, candidates, base_gap_nm: float, xlabel: str, base: str = "nominal") -> None:
+    """Each candidate's held-out gap after refitting (red: significant), against ``base_gap_nm``
+    (nm), the gap of the model ``base`` the candidates were added to, on the axes ``a``."""
     if candidates:
         a.barh(
             [c.effect for c in candidates],
             [c.heldout_gap_after_nm for c in candidates],
             color=["tab:red" if c.significant else "tab:gray" for c in candidates],
         )
-        a.axvline(nominal_gap_nm, color="k", ls="--", lw=1, label="nominal")
+        a.axvline(base_gap_nm, color="k", ls="--", lw=1, label=base)
         a.invert_yaxis()
         a.legend(fontsize=8)
-    a.set(xlabel=xlabel, title="nominal + candidate (red: significant)")
+    a.set(xlabel=xlabel, title=f"{base} + candidate (red: significant)")
 
 
 def figure(diagnosis: Diagnosis, findings, path: Path) -> None:
@@ -114,7 +114,10 @@ def figure(diagnosis: Diagnosis, findings, path: Path) -> None:
     fig = Figure(figsize=data.figsize)
     axes = fig.subplots(*data.grid).ravel()
     data.panels(list(axes[:-1]), diagnosis, findings)
-    candidate_bars(axes[-1], diagnosis.candidates, diagnosis.nominal.heldout_gap_nm, data.gap_label)
+    base = diagnosis.base or diagnosis.nominal
+    rung = next((r.effect for r in diagnosis.shapes if r.fit is base), None)
+    name = f"nominal, {rung} shape" if rung else "nominal"
+    candidate_bars(axes[-1], diagnosis.candidates, base.heldout_gap_nm, data.gap_label, name)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
