@@ -215,13 +215,15 @@ class ActuatorRecord(DataKind):
                 f"the record lasts {t[-1] - t[0]:.3g} s, less than one decade above the shortest creep "
                 f"lag ({CREEP_TAU_MIN:g} s)"
             )
-        if effect == "vibration" and self.mode_band()[0] >= self.mode_band()[1]:
-            lo, hi = self.mode_band()
-            return (
-                f"sampled at {1 / np.median(np.diff(t)):.3g} Hz: no band left for a mode between 10 x the "
-                f"drive's frequency ({lo:.3g} Hz) and 0.45 x the sample rate ({hi:.3g} Hz)"
-            )
-        return None
+        if effect != "vibration":
+            return None
+        lo, hi = self.mode_band()
+        if lo < hi:
+            return None
+        return (
+            f"sampled at {1 / np.median(np.diff(t)):.3g} Hz: no band left for a mode between 10 x the "
+            f"drive's frequency ({lo:.3g} Hz) and 0.45 x the sample rate ({hi:.3g} Hz)"
+        )
 
     def mode_band(self) -> tuple:
         """Where a mechanical mode is sought (Hz): above ten times the drive's strongest frequency,
