@@ -21,6 +21,8 @@ confusion.png.
     python experiments/independent_check.py --limit 4          # the first 4 cases, a quick look
     python experiments/independent_check.py --effects creep control --limit 6
     python experiments/independent_check.py --seeds 2 --controls 6 --levels middle control   # ~30 min
+    python experiments/independent_check.py --shard 1/2 & python experiments/independent_check.py --shard 2/2
+                                                               # two processes, one core each
     python experiments/independent_check.py --summarise        # only rebuild summary and figure
 """
 
@@ -40,6 +42,7 @@ import matplotlib.pyplot as plt
 from independent import EFFECTS, LEVELS, MAGNITUDES, UNITS, cases, make_case
 
 from jaxafm.diagnose import record as D
+from jaxafm.diagnose.report import above_floor, noise_floor_nm
 from jaxafm.instrument.records import Record
 
 OUT = Path(__file__).parent / "results" / "independent_check"
@@ -48,10 +51,10 @@ LABELS = (*EFFECTS, "none")
 CLASSES = ("same", "different")
 
 
-def diagnose(case: dict, candidates: tuple):
-    """Run the diagnosis; returns (result, the candidates it accepted)."""
+def case_record(case: dict) -> Record:
+    """The case's record, made by the independent generator."""
     rec = make_case(case["effect"], case["level"], case["seed"], case["truth_hysteresis"])
-    record = Record(
+    return Record(
         t=rec["t"],
         u=rec["u"],
         d=rec["d"],
@@ -61,6 +64,17 @@ def diagnose(case: dict, candidates: tuple):
             "truth": rec["truth"],
         },
     )
+
+
+def floor_nm(case: dict) -> float:
+    """The noise floor of the case's held-out output (the diagnosis's estimate, not the truth's)."""
+    data = D.ActuatorRecord.split_off(case_record(case), D.Nominal(kind=case["nominal_kind"]))
+    return noise_floor_nm(data.d[data.heldout])
+
+
+def diagnose(case: dict, candidates: tuple):
+    """Run the diagnosis; returns (result, the candidates it accepted)."""
+    record = case_record(case)
     spec = D.Nominal(kind=case["nominal_kind"])
     try:
         return D.diagnose_record(record, spec, candidates, log=lambda s: None), candidates
@@ -94,6 +108,8 @@ def run_case(case: dict, candidates: tuple) -> tuple:
         "flagged": verdict is not None if effect is None else None,
         "seconds": time.perf_counter() - start,
         "heldout_gap_before_nm": res.nominal.heldout_gap_nm,
+        "heldout_gap_final_nm": res.final.heldout_gap_nm,
+        "noise_floor_nm": floor_nm(case),
         "verdict_shrink_pct": shrink_of(verdict) if verdict else 0.0,
         "total_shrink_pct": res.verdict_json()["total_shrink_pct"],
         "shapes": [[r.effect, r.shrink_pct, r.delta_bic, bool(r.significant)] for r in res.shapes],
@@ -129,10 +145,17 @@ def _scores(rows: list) -> dict:
     out["controls"] = len(ctrl)
     out["controls_flagged"] = int(sum(r["flagged"] for r in ctrl))
     out["controls_flagged_as"] = sorted({r["verdict"] for r in ctrl if r["flagged"]})
-    right = [r for r in withheld if r["correct"] and r["truth_shrink_pct"] is not None]
-    out["median_shrink_correct_pct"] = (
-        float(np.median([r["truth_shrink_pct"] for r in right])) if right else None
-    )
+    right = [r for r in withheld if r["correct"]]
+
+    def median(key):  # over the correctly named cases that have the value
+        values = [r[key] for r in right if r[key] is not None]
+        return float(np.median(values)) if values else None
+
+    out["median_shrink_correct_pct"] = median("truth_shrink_pct")
+    out["median_total_shrink_correct_pct"] = median("total_shrink_pct")
+    out["median_shrink_above_floor_correct_pct"] = median("shrink_above_floor_pct")
+    out["median_total_shrink_above_floor_correct_pct"] = median("total_shrink_above_floor_pct")
+    out["median_noise_floor_nm"] = float(np.median([r["noise_floor_nm"] for r in rows])) if rows else None
     out["shape_findings"] = {
         str(s): int(sum(str(r["shape"]) == s for r in rows)) for s in sorted({str(r["shape"]) for r in rows})
     }
@@ -140,8 +163,29 @@ def _scores(rows: list) -> dict:
     return out
 
 
+def with_floor(row: dict) -> dict:
+    """``row`` with its gaps above the noise floor: the named effect's shrink (against the model
+    it was added to) and the total (nominal -> final), both on ``above_floor`` gaps. Rows of a
+    run before these keys existed get their floor and final gap from the stored record and
+    shrinks."""
+    row = dict(row)
+    row.setdefault("noise_floor_nm", floor_nm(row))
+    row.setdefault("heldout_gap_final_nm", row["heldout_gap_before_nm"] * (1 - row["total_shrink_pct"] / 100))
+    floor, final = row["noise_floor_nm"], row["heldout_gap_final_nm"]
+
+    def shrink(before):  # None where nothing of the gap before is above the floor
+        excess = above_floor(before, floor)
+        return 100 * (1 - above_floor(final, floor) / excess) if excess > 0 else None
+
+    row["total_shrink_above_floor_pct"] = shrink(row["heldout_gap_before_nm"])
+    own = row["truth_shrink_pct"]
+    row["shrink_above_floor_pct"] = None if own is None else shrink(final / (1 - own / 100))
+    return row
+
+
 def summarise(rows: list) -> dict:
     """Scores over all cases, then for the same-class and the different-class nominal apart."""
+    rows = [with_floor(r) for r in rows]
     out = {"labels": list(LABELS), "all": _scores(rows)}
     for c in CLASSES:
         out[c] = _scores([r for r in rows if r["class"] == c])
@@ -188,23 +232,27 @@ def main() -> None:
     ap.add_argument(
         "--levels", nargs="+", default=None, help="run only these levels (low, middle, high, control)"
     )
+    ap.add_argument(
+        "--shard", default="1/1", help="K/N: run every N-th case from the K-th (writes cases-K-of-N.json)"
+    )
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument(
-        "--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json"
+        "--summarise",
+        action="store_true",
+        help="only rebuild summary.json and the figure from the cases*.json files",
     )
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    saved = args.out / "cases.json"
-    if args.summarise:
-        rows = json.loads(saved.read_text())
-    else:
-        rows = []
+    k, n = (int(v) for v in args.shard.split("/"))
+    saved = args.out / ("cases.json" if n == 1 else f"cases-{k}-of-{n}.json")
+    if not args.summarise:
+        rows = []  # this run's (the summary below merges every cases*.json in the folder)
         todo = cases(args.seeds, args.controls)
         if args.effects:
             todo = [c for c in todo if (c["effect"] or "control") in args.effects]
         if args.levels:
             todo = [c for c in todo if c["level"] in args.levels]
-        todo = todo[: args.limit]
+        todo = todo[: args.limit][k - 1 :: n]
         candidates = CANDIDATES
         for i, case in enumerate(todo):
             row, candidates = run_case(case, candidates)
@@ -222,6 +270,7 @@ def main() -> None:
                 flush=True,
             )
             saved.write_text(json.dumps(rows, indent=1))
+    rows = [r for f in sorted(args.out.glob("cases*.json")) for r in json.loads(f.read_text())]
     summary = summarise(rows) | {"magnitudes": MAGNITUDES, "units": UNITS, "candidates": list(CANDIDATES)}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     figure(summary, args.out / "confusion.png")

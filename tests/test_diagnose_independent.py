@@ -4,6 +4,7 @@ Short records (3 s at 200 Hz, the same drive code as experiments/independent_che
 three candidates keep each case to seconds; the full check is the experiment.
 """
 
+import pytest
 from independent import make_case, make_drive
 
 from jaxafm.diagnose import record as D
@@ -24,9 +25,14 @@ def test_middle_creep_is_named():
     assert res.verdict == "creep"
 
 
-def test_control_same_class_blames_nothing():
+def test_control_same_class_blames_nothing_and_ends_at_the_noise_floor():
     res = diagnose(None, "control", 10_000, "pi", "pi")
     assert res.verdict is None
+    # the floor from 2 x 240 held-out second differences: a MAD's standard error of about 7 %
+    # (correlated differences); 20 % is three of them. The right model's gap is that floor.
+    m = res.data.findings(res).metrics
+    assert m["noise_floor_nm"] == pytest.approx(2.0, rel=0.2)  # the generator's noise: 2 nm
+    assert res.nominal.heldout_gap_nm == pytest.approx(m["noise_floor_nm"], rel=0.2)
 
 
 def test_control_preisach_truth_pi_nominal_blames_nothing():

@@ -13,7 +13,7 @@ from independent import make_case, make_drive
 
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose.plant import creep_stage
-from jaxafm.diagnose.report import write
+from jaxafm.diagnose.report import above_floor, noise_floor_nm, write
 from jaxafm.instrument.records import Record
 from jaxafm.model.effects import FeedbackAsymmetry, Vibration
 
@@ -44,6 +44,23 @@ def test_feedback_asymmetry_follows_a_rise_and_a_fall_with_their_own_time_consta
     np.testing.assert_allclose(z[up], 10 * (1 - np.exp(-t[up] / tau_rise)), atol=1e-9)
     z_top = 10 * (1 - np.exp(-0.01 / tau_rise))
     np.testing.assert_allclose(z[down], z_top * np.exp(-(t[down] - 0.01) / tau_fall), atol=1e-9)
+
+
+def test_noise_floor_is_the_white_noise_under_a_smooth_signal_with_steps():
+    # sigma 2 nm and 0.5 nm on a 300 nm sine (1 Hz at 1 kHz) with 20 steps of 50 nm: the MAD of
+    # 20,000 second differences has a relative standard error of about 1 %; 5 % is 5 of them
+    rng = np.random.default_rng(7)
+    t = np.arange(20_000) / 1e3
+    smooth = 300 * np.sin(2 * np.pi * t)[:, None] + 50 * np.floor(t / 1.0)[:, None]
+    d = smooth + rng.normal(size=(t.size, 2)) * [2.0, 0.5]
+    assert noise_floor_nm(d) == pytest.approx(np.sqrt((2.0**2 + 0.5**2) / 2), rel=0.05)
+    assert noise_floor_nm(d[:, 0]) == pytest.approx(2.0, rel=0.05)
+    assert noise_floor_nm(smooth) < 0.01  # no noise: no floor
+
+
+def test_the_gap_above_the_floor_adds_in_quadrature():
+    assert above_floor(5.0, 3.0) == pytest.approx(4.0)
+    assert above_floor(2.0, 2.5) == 0.0
 
 
 def test_creep_spans_the_whole_record_and_a_short_record_cannot_show_it():

@@ -342,12 +342,17 @@ class Diagnosis:
             text += f"; hysteresis shape: {SHAPE_NAMES[self.shape]} instead of the nominal's"
         return text
 
+    @property
+    def final(self) -> Fit:
+        """The diagnosis's final model: the verdict's fit, else the rung found, else the nominal."""
+        return self.top.fit if self.top else (self.base or self.nominal)
+
     def verdict_json(self) -> dict:
         """The ``verdict`` section of ``diagnosis.json``: effect, shape, text and, if any, the
         effect's gaps (against the model it was added to) and the gap left against the nominal's."""
         top = self.top
         gaps = ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")
-        final = top.fit if top else (self.base or self.nominal)
+        final = self.final
         return {
             "effect": self.verdict,
             "hysteresis_shape": self.shape,

@@ -40,7 +40,7 @@ from .plant import (
     title,
     with_effect,
 )
-from .report import MAX_LAG, binned_rms, residual_tests, rms
+from .report import MAX_LAG, above_floor, binned_rms, noise_floor_nm, residual_tests, rms
 
 Array = jax.Array
 #: Candidate effects for actuator records; the last two need two axes (asymmetry is a hysteresis
@@ -351,7 +351,18 @@ class ActuatorRecord(DataKind):
         test, dec = residual_tests(r, u, t), decompose(r, u, t)
         m = test["metrics"]
         metrics = {"train_samples": int(self.train.sum()), "heldout_samples": int(self.heldout.sum())}
+        floor = noise_floor_nm(self.d[self.heldout])
+        gap = diagnosis.final.heldout_gap_nm
+        metrics |= {
+            "noise_floor_nm": floor,
+            "final_heldout_gap_above_floor_nm": above_floor(gap, floor),
+            "nominal_heldout_gap_above_floor_nm": above_floor(diagnosis.nominal.heldout_gap_nm, floor),
+        }
         notes = [
+            f"- Noise floor: the held-out output's white noise, from its second differences, is "
+            f"{floor:.3g} nm rms; the final model's held-out gap {gap:.3g} nm is "
+            f"{above_floor(gap, floor):.3g} nm above it (the nominal's "
+            f"{above_floor(diagnosis.nominal.heldout_gap_nm, floor):.3g} nm), in quadrature.",
             f"- Whiteness: lag-1 autocorrelation {m['residual_acf_lag1']:.2f}, "
             f"{m['residual_acf_outside_band_pct']:.0f} % of lags 1-{MAX_LAG} outside the 95 % band "
             f"(+-{m['correlation_band_95']:.3f}); Ljung-Box p = {m['ljung_box_p']:.2g}.",

@@ -36,6 +36,25 @@ def rms(x) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else float("nan")
 
 
+def noise_floor_nm(d) -> float:
+    """The white-noise floor of samples ``d`` (T,) or (T, k) in nm rms: a robust estimate from
+    their second differences. For white noise of standard deviation sigma,
+    ``d[n+1] - 2 d[n] + d[n-1]`` has variance ``6 sigma^2``; a signal smooth on the scale of a
+    sample adds little, and the median absolute deviation (``/ 0.6745`` for a normal
+    distribution) ignores the few samples at corners and steps. Any roughness from sample to
+    sample counts as floor. Several columns: the rms of their floors (what the gap's rms over
+    all columns would be if the model were exact)."""
+    dd = np.diff(np.asarray(d, float).reshape(len(d), -1), 2, axis=0)
+    mad = np.median(np.abs(dd - np.median(dd, axis=0)), axis=0)
+    return float(np.sqrt(np.mean((mad / 0.6745) ** 2 / 6)))
+
+
+def above_floor(gap_nm: float, floor_nm: float) -> float:
+    """The part of an rms gap above a noise floor (nm): ``sqrt(max(gap^2 - floor^2, 0))``
+    (independent errors add in quadrature)."""
+    return float(np.sqrt(max(gap_nm**2 - floor_nm**2, 0.0)))
+
+
 def binned_rms(x: np.ndarray, r: np.ndarray, edges: np.ndarray) -> list:
     """rms of ``r`` in the bins of ``x`` between ``edges`` (the outer bins take what lies beyond)."""
     idx = np.clip(np.digitize(x, edges[1:-1]), 0, len(edges) - 2)
