@@ -146,6 +146,21 @@ def old_inverse():
         jax.clear_caches()
 
 
+@contextmanager
+def every_pixel():
+    """``study.nearest_pixel`` replaced by the search of every pixel (the lookup as it was)."""
+    fast = study.nearest_pixel
+    study.nearest_pixel = lambda path, point: jnp.divmod(
+        jnp.argmin(jnp.sum((path - point) ** 2, -1)), path.shape[1]
+    )
+    study.image_position.clear_cache()
+    try:
+        yield
+    finally:
+        study.nearest_pixel = fast
+        study.image_position.clear_cache()
+
+
 def batch_breakdown(cfg, contexts, draws, batch: int, mesh: Mesh, calls: int) -> dict:
     """Seconds per batch (after :func:`timed_chunks` warmed it up) in the jitted trial calls,
     the local scan's first pass (every trial) and second pass (those still searching, in
@@ -185,6 +200,15 @@ def batch_breakdown(cfg, contexts, draws, batch: int, mesh: Mesh, calls: int) ->
         place(k)
     out = {k: v / calls for k, v in spent.items()} | {"batch": batch, "total_s": total}
     out["image_position_s"] = (time.perf_counter() - t0) / calls
+    # the same lookup searching every pixel (as before nearest_pixel): its time, and the same positions?
+    with every_pixel():
+        place(0)
+        t0 = time.perf_counter()
+        before = [place(k) for k in range(calls)]
+        out["image_position_every_pixel_s"] = (time.perf_counter() - t0) / calls
+    out["image_position_max_difference_nm"] = float(
+        max(np.abs(place(k) - b).max() for k, b in enumerate(before))
+    )
     return out | {"other_s": total - out["first_pass_s"] - out["second_pass_s"] - out["image_position_s"]}
 
 
@@ -271,7 +295,9 @@ def main():
     print(
         f"where a batch of {best['batch']} spends its {split['total_s']:.3f} s: "
         f"first pass {split['first_pass_s']:.3f} s, "
-        f"second pass {split['second_pass_s']:.3f} s (jitted calls), image_position {split['image_position_s']:.3f} s, "
+        f"second pass {split['second_pass_s']:.3f} s (jitted calls), image_position {split['image_position_s']:.3f} s "
+        f"(searching every pixel: {split['image_position_every_pixel_s']:.3f} s; positions equal to "
+        f"{split['image_position_max_difference_nm']:.1e} nm), "
         f"the rest of run_chunk {split['other_s']:.3f} s"
     )
     with old_inverse() as traced:

@@ -155,6 +155,16 @@ def _scores(rows: list) -> dict:
     out["median_total_shrink_correct_pct"] = median("total_shrink_pct")
     out["median_shrink_above_floor_correct_pct"] = median("shrink_above_floor_pct")
     out["median_total_shrink_above_floor_correct_pct"] = median("total_shrink_above_floor_pct")
+    out["median_shrink_by_effect_pct"] = {  # correctly named: own, total, own above the floor
+        e: [
+            float(np.median(v)) if v else None
+            for v in (
+                [r[key] for r in right if r["effect"] == e and r[key] is not None]
+                for key in ("truth_shrink_pct", "total_shrink_pct", "shrink_above_floor_pct")
+            )
+        ]
+        for e in EFFECTS
+    }
     out["median_noise_floor_nm"] = float(np.median([r["noise_floor_nm"] for r in rows])) if rows else None
     out["shape_findings"] = {
         str(s): int(sum(str(r["shape"]) == s for r in rows)) for s in sorted({str(r["shape"]) for r in rows})

@@ -23,7 +23,7 @@ from jaxafm.instrument.afm import default_afm
 from jaxafm.model.io import save_model
 from jaxafm.position import strategy
 from jaxafm.study import monte_carlo as study
-from jaxafm.study.monte_carlo import image_position, run
+from jaxafm.study.monte_carlo import image_position, nearest_pixel, run
 
 # step A's model, written beside each config by write() (no committed result is read): the
 # nominal scanner with a known misfit, its major loops 12 % of range wide where the instrument's
@@ -135,6 +135,21 @@ def test_image_position_inverts_a_distorted_raster():
     assert not image_position(
         jnp.asarray(path), jnp.asarray(origin), jnp.asarray(pixel), jnp.asarray(outside)
     )[1]
+
+
+def test_nearest_pixel_is_the_nearest_of_all_pixels_on_a_distorted_raster():
+    """Coarse to fine against the search of every pixel, on a 256 x 256 raster with a hysteretic
+    fast axis (a 6 % bulge), a 2 % skew and a slow-axis scale that drifts by 5 %, at 2000 points
+    inside it, near its edges and far outside."""
+    i, j = np.mgrid[0:256, 0:256].astype(float)
+    x = 10.0 * (j + 0.06 * 256 * np.sin(np.pi * j / 255) * (1 - j / 255)) + 0.02 * 10 * i
+    y = 10.0 * i * (1 + 0.05 * i / 255)
+    path = jnp.asarray(np.stack([x, y], -1))
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-800, -800], [3400, 3500], (2000, 2))
+    got = np.stack(jax.vmap(lambda p: jnp.stack(nearest_pixel(path, p)))(jnp.asarray(points)))
+    d = ((np.asarray(path)[None] - points[:, None, None]) ** 2).sum(-1).reshape(len(points), -1)
+    np.testing.assert_array_equal(got, np.stack(np.divmod(d.argmin(1), 256), -1))
 
 
 @pytest.fixture(scope="module")
