@@ -112,6 +112,40 @@ def test_lattice_image_skew_is_found_as_coupling():
     assert plain.verdict is None
 
 
+def test_a_turned_lattice_is_not_blamed_on_coupling_but_a_shear_beyond_the_turn_is():
+    """The pit lattice above turned by 5 degrees on the stage, and the same as pillars: the turn
+    shears the pits as coupling would (skew tan 5 deg = 0.087) and tilts their rows by the same;
+    it is measured from the rows and taken out, so only a scanner shear on top of it is named
+    coupling, with its size (a shear s after the turn leaves s (1 - tan^2 5 deg) beyond it)."""
+    pitch, radius, px, turn = 1000.0, 300.0, 25.0, np.radians(5.0)
+    x, y = np.arange(192) * px, np.arange(160) * px
+
+    def image(s, sign):
+        rng = np.random.default_rng(5)
+        xs = x[None, :] + s * y[:, None] + rng.normal(0, 2.0, (y.size, 1))  # where each pixel looks
+        ys = np.broadcast_to(y[:, None], xs.shape)
+        u, v = np.cos(turn) * xs + np.sin(turn) * ys, -np.sin(turn) * xs + np.cos(turn) * ys  # lattice frame
+        du, dv = ((w - c + pitch / 2) % pitch - pitch / 2 for w, c in ((u, 130.0), (v, 210.0)))
+        z = -25 * (1 + np.tanh((radius - np.hypot(du, dv)) / 15))
+        return AFMImage(sign * z, (px, px), meta={"source": "synthetic turned lattice"})
+
+    rules = D.Rules()
+    for sign in (1, -1):  # pits, pillars
+        run = lambda s: diagnose_image(
+            image(s, sign), ["coupling", "bow", "creep"], 0.6, rules, kind="lattice", pitch_nm=pitch
+        )
+        turned = run(0.0)
+        # the rows' tilt from ~20 pit centres with 2 nm noise: within 1 % of tan 5 deg
+        assert turned.data.row_tilt == pytest.approx(np.tan(turn), rel=0.01)
+        # nothing left but the 2 nm per row (the turn, were it left in, up to 26 nm: tan 5 deg x 300 nm)
+        assert turned.verdict is None and turned.nominal.heldout_gap_nm < 3.0
+        sheared = run(0.02)
+        assert sheared.verdict == "coupling"
+        # standard error about 2.5 % (as in the unturned test)
+        skew = sheared.candidates[0].fit.fitted["skew"]
+        assert skew == pytest.approx(0.02 * (1 - np.tan(turn) ** 2), rel=0.1)
+
+
 # ---------------------------------------------------------------- bad input
 
 

@@ -10,9 +10,20 @@ that changes over the frame. Training rows: the first ``train_fraction`` in scan
 held out: the later rows. Gap: rms edge residual (nm) on the held-out rows; BIC,
 significance, ranking and verdict are the core's (:mod:`jaxafm.diagnose.core`).
 
-A 2-D lattice of pits or pillars: only the rows across the features are used, and each row
-has its own feature width (``line_grating``'s ``widths``: a row grazing a pit sees a shorter
-chord), projected out row by row; the edge phases become one centre phase.
+A 2-D lattice of pits or pillars: only the rows across the features are used, and each chord
+through a feature (its two edges in one row) has its own width, projected out: what is fitted is
+the chord's midpoint (a row grazing a pit sees a shorter chord, and on a turned lattice the
+chords of one row differ); the edge phases become one centre phase. Pillars are read as the pits
+of ``-z``, so that a chord is one feature's. A lattice turned by ``a`` on the stage shows a
+feature centred at height ``y_c`` ``tan(a) y_c`` to the left of where the unturned one would
+be, a shear as the scanner's coupling makes (``skew = tan a``), and one image cannot tell the two
+apart; the gauge is step A's (``calibration.parameters``): the tilt of the lattice's rows,
+measured from the centres of its complete pits or pillars (:func:`lattice_vectors`), is taken as
+the lattice's turn and removed from every chord before any fit (with its feature's ``y_c``, the
+nearest lattice site's), so that ``coupling`` is only the shear beyond it. Where a chord's
+midpoint lies within its feature depends on the feature's shape (a round one's is its centre's x,
+a turned square's moves along it by ``tan(a) (y - y_c)``): the nominal model has a slope
+``shape`` of the midpoints in ``y - y_c``, the same for every feature.
 """
 
 from __future__ import annotations
@@ -21,10 +32,11 @@ import dataclasses
 
 import numpy as np
 
+from ..identify.features import lattice_features
 from ..identify.line_grating import GratingEdges, _design
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
 from .report import autocorrelation, binned_rms, rms
-from .scans import row_edges
+from .scans import LATTICE_CHORD, row_edges
 
 NOMINAL = ("c2", "c3", "phase_rise", "phase_fall", "pitch")
 NOMINAL_LATTICE = ("c2", "c3", "phase", "pitch")
@@ -68,6 +80,8 @@ class GratingImage(DataKind):
     design: np.ndarray
     columns: list
     lattice: bool = False
+    row_tilt: float | None = None
+    chord: np.ndarray | None = None
 
     name = "image"
     gap_label = "held-out gap (rms edge residual) [nm]"
@@ -85,7 +99,14 @@ class GratingImage(DataKind):
             ValueError: with fewer than 8 rows with edges or 20 edges in either part.
         """
         name = str(image.meta.get("source", "image"))
-        e = row_edges(image.z, image.pixel_size, name, kind, pitch_nm).edges
+        lattice = kind == "lattice"
+        z = image.z
+        if lattice and np.median(z) < np.mean(np.percentile(z, (2, 98))):  # pillars: a minority high
+            z = -z
+        e = row_edges(z, image.pixel_size, name, kind, pitch_nm).edges
+        chord = None
+        if lattice:
+            e, chord = _chords(e)
         rows = np.unique(e.row)
         cut = rows[int(round(train_fraction * len(rows)))] if len(rows) > 1 else 0
         train = e.row < cut
@@ -95,43 +116,49 @@ class GratingImage(DataKind):
                 f"{int((~train).sum())} held-out edges at train_fraction={train_fraction}): too few to "
                 "split; scan more lines or change train_fraction in the config"
             )
-        lattice = kind == "lattice"
+        frame = lattice_vectors(image, pitch_nm) if lattice else None
+        tilt = None
+        if frame is not None:  # the lattice's turn: a feature centred at y_c is seen tan(a) y_c to the left
+            tilt, y_c = frame[1][1] / frame[1][0], _feature_y(e, chord, frame)
+            e = dataclasses.replace(e, x_nm=e.x_nm + tilt * y_c)
         a, names, _, _ = _design(e, 3, True, lattice)
-        return cls(image, e, train, int(cut), a, names, lattice)
+        if frame is not None:  # a chord's midpoint moves along its feature as the feature's shape has it
+            a, names = np.column_stack([a, e.y_nm - y_c]), [*names, "shape"]
+        return cls(image, e, train, int(cut), a, names, lattice, tilt, chord)
 
     def _within(self, v: np.ndarray) -> np.ndarray:
-        """Lattice: ``v`` (edges, ...) less its projection on a width per row (rising edges
-        +1/2, falling -1/2; Frisch-Waugh-Lovell, as ``line_grating._solve``); else ``v``."""
+        """Lattice: ``v`` (edges, ...) less its projection on a width per chord (rising edge
+        +1/2, falling -1/2; Frisch-Waugh-Lovell, as ``line_grating._solve``): both edges of a
+        chord become its midpoint; else ``v``."""
         if not self.lattice:
             return v
-        e = self.edges
-        sign = np.where(e.rising, 0.5, -0.5)
+        sign = np.where(self.edges.rising, 0.5, -0.5)
         flat = v.reshape(len(v), -1)
-        n = e.row.max() + 1
-        ss = np.bincount(e.row, sign**2, n)
-        proj = (
-            np.stack([np.bincount(e.row, sign * c, n) for c in flat.T], -1) / np.maximum(ss, 1e-12)[:, None]
-        )
-        return (flat - sign[:, None] * proj[e.row]).reshape(v.shape)
+        proj = np.stack([np.bincount(self.chord, sign * c) for c in flat.T], -1) / 0.5
+        return (flat - sign[:, None] * proj[self.chord]).reshape(v.shape)
 
     def _fit(self, cols: list) -> ImageFit:
-        """Least squares on the training edges; residual (all edges) nm, gap and BIC."""
+        """Least squares on the training edges (a lattice: chord midpoints, each counted once);
+        residual (all edges) nm, gap and BIC."""
         x = self._within(self.design[:, [self.columns.index(c) for c in cols]])
         b, train = self._within(self.edges.x_nm), self.train
         theta = np.linalg.lstsq(x[train], b[train], rcond=None)[0]
         r = b - x @ theta
-        rss = float(r[train] @ r[train])
-        widths = len(np.unique(self.edges.row[train])) if self.lattice else 0
+        rss, n = float(r[train] @ r[train]), int(train.sum())
+        if self.lattice:  # two equal residuals per chord
+            rss, n = rss / 2, n // 2
         return ImageFit(
             residual=r,
             heldout_gap_nm=float(np.sqrt(np.mean(r[~train] ** 2))),
             fitted=dict(zip(cols, theta.tolist())),
-            **Fit.scores(rss, int(train.sum()), len(cols) + widths),
+            **Fit.scores(rss, n, len(cols) + (n if self.lattice else 0)),
         )
 
     @property
     def nominal_columns(self) -> list:
-        return list(NOMINAL_LATTICE if self.lattice else NOMINAL)
+        return list(NOMINAL_LATTICE if self.lattice else NOMINAL) + (
+            ["shape"] if "shape" in self.columns else []
+        )
 
     def fit_nominal(self) -> ImageFit:
         return self._fit(self.nominal_columns)
@@ -140,18 +167,18 @@ class GratingImage(DataKind):
         return self._fit(self.nominal_columns + [COLUMN[effect]])
 
     def describe(self) -> dict:
-        n_train = int(self.train.sum())
+        per = 2 if self.lattice else 1  # a lattice's data: chords, two edges each
         return {
             "source": str(self.image.meta.get("source", "image")),
             "kind": "2-D lattice image" if self.lattice else "1-D grating image",
             "pixels": list(self.image.shape),
             "pixel_size_nm": list(self.image.pixel_size),
-            "train_samples": n_train,
-            "heldout_samples": int((~self.train).sum()),
+            "train_samples": int(self.train.sum()) // per,
+            "heldout_samples": int((~self.train).sum()) // per,
             "heldout_from_row": self.first_heldout_row,
-            "counts": "edges",
+            "counts": "chords (their midpoints)" if self.lattice else "edges",
             "units": "nm (edge positions, gaps)",
-        }
+        } | ({"lattice_row_tilt": self.row_tilt} if self.lattice else {})
 
     def findings(self, diagnosis: Diagnosis) -> Findings:
         """The nominal residual by place in the field, by row, by edge kind; whiteness down the frame."""
@@ -169,6 +196,16 @@ class GratingImage(DataKind):
             f"of lags outside the 95 % band (+-{m['correlation_band_95']:.2f}).",
             "- One image shows one branch at one speed: what it cannot show is listed as 'not tried' above.",
         ]
+        if self.lattice:
+            notes.append(
+                "- The lattice's rows were not measured (too few complete pits or pillars): a turned "
+                "lattice, if it is one, is in the coupling candidate's skew."
+                if self.row_tilt is None
+                else f"- The lattice's rows tilt by dy/dx = {self.row_tilt:.4f} (a turn of "
+                f"{np.degrees(np.arctan(self.row_tilt)):.2f} degrees), taken as the lattice's turn on the "
+                "stage and removed from the edges (one image cannot tell it from the scanner's coupling); "
+                "the coupling candidate's skew is the shear beyond it."
+            )
         return Findings(metrics, self.where(dec), notes, dec, {"test": test, "dec": dec})
 
     def decompose(self, r: np.ndarray) -> dict:
@@ -198,9 +235,14 @@ class GratingImage(DataKind):
             f"{dec['edges']['x_nm'][b + 1]:.0f} nm: {x[b]:.3g} nm against {overall:.3g} nm overall.",
             f"Down the frame (rows, in scan order) it goes from {rows[0]:.3g} nm (first tenth) to {rows[-1]:.3g} nm "
             f"(last tenth); the held-out rows start at row {self.first_heldout_row}.",
-            f"Rising edges {tab['rising']:.3g} nm, falling edges {tab['falling']:.3g} nm rms "
-            "(a lag or a tip would move the two kinds apart).",
-        ]
+        ] + (
+            []
+            if self.lattice  # a chord's two edges share its midpoint's residual
+            else [
+                f"Rising edges {tab['rising']:.3g} nm, falling edges {tab['falling']:.3g} nm rms "
+                "(a lag or a tip would move the two kinds apart)."
+            ]
+        )
 
     def row_tests(self, r: np.ndarray) -> dict:
         """Whiteness of the per-row mean of the edge residual ``r`` down the frame (a slow-axis
@@ -244,10 +286,15 @@ class GratingImage(DataKind):
         )
         a = axes[1]
         rows = np.unique(e.row)
-        for k, m in ((True, "rising"), (False, "falling")):
+        kinds = (
+            (((True, False), "chord midpoints"),)
+            if self.lattice
+            else (((True,), "rising"), ((False,), "falling"))
+        )
+        for k, m in kinds:
             a.plot(
                 rows,
-                [r[(e.row == j) & (e.rising == k)].mean() for j in rows],
+                [r[(e.row == j) & np.isin(e.rising, k)].mean() for j in rows],
                 ".-",
                 lw=0.8,
                 label=f"{m} edges",
@@ -262,6 +309,52 @@ class GratingImage(DataKind):
         a.axhspan(-test["band"], test["band"], color="0.85", label="95 % band (white)")
         a.set(xlabel="lag [rows]", ylabel="autocorrelation", title="whiteness of the per-row mean residual")
         a.legend(fontsize=8)
+
+
+def lattice_vectors(image, pitch_nm) -> tuple | None:
+    """``(origin, a1, a2)`` nm of a lattice image (a site at ``origin + i a1 + j a2``; ``a1``
+    along its rows, ``a1[1] / a1[0]`` their tilt dy/dx), fitted by least squares to the centres
+    of its complete pillars, or pits, whichever are more
+    (:func:`~jaxafm.identify.features.lattice_features`, ``pitch_nm`` one number or (x, y));
+    ``None`` with fewer than 6 of them."""
+    pixel = np.asarray(image.pixel_size, dtype=float)
+    pitch_px = tuple(np.broadcast_to(np.asarray(pitch_nm, dtype=float), (2,)) / pixel)
+    found = []
+    for z in (image.z, -image.z):
+        try:
+            found.append(lattice_features(z, pitch_px, str(image.meta.get("source", "image"))))
+        except ValueError:  # no features of this sign, or none at the pitch
+            continue
+    best = max(found, key=lambda f: len(f.rc), default=None)
+    if best is None or len(best.rc) < 6:
+        return None
+    xy = best.rc[:, ::-1] * pixel
+    return tuple(np.linalg.lstsq(np.column_stack([np.ones(len(xy)), best.ij]), xy, rcond=None)[0])
+
+
+def _chords(e: GratingEdges) -> tuple:
+    """The edges that bound a pit in a row (a falling edge, then the rising one after it), in
+    pairs, and each one's chord number. Dropped: edges of pits cut by the image's border, and
+    chords shorter than ``LATTICE_CHORD`` of the median one (a row grazing a pit, or a pit split
+    by a spike: their midpoints miss the pit's centre)."""
+    order = np.lexsort((e.x_nm, e.row))
+    row, rising, x = e.row[order], e.rising[order], e.x_nm[order]
+    k = np.flatnonzero(~rising[:-1] & rising[1:] & (row[:-1] == row[1:]))
+    width = x[k + 1] - x[k]
+    k = k[width >= LATTICE_CHORD * np.median(width)]
+    keep = order[np.stack([k, k + 1], -1).ravel()]
+    fields = ("row", "x_nm", "y_nm", "rising", "index")
+    return dataclasses.replace(e, **{f: getattr(e, f)[keep] for f in fields}), np.repeat(np.arange(k.size), 2)
+
+
+def _feature_y(e: GratingEdges, chord: np.ndarray, frame: tuple) -> np.ndarray:
+    """Per edge, the y (nm) of the centre of its feature: the lattice site (``frame``, from
+    :func:`lattice_vectors`) nearest to its chord's midpoint."""
+    origin, a1, a2 = frame
+    m = np.stack([a1, a2], -1)
+    mid = np.stack([np.bincount(chord, e.x_nm)[chord] / 2, e.y_nm], -1)
+    ij = np.round(np.linalg.solve(m, (mid - origin).T)).T
+    return (origin + ij @ m.T)[:, 1]
 
 
 def diagnose_image(

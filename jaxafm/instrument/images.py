@@ -5,8 +5,8 @@ column 0 at the lowest x (files that do not say keep their stored order, noted i
 size (x, y) nm, the position of pixel [0, 0]'s centre, and a ``meta`` dict
 (source, direction, line rate, start time, unit conversions done).
 
-Readers convert to nm and say so in ``meta``: the Nanosurf text export, TIFF
-height maps (whose size the caller gives), and through AFMReader (the
+Readers convert to nm and say so in ``meta``: the Nanosurf text export and binary
+``.nid`` file, TIFF height maps (whose size the caller gives), and through AFMReader (the
 ``formats`` extra) Bruker .spm, Igor .ibw, JPK .jpk and TopoStats files, and
 Gwyddion .gwy through gwyfile. What a file lacks (its size, height unit, row
 order, fast axis, line rate, direction) the caller gives, as a config's
@@ -43,7 +43,9 @@ AFMREADER_FORMATS = {
     ".jpk": ("jpk", "load_jpk", "height_trace"),
     ".topostats": ("topostats", None, "image"),
 }
-FORMATS = (".txt", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
+FORMATS = (".txt", ".nid", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
+#: A Nanosurf .nid file's frames by scan direction.
+NID_FRAMES = {"trace": "Scan forward", "retrace": "Scan backward"}
 #: How far (relative, per axis) a given scan size may lie from a file's own before it is refused.
 SIZE_TOLERANCE = 0.01
 
@@ -164,7 +166,9 @@ def read_image(
 
     Arguments:
         path: the file.
-        channel: the channel of multi-channel files (Gwyddion, AFMReader formats).
+        channel: the channel of multi-channel files (Gwyddion, AFMReader formats; a Nanosurf
+            .nid file: the channel's name, default ``Topography``, in the frame ``direction``
+            picks, default the forward one).
         size_nm: (width, height) nm of the image as returned: along its rows (x) and across them
             (y); one number: a square scan (square pixels needed). Required for a TIFF, which
             carries no length calibration.
@@ -192,7 +196,7 @@ def read_image(
     _check_given(path, given)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    return _as_given(_read(path, channel), path, given)
+    return _as_given(_read(path, channel, direction), path, given)
 
 
 def _check_given(path: Path, given: dict) -> None:
@@ -216,11 +220,13 @@ def _check_given(path: Path, given: dict) -> None:
             )
 
 
-def _read(path: Path, channel: Optional[str]) -> _Stored:
+def _read(path: Path, channel: Optional[str], direction: Optional[str] = None) -> _Stored:
     """The file as stored, by the reader its suffix picks."""
     suffix = path.suffix.lower()
     if suffix == ".txt":
         return _read_nanosurf_text(path)
+    if suffix == ".nid":
+        return _read_nid(path, channel, direction)
     if suffix in (".tif", ".tiff"):
         return _read_tiff(path)
     if suffix == ".npz":
@@ -412,6 +418,85 @@ def _optional(module: str, path: Path):
         raise ImportError(
             f"{path}: reading {path.suffix} files needs {module.split('.')[0]}: pip install 'jaxafm[formats]'"
         ) from None
+
+
+def _nid_header(path: Path, text: str) -> dict:
+    """A .nid header's ``[section]`` s of ``key=value`` lines, as dicts."""
+    sections, current = {}, None
+    for line in text.splitlines():
+        if line.startswith("[") and line.rstrip().endswith("]"):
+            current = sections.setdefault(line.strip()[1:-1], {})
+        elif current is not None and "=" in line:
+            key, _, value = line.partition("=")
+            current[key] = value.strip()
+    if "DataSet" not in sections:
+        raise ValueError(f"{path} is not a Nanosurf .nid file (no [DataSet] section in its header)")
+    return sections
+
+
+def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _Stored:
+    """A Nanosurf .nid file: a text header, ``#!``, then each channel's lines of little-endian
+    signed integers, in the order the header's ``[DataSet]`` lists them (``Gr<g>-Ch<c>`` naming a
+    section with ``Frame``, ``Points``, ``Lines``, ``SaveBits``, the size ``Dim0Range`` x
+    ``Dim1Range`` and the heights ``Dim2Min``, ``Dim2Range``, ``Dim2Unit``). The data are the
+    file's last bytes, and a value is ``Dim2Min + (raw + 2^(bits - 1)) / 2^bits * Dim2Range``, as
+    the vendor's reader (NSFopen) has it. The frame ``Scan forward`` is the trace, ``Scan
+    backward`` the retrace, stored in the same column order; ``Scan direction`` ``Up`` puts the
+    first line, row 0, at the bottom."""
+    raw = path.read_bytes()
+    cut = raw.find(b"\n#!")
+    if cut < 0:
+        raise ValueError(f"{path} is not a Nanosurf .nid file (no '#!' line between header and data)")
+    head = _nid_header(path, raw[:cut].decode("utf-8", errors="replace"))
+    groups = head["DataSet"]
+    order = [
+        groups[f"Gr{g}-Ch{c}"]
+        for g in range(int(groups.get("GroupCount", 0)))
+        for c in range(int(groups.get(f"Gr{g}-Count", 0)))
+        if f"Gr{g}-Ch{c}" in groups
+    ]
+    try:
+        blocks = [
+            (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
+        ]
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
+    frame = NID_FRAMES[direction or "trace"]
+    channel = channel or "Topography"
+    names = [f"{h.get('Dim2Name')} ({h.get('Frame')})" for h, *_ in blocks]
+    pick = [i for i, (h, *_) in enumerate(blocks) if h.get("Dim2Name") == channel and h.get("Frame") == frame]
+    if not pick:
+        raise ValueError(
+            f"{path}: no channel {channel!r} in the frame {frame!r} (direction {direction or 'trace'}); "
+            f"channels: {', '.join(names)}"
+        )
+    sizes = [lines * points * bits // 8 for _, lines, points, bits in blocks]
+    start = len(raw) - sum(sizes) + sum(sizes[: pick[0]])
+    h, lines, points, bits = blocks[pick[0]]
+    if bits not in (16, 32) or start <= cut:
+        raise ValueError(f"{path}: {bits}-bit data or a file shorter than its header says ({len(raw)} bytes)")
+    stored = np.frombuffer(raw, f"<i{bits // 8}", lines * points, start).astype(float)
+    z = float(h["Dim2Min"]) + (stored + 2.0 ** (bits - 1)) / 2.0**bits * float(h["Dim2Range"])
+    units = {"xy": h.get("Dim0Unit", "m"), "z": h.get("Dim2Unit")}
+    if units["xy"] not in LENGTH_TO_NM or units["z"] not in LENGTH_TO_NM:
+        raise ValueError(
+            f"{path}: channel {names[pick[0]]!r} has units {units}, not lengths ({', '.join(LENGTH_TO_NM)})"
+        )
+    scan = head.get("DataSet\\DataSetInfos\\Scan", head.get("DataSet-Info", {}))
+    up = scan.get("Scan direction")
+    meta = {
+        "source": str(path),
+        "reader": "nanosurf-nid",
+        "channel": names[pick[0]],
+        "direction": "trace" if frame == NID_FRAMES["trace"] else "retrace",
+        "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
+        "instrument": {
+            k: scan[k] for k in ("Time/Line", "Scan direction", "Rotation", "Overscan") if k in scan
+        },
+    }
+    size = tuple(float(h[f"Dim{k}Range"]) * LENGTH_TO_NM[units["xy"]] for k in (0, 1))
+    first_row = {"Up": "bottom"}.get(up)  # Down: the file does not say where its row 0 lies
+    return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row)
 
 
 def _read_gwy(path: Path, channel: Optional[str]) -> _Stored:
