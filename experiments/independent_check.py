@@ -17,12 +17,12 @@ written as it goes), summary.json (confusion matrices, top-1 per level, same-cla
 different-class nominal apart, controls flagged, median shrink of correctly named cases) and
 confusion.png.
 
-    python experiments/independent_check.py                    # 5 seeds, 20 controls: ~1 h
+    python experiments/independent_check.py                    # 5 seeds, 20 controls: ~3.7 h on one core
     python experiments/independent_check.py --limit 4          # the first 4 cases, a quick look
     python experiments/independent_check.py --effects creep control --limit 6
     python experiments/independent_check.py --seeds 2 --controls 6 --levels middle control   # ~30 min
     python experiments/independent_check.py --shard 1/2 & python experiments/independent_check.py --shard 2/2
-                                                               # two processes, one core each
+                                                               # two processes, one core each: ~2 h
     python experiments/independent_check.py --summarise        # only rebuild summary and figure
 """
 
