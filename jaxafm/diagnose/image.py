@@ -145,13 +145,13 @@ class GratingImage(DataKind):
         theta = np.linalg.lstsq(x[train], b[train], rcond=None)[0]
         r = b - x @ theta
         rss, n = float(r[train] @ r[train]), int(train.sum())
-        if self.lattice:  # two equal residuals per chord
+        if self.lattice:  # the data are the midpoints: two equal residuals per chord
             rss, n = rss / 2, n // 2
         return ImageFit(
             residual=r,
             heldout_gap_nm=float(np.sqrt(np.mean(r[~train] ** 2))),
             fitted=dict(zip(cols, theta.tolist())),
-            **Fit.scores(rss, n, len(cols) + (n if self.lattice else 0)),
+            **Fit.scores(rss, n, len(cols)),
         )
 
     @property
@@ -289,7 +289,7 @@ class GratingImage(DataKind):
         kinds = (
             (((True, False), "chord midpoints"),)
             if self.lattice
-            else (((True,), "rising"), ((False,), "falling"))
+            else (((True,), "rising edges"), ((False,), "falling edges"))
         )
         for k, m in kinds:
             a.plot(
@@ -297,7 +297,7 @@ class GratingImage(DataKind):
                 [r[(e.row == j) & np.isin(e.rising, k)].mean() for j in rows],
                 ".-",
                 lw=0.8,
-                label=f"{m} edges",
+                label=m,
             )
         if top is not None:
             best = top.fit.residual
