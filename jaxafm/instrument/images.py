@@ -459,6 +459,8 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
         blocks = [
             (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
         ]
+        for h, *_ in blocks:
+            float(h["Dim0Range"]), float(h["Dim1Range"]), float(h["Dim2Min"]), float(h["Dim2Range"])
     except (KeyError, ValueError) as e:
         raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
     frame = NID_FRAMES[direction or "trace"]
@@ -473,8 +475,10 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     sizes = [lines * points * bits // 8 for _, lines, points, bits in blocks]
     start = len(raw) - sum(sizes) + sum(sizes[: pick[0]])
     h, lines, points, bits = blocks[pick[0]]
-    if bits not in (16, 32) or start <= cut:
-        raise ValueError(f"{path}: {bits}-bit data or a file shorter than its header says ({len(raw)} bytes)")
+    if bits not in (16, 32):
+        raise ValueError(f"{path}: SaveBits={bits} in channel {names[pick[0]]!r}; jaxafm reads 16 or 32")
+    if start <= cut:
+        raise ValueError(f"{path}: {len(raw)} bytes, fewer than its header's channels need")
     stored = np.frombuffer(raw, f"<i{bits // 8}", lines * points, start).astype(float)
     z = float(h["Dim2Min"]) + (stored + 2.0 ** (bits - 1)) / 2.0**bits * float(h["Dim2Range"])
     units = {"xy": h.get("Dim0Unit", "m"), "z": h.get("Dim2Unit")}
