@@ -181,6 +181,67 @@ def test_identification_recovers_coupling_and_the_tip_path():
     assert np.median(np.abs(err[..., 1])) < 30.0
 
 
+def test_identification_from_a_coarse_start_recovers_the_same():
+    """A coarse start (the points stage on every two pixels of a line averaged) ends at the
+    same truth: its last stage fits the whole scan."""
+    scan, (truth, out) = _simulated_scan()
+    said = []
+    ident = calibration.identify(
+        scan, effects=("coupling",), operators=16, max_steps=12, blur_px=(1.5,), coarsen=2, log=said.append
+    )
+    assert any("feature points, 36 px a line" in s for s in said)
+    assert not any("images, blur 1.5 px, 36 px" in s for s in said)  # the last stage is whole
+    model = ident.model
+    assert abs(float(model.scanner.coupling.xy) - 0.02) < 0.002
+    assert abs(float(model.scanner.coupling.yx) + 0.012) < 0.002
+    fitted = model.image(scan)
+    err = np.stack(
+        [np.asarray(getattr(fitted, k)) - np.asarray(getattr(out, k)) for k in ("path_trace", "path_retrace")]
+    )
+    err = err - np.mean(err.reshape(-1, 2), axis=0)
+    assert np.abs(err[..., 0]).max() < 50.0  # as from a full-resolution start, above
+    assert np.median(np.abs(err[..., 1])) < 30.0
+
+
+@pytest.mark.parametrize("factor", [2, 4])
+def test_coarse_scan_averages_pixels_and_keeps_the_drive(factor):
+    """Each coarse pixel is the mean of ``factor`` fine ones, at the mean of their nominal
+    positions; the lines and their timing are the fine scan's, and the drive reverses within
+    ``factor / 2`` fine pixels of the fine drive's reversals."""
+    raster = Raster(8000.0, 256, 6, line_rate=1.0)
+    rng = np.random.default_rng(0)
+    trace, retrace = rng.normal(size=(2, 6, 256))
+    scan = calibration.CalibrationScan(trace, retrace, raster, 1000.0, 500.0, 10.0)
+    coarse = scan.coarse(factor)
+    r = coarse.raster
+    assert (r.lines, r.pixels) == (6, 256 // factor)
+    for fine, got in ((trace, coarse.trace), (retrace, coarse.retrace)):
+        assert np.allclose(np.asarray(got), fine.reshape(6, -1, factor).mean(axis=-1), atol=1e-12)
+    rc = np.stack(np.meshgrid(np.arange(6.0), np.arange(256.0), indexing="ij"), -1).reshape(-1, 2)
+    centres = raster.nominal(rc).reshape(6, -1, factor, 2).mean(axis=2)
+    rc_coarse = np.stack(np.meshgrid(np.arange(6.0), np.arange(r.pixels * 1.0), indexing="ij"), -1)
+    assert np.allclose(r.nominal(rc_coarse.reshape(-1, 2)).reshape(centres.shape), centres, atol=1e-9)
+    # one line takes as long: line period = samples a line x sample time
+    samples = lambda q: 2 * (q.pixels + 2 * q.margin)
+    assert np.isclose(samples(r) * r.sample_time, samples(raster) * raster.sample_time)
+    x, xc = raster.wanted()[0, 0, :, 0], r.wanted()[0, 0, :, 0]
+    dx = raster.pixel_size[0]
+    assert abs(xc[0] - x[0]) <= factor / 2 * dx + 1e-9 and abs(xc[-1] - x[-1]) <= factor / 2 * dx + 1e-9
+
+
+def test_coarse_factor_keeps_eight_pixels_a_pitch():
+    """'auto': the largest power of two that leaves 8 px per pitch and divides the lines."""
+    make = lambda pixels, pitch: calibration.CalibrationScan(
+        np.zeros((4, pixels)), np.zeros((4, pixels)), Raster(8000.0, pixels, 4), pitch, 500.0, 10.0
+    )
+    assert calibration.coarse_factor((make(256, 1000.0),)) == 4  # 32 px a pitch -> 8
+    assert calibration.coarse_factor((make(128, 1000.0),)) == 2
+    assert calibration.coarse_factor((make(64, 1000.0),)) == 1
+    assert calibration.coarse_factor((make(192, 2000.0),)) == 4  # 48 px a pitch; 192 = 4 x 48
+    assert calibration.coarse_factor((make(256, 1000.0), make(128, 1000.0))) == 2
+    assert calibration.coarse_factor((make(256, 1000.0),), 8) == 8
+
+
 def test_parameters_rebuild_the_model_they_came_from():
     scan, _ = _simulated_scan()
     model = calibration.initial_model(scan)

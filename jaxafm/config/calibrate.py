@@ -178,6 +178,12 @@ class CalibrationSolver(Strict):
     blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
         [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
     )
+    coarsen: Union[Annotated[int, Field(ge=1, le=64)], Literal["auto"]] = Field(
+        1,
+        description="the most pixels of a line a stage averages into one, a power of two (the "
+        "stages halve it up to the last, at full resolution: a cheaper start); 1: none; auto: "
+        "the largest leaving 8 px per pitch",
+    )
     hold_out: bool = Field(
         True,
         description="hold out half the lattice sites (a checkerboard) to validate the fit and to "
@@ -203,6 +209,20 @@ class Compensation(Strict):
     paper_baseline: bool = Field(True, description="also the paper's polynomial + neural-network inverse")
 
 
+def check_coarsen(solver: CalibrationSolver, simulate: SimulatedCalibration, grating: Grating) -> None:
+    """Refuse a ``solver.coarsen`` that is not a power of two dividing the simulated scan's pixels
+    per line with 2 px per pitch left along a line (before anything is simulated)."""
+    f = solver.coarsen
+    if f == "auto":
+        return
+    per_pitch = grating.pitch_nm * simulate.pixels / simulate.size_nm
+    if f & (f - 1) or simulate.pixels % f or per_pitch / f < 2:
+        raise ValueError(
+            f"solver.coarsen: {f} must be a power of two that divides simulate.pixels ({simulate.pixels}) "
+            f"and leaves 2 px per pitch along a line ({per_pitch:.3g} px per pitch at full resolution)"
+        )
+
+
 class CalibrateConfig(Strict):
     """Step A: identify the scanner from one grating image pair, invert it, compensate."""
 
@@ -221,4 +241,6 @@ class CalibrateConfig(Strict):
         names = [m.name for m in self.models]
         if len(set(names)) != len(names):
             raise ValueError(f"model names must be unique, got {names}")
+        if self.simulate is not None:
+            check_coarsen(self.solver, self.simulate, self.grating)
         return self

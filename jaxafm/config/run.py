@@ -8,7 +8,14 @@ from typing import Literal, Optional
 
 from pydantic import Field, model_validator
 
-from .calibrate import CalibrationModel, CalibrationSolver, Compensation, Grating, SimulatedCalibration
+from .calibrate import (
+    CalibrationModel,
+    CalibrationSolver,
+    Compensation,
+    Grating,
+    SimulatedCalibration,
+    check_coarsen,
+)
 from .common import Seed, Strict
 
 
@@ -27,6 +34,7 @@ class StepA(Strict):
     def _full_instrument(self):
         if self.simulate.withheld:
             raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
+        check_coarsen(self.solver, self.simulate, self.grating)
         return self
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
-from typing import Optional
+from typing import Optional, Union
 
 import equinox as eqx
 import jax
@@ -101,6 +101,32 @@ class CalibrationScan(eqx.Module):
         )
         self.pits = bool(pits)
         self.depth_scale = float(np.ptp(np.asarray(trace))) or 1.0
+
+    def coarse(self, factor: int) -> CalibrationScan:
+        """This scan with ``factor`` pixels of each line averaged into one: the same lines and
+        line rate, ``pixels / factor`` pixels a line, each at the mean of its fine pixels' centres,
+        and the over-scan margin whose reversals come nearest the fine scan's (within
+        ``factor / 2`` fine pixels). The drive then turns a little off the fine one's, so a fit
+        to a coarse scan is a start for the fine scan, not its fit."""
+        if factor == 1:
+            return self
+        r = self.raster
+        pixels = r.pixels // factor
+        margin = round((r.margin + (factor - 1) / 2) / factor)
+        raster = dataclasses.replace(r, pixels=pixels, overscan=margin / pixels)
+        down = lambda z: np.asarray(z).reshape(r.lines, raster.pixels, factor).mean(axis=-1)
+        return CalibrationScan(
+            down(self.trace),
+            down(self.retrace),
+            raster,
+            self.pitch,
+            self.sensitivity,
+            self.u_max,
+            self.u0,
+            self.t0,
+            self.history,
+            self.pits,
+        )
 
     @property
     def pitch_px(self) -> tuple:
@@ -456,6 +482,7 @@ def identify(
     hold_out: bool = True,
     solver: str = "optimistix.levenberg_marquardt",
     blur_px: Sequence[float] = (2.0, 1.0),
+    coarsen: Union[int, str] = 1,
     max_steps: int = 100,
     rtol: float = 1e-5,
     atol: float = 1e-8,
@@ -471,7 +498,10 @@ def identify(
     or the image around them (:func:`_split_masks`). An image stage is kept only if it does not worsen the held-out
     features' residual (nm, :func:`held_out_rms`) beyond its uncertainty (:func:`_judge`), so
     no stage leaves the feature fit's valley unnoticed: a slip by a pitch shows there first.
-    The held-out image residual is reported beside it.
+    The held-out image residual is reported beside it. The stages climb a pyramid along the
+    scans' lines (:meth:`CalibrationScan.coarse`): the last stage fits the whole scans, the
+    one before it every two pixels of a line averaged, the one before that four, up to
+    ``coarsen``; a step costs about as much less. The result is the full-resolution fit.
     Never returns a silently bad fit: each stage's convergence, acceptance and loss are in
     the result, a stage whose loss is not finite raises, and the fitted model is checked
     (:func:`implausible`).
@@ -483,7 +513,9 @@ def identify(
         rotation: the lattice's known angle on the stage (rad), or ``None`` to fit it.
         hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
         solver: one of :data:`~jaxafm.identify.fit.SOLVERS`.
-        blur_px: the image stages' Gaussian blurs (pixels), widest first.
+        blur_px: the image stages' Gaussian blurs (pixels of the stage's scans), widest first.
+        coarsen: the most pixels of a line a stage averages into one (a power of two), 1 for
+            none (the default), ``"auto"`` for :func:`coarse_factor`'s choice.
         max_steps: each stage's step limit.
         rtol: each stage's relative tolerance.
         atol: each stage's absolute tolerance.
@@ -498,6 +530,7 @@ def identify(
     for b in blur_px:
         if not 0 <= b <= 64:
             raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
+    factor = coarse_factor(scans, coarsen)
     start = time.perf_counter()
     found = [scan.features() for scan in scans]
     if model is None:
@@ -511,20 +544,27 @@ def identify(
         plan.append(("feature points, all scans", scans, train))
     radius = int(np.ceil(3 * max(blur_px, default=0)))
     plan += [(f"images, blur {b:g} px", scans, gaussian_kernel(b, radius)) for b in blur_px]
-    stages, accepted, held_nm, masks = [], [], [], None
+    stages, accepted, held_nm, masks = [], [], [], {}
     for i, (name, fitted, data) in enumerate(plan):
         if i == 1 and len(scans) > 1:
             train, test = _align(model, scans, found, train, test)
             data = train
+        k = min(factor, 2 ** (len(plan) - 1 - i))
+        level = tuple(scan.coarse(k) for scan in fitted)
+        name += f", {level[0].raster.pixels} px a line" if k > 1 else ""
         image = name.startswith("images")
         if image:
-            masks = masks or _split_masks(model, scans, hold_out)
-            data = (jnp.asarray(data), masks[0])
+            if k not in masks:
+                masks[k] = _split_masks(model, level, hold_out)
+            data = (jnp.asarray(data), masks[k][0])
         else:
-            data = tuple(tuple((jnp.asarray(rc), jnp.asarray(ij)) for rc, ij in images) for images in data)
+            data = tuple(
+                tuple((jnp.asarray(_coarse_rc(rc, k)), jnp.asarray(ij)) for rc, ij in images)
+                for images in data
+            )
         log(f"  stage {i + 1}/{len(plan)} {name} ...")
         t0 = time.perf_counter()
-        fit, steps, ok, loss = _fit_stage(name, model, fitted, data, solver, max_steps, rtol, atol)
+        fit, steps, ok, loss = _fit_stage(name, model, level, data, solver, max_steps, rtol, atol)
         message = (
             f"{solver}: converged in {steps} steps, loss {loss:.3e}"
             if ok
@@ -535,8 +575,8 @@ def identify(
         keep, verdict = _judge(comparable, error, test) if image else (True, "")
         if not np.isnan(error):
             message += f", held-out features {error:.2f} nm" + verdict
-        if image and masks[1] is not None:
-            message += f", held-out image {_held_out_image(fit, scans, data[0], masks[1]):.3f} % of depth"
+        if image and masks[k][1] is not None:
+            message += f", held-out image {_held_out_image(fit, level, data[0], masks[k][1]):.3f} % of depth"
         model = fit if keep else model
         stages.append(FitResult(fit, solver, ok, steps, loss, time.perf_counter() - t0, message))
         accepted.append(keep)
@@ -551,6 +591,41 @@ def identify(
         validate(model, scans, test),
         tuple(implausible(model, scans)),
     )
+
+
+#: the coarse stages keep at least this many pixels per lattice pitch along the lines
+COARSE_PX_PER_PITCH = 8
+
+
+def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "auto") -> int:
+    """The most pixels of a line :func:`identify`'s stages average into one (its pyramid's top).
+
+    ``"auto"``: the largest power of two that divides every scan's pixels per line and leaves
+    :data:`COARSE_PX_PER_PITCH` pixels per pitch; a given number must be a power of two (the
+    stages halve it) that divides them and leaves 2 pixels per pitch (fewer cannot show a
+    lattice).
+    """
+    pixels = [scan.raster.pixels for scan in scans]
+    per_pitch = min(min(scan.pitch) / scan.raster.pixel_size[0] for scan in scans)  # along a line
+    if coarsen == "auto":
+        factor = 1
+        while all(p % (2 * factor) == 0 for p in pixels) and per_pitch / (2 * factor) >= COARSE_PX_PER_PITCH:
+            factor *= 2
+        return factor
+    power = isinstance(coarsen, (int, np.integer)) and coarsen >= 1 and coarsen & (coarsen - 1) == 0
+    if not power or any(p % coarsen for p in pixels) or per_pitch / coarsen < 2:
+        raise ValueError(
+            f"coarsen (a config's solver.coarsen) = {coarsen!r} must be a power of two (1: no coarse "
+            f"stages) that divides the scans' pixels per line {pixels} and leaves 2 px per pitch "
+            f"({per_pitch:.3g} px per pitch at full resolution); 'auto' would take {coarse_factor(scans)}"
+        )
+    return int(coarsen)
+
+
+def _coarse_rc(rc: np.ndarray, factor: int) -> np.ndarray:
+    """Fractional pixels (n, 2) (row, col) of a scan in its :meth:`CalibrationScan.coarse` scan."""
+    rc = np.asarray(rc, dtype=float)
+    return np.c_[rc[:, 0], (rc[:, 1] + 0.5) / factor - 0.5]
 
 
 def _fit_stage(name: str, model: ScanModel, scans: tuple, data, solver: str, max_steps, rtol, atol) -> tuple:

@@ -205,6 +205,7 @@ def identify_model(
         hold_out=solver.hold_out,
         solver=solver.name,
         blur_px=solver.blur_px,
+        coarsen=solver.coarsen,
         max_steps=solver.max_steps,
         log=log,
     )
