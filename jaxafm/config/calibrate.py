@@ -5,6 +5,7 @@ are also step A of ``jaxafm run`` and ``jaxafm study``."""
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Annotated, Literal, Optional, Union
 
 from pydantic import Field, field_validator, model_validator
@@ -209,14 +210,23 @@ class Compensation(Strict):
     paper_baseline: bool = Field(True, description="also the paper's polynomial + neural-network inverse")
 
 
+def coarsen_fits(factor, pixels: list, per_pitch: float) -> bool:
+    """Whether ``factor`` can top step A's pyramid: a power of two (the stages halve it) that
+    divides every scan's ``pixels`` per line and leaves 2 of the ``per_pitch`` pixels per pitch
+    along a line (fewer cannot show a lattice)."""
+    whole = isinstance(factor, numbers.Integral) and not isinstance(factor, bool)
+    power = whole and factor >= 1 and not factor & (factor - 1)
+    return power and not any(p % factor for p in pixels) and per_pitch / factor >= 2
+
+
 def check_coarsen(solver: CalibrationSolver, simulate: SimulatedCalibration, grating: Grating) -> None:
-    """Refuse a ``solver.coarsen`` that is not a power of two dividing the simulated scan's pixels
-    per line with 2 px per pitch left along a line (before anything is simulated)."""
+    """Refuse a ``solver.coarsen`` that does not fit the simulated scan (:func:`coarsen_fits`)
+    before anything is simulated."""
     f = solver.coarsen
     if f == "auto":
         return
     per_pitch = grating.pitch_nm * simulate.pixels / simulate.size_nm
-    if f & (f - 1) or simulate.pixels % f or per_pitch / f < 2:
+    if not coarsen_fits(f, [simulate.pixels], per_pitch):
         raise ValueError(
             f"solver.coarsen: {f} must be a power of two that divides simulate.pixels ({simulate.pixels}) "
             f"and leaves 2 px per pitch along a line ({per_pitch:.3g} px per pitch at full resolution)"

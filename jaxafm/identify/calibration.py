@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
+from ..config.calibrate import coarsen_fits
 from ..config.names import MODEL_EFFECTS
 from ..instrument.afm import AFM, Raster, RasterScan, raster_scan
 from ..instrument.samples import Lattice, Plane, Tip
@@ -601,9 +602,8 @@ def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "
     """The most pixels of a line :func:`identify`'s stages average into one (its pyramid's top).
 
     ``"auto"``: the largest power of two that divides every scan's pixels per line and leaves
-    :data:`COARSE_PX_PER_PITCH` pixels per pitch; a given number must be a power of two (the
-    stages halve it) that divides them and leaves 2 pixels per pitch (fewer cannot show a
-    lattice).
+    :data:`COARSE_PX_PER_PITCH` pixels per pitch; a given number must fit the scans
+    (:func:`~jaxafm.config.calibrate.coarsen_fits`).
     """
     pixels = [scan.raster.pixels for scan in scans]
     per_pitch = min(min(scan.pitch) / scan.raster.pixel_size[0] for scan in scans)  # along a line
@@ -612,8 +612,7 @@ def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "
         while all(p % (2 * factor) == 0 for p in pixels) and per_pitch / (2 * factor) >= COARSE_PX_PER_PITCH:
             factor *= 2
         return factor
-    power = isinstance(coarsen, (int, np.integer)) and coarsen >= 1 and coarsen & (coarsen - 1) == 0
-    if not power or any(p % coarsen for p in pixels) or per_pitch / coarsen < 2:
+    if not coarsen_fits(coarsen, pixels, per_pitch):
         raise ValueError(
             f"coarsen (a config's solver.coarsen) = {coarsen!r} must be a power of two (1: no coarse "
             f"stages) that divides the scans' pixels per line {pixels} and leaves 2 px per pitch "
