@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
-from benchutil import machine_info, time_jax
+from benchutil import device_label, machine_info, time_jax
 from jax.flatten_util import ravel_pytree
 
 matplotlib.use("Agg")
@@ -127,7 +127,7 @@ def main():
             indent=1,
         )
     )
-    _figure(results, a.out / "bench_step_a.png", a.pixels)
+    _figure(results, a.out / "bench_step_a.png", a.pixels, device_label(machine_info()))
     print(f"wrote {a.out}/metrics.json, bench_step_a.png")
 
 
@@ -179,7 +179,7 @@ def jacobian_profile(scan, spec: CalibrationModel) -> dict:
     return {"parameters": int(x0.size), "samples": int(u.shape[0]), "parts": timed}
 
 
-def _figure(results: dict, path: Path, pixels: int) -> None:
+def _figure(results: dict, path: Path, pixels: int, device: str) -> None:
     fig, ax = plt.subplots(figsize=(10, 4.4), constrained_layout=True)
     names = list(results)
     stages = ["feature points", "images, blur 2 px", "images, blur 1 px"]
@@ -199,7 +199,7 @@ def _figure(results: dict, path: Path, pixels: int) -> None:
             va="center",
         )
     ax.set(
-        xlabel="wall time (s, 2-core CPU, compilation included)",
+        xlabel=f"wall time (s, {device}, compilation included)",
         title=f"Step A identification, {pixels}² trace/retrace pair",
         xlim=(0, 1.6 * left.max()),
         ylim=(-0.6, len(names) - 0.4),

@@ -44,7 +44,7 @@ from jax.sharding import Mesh
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-from benchutil import machine_info, time_jax
+from benchutil import device_label, machine_info, time_jax
 from reference import numerical_inverse_per_sample
 
 import jaxafm.position.positioning as positioning
@@ -385,14 +385,18 @@ def figure(result: dict, path: Path) -> None:
         yscale="log",
         xlabel="trials per batch",
         ylabel="trials per minute",
-        title="Steps B+C with a fixed model (2-core CPU)",
+        title=f"Steps B+C with a fixed model ({device_label(result['machine'])})",
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     costs = result["us_per_sample"]
     names = list(costs)[::-1]
     bx.barh(names, [costs[k]["us"] for k in names])
-    bx.set(xlabel="µs per sample per trial (one line, batched)", title="One drive of a trial, per sample")
+    bx.set(
+        xlabel="µs per sample per trial (one line, batched)",
+        title="One drive of a trial, per sample",
+        xlim=(0, 2.2 * max(costs[k]["us"] for k in names)),  # the bars left, the text right
+    )
     sp = result["batch_split"]
     text = (
         f"a batch of {sp['batch']}: {sp['total_s']:.2f} s =\nfirst pass {sp['first_pass_s']:.2f} + second pass "

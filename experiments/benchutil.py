@@ -50,6 +50,7 @@ def machine_info():
         "numpy": np.__version__,
         "python": sys.version.split()[0],
         "devices": str(jax.devices()),
+        "device_kind": jax.devices()[0].device_kind,
         "cpu_count": os.cpu_count(),
         "platform": platform.platform(),
         "machine": platform.machine(),
@@ -58,3 +59,10 @@ def machine_info():
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "loadavg_at_start": os.getloadavg(),
     }
+
+
+def device_label(machine: dict) -> str:
+    """The machine a result was measured on, for a figure's labels ("2-core CPU", "GPU: ...")."""
+    if "Cuda" in machine["devices"]:
+        return "GPU: " + machine.get("device_kind", "CUDA")
+    return f"{machine['cpu_count']}-core CPU"
