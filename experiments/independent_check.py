@@ -87,17 +87,21 @@ def diagnose(case: dict, candidates: tuple):
         return D.diagnose_record(record, spec, kept, log=lambda s: None), kept
 
 
+def named_effect(effect, verdict, shape):
+    """The effect a diagnosis named: its verdict, or "asymmetry" for an asymmetry case whose shape
+    found is a richer operator ("gpi" or "preisach": both hold an asymmetric loop)."""
+    if effect == "asymmetry" and shape in ("gpi", "preisach"):
+        return "asymmetry"
+    return verdict
+
+
 def run_case(case: dict, candidates: tuple) -> tuple:
     start = time.perf_counter()
     res, used = diagnose(case, candidates)
     rows = {r.effect: r for r in res.candidates}
     effect, verdict, shape = case["effect"], res.verdict, getattr(res, "shape", None)
-    if effect == "asymmetry":
-        correct = verdict == "asymmetry" or shape in ("gpi", "preisach")
-        named = "asymmetry" if correct else verdict
-    else:
-        correct = verdict == effect
-        named = verdict
+    named = named_effect(effect, verdict, shape)
+    correct = named == effect
     shrink_of = lambda e: rows[e].shrink_pct if e in rows else None
     row = case | {
         "class": "same" if case["truth_hysteresis"] == case["nominal_kind"] else "different",
