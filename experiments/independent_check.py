@@ -23,6 +23,7 @@ confusion.png.
     python experiments/independent_check.py --seeds 2 --controls 6 --levels middle control   # ~30 min
     python experiments/independent_check.py --shard 1/2 & python experiments/independent_check.py --shard 2/2
                                                                # two processes, one core each: ~2 h
+    python experiments/independent_check.py --nominal pi --shard 1/2   # only the PI-nominal cases
     python experiments/independent_check.py --summarise        # only rebuild summary and figure
 """
 
@@ -247,6 +248,12 @@ def main() -> None:
         "--levels", nargs="+", default=None, help="run only these levels (low, middle, high, control)"
     )
     ap.add_argument(
+        "--nominal",
+        choices=("pi", "preisach"),
+        default=None,
+        help="run only the cases with this nominal kind (writes cases-KIND-....json beside the others)",
+    )
+    ap.add_argument(
         "--shard", default="1/1", help="K/N: run every N-th case from the K-th (writes cases-K-of-N.json)"
     )
     ap.add_argument("--out", type=Path, default=OUT)
@@ -258,7 +265,8 @@ def main() -> None:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     k, n = (int(v) for v in args.shard.split("/"))
-    saved = args.out / ("cases.json" if n == 1 else f"cases-{k}-of-{n}.json")
+    tag = f"-{args.nominal}" if args.nominal else ""
+    saved = args.out / (f"cases{tag}.json" if n == 1 else f"cases{tag}-{k}-of-{n}.json")
     if not args.summarise:
         rows = []  # this run's (the summary below merges every cases*.json in the folder)
         todo = cases(args.seeds, args.controls)
@@ -266,6 +274,8 @@ def main() -> None:
             todo = [c for c in todo if (c["effect"] or "control") in args.effects]
         if args.levels:
             todo = [c for c in todo if c["level"] in args.levels]
+        if args.nominal:
+            todo = [c for c in todo if c["nominal_kind"] == args.nominal]
         todo = todo[: args.limit][k - 1 :: n]
         candidates = CANDIDATES
         for i, case in enumerate(todo):

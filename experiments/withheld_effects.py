@@ -15,6 +15,7 @@ magnitude, false alarms, shrink; overall and per kind of data) and confusion.png
     python experiments/withheld_effects.py --kind scans         # re-run the scans, keep the other kinds' cases
     python experiments/withheld_effects.py --kind lattice       # the scan sets of the pit lattice
     python experiments/withheld_effects.py --seeds 1 --controls 2   # a quick look
+    python experiments/withheld_effects.py --kind record --resume   # finish a run that stopped
 """
 
 from __future__ import annotations
@@ -214,14 +215,23 @@ def main() -> None:
     ap.add_argument(
         "--summarise", action="store_true", help="only rebuild summary.json and the figure from cases.json"
     )
+    ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the cases already in cases.json; run only the missing ones",
+    )
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     kinds = list(MAGNITUDES) if args.kind == "all" else [args.kind]
     saved = args.out / "cases.json"
     rows = json.loads(saved.read_text()) if saved.exists() else []
     if not args.summarise:
-        rows = [r for r in rows if r.get("data", "record") not in kinds]
         todo = [c for k in kinds for c in cases(k, args.seeds, args.controls)]
+        if args.resume:
+            done = {(r.get("data", "record"), r["truth"], r["seed"]) for r in rows}
+            todo = [c for c in todo if (c[0], c[1], c[4]) not in done]
+        else:
+            rows = [r for r in rows if r.get("data", "record") not in kinds]
         for i, (kind, effect, m, level, seed) in enumerate(todo):
             row = run_case(kind, effect, m, seed) | {"level": level}
             rows.append(row)

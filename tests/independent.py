@@ -473,3 +473,29 @@ def cases(seeds: int = 5, controls: int = 20) -> list:
             }
         )
     return out
+
+
+def equal_weight_pi_control(seed: int, plays: int = 16, duration: float = 20.0, fs: float = 100.0) -> dict:
+    """A control (no effect) whose PI truth has ``plays`` equal-weight plays above a linear one, at
+    radii ``r_k = k 20 V / (2 plays)`` over a +-10 V range: a loop 15 % of its 10 um travel wide
+    (the equal weights ``b = 0.15 T / sum_k min(2 r_k, 20 - 2 r_k)`` above ``w_0 = (T - b sum_k
+    (20 - 2 r_k)) / 20`` with ``T = 10 um``), each weight x U(0.9, 1.1), plus 2 nm white noise.
+    Its kinks lie where a nominal PI's evenly spread plays do not. The drive: per axis
+    ``9 V e(t) sin(phi(t))``, envelope ``e = 0.55 + 0.45 cos(2 pi t / 10 s)`` (y: half a period
+    later), frequency ``phi' / 2 pi`` swept 0.2-1.8 Hz (x) and 0.3-1.3 Hz (y): loops of every size.
+    """
+    t = np.arange(int(round(duration * fs))) / fs
+    env = lambda s: 0.55 + 0.45 * np.cos(2 * np.pi * s / 10.0)
+    phase = lambda f0, df, period: (
+        2 * np.pi * (f0 * t + df * period / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / period)))
+    )
+    u = U_MAX * np.stack(
+        [env(t) * np.sin(phase(1.0, 0.8, 7.0)), env(t + 5.0) * np.sin(phase(0.8, 0.5, 9.0))], -1
+    )
+    radii = np.arange(plays) * 20.0 / (2 * plays)
+    r, travel = radii[1:], 10_000.0
+    b = 0.15 * travel / np.minimum(2 * r, 20.0 - 2 * r).sum()
+    w = np.r_[(travel - b * (20.0 - 2 * r).sum()) / 20.0, np.full(plays - 1, b)]
+    rng = np.random.default_rng(seed)
+    d = np.stack([pi_operator(u[:, k], radii, w * rng.uniform(0.9, 1.1, plays)) for k in range(2)], -1)
+    return {"t": t, "u": u, "d": d + noise(d.shape, rng)}

@@ -21,8 +21,9 @@ is here, the same for all:
 - candidates are ranked by shrink, best first; the verdict is the top significant one, or none;
 - a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
 - before the effects, a kind may try richer hysteresis operators, one rung at a time
-  (:attr:`DataKind.shapes`: symmetric PI -> generalised PI -> Preisach for records): a rung that
-  is significant against the one below replaces it, and the effects are then compared against
+  (:attr:`DataKind.shapes`: symmetric PI -> twice the plays -> generalised PI -> Preisach for
+  records), each started from the richest significant rung below it: a rung that is significant
+  against that one replaces it, and the effects are then compared against
   the richest significant rung, so an effect is blamed only for what a richer hysteresis cannot
   explain. When a rung is found and no effect on top of it, each effect is also added to the
   nominal model: one that is significant there, with a training BIC and a held-out gap no worse
@@ -62,7 +63,7 @@ NOT_TRIED = {
         "coupling": _TWO_AXES,
         "bow": _TWO_AXES,
         "asymmetry": "a hysteresis shape, not an effect: tried on the shape ladder (symmetric PI -> "
-        "generalised PI -> Preisach), where a Preisach density holds its own asymmetry",
+        "twice the plays -> generalised PI -> Preisach), where a Preisach density holds its own asymmetry",
     },
     "image": {
         "drift": "in one image a steady x drift shifts each row in proportion to its time, the same column "
@@ -86,7 +87,11 @@ NOT_TRIED = {
 
 
 #: The richer hysteresis operators a diagnosis may find, in words.
-SHAPE_NAMES = {"gpi": "asymmetric (generalised PI)", "preisach": "Preisach"}
+SHAPE_NAMES = {
+    "finer": "finer (twice the plays)",
+    "gpi": "asymmetric (generalised PI)",
+    "preisach": "Preisach",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -260,9 +265,10 @@ class DataKind(abc.ABC):
         """The effects the fitted ``nominal`` model has (default: hysteresis alone)."""
         return frozenset({"hysteresis"})
 
-    def fit_shape(self, kind: str, nominal: Fit) -> Fit:
-        """``nominal`` with its hysteresis replaced by the richer operator ``kind`` (one of
-        :attr:`shapes`), fitted to the training part."""
+    def fit_shape(self, kind: str, base: Fit) -> Fit:
+        """The nominal model with the richer hysteresis operator ``kind`` (one of :attr:`shapes`),
+        started from ``base`` (the richest significant rung so far) where it can, fitted to the
+        training part."""
         raise NotImplementedError(f"{self.name} data have no hysteresis shapes to try")
 
     def warnings(self) -> list:
@@ -465,7 +471,7 @@ def _climb(data: DataKind, nominal: Fit, rules: Rules, log) -> tuple:
     it: ``(that richest fit, its kind or None, the rungs tried)``."""
     base, shape, shapes = nominal, None, []
     for kind in data.shapes:
-        shapes.append(Candidate.compare(kind, base, data.fit_shape(kind, nominal), rules))
+        shapes.append(Candidate.compare(kind, base, data.fit_shape(kind, base), rules))
         log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
         if shapes[-1].significant:
             base, shape = shapes[-1].fit, kind

@@ -3,10 +3,11 @@
 The nominal model (:class:`~jaxafm.diagnose.plant.Plant`) is fitted to the training part of a
 record (the first ``train_fraction`` of it, after ``settle`` samples; or, with ``blocks``, every
 other of that many equal blocks in time); the richer hysteresis operators are tried (symmetric
-PI -> generalised PI -> Preisach), then each candidate effect is added -- the same module the
-simulator uses -- and the model refitted, warm-started from the richest significant shape. The
-gap is the rms residual ``sqrt(mean((d - model)^2))`` (nm) on the held-out part, which the fits
-never saw; BIC, significance, ranking and verdict are the core's (:mod:`jaxafm.diagnose.core`).
+PI -> twice the plays -> generalised PI -> Preisach: :data:`SHAPES`), then each candidate effect
+is added -- the same module the simulator uses -- and the model refitted, warm-started from the
+richest significant shape. The gap is the rms residual ``sqrt(mean((d - model)^2))`` (nm) on
+the held-out part, which the fits never saw; BIC, significance, ranking and verdict are the
+core's (:mod:`jaxafm.diagnose.core`).
 
 What the split cannot test is said (:meth:`ActuatorRecord.warnings`): held-out inputs beyond the
 training range (the fits extrapolate there) and a held-out part that is nearly a flat hold.
@@ -26,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import signal
 
+from ..config.common import MAX_OPERATORS
 from ..instrument.records import Record
 from ..model.effects import Vibration
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
@@ -47,8 +49,10 @@ Array = jax.Array
 #: shape: :data:`SHAPES`).
 RECORD_CANDIDATES = ("rate_dependence", "creep", "vibration", "drift", "coupling", "bow")
 TWO_AXIS = ("coupling", "bow")
-#: The richer hysteresis operators tried after each nominal kind, in order.
-SHAPES = {"pi": ("gpi", "preisach"), "gpi": ("preisach",), "preisach": ()}
+#: The richer hysteresis operators tried after each nominal kind, in order: ``finer`` is the
+#: nominal's kind with twice the plays (a loop whose kinks fall between the nominal's play radii
+#: leaves a slow misfit that creep or drift would otherwise take), ``gpi`` adds dead zones.
+SHAPES = {"pi": ("finer", "gpi", "preisach"), "gpi": ("finer", "preisach"), "preisach": ()}
 MIN_EXPLAINED = 0.5  # the nominal fit must explain this fraction of the output variance
 BINS = 8  # input-level and input-rate bins of the residual decomposition
 RANGE_WARN_PCT = 2.0  # held-out inputs beyond the training range by more than this % of it: warn
@@ -289,13 +293,17 @@ class ActuatorRecord(DataKind):
             )
         return fit
 
-    def fit_shape(self, kind: str, nominal: RecordFit) -> RecordFit:
-        """The nominal model with a richer hysteresis: ``gpi`` adds dead zones to the fitted PI
-        (started where they change nothing), ``preisach`` starts afresh from a Preisach plane of
-        ``spec.levels`` levels; the nominal's other effects kept."""
+    def fit_shape(self, kind: str, base: RecordFit) -> RecordFit:
+        """The nominal model with a richer hysteresis: ``finer`` starts afresh with twice the plays,
+        ``gpi`` adds dead zones to the ``base`` fit's PI (started where they change nothing),
+        ``preisach`` starts afresh from a Preisach plane of ``spec.levels`` levels; the nominal's
+        other effects kept."""
         if kind == "gpi":
-            return self._fit(with_effect(nominal.plant, "asymmetry", self.u, self.d, self.record.t))
-        spec = self.spec.model_copy(update={"kind": kind})
+            return self._fit(with_effect(base.plant, "asymmetry", self.u, self.d, self.record.t))
+        if kind == "finer":
+            spec = self.spec.model_copy(update={"operators": min(2 * self.spec.operators, MAX_OPERATORS)})
+        else:
+            spec = self.spec.model_copy(update={"kind": kind})
         return self._fit(nominal_plant(spec, self.u, self.d, self.record.t, self.train, self.history))
 
     def fit_candidate(self, effect: str, nominal: RecordFit) -> RecordFit:
