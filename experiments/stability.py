@@ -12,6 +12,7 @@ goes), summary.json and stability.png into experiments/results/stability/.
 
     python experiments/stability.py                              # 7 middle cases + 2 controls, ~80 min on one core
     python experiments/stability.py --shard 1/2 & python experiments/stability.py --shard 2/2
+    python experiments/stability.py --nominal pi --shard 1/2     # only the PI-nominal cases
     python experiments/stability.py --summarise                  # only rebuild summary and figure
 """
 
@@ -153,6 +154,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--levels", nargs="+", default=["middle"], help="low, middle, high")
     ap.add_argument("--controls", type=int, default=2)
+    ap.add_argument(
+        "--nominal",
+        choices=("pi", "preisach"),
+        default=None,
+        help="only the cases with this nominal kind (writes rows-KIND-....json beside the others)",
+    )
     ap.add_argument("--shard", default="1/1", help="K/N: every N-th case from the K-th")
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--summarise", action="store_true", help="only rebuild summary.json and the figure")
@@ -160,8 +167,10 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     k, n = (int(v) for v in args.shard.split("/"))
     if not args.summarise:
-        todo = [c for c in cases() if _first_round(c, args.levels, args.controls)][k - 1 :: n]
-        rows, saved = [], args.out / f"rows-{k}-of-{n}.json"
+        todo = [c for c in cases() if _first_round(c, args.levels, args.controls)]
+        todo = [c for c in todo if args.nominal in (None, c["nominal_kind"])][k - 1 :: n]
+        tag = f"-{args.nominal}" if args.nominal else ""
+        rows, saved = [], args.out / f"rows{tag}-{k}-of-{n}.json"
         for i, case in enumerate(todo):
             row = run_case(case)
             rows.append(row)
