@@ -64,6 +64,8 @@ MAGNITUDES = {
 }
 MAGNITUDES["lattice"] = dict(MAGNITUDES["scans"])
 LEVELS = ("low", "middle", "high")
+#: The shapes that hold an asymmetric loop (not "finer": twice the symmetric plays).
+ASYMMETRIC_SHAPES = ("gpi", "preisach")
 #: Every effect a record or a scan set can be diagnosed with (not a record's mode: it has its
 #: own check, experiments/independent_check.py), then "none".
 LABELS = tuple(e for e in EFFECTS if e not in ("hysteresis", "vibration", "noise")) + ("none",)
@@ -99,8 +101,8 @@ def run_case(kind, effect, magnitude, seed) -> dict:
     verdict, shape = res.verdict, getattr(res, "shape", None)
     shapes = {r.effect: r for r in getattr(res, "shapes", ())}
     if "gpi" in shapes:  # records: asymmetry is a hysteresis shape now, not an effect candidate
-        rows["asymmetry"] = shapes[shape] if shape in shapes else shapes["gpi"]
-    if effect == "asymmetry" and verdict is None and shape in ("gpi", "preisach"):
+        rows["asymmetry"] = shapes[shape] if shape in ASYMMETRIC_SHAPES else shapes["gpi"]
+    if effect == "asymmetry" and verdict is None and shape in ASYMMETRIC_SHAPES:
         verdict = "asymmetry"  # as in the independent check: a richer shape holds the asymmetric loop
     return {
         "data": kind,
