@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 
 # importing jaxafm.instrument switches JAX to float64 (jaxafm._precision)
+from jaxafm.instrument import samples
+from jaxafm.instrument.afm import render
 from jaxafm.instrument.samples import (
+    NEAR,
     Grating,
     HeightMap,
     Indented,
@@ -617,6 +620,48 @@ def test_dilate_gradient_and_surface():
 
 
 PRESS = jax.jit(lambda sample, xy, depth: sample.press(xy, depth))
+
+
+def test_a_long_path_over_an_indented_field_is_imaged_as_over_every_sphere():
+    """``render`` images a long path in chunks, and each chunk's stencil sees only the spheres
+    that reach its box widened by the tip's reach (a sphere raises the surface only within its
+    radius): the image is the stencil over every sphere, point by point. On a sparse field
+    (64 spheres over 3 um) every chunk leaves spheres out; on a dense one (40 over 300 nm) more
+    than ``NEAR`` reach a chunk and all are kept there."""
+    tip = Tip()
+    rng = np.random.default_rng(11)
+    for n, size, culled in ((64, 3000.0, True), (40, 300.0, False)):
+        spheres = Particles(jnp.asarray(rng.uniform(0, size, (n, 2))), jnp.asarray(rng.uniform(5, 50, n)))
+        s = Indented.empty(spheres, tip, capacity=6)
+        for c in rng.uniform(0, size, (6, 2)):
+            s = PRESS(s, jnp.asarray(c), 30.0)
+        x, y = np.meshgrid(np.linspace(0, size, 160), np.linspace(0, size, 48))
+        path = jnp.asarray(np.stack([x, y], -1).reshape(-1, 2))  # 48 lines of 160 points
+        got = np.asarray(jax.jit(lambda p: render(s, tip, p, batch=160))(path))  # a line a chunk
+        want = np.asarray(jax.jit(jax.vmap(lambda p: tip.dilate(s.height, p)))(path))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        assert np.ptp(want) > 40  # the field shows: spheres and indents under the path
+        boxes = [(c.min(0) - tip.reach, c.max(0) + tip.reach) for c in np.asarray(path).reshape(-1, 160, 2)]
+        exact = [bool(spheres.near(jnp.asarray(lo), jnp.asarray(hi))[1]) for lo, hi in boxes]
+        assert all(exact) if culled else not all(exact)  # dense: some chunks keep every sphere
+    assert NEAR < 40
+
+
+def test_a_sphere_the_tip_touches_from_beside_a_chunk_is_counted_as_reaching_it(monkeypatch):
+    """Two spheres of radius 30 nm on a line and a third, of 40 nm, 60 nm beside it: its flank
+    rises where the tip passes (about 11 nm in closed form at x = 550 nm). Kept to two
+    spheres a chunk, the second chunk of the line must count all three (its box is widened by
+    the tip's reach), so it keeps them all; counting only spheres that overlap the line would
+    leave the third out."""
+    monkeypatch.setattr(samples, "NEAR", 2)
+    tip = Tip()
+    spheres = Particles(jnp.array([[350.0, 0.0], [450.0, 0.0], [550.0, 60.0]]), jnp.array([30.0, 30.0, 40.0]))
+    s = Indented.empty(spheres, tip, capacity=1)
+    path = jnp.stack([jnp.linspace(0.0, 600.0, 600, endpoint=False), jnp.zeros(600)], -1)
+    got = np.asarray(render(s, tip, path, batch=300))
+    want = np.asarray(jax.vmap(lambda p: tip.dilate(s.height, p))(path))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert want[550] > 5 and float(spheres.imaged(tip, path[550])) > 5
 
 
 def test_indent_shape_and_depth():

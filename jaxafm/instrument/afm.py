@@ -150,12 +150,17 @@ def _drive(afm: AFM, sample, u: Array, t: Array, state: AFMState, key) -> tuple:
 
 
 def render(sample, tip: Optional[Tip], path: Array, batch: int = 2048) -> Array:
-    """The height (T,) nm the probe follows along ``path`` (T, 2) nm, in batches of ``batch``
-    points so that memory stays bounded on long paths over samples with many features."""
+    """The height (T,) nm the probe follows along ``path`` (T, 2) nm, in chunks of ``batch``
+    consecutive points so that memory stays bounded on long paths over samples with many
+    features; each chunk is imaged whole, so a sample can leave out what cannot reach it
+    (:meth:`~jaxafm.instrument.samples.Indented.imaged`)."""
     height = surface(sample, tip)
-    if path.shape[0] <= batch:
+    n = path.shape[0]
+    if n <= batch:
         return height(path)
-    return lax.map(height, path, batch_size=batch)
+    chunks = -(-n // batch)
+    padded = jnp.pad(path, ((0, chunks * batch - n), (0, 0)), mode="edge")
+    return lax.map(height, padded.reshape(chunks, batch, 2)).reshape(-1)[:n]
 
 
 def default_afm(
