@@ -220,7 +220,7 @@ class Particles(AbstractSample):
         top = self.substrate.height(self.centres) + self.radii + cap
         return jnp.maximum(base, jnp.max(jnp.where(inside, top, -jnp.inf), axis=-1))
 
-    def near(self, lo: Array, hi: Array) -> tuple:
+    def near(self, lo: Array, hi: Array) -> Optional[tuple]:
         """``(spheres, exact)``: the :data:`NEAR` spheres that come closest to reaching into the
         box ``lo``..``hi`` (2,) nm, and whether they are all that reach into it. A sphere
         raises the surface only within its radius of its centre, so where ``exact`` the
