@@ -1,6 +1,7 @@
 """Step A: feature points, inverses, and identification from a calibration lattice."""
 
 import functools
+import logging
 import subprocess
 import sys
 
@@ -135,16 +136,17 @@ def test_branch_polynomials_from_a_hysteretic_scan_are_ordered():
 
 
 @functools.cache
-def _simulated_scan():
-    """One simulated calibration scan, shared by the tests that read it (none changes it)."""
+def _simulated_scan(depth_nm=100.0, phase_nm=(130.0, 70.0)):
+    """One simulated calibration scan of a 1 um lattice of pillars, shared by the tests that read
+    it (none changes it)."""
     truth = default_afm().without("noise", "drift", "tip", "creep", "bow", "feedback_lag", "asymmetry")
     lattice = Lattice(
         jnp.full(2, 1000.0),
         jnp.asarray(250.0),
-        jnp.asarray(100.0),
+        jnp.asarray(depth_nm),
         jnp.asarray(40.0),
         jnp.zeros(()),
-        jnp.array([130.0, 70.0]),
+        jnp.array(phase_nm),
     )
     raster = Raster(6000.0, 72, 72, line_rate=2.0)
     out = raster_scan(truth, lattice, truth.initial_state((0.0, 0.0), 0.0, CYCLE), raster)
@@ -185,6 +187,39 @@ def test_identification_recovers_coupling_and_the_tip_path():
     # pillar rows, so its error is checked in the median
     assert np.abs(err[..., 0]).max() < 50.0
     assert np.median(np.abs(err[..., 1])) < 30.0
+
+
+def test_a_second_scan_reuses_the_compiled_solves(caplog):
+    """Step A's solves are compiled for the shapes of a scan, not for its values: a scan with
+    other features (another count) and another depth is fitted without tracing the solver again
+    (JAX's own compile log), which is what lets a study identify many scanners."""
+    first, second = _simulated_scan()[0], _simulated_scan(160.0, (480.0, 610.0))[0]  # deeper, shifted
+    counts = [[len(f.rc) for f in s.features()] for s in (first, second)]
+    assert counts[0] != counts[1] and float(first.depth_scale) != float(second.depth_scale)
+    jax.clear_caches()
+    traced = []
+    for scan in (first, second):
+        caplog.clear()
+        with jax.log_compiles(), caplog.at_level(logging.WARNING):
+            calibration.identify(scan, operators=16, max_steps=2, blur_px=(1.5,), log=lambda m: None)
+        traced.append([r.getMessage() for r in caplog.records if "least_squares" in r.getMessage()])
+    assert traced[0], "the first scan's solves were not compiled: the log says nothing to test"
+    assert not traced[1], traced[1]
+
+
+def test_padded_features_leave_the_feature_loss_unchanged():
+    """The feature fit pads each image's features to a power of two with weight 0: its loss is
+    half the mean square of the unpadded features' site errors (computed here without padding)."""
+    scan = _simulated_scan()[0]
+    trace, retrace = scan.features()
+    model = calibration.initial_model(scan, operators=16)
+    raw = calibration.parameters(model, scan)[0]
+    unpadded = [(f.rc, f.ij) for f in (trace, retrace)]
+    padded = tuple(calibration._padded(rc, ij) for rc, ij in unpadded)
+    assert [len(p[0]) for p in padded] == [1 << (len(rc) - 1).bit_length() for rc, _ in unpadded]
+    errors = np.concatenate([np.ravel(e) for e in model.site_errors(scan, unpadded)])
+    loss = calibration._point_loss(raw, (model, (scan,), (padded,)))
+    np.testing.assert_allclose(float(loss), 0.5 * np.mean(errors**2), rtol=1e-12)
 
 
 @pytest.mark.parametrize("factor", [2, 4])

@@ -68,7 +68,7 @@ class CalibrationScan(eqx.Module):
     t0: float = eqx.field(static=True)
     history: Optional[tuple] = eqx.field(static=True)
     pits: bool = eqx.field(static=True)
-    depth_scale: float = eqx.field(static=True)
+    depth_scale: Array  # nm, () : an array, so that step A's compiled solves serve every scan
 
     def __init__(
         self,
@@ -101,7 +101,7 @@ class CalibrationScan(eqx.Module):
             None if history is None else tuple(tuple(float(v) for v in h) for h in np.asarray(history))
         )
         self.pits = bool(pits)
-        self.depth_scale = float(np.ptp(np.asarray(trace))) or 1.0
+        self.depth_scale = jnp.asarray(float(np.ptp(np.asarray(trace))) or 1.0)
 
     def coarse(self, factor: int) -> CalibrationScan:
         """This scan with ``factor`` pixels of each line averaged into one: the same lines and
@@ -440,12 +440,36 @@ class Identification:
 
 def _point_residuals(raw, args) -> Array:
     """At each training feature point, where the model puts the tip less that feature's lattice
-    site, in pitches along the lattice's axes (every scan, trace and retrace). Needs only the
-    tip's path."""
+    site, in pitches along the lattice's axes (every scan, trace and retrace), times its weight
+    (0 for the padding of :func:`_padded`). Needs only the tip's path."""
     start, scans, points = args
     model = parameters(start, scans[0])[1](raw)
     return jnp.concatenate(
-        [e.ravel() for scan, images in zip(scans, points) for e in model.site_errors(scan, images)]
+        [
+            (e * w[:, None]).ravel()
+            for scan, images in zip(scans, points)
+            for e, (_, _, w) in zip(model.site_errors(scan, [(rc, ij) for rc, ij, _ in images]), images)
+        ]
+    )
+
+
+def _point_loss(raw, args) -> Array:
+    """Half the mean square of :func:`_point_residuals` over the features (not the padding)."""
+    features = sum(jnp.sum(w) for images in args[2] for _, _, w in images)
+    return jnp.sum(_point_residuals(raw, args) ** 2) / (4 * features)
+
+
+def _padded(rc: np.ndarray, ij: np.ndarray) -> tuple:
+    """Features ``(rc, ij)`` (n, 2) padded to the next power of two with weight 0, and their
+    weights (1 for a feature): every scanner's feature fit then has one of a few shapes, and its
+    compiled solve is reused, although the features found differ from scan to scan."""
+    n = len(rc)
+    pad = (1 << max(n - 1, 0).bit_length()) - n
+    zeros = np.zeros((pad, 2))
+    return (
+        jnp.asarray(np.concatenate([rc, zeros])),
+        jnp.asarray(np.concatenate([ij, zeros.astype(np.asarray(ij).dtype)])),
+        jnp.asarray(np.r_[np.ones(n), np.zeros(pad)]),
     )
 
 
@@ -467,7 +491,7 @@ def _mean_square(residuals: Callable) -> Callable:
     return lambda raw, args: 0.5 * jnp.mean(residuals(raw, args) ** 2)
 
 
-_POINT_LOSS, _IMAGE_LOSS = _mean_square(_point_residuals), _mean_square(_image_residuals)
+_IMAGE_LOSS = _mean_square(_image_residuals)
 
 
 def identify(
@@ -559,10 +583,7 @@ def identify(
                 masks[k] = _split_masks(model, level, hold_out)
             data = (jnp.asarray(data), masks[k][0])
         else:
-            data = tuple(
-                tuple((jnp.asarray(_coarse_rc(rc, k)), jnp.asarray(ij)) for rc, ij in images)
-                for images in data
-            )
+            data = tuple(tuple(_padded(_coarse_rc(rc, k), ij) for rc, ij in images) for images in data)
         log(f"  stage {i + 1}/{len(plan)} {name} ...")
         t0 = time.perf_counter()
         fit, steps, ok, loss = _fit_stage(name, model, level, data, solver, max_steps, rtol, atol)
@@ -636,7 +657,7 @@ def _fit_stage(name: str, model: ScanModel, scans: tuple, data, solver: str, max
         if name.startswith("images")
         else (
             _point_residuals,
-            _POINT_LOSS,
+            _point_loss,
         )
     )
     model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)

@@ -75,12 +75,10 @@ class Axis(eqx.Module):
 
     def initial_state(self, u0, history=None) -> AxisState:
         """At rest at the input ``u0`` (V) after ``history``: the lags and creep relaxed there."""
-        plays = self.hysteresis.initial_state(u0, history)
-        v0 = self.hysteresis.run(jnp.reshape(jnp.asarray(u0, dtype=float), (1,)), plays)[0][0]
-        lag = jnp.zeros((0,)) if self.rate_dependence is None else self.rate_dependence.initial_state(v0)
-        creep = () if self.creep is None else self.creep.initial_state(v0)
-        vibration = () if self.vibration is None else self.vibration.initial_state(v0)
-        return AxisState(plays, lag, creep, vibration)
+        if history is not None:
+            history = jnp.asarray(history, dtype=float)
+            checks.finite("history", history)
+        return _at_rest(self, jnp.asarray(u0, dtype=float), history)
 
     def run(self, u: Array, t: Array, state: AxisState, t0) -> tuple:
         """Positions (T,) nm and the next state, continuing from ``state`` reached at time ``t0``."""
@@ -111,6 +109,18 @@ class Axis(eqx.Module):
         if self.vibration is not None:
             v = self.vibration(v, t)
         return v
+
+
+@eqx.filter_jit
+def _at_rest(axis: Axis, u0: Array, history) -> AxisState:
+    """:meth:`Axis.initial_state`, compiled once per kind of axis: called eagerly, the one-sample
+    run of the plays would trace and compile its scan anew at every call."""
+    plays = axis.hysteresis.initial_state(u0, history)
+    v0 = axis.hysteresis.run(jnp.reshape(u0, (1,)), plays)[0][0]
+    lag = jnp.zeros((0,)) if axis.rate_dependence is None else axis.rate_dependence.initial_state(v0)
+    creep = () if axis.creep is None else axis.creep.initial_state(v0)
+    vibration = () if axis.vibration is None else axis.vibration.initial_state(v0)
+    return AxisState(plays, lag, creep, vibration)
 
 
 class ScannerState(eqx.Module):
