@@ -192,7 +192,8 @@ def test_identification_recovers_coupling_and_the_tip_path():
 def test_a_second_scan_reuses_the_compiled_solves(caplog):
     """Step A's solves are compiled for the shapes of a scan, not for its values: a scan with
     other features (another count) and another depth is fitted without tracing the solver again
-    (JAX's own compile log), which is what lets a study identify many scanners."""
+    (JAX's own compile log), which is what lets a study identify many scanners. The feature fit
+    alone (the scan and its depth are in every stage's arguments alike)."""
     first, second = _simulated_scan()[0], _simulated_scan(160.0, (480.0, 610.0))[0]  # deeper, shifted
     counts = [[len(f.rc) for f in s.features()] for s in (first, second)]
     assert counts[0] != counts[1] and float(first.depth_scale) != float(second.depth_scale)
@@ -201,7 +202,7 @@ def test_a_second_scan_reuses_the_compiled_solves(caplog):
     for scan in (first, second):
         caplog.clear()
         with jax.log_compiles(), caplog.at_level(logging.WARNING):
-            calibration.identify(scan, operators=16, max_steps=2, blur_px=(1.5,), log=lambda m: None)
+            calibration.identify(scan, effects=("coupling",), max_steps=2, blur_px=(), log=lambda m: None)
         traced.append([r.getMessage() for r in caplog.records if "least_squares" in r.getMessage()])
     assert traced[0], "the first scan's solves were not compiled: the log says nothing to test"
     assert not traced[1], traced[1]
