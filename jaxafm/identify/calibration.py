@@ -487,11 +487,9 @@ def _image_residuals(raw, args) -> Array:
     return jnp.concatenate(out)
 
 
-def _mean_square(residuals: Callable) -> Callable:
-    return lambda raw, args: 0.5 * jnp.mean(residuals(raw, args) ** 2)
-
-
-_IMAGE_LOSS = _mean_square(_image_residuals)
+def _image_loss(raw, args) -> Array:
+    """Half the mean square of :func:`_image_residuals`."""
+    return 0.5 * jnp.mean(_image_residuals(raw, args) ** 2)
 
 
 def identify(
@@ -649,17 +647,12 @@ def _coarse_rc(rc: np.ndarray, factor: int) -> np.ndarray:
 
 
 def _fit_stage(name: str, model: ScanModel, scans: tuple, data, solver: str, max_steps, rtol, atol) -> tuple:
-    """One stage: the feature points (``data``: per scan, per image ``(rc, ij)``) or the images
-    (``data``: ``(kernel, masks)``) of ``scans``, fitted from ``model``; returns ``(fit, steps,
-    converged, mean square residual)``, or raises when the loss is not finite."""
-    residuals, loss_fn = (
-        (_image_residuals, _IMAGE_LOSS)
-        if name.startswith("images")
-        else (
-            _point_residuals,
-            _point_loss,
-        )
-    )
+    """One stage: the feature points (``data``: per scan, per image ``(rc, ij, weight)``,
+    :func:`_padded`) or the images (``data``: ``(kernel, masks)``) of ``scans``, fitted from
+    ``model``; returns ``(fit, steps, converged, mean square residual)``, or raises when the loss
+    is not finite."""
+    image = name.startswith("images")
+    residuals, loss_fn = (_image_residuals, _image_loss) if image else (_point_residuals, _point_loss)
     model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
     args = (model, tuple(scans), data)
     raw0, rebuild = parameters(model, scans[0])
