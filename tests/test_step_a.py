@@ -223,6 +223,19 @@ def test_padded_features_leave_the_feature_loss_unchanged():
     np.testing.assert_allclose(float(loss), 0.5 * np.mean(errors**2), rtol=1e-12)
 
 
+def test_held_out_image_residual_is_the_rms_over_the_held_out_pixels():
+    """The held-out image residual, taken from the stage's compiled loss, is the rms of the
+    blurred image residual over the held-out pixels (here summed directly), % of the depth."""
+    scan = _simulated_scan()[0]
+    model = calibration.initial_model(scan, effects=("coupling",), operators=16)
+    kernel = jnp.asarray(calibration.gaussian_kernel(1.5, 5))
+    _, held = calibration._split_masks(model, (scan,), True)
+    raw = calibration.parameters(model, scan)[0]
+    r = np.asarray(calibration._image_residuals(raw, (model, (scan,), (kernel, held))))
+    direct = 100 * np.sqrt(np.sum(r**2) / np.sum(np.asarray(held[0])))
+    np.testing.assert_allclose(calibration._held_out_image(model, (scan,), kernel, held), direct, rtol=1e-9)
+
+
 @pytest.mark.parametrize("factor", [2, 4])
 def test_coarse_scan_averages_pixels_and_keeps_the_drive(factor):
     """Each coarse pixel is the mean of ``factor`` fine ones, at the mean of their nominal
