@@ -792,9 +792,12 @@ def held_out_errors(model: ScanModel, scans: tuple, test: list) -> np.ndarray:
     for scan, images in zip(scans, test):
         if not any(len(rc) for rc, _ in images):
             continue
-        image = model.image(scan)
+        image = model.image(scan)  # its tip path is paths()'s: the heights do not move the tip
         for (rc, _), path, z, measured in zip(
-            images, model.paths(scan), (image.trace, image.retrace), (scan.trace, scan.retrace)
+            images,
+            (image.path_trace, image.path_retrace),
+            (image.trace, image.retrace),
+            (scan.trace, scan.retrace),
         ):
             if not len(rc):
                 continue
