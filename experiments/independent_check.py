@@ -40,7 +40,7 @@ import numpy as np
 matplotlib.use("Agg")
 import benchutil  # noqa: F401  (puts tests/ on sys.path)
 import matplotlib.pyplot as plt
-from independent import EFFECTS, LEVELS, MAGNITUDES, UNITS, cases, make_case
+from independent import EFFECTS, LEVELS, MAGNITUDES, NOISE_NM, UNITS, cases, make_case
 
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose.report import above_floor, noise_floor_nm
@@ -157,6 +157,17 @@ def _scores(rows: list) -> dict:
         return float(np.median(values)) if values else None
 
     out["median_shrink_correct_pct"] = median("truth_shrink_pct")
+    out["median_shrink_ceiling_correct_pct"] = median("shrink_ceiling_pct")
+    out["median_shrink_and_ceiling_by_level_pct"] = {
+        lv: [
+            float(np.median(v)) if v else None
+            for v in (
+                [r[key] for r in right if r["level"] == lv and r[key] is not None]
+                for key in ("truth_shrink_pct", "shrink_ceiling_pct")
+            )
+        ]
+        for lv in LEVELS
+    }
     out["median_total_shrink_correct_pct"] = median("total_shrink_pct")
     out["median_shrink_above_floor_correct_pct"] = median("shrink_above_floor_pct")
     out["median_total_shrink_above_floor_correct_pct"] = median("total_shrink_above_floor_pct")
@@ -195,7 +206,14 @@ def with_floor(row: dict) -> dict:
     row["total_shrink_above_floor_pct"] = shrink(row["heldout_gap_before_nm"])
     own = row["truth_shrink_pct"]
     row["shrink_above_floor_pct"] = None if own is None else shrink(final / (1 - own / 100))
+    row["shrink_ceiling_pct"] = None if own is None else ceiling(final / (1 - own / 100))
     return row
+
+
+def ceiling(gap_nm: float) -> float:
+    """The most any model could shrink a held-out gap of ``gap_nm`` (%): to the generator's own
+    white noise, ``NOISE_NM`` rms, which no model of the actuator predicts."""
+    return 100 * (1 - NOISE_NM / gap_nm)
 
 
 def summarise(rows: list) -> dict:
