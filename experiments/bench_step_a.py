@@ -91,6 +91,9 @@ def main():
                     "stage_steps": [s.steps for s in ident.stages],
                     "final_loss": ident.stages[-1].loss,
                     "converged": ident.converged,
+                    "stage_path_x_rms_nm": [
+                        path_error(s.model, scan, sim.measured)["path_x_rms_nm"] for s in ident.stages
+                    ],
                 } | path_error(ident.model, scan, sim.measured)
             else:
                 results[name] |= {
@@ -111,6 +114,9 @@ def main():
             f"{name:48s} {r['seconds']:7.1f}s {r['seconds_compiled']:8.1f}s {r['compile_s']:7.1f}s "
             f"{stages:>22s} {r['final_loss']:11.3e} {r['path_x_rms_nm']:9.1f}nm {r['path_x_max_nm']:5.1f}nm"
         )
+    for name, r in results.items():
+        after = " / ".join(f"{e:.1f}" for e in r["stage_path_x_rms_nm"])
+        print(f"{name:48s} tip path x rms after each stage: {after} nm")
     ours, full, scipy_s = (results[n]["seconds"] for n, *_ in runs)
     print(
         f"full resolution / pyramid: {full / ours:.2f}x the time; scipy / optimistix (both pyramid): "
