@@ -6,6 +6,7 @@ shares no code with jaxafm)."""
 import dataclasses
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -163,3 +164,28 @@ def test_factorised_preisach_is_linear_in_its_line_weights_for_a_fixed_profile()
     np.testing.assert_allclose(direct, linear, atol=1e-9)
     i, j = np.meshgrid(np.arange(12), np.arange(12), indexing="ij")
     assert np.all(np.asarray(h.density)[i < j] == 0)  # only alpha >= beta
+
+
+def test_factorised_preisach_free_parameters_each_change_the_density():
+    # w[i - j] g(c) is unchanged by w -> a w, g -> g / a: with every profile node free, that
+    # direction changes nothing and a solver wanders along it. Each free parameter must move the
+    # density (and offset) some other way: their Jacobian has full column rank.
+    from jax.flatten_util import ravel_pytree
+
+    from jaxafm.model.hysteresis import FactorizedPreisach, Preisach
+
+    plane = Preisach.uniform(8, -10.0, 10.0, total=50.0)
+    h = FactorizedPreisach.from_plane(plane)
+    h = dataclasses.replace(h, profile=jnp.asarray([0.4, 1.3, 2.0, 1.1, 0.6]))
+    h = h.with_weights(jnp.asarray(np.linspace(0.5, 2.0, 8)), jnp.asarray(3.0))
+    raw, rebuild = h.free_parameters(20.0, 100.0)
+    flat, unravel = ravel_pytree(raw)
+
+    def output(x):
+        m = rebuild(unravel(x))
+        return jnp.concatenate([m.density.ravel(), jnp.atleast_1d(m.offset)])
+
+    jac = np.asarray(jax.jacfwd(output)(flat))
+    assert flat.size == 8 + 5  # the lines, the profile but its middle node, the offset
+    assert np.linalg.matrix_rank(jac) == flat.size
+    np.testing.assert_allclose(np.asarray(rebuild(raw).density), np.asarray(h.density), rtol=1e-12)

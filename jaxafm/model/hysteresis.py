@@ -991,9 +991,10 @@ class FactorizedPreisach(Preisach):
     plane (one weight per play line ``i - j``); a profile that falls off both ways from the middle
     gives the narrower outer loops of a Preisach density concentrated near the input's centre (the
     factorised densities of Mayergoyz's "Mathematical Models of Hysteresis", ch. 1), and a skewed
-    one an asymmetric loop. The diagnosis's Preisach rung: ``n + nodes + 1`` parameters instead of
-    ``n (n + 1) / 2 + 1``, so the cells a training drive never reaches are not free. ``density``
-    is kept equal to ``factors(lines, profile)``.
+    one an asymmetric loop. The diagnosis's Preisach rung: ``n + nodes`` free parameters (the
+    middle node is kept, :meth:`free_parameters`) instead of ``n (n + 1) / 2 + 1``, so the cells a
+    training drive never reaches are not free. ``density`` is kept equal to
+    ``factors(lines, profile)``.
     """
 
     lines: Array = None  # (n,) nm, the play lines' weights
@@ -1041,13 +1042,23 @@ class FactorizedPreisach(Preisach):
 
     def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
         """Play-line weights in units of ``d_range / n`` (softplus-raw when ``positive``), the
-        profile's values (softplus-raw) and the offset in units of ``d_range``."""
+        profile's values but its middle one (softplus-raw) and the offset in units of ``d_range``.
+
+        The middle node stays where it is: ``w[i - j] g(c)`` is unchanged when ``w`` is scaled by
+        ``a`` and ``g`` by ``1 / a``, so with every node free the model would have a parameter that
+        changes nothing: counted in the BIC, and a direction a solver drifts along (measured on a
+        record: a play-line weight 12.1 -> 17.1 and a node 1.67 -> 1.18 between 30 and 300
+        Levenberg-Marquardt steps, the output the same to 0.001 nm)."""
         scale = d_range / self.levels
         to_raw, from_raw = _weight_maps(positive)
-        raw = (to_raw(self.lines / scale), softplus_inverse(self.profile), self.offset / d_range)
+        middle = self.profile.shape[0] // 2
+        pinned = self.profile[middle]
+        free = softplus_inverse(jnp.delete(self.profile, middle, assume_unique_indices=True))
+        raw = (to_raw(self.lines / scale), free, self.offset / d_range)
 
         def rebuild(p):
-            lines, profile = from_raw(p[0]) * scale, jax.nn.softplus(p[1])
+            lines = from_raw(p[0]) * scale
+            profile = jnp.insert(jax.nn.softplus(p[1]), middle, pinned)
             density = self.factors(lines, profile)
             return FactorizedPreisach(
                 density, self.u_min, self.u_max, p[2] * d_range, self.smooth, lines, profile
