@@ -191,7 +191,8 @@ def _scores(rows: list) -> dict:
 
 def with_floor(row: dict) -> dict:
     """``row`` with its gaps above the noise floor: the named effect's shrink (against the model
-    it was added to) and the total (nominal -> final), both on ``above_floor`` gaps. Rows of a
+    it was added to) and the total (nominal -> final), both on ``above_floor`` gaps, and the
+    named effect's :func:`ceiling`. Rows of a
     run before these keys existed get their floor and final gap from the stored record and
     shrinks."""
     row = dict(row)
@@ -205,8 +206,9 @@ def with_floor(row: dict) -> dict:
 
     row["total_shrink_above_floor_pct"] = shrink(row["heldout_gap_before_nm"])
     own = row["truth_shrink_pct"]
-    row["shrink_above_floor_pct"] = None if own is None else shrink(final / (1 - own / 100))
-    row["shrink_ceiling_pct"] = None if own is None else ceiling(final / (1 - own / 100))
+    base = None if own is None else final / (1 - own / 100)  # the gap of the model the effect was added to
+    row["shrink_above_floor_pct"] = None if base is None else shrink(base)
+    row["shrink_ceiling_pct"] = None if base is None else ceiling(base)
     return row
 
 
