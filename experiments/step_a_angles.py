@@ -87,7 +87,10 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     grating = Grating(pitch_nm=1000, rotation_deg=0.0)
     spec = CalibrationModel(name="gpi", kind="gpi", operators=16, deadzones=3)
-    solver = CalibrationSolver(max_steps=args.max_steps, blur_px=[2.0, 1.0])
+    # optimistix's solver, step A's default when the committed results were made
+    solver = CalibrationSolver(
+        name="optimistix.levenberg_marquardt", max_steps=args.max_steps, blur_px=[2.0, 1.0]
+    )
     results = {}
     for name, angles in SETS.items():
         scans, sim = step_a.simulate_calibration(

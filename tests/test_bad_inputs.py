@@ -612,6 +612,13 @@ CALIBRATE = [
         (key("solver.coarsen"), value(8), "pitch"),
     ),
     nan_case("calibrate-solver.coarsen-zero", "calibrate", "solver.coarsen", 0),
+    case(
+        "calibrate-solver.max_steps-more-than-stages",
+        "calibrate",
+        {"solver.max_steps": [20, 12, 8]},
+        (key("solver.max_steps"), r"\[20, 12, 8\]", "2 stages", "images, blur 1 px"),
+    ),
+    nan_case("calibrate-solver.max_steps-zero-in-list", "calibrate", "solver.max_steps", 0, [20, 0]),
     nan_case("calibrate-simulate.size_nm-.nan", "calibrate", "simulate.size_nm", NAN),
     nan_case("calibrate-simulate.line_rate_hz-inf-string", "calibrate", "simulate.line_rate_hz", "inf"),
     nan_case("calibrate-grating.pitch_nm-.nan", "calibrate", "grating.pitch_nm", NAN),

@@ -39,7 +39,10 @@ def noisy(y, std, seed=1):
     return np.asarray(y) + std * np.random.default_rng(seed).normal(size=np.shape(y))
 
 
-@pytest.mark.parametrize("solver", ["optimistix.levenberg_marquardt", "jaxopt.levenberg_marquardt"])
+@pytest.mark.parametrize(
+    "solver",
+    ["optimistix.levenberg_marquardt", "jaxopt.levenberg_marquardt", "jaxafm.geodesic_levenberg_marquardt"],
+)
 def test_pi_weights_recovered(solver):
     """Known PI weights on the fit's own threshold grid: the fitted weights come back to within
     a few standard errors of the noise (sigma = 0.01 nm on a ~10 nm output)."""

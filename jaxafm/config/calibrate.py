@@ -171,19 +171,26 @@ class CalibrationModel(HysteresisSpec):
         return effects
 
 
+StepLimit = Annotated[int, Field(ge=1, le=10_000)]
+
+
 class CalibrationSolver(Strict):
     """The solver of step A's staged image fit."""
 
-    name: Solver = "optimistix.levenberg_marquardt"  # type: ignore[valid-type]
-    max_steps: int = Field(100, ge=1, le=10_000, description="per stage")
+    name: Solver = "jaxafm.geodesic_levenberg_marquardt"  # type: ignore[valid-type]
+    max_steps: Union[StepLimit, list[StepLimit]] = Field(
+        100,
+        description="per stage: one number for every stage, or a list, one per stage in order (the "
+        "feature-point stages, then each blur)",
+    )
     blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
         [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
     )
     coarsen: Union[Annotated[int, Field(ge=1, le=64)], Literal["auto"]] = Field(
         1,
-        description="the most pixels of a line a stage averages into one, a power of two (the "
-        "stages halve it up to the last, at full resolution: a cheaper start); 1: none; auto: "
-        "the largest leaving 8 px per pitch",
+        description="the feature-point stages fit the scans with this many pixels of a line "
+        "averaged into one, a power of two (a cheaper start); the image stages fit them whole; 1: "
+        "none; auto: the largest leaving 8 px per pitch",
     )
     hold_out: bool = Field(
         True,
@@ -217,6 +224,20 @@ def coarsen_fits(factor, pixels: list, per_pitch: float) -> bool:
     whole = isinstance(factor, numbers.Integral) and not isinstance(factor, bool)
     power = whole and factor >= 1 and not factor & (factor - 1)
     return power and not any(p % factor for p in pixels) and per_pitch / factor >= 2
+
+
+def check_stage_steps(solver: CalibrationSolver, scans: int) -> None:
+    """Refuse a list ``solver.max_steps`` that does not give one step limit per stage of step A
+    on ``scans`` scans: one feature stage (two for several scans), then one per blur."""
+    if isinstance(solver.max_steps, int):
+        return
+    stages = ["feature points"] + (["feature points, all scans"] if scans > 1 else [])
+    stages += [f"images, blur {b:g} px" for b in solver.blur_px]
+    if len(solver.max_steps) != len(stages):
+        raise ValueError(
+            f"solver.max_steps: {solver.max_steps} gives {len(solver.max_steps)} step limits, but step A "
+            f"has {len(stages)} stages here ({'; '.join(stages)}): give one number or one per stage"
+        )
 
 
 def check_coarsen(solver: CalibrationSolver, simulate: SimulatedCalibration, grating: Grating) -> None:
@@ -253,4 +274,7 @@ class CalibrateConfig(Strict):
             raise ValueError(f"model names must be unique, got {names}")
         if self.simulate is not None:
             check_coarsen(self.solver, self.simulate, self.grating)
+        check_stage_steps(
+            self.solver, len(self.simulate.angles_deg if self.data is None else self.data.pairs)
+        )
         return self

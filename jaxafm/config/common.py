@@ -146,11 +146,18 @@ class ImagePair(Strict):
         return self
 
 
+def _key(loc: tuple) -> str:
+    """A pydantic error's location as the key the user wrote, ``a.b.0.c``: without the names
+    pydantic gives the members of a union (``constrained-int``, ``list[int]``, ``literal['auto']``)."""
+    union = lambda p: isinstance(p, str) and (p in ("int", "float", "str", "bool") or not p.isidentifier())
+    return ".".join(str(p) for p in loc if not union(p))
+
+
 def _format(error: ValidationError, path: Path) -> str:
     """pydantic's errors as one line per key: ``key: what is wrong (got value)``."""
     lines = [f"{path}: invalid configuration"]
     for e in error.errors():
-        key = ".".join(str(p) for p in e["loc"])
+        key = _key(e["loc"])
         value = "" if e["type"] == "missing" or not key else f" (got {e.get('input')!r})"
         msg = e["msg"].replace(
             "Extra inputs are not permitted", "unknown key: remove it or check its spelling"

@@ -38,6 +38,7 @@ SOLVERS = (
     "jaxopt.gauss_newton",
     "jaxopt.lbfgs",
     "scipy.least_squares",
+    "jaxafm.geodesic_levenberg_marquardt",
 )
 
 #: Length units a data file may use -> nm per unit (every length inside jaxafm is in nm).

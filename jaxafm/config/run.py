@@ -15,6 +15,7 @@ from .calibrate import (
     Grating,
     SimulatedCalibration,
     check_coarsen,
+    check_stage_steps,
 )
 from .common import Seed, Strict
 
@@ -35,6 +36,7 @@ class StepA(Strict):
         if self.simulate.withheld:
             raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
         check_coarsen(self.solver, self.simulate, self.grating)
+        check_stage_steps(self.solver, len(self.simulate.angles_deg))
         return self
 
 

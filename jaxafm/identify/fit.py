@@ -38,6 +38,7 @@ from ..model.hysteresis import (
     softplus_inverse,
 )
 from ..model.scanner import Axis
+from . import geodesic
 
 Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
@@ -236,11 +237,13 @@ def _solve(
     rtol: float,
     atol: float,
     args=None,
+    curvature: str = "jvp",
 ):
     """Minimise with the named solver; ``residuals(raw, args)`` and ``loss(raw, args)``.
 
     Pass data through ``args``, not closures, with module-level functions: the
-    compiled solver is then reused for other data of the same shapes.
+    compiled solver is then reused for other data of the same shapes. ``curvature``: how the
+    geodesic solver has its second derivative (:func:`~jaxafm.identify.geodesic.solve`).
     """
     library, method = solver.split(".")
     flat0, unravel = ravel_pytree(raw0)  # jaxopt's and scipy's solvers want one flat vector
@@ -263,6 +266,9 @@ def _solve(
             opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
             sol = optx.least_squares(_flat(residuals), opt, flat0, packed, max_steps=max_steps, throw=False)
         return unravel(sol.value), int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
+    if library == "jaxafm":  # Levenberg-Marquardt with geodesic acceleration, on the host
+        x, steps, ok = geodesic.solve(_flat(residuals), flat0, packed, max_steps, rtol, atol, curvature)
+        return unravel(jnp.asarray(x)), steps, ok
     if library == "scipy":  # trust-region reflective, the Jacobian by jax (forward mode), on the host
         from scipy.optimize import least_squares
 
@@ -309,6 +315,16 @@ def _flat(fn: Callable) -> Callable:
         return fn(jax.tree_util.tree_unflatten(tree, leaves), args)
 
     return flat
+
+
+def residual_values(residuals: Callable, raw, args) -> np.ndarray:
+    """``residuals(raw, args)`` through the jitted function the geodesic solver uses
+    (:func:`~jaxafm.identify.geodesic.compiled`): after such a fit, or for other data of the same
+    shapes, nothing is compiled again."""
+    flat, unravel = ravel_pytree(raw)
+    leaves, tree = jax.tree_util.tree_flatten(raw)
+    packed = (tree, tuple(jnp.shape(v) for v in leaves), args)
+    return np.asarray(geodesic.compiled(_flat(residuals))[0](np.asarray(flat, dtype=np.float64), packed))
 
 
 @functools.lru_cache(maxsize=64)
