@@ -15,6 +15,11 @@ alone). Each executable holds memory maps, and a process may have 65,530: one mo
 reached 5,348 maps before the drop and the process was back at 1,428 after it (measured), so the
 session no longer grows towards that limit.
 
+Under pytest-xdist each worker runs XLA (and OpenBLAS) on one thread: with two workers on two
+cores, each one's programs spreading over both cores made them contend (the suite 7 min 43 s and
+7 min 56 s with the threads left to XLA, 7 min 24 s with one each, in one session; the same
+tests and results).
+
 The longest modules are collected first (:data:`LONGEST_FIRST`): ``--dist loadfile`` hands whole
 modules to the two workers in collection order, so the long ones start together and the short
 ones fill in at the end, instead of one worker finishing a long module alone.
@@ -23,6 +28,12 @@ ones fill in at the end, instead of one worker finishing a long module alone.
 import os
 import shutil
 import tempfile
+
+if "PYTEST_XDIST_WORKER" in os.environ:  # -n 2 on 2 cores: one core to each worker (set before JAX starts)
+    os.environ["XLA_FLAGS"] = " ".join(
+        [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"]
+    ).strip()
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import jax
 import pytest
@@ -38,15 +49,15 @@ os.environ.update(_SETTINGS)  # the processes the tests start share it
 
 #: modules by their measured time in one suite (s, ``--durations=0``, 2 workers), longest first
 LONGEST_FIRST = (
-    "test_positioning.py",  # 147
+    "test_positioning.py",  # 115
     "test_diagnose_record.py",  # 115
-    "test_study.py",  # 92
-    "test_diagnose.py",  # 89
-    "test_step_a_sets.py",  # 63
-    "test_diagnose_independent.py",  # 63
-    "test_step_a.py",  # 60
-    "test_distributed.py",  # 50
-    "test_diagnose_scans.py",  # 47
+    "test_diagnose_independent.py",  # 90
+    "test_study.py",  # 84
+    "test_diagnose.py",  # 70
+    "test_step_a.py",  # 68
+    "test_diagnose_scans.py",  # 53
+    "test_distributed.py",  # 51
+    "test_step_a_sets.py",  # 42
 )
 
 
