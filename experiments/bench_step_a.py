@@ -17,6 +17,7 @@ true one (x, rms over the image, nm) on ``--seeds`` scans that differ in the noi
 of its parts.
 
     python experiments/bench_step_a.py [--pixels 256] [--steps 20,14] [--blur 1] [--seeds 8]
+        [--runs geodesic,optimistix,scipy,optimistix30] [--profile 3] [--verbose]
 """
 
 from __future__ import annotations
@@ -53,6 +54,9 @@ def path_error(model: calibration.ScanModel, scan, truth: RasterScan) -> dict:
     }
 
 
+RUNS = ("geodesic", "optimistix", "scipy", "optimistix30")
+
+
 def cleared() -> None:
     """Forget every compiled function: JAX's caches and jaxafm's caches of jitted solver functions."""
     jax.clear_caches()
@@ -67,8 +71,18 @@ def main():
     ap.add_argument("--steps", default="20,14", help="step limits, the feature stage's first")
     ap.add_argument("--blur", default="1", help="the image stages' blurs (px), comma-separated")
     ap.add_argument("--seeds", type=int, default=8, help="scans (simulation seeds) to measure accuracy on")
+    ap.add_argument(
+        "--runs", default=",".join(RUNS), help=f"which runs, comma-separated, of {', '.join(RUNS)}"
+    )
+    ap.add_argument(
+        "--profile", type=int, default=3, help="repeats of each profiled Jacobian (0: no profile)"
+    )
+    ap.add_argument("--verbose", action="store_true", help="print the first identification's stages")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/bench_step_a"))
     a = ap.parse_args()
+    unknown = set(a.runs.split(",")) - set(RUNS)
+    if unknown:
+        ap.error(f"--runs {a.runs}: unknown {', '.join(sorted(unknown))}; allowed: {', '.join(RUNS)}")
     a.out.mkdir(parents=True, exist_ok=True)
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
@@ -79,17 +93,18 @@ def main():
     spec = CalibrationModel(name="gpi")
     geo, lm = "jaxafm.geodesic_levenberg_marquardt", "optimistix.levenberg_marquardt"
     limits = ",".join(map(str, steps))
-    runs = [
-        (f"jaxafm geodesic LM, steps {limits}", geo, steps),
-        (f"optimistix LM, steps {limits}", lm, steps),
-        (f"scipy least_squares (trf), evaluations {limits}", "scipy.least_squares", steps),
-        ("optimistix LM, 30 steps a stage", lm, 30),
-    ]
+    every = {
+        "geodesic": (f"jaxafm geodesic LM, steps {limits}", geo, steps),
+        "optimistix": (f"optimistix LM, steps {limits}", lm, steps),
+        "scipy": (f"scipy least_squares (trf), evaluations {limits}", "scipy.least_squares", steps),
+        "optimistix30": ("optimistix LM, 30 steps a stage", lm, 30),
+    }
+    runs = [every[k] for k in RUNS if k in a.runs.split(",")]
     results = {}
     for name, solver, limit in runs:
         cleared()
 
-        def identify(scan, solver=solver, limit=limit):
+        def identify(scan, solver=solver, limit=limit, log=lambda s: None):
             return calibration.identify(
                 scan,
                 kind=spec.kind,
@@ -100,12 +115,14 @@ def main():
                 coarsen="auto",
                 max_steps=limit,
                 hold_out=False,
-                log=lambda s: None,
+                log=log,
             )
 
         (scan,), sim = scans[0]
         print(f"{name} ...", flush=True)
-        first, again = identify(scan), identify(scan)
+        first = identify(scan, log=print if a.verbose else lambda s: None)
+        print(f"  first identification {first.seconds:.1f} s", flush=True)
+        again = identify(scan)
         results[name] = {
             "seconds": first.seconds,
             "seconds_compiled": again.seconds,
@@ -130,7 +147,7 @@ def main():
             + " nm",
             flush=True,
         )
-    profile = jacobian_profile(scans[0][0][0], spec)
+    profile = jacobian_profile(scans[0][0][0], spec, a.profile) if a.profile else None
     print(
         f"\n{a.pixels}² trace/retrace pair; stages: feature points, then images blurred by "
         f"{', '.join(f'{b:g}' for b in blur)} px; {a.seeds} scans"
@@ -151,13 +168,16 @@ def main():
         print(f"{name:48s} tip path x rms after each stage (first scan): {after} nm")
     ours, others = results[runs[0][0]]["seconds"], [results[n]["seconds"] for n, *_ in runs[1:]]
     print(
-        "time against the geodesic LM: "
-        + ", ".join(f"{n}: {t / ours:.2f}x" for (n, *_), t in zip(runs[1:], others))
-        + "; goal: identification in 30 s or less"
+        f"time against the {runs[0][0]}: "
+        + "".join(f"{n}: {t / ours:.2f}x; " for (n, *_), t in zip(runs[1:], others))
+        + "goal: identification in 30 s or less"
     )
-    print(f"\none forward-mode Jacobian ({profile['parameters']} parameters, {profile['samples']} samples):")
-    for part, r in profile["parts"].items():
-        print(f"  {part:34s} {r['median_s']:7.3f} s  (compile {r['compile_s']:.1f} s)")
+    if profile:
+        print(
+            f"\none forward-mode Jacobian ({profile['parameters']} parameters, {profile['samples']} samples):"
+        )
+        for part, r in profile["parts"].items():
+            print(f"  {part:34s} {r['median_s']:7.3f} s  (compile {r['compile_s']:.1f} s)")
     (a.out / "metrics.json").write_text(
         json.dumps(
             {"pixels": a.pixels, "steps": steps, "blur_px": blur, "seeds": a.seeds, "machine": machine_info()}
@@ -170,7 +190,7 @@ def main():
     print(f"wrote {a.out}/metrics.json, bench_step_a.png")
 
 
-def jacobian_profile(scan, spec: CalibrationModel) -> dict:
+def jacobian_profile(scan, spec: CalibrationModel, repeats: int) -> dict:
     """Median time of one forward-mode Jacobian (every fitted parameter) of the image residuals
     at the start model, and of its parts along the chain: each axis's hysteresis (its plays
     run over blocks), hysteresis and creep, the whole scanner, the rendered heights and the
@@ -214,7 +234,7 @@ def jacobian_profile(scan, spec: CalibrationModel) -> dict:
         "+ feedback lag": recorded,
         "image residuals (+ blur)": lambda x: calibration._image_residuals(unravel(x), args),
     }
-    timed = {k: time_jax(jax.jacfwd(f), x0, repeats=3)[0] for k, f in parts.items()}
+    timed = {k: time_jax(jax.jacfwd(f), x0, repeats=repeats)[0] for k, f in parts.items()}
     return {"parameters": int(x0.size), "samples": int(u.shape[0]), "parts": timed}
 
 
