@@ -143,7 +143,15 @@ class CalibrationScan(eqx.Module):
 
     def features(self) -> tuple:
         """Pillar (or pit) centres of trace and retrace, indexed in one lattice frame: the
-        lattice of their nominal stage positions (so images at any scan angle index alike)."""
+        lattice of their nominal stage positions (so images at any scan angle index alike);
+        the retrace's indices matched to the trace's by the nearest feature at the line
+        reversal (the first of :meth:`feature_matches`)."""
+        trace, retraces = self.feature_matches()
+        return trace, retraces[0]
+
+    def feature_matches(self) -> tuple:
+        """The trace's features and the retrace's, the latter indexed in each way the line
+        reversal allows (:func:`_retrace_matches`): ``(trace, [retrace, ...])``."""
         sign = -1.0 if self.pits else 1.0
         found = []
         for k in ("trace", "retrace"):
@@ -152,7 +160,7 @@ class CalibrationScan(eqx.Module):
             _check_coverage(rc, self.pitch_px, (self.raster.lines, self.raster.pixels), name)
             ij, angle = index_lattice(self.raster.nominal(rc), self.pitch, name, "nm")
             found.append(LatticeFeatures(rc, ij, angle))
-        return found[0], _match_indices(*found, self.pitch_px[0])
+        return found[0], _retrace_matches(*found, self.pitch_px)
 
 
 def _check_coverage(rc: np.ndarray, pitch_px: tuple, shape: tuple, name: str) -> None:
@@ -170,14 +178,29 @@ def _check_coverage(rc: np.ndarray, pitch_px: tuple, shape: tuple, name: str) ->
         )
 
 
-def _match_indices(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: float) -> LatticeFeatures:
-    """Shift the retrace's indices onto the trace's at the line reversal (the images' last
-    columns), where the trace turns into the retrace and the tip is continuous: there each
-    pillar sits at nearly the same pixel in both images."""
-    turn = ft.rc[:, 1] > ft.rc[:, 1].max() - 0.5 * pitch_px
-    nearest = np.argmin(np.linalg.norm(ft.rc[turn, None, :] - fr.rc[None, :, :], axis=-1), axis=1)
-    shifts, counts = np.unique(ft.ij[turn] - fr.ij[nearest], axis=0, return_counts=True)
-    return LatticeFeatures(fr.rc, fr.ij + shifts[np.argmax(counts)], fr.angle)
+def _retrace_matches(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: tuple) -> list:
+    """The retrace's features, their indices shifted onto the trace's in the ways the line
+    reversal allows, the likelier first. Near the reversal (the images' last columns) the trace
+    turns into the retrace and the tip is continuous, so a pillar sits at nearly the same pixel
+    in both images, but only nearly: a scan that overscans turns beyond the last column, where
+    the hysteresis loop is still open, and the retrace sees a pillar up to about a pitch
+    earlier along the line than the trace (0.6-0.95 pitch for 12-18 % loops at 10 % overscan).
+    So each trace feature of the last half pitch is paired with its nearest retrace feature of
+    the same line on either side; each side gives the shift most of its pairs agree on, the
+    nearer side's first. :func:`identify` keeps the one whose feature fit is best."""
+    turn = ft.rc[:, 1] > ft.rc[:, 1].max() - 0.5 * pitch_px[0]
+    d = fr.rc[None, :, :] - ft.rc[turn, None, :]  # (turn features, retrace features, (row, col))
+    line = np.abs(d[..., 0]) < 0.5 * pitch_px[1]
+    sides = []
+    for side in (d[..., 1] <= 0, d[..., 1] > 0):
+        dist = np.where(line & side, np.abs(d[..., 1]), np.inf)
+        paired = np.isfinite(dist.min(axis=1))
+        if paired.any():
+            nearest = np.argmin(dist[paired], axis=1)
+            shifts, counts = np.unique(ft.ij[turn][paired] - fr.ij[nearest], axis=0, return_counts=True)
+            sides.append((float(np.median(dist[paired].min(axis=1))), tuple(shifts[np.argmax(counts)])))
+    shifts = list(dict.fromkeys(shift for _, shift in sorted(sides)))
+    return [LatticeFeatures(fr.rc, fr.ij + np.asarray(shift), fr.angle) for shift in shifts]
 
 
 class ScanModel(eqx.Module):
@@ -560,16 +583,15 @@ def identify(
             raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
     factor = coarse_factor(scans, coarsen)
     start = time.perf_counter()
-    found = [scan.features() for scan in scans]
+    trace, retraces = scans[0].feature_matches()
+    found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
     if model is None:
         model = initial_model(scans[0], kind, effects, operators, deadzones, levels, rotation)
     model = _start_lattice(_float64(model), scans[0], found[0])  # float64 leaves: one compilation each
-    held = [[(f.ij.sum(axis=1) % 2 == 1) & hold_out for f in images] for images in found]
-    train = [[(f.rc[~h], f.ij[~h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
-    test = [[(f.rc[h], f.ij[h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
-    plan = [("feature points" + (", first scan" if len(scans) > 1 else ""), scans[:1], train[:1])]
+    train, test = _split(found, hold_out)
+    plan = [("feature points" + (", first scan" if len(scans) > 1 else ""), scans[:1], None)]
     if len(scans) > 1:
-        plan.append(("feature points, all scans", scans, train))
+        plan.append(("feature points, all scans", scans, None))
     radius = int(np.ceil(3 * max(blur_px, default=0)))
     plan += [(f"images, blur {b:g} px", scans, gaussian_kernel(b, radius)) for b in blur_px]
     limits = stage_steps(max_steps, [name for name, *_ in plan])
@@ -579,7 +601,6 @@ def identify(
     for i, (name, fitted, data) in enumerate(plan):
         if i == 1 and len(scans) > 1:
             train, test = _align(model, scans, found, train, test)
-            data = train
         image = name.startswith("images")
         k = 1 if image else factor  # the feature points on the coarse scans, the images whole
         level = tuple(scan.coarse(k) for scan in fitted)
@@ -587,16 +608,23 @@ def identify(
         if image:
             masks = masks or _split_masks(model, level, hold_out)
             data = (jnp.asarray(data), masks[0])
-        else:
-            data = tuple(tuple(_padded(_coarse_rc(rc, k), ij) for rc, ij in images) for images in data)
         log(f"  stage {i + 1}/{len(plan)} {name} ...")
         t0 = time.perf_counter()
-        fit, steps, ok, loss = _fit_stage(name, model, level, data, solver, limits[i], rtol, atol)
+        matched = ""
+        if image:
+            fit, steps, ok, loss = _fit_stage(name, model, level, data, solver, limits[i], rtol, atol)
+        elif i == 0:
+            (fit, steps, ok, loss), found, (train, test), matched = _first_features(
+                name, model, level, found, retraces, hold_out, k, solver, limits[i], rtol, atol
+            )
+        else:
+            data = _feature_data(train, k)
+            fit, steps, ok, loss = _fit_stage(name, model, level, data, solver, limits[i], rtol, atol)
         message = (
             f"{solver}: converged in {steps} steps, loss {loss:.3e}"
             if ok
             else f"{solver}: did NOT converge in {steps} steps (max_steps={limits[i]}); last loss {loss:.3e}"
-        )
+        ) + matched
         error = held_out_rms(fit, fitted, test[: len(fitted)])
         comparable = [e for e, (_, f, _) in zip(held_nm, plan) if len(f) == len(scans)]
         keep, verdict = _judge(comparable, error, test) if image else (True, "")
@@ -618,6 +646,48 @@ def identify(
         validate(model, scans, test),
         tuple(implausible(model, scans)),
     )
+
+
+def _split(found: list, hold_out: bool) -> tuple:
+    """Per scan, per image, the features fitted and those held out: ``(train, test)``, each
+    ``[[(rc, ij), ...], ...]``; held out are the odd sites of the lattice's checkerboard."""
+    held = [[(f.ij.sum(axis=1) % 2 == 1) & hold_out for f in images] for images in found]
+    train = [[(f.rc[~h], f.ij[~h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
+    test = [[(f.rc[h], f.ij[h]) for f, h in zip(images, hs)] for images, hs in zip(found, held)]
+    return train, test
+
+
+def _feature_data(train: list, factor: int) -> tuple:
+    """The feature stage's data: per scan, per image, the fitted features on the scans
+    coarsened by ``factor``, padded (:func:`_padded`)."""
+    return tuple(tuple(_padded(_coarse_rc(rc, factor), ij) for rc, ij in images) for images in train)
+
+
+def _first_features(
+    name, model, level, found, retraces, hold_out, factor, solver, limit, rtol, atol
+) -> tuple:
+    """The first scan's feature stage, fitted once for each way of matching its retrace's
+    indices to its trace's (:func:`_retrace_matches`); the best fit (lowest loss) says which
+    is right: a retrace indexed a pitch off asks the hysteresis loop for a branch separation
+    a pitch off near the reversal, where the loop closes, which no scanner model fits (on
+    scanner 3 of configs/study.yaml its loss is 150 times the right match's). Returns
+    the fit ``(model, steps, converged, loss)``, the features and their split with the chosen
+    retrace, and a note for the stage's message (empty with one match)."""
+    tried = []
+    for retrace in retraces:
+        features = [(found[0][0], retrace)] + list(found[1:])
+        split = _split(features, hold_out)
+        data = _feature_data(split[0][:1], factor)
+        tried.append((_fit_stage(name, model, level, data, solver, limit, rtol, atol), features, split))
+    losses = [t[0][3] for t in tried]
+    best = int(np.argmin(losses))
+    note = (
+        f"; retrace indices matched the {'nearer' if best == 0 else 'other'} way at the line reversal "
+        f"(loss {losses[best]:.3e}; {', '.join(f'{v:.3e}' for j, v in enumerate(losses) if j != best)} the other way)"
+        if len(tried) > 1
+        else ""
+    )
+    return (*tried[best], note)
 
 
 def stage_steps(max_steps: Union[int, Sequence[int]], stages: Sequence[str]) -> list:
@@ -735,7 +805,7 @@ def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list)
     to the first scan's features) the later scan's trace features land near whole lattice
     coordinates: its rising fast axis follows the branch that the first scan's slow axis
     traced, while its retrace follows a branch no earlier image showed (its retrace indices
-    follow the trace's, :func:`_match_indices`). The shift is the nearest whole number of
+    follow the trace's, :func:`_retrace_matches`). The shift is the nearest whole number of
     their median; unless four in five trace features round to that same shift, the scans are
     unmatchable (an error naming the scan)."""
     train, test = list(train), list(test)

@@ -606,9 +606,10 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
         e = r[f"{key}_error_nm"]
         survey = "AB" if key in ("ABC", "push") else key
         with_a = key in ("A", "AB", "ABC", "push")
-        scan_s = np.mean([v.get(f"{survey}_survey_s", np.nan) for v in info.values()]) + (
+        surveyed = [v[f"{survey}_survey_s"] for v in info.values() if f"{survey}_survey_s" in v]
+        scan_s = (np.mean(surveyed) if surveyed else np.nan) + (
             calib_s if with_a else 0
-        )
+        )  # scanners that scanned
         if key in ("ABC", "push"):
             scan_s += float(np.nanmean(r["ABC_local_scan_s"]))
         success = (
