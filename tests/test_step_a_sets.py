@@ -121,7 +121,7 @@ def test_features_of_both_scans_sit_on_the_true_lattice(pits):
 
 
 def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_feature():
-    """A 17.7 % loop scanned with 10 % overscan (configs/study.yaml's scanner 3): near the line
+    """A 17.7 % loop scanned with 10 % overscan (configs/study.yaml's scanner 3, at 64 px): near the line
     reversal the retrace sees each pillar about 0.9 pitch earlier along the line than the trace,
     so the retrace feature nearest a trace feature there is the next pillar. Through the true
     scanner, trace and retrace features must sit on the same lattice sites (one shift for
@@ -129,7 +129,7 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     fit keeps that one: its tip path is then within tens of nm of the truth, where the
     nearest match leaves it about half a pitch (500 nm rms) off."""
     afm = default_afm(loop_width=0.177, creep_gamma=0.01, coupling=0.0003, noise_std=0.2)
-    spec = SimulatedCalibration(pixels=128, size_nm=8000, line_rate_hz=1.0, seed=0)
+    spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
     (scan,), sim = step_a.simulate_calibration(spec, Grating(pitch_nm=1000, rotation_deg=0), afm)
     trace, retraces = scan.feature_matches()
     true = _true_model(sim)
