@@ -588,7 +588,7 @@ def identify(
     if model is None:
         model = initial_model(scans[0], kind, effects, operators, deadzones, levels, rotation)
     model = _start_lattice(_float64(model), scans[0], found[0])  # float64 leaves: one compilation each
-    train, test = _split(found, hold_out)
+    train, test = _split(found, hold_out)  # the first stage may change the first scan's retrace
     plan = [("feature points" + (", first scan" if len(scans) > 1 else ""), scans[:1], None)]
     if len(scans) > 1:
         plan.append(("feature points, all scans", scans, None))

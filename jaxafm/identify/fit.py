@@ -246,11 +246,7 @@ def _solve(
     geodesic solver has its second derivative (:func:`~jaxafm.identify.geodesic.solve`).
     """
     library, method = solver.split(".")
-    flat0, unravel = ravel_pytree(raw0)  # jaxopt's and scipy's solvers want one flat vector
-    # optimistix and scipy get one flat vector too (a Jacobian of many leaves compiles once per
-    # leaf); the function and the tree's layout travel in args, so their compilation is reused
-    leaves, tree = jax.tree_util.tree_flatten(raw0)
-    packed = (tree, tuple(jnp.shape(v) for v in leaves), args)
+    flat0, unravel, packed = _packed(raw0, args)
     if library == "optimistix":
         if method == "bfgs":
             sol = optx.minimise(
@@ -317,13 +313,20 @@ def _flat(fn: Callable) -> Callable:
     return flat
 
 
+def _packed(raw, args) -> tuple:
+    """``raw`` as one flat vector (every solver gets one: a Jacobian of many leaves compiles once
+    per leaf), its ``unravel``, and ``(tree, shapes, args)``, the argument of :func:`_flat`'s
+    functions: the function and the tree's layout travel in it, so their compilation is reused."""
+    flat, unravel = ravel_pytree(raw)
+    leaves, tree = jax.tree_util.tree_flatten(raw)
+    return flat, unravel, (tree, tuple(jnp.shape(v) for v in leaves), args)
+
+
 def residual_values(residuals: Callable, raw, args) -> np.ndarray:
     """``residuals(raw, args)`` through the jitted function the geodesic solver uses
     (:func:`~jaxafm.identify.geodesic.compiled`): after such a fit, or for other data of the same
     shapes, nothing is compiled again."""
-    flat, unravel = ravel_pytree(raw)
-    leaves, tree = jax.tree_util.tree_flatten(raw)
-    packed = (tree, tuple(jnp.shape(v) for v in leaves), args)
+    flat, _, packed = _packed(raw, args)
     return np.asarray(geodesic.compiled(_flat(residuals))[0](np.asarray(flat, dtype=np.float64), packed))
 
 

@@ -606,10 +606,9 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
         e = r[f"{key}_error_nm"]
         survey = "AB" if key in ("ABC", "push") else key
         with_a = key in ("A", "AB", "ABC", "push")
+        # over the scanners that scanned (a refused scanner surveys nothing)
         surveyed = [v[f"{survey}_survey_s"] for v in info.values() if f"{survey}_survey_s" in v]
-        scan_s = (np.mean(surveyed) if surveyed else np.nan) + (
-            calib_s if with_a else 0
-        )  # scanners that scanned
+        scan_s = (np.mean(surveyed) if surveyed else np.nan) + (calib_s if with_a else 0)
         if key in ("ABC", "push"):
             scan_s += float(np.nanmean(r["ABC_local_scan_s"]))
         success = (
