@@ -115,6 +115,32 @@ def test_edge_shape_asymmetric_feedback_closed_form():
     np.testing.assert_allclose(step[1, 1], -rise * dx * up, atol=2 * dx)  # falling edge, retrace: up
 
 
+def test_level_crossings_of_a_rise_after_an_unsettled_fall():
+    """A grating row written in NumPy: each line's top (30 nm) falls as 30 exp(-u / 70 nm) and
+    has not settled (1.7 nm left) when the next rise, a 20 nm linear ramp, begins 200 nm later;
+    pitch 400 nm, a sample every 4 nm. The fall's tail crosses the low levels within a quarter
+    pitch of the rise: each edge's crossings must be its own, on the exact curves (ramp:
+    linear, exact under linear interpolation; tail: lambda ln(30 / level))."""
+    dx, lam, w, pitch = 4.0, 70.0, 20.0, 400.0
+    x = dx * np.arange(500)
+    u = np.mod(x - 48.0, pitch)
+    z0 = 30 * np.exp(-200 / lam)
+    row = np.where(u < 200, 30 * np.exp(-u / lam), np.minimum(z0 + (30 - z0) * (u - 200) / w, 30.0))
+    image = np.tile(row, (10, 1))
+    re = S.row_edges(image, (dx, dx))
+    got = S._edge_levels(image, re, S.LEVELS) * dx
+    lo, hi = np.percentile(row, [10, 90])
+    level = lo + np.array(S.LEVELS) * (hi - lo)
+    e = re.edges
+    first = e.row == 0
+    for xe, rising in zip(e.x_nm[first], e.rising[first]):
+        start = 48.0 + pitch * np.floor((xe - 48.0) / pitch)  # the line's fall
+        expect = start + (200 + (level - z0) / (30 - z0) * w if rising else lam * np.log(30 / level))
+        np.testing.assert_allclose(got[first][e.x_nm[first] == xe][0], expect, atol=0.1)
+    rise_mid = 200 + (level[2] - z0) / (30 - z0) * w
+    assert rise_mid - lam * np.log(30 / level[0]) < pitch / 4  # the tail's crossing is near the rise
+
+
 def test_afm_names_and_drops_the_feedback_asymmetry():
     afm = AFM(
         W.simulated_scanner(None, 0.0, 0.0), Tip(jnp.asarray(10.0), jnp.asarray(0.3)), jnp.full(2, 500.0)

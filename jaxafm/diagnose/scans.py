@@ -256,8 +256,8 @@ def _edge_levels(z: np.ndarray, re: RowEdges, levels, kind: str = "lines") -> np
             right = np.concatenate([0.5 * (c[1:] + c[:-1]), [len(row) - 1.0]])
         else:
             left, right = c - quarter, c + quarter
-        for i, a0, b0 in zip(order, left, right):
-            a, b = int(max(np.floor(a0), 0)), int(min(np.ceil(b0), len(row) - 1))
+        for i, a0, b0, ci in zip(order, left, right, c):
+            a, b = _passage(row, a0, b0, ci, e.rising[i])
             seg = row[a : b + 1]
             for j, lv in enumerate(levels):
                 s = seg - (lo + lv * (hi - lo))
@@ -265,6 +265,17 @@ def _edge_levels(z: np.ndarray, re: RowEdges, levels, kind: str = "lines") -> np
                 if k.size:
                     out[i, j] = np.mean(a + k + s[k] / (s[k] - s[k + 1]))
     return out
+
+
+def _passage(row: np.ndarray, a0: float, b0: float, centre: float, rising: bool) -> tuple:
+    """Sample indices (a, b) of an edge's own passage within the window [a0, b0] px around its
+    centre: from the window's lowest (rising; highest: falling) sample before the centre to its
+    highest (lowest) after it, so that the tail of a neighbouring edge that has not settled
+    (a slow fall before a rise) is not counted as a crossing of this one."""
+    a, b = int(max(np.floor(a0), 0)), int(min(np.ceil(b0), len(row) - 1))
+    m = int(min(max(round(centre), a), b))
+    low, high = (np.argmin, np.argmax) if rising else (np.argmax, np.argmin)
+    return a + int(low(row[a : m + 1])), m + int(high(row[m : b + 1]))
 
 
 # ----------------------------------------------------------------------------- edge shape
