@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import Field, model_validator
 
@@ -192,7 +192,12 @@ class DiagnoseConfig(Strict):
     history_v: Optional[list[float]] = Field(
         None, min_length=1, description="inputs applied before t=0 (V); default: the plays start at u[0]"
     )
-    settle_s: float = Field(0.0, ge=0, description="start-up transient left out of the training loss")
+    settle_s: Union[Literal["auto"], Annotated[float, Field(ge=0)]] = Field(
+        "auto",
+        description="s of start-up transient left out of the training loss; auto: 0 where the drive "
+        "starts at rest or history_v is given, else until every drive has reversed once "
+        "(jaxafm.diagnose.record.auto_settle)",
+    )
     train_fraction: float = Field(
         0.6, gt=0, lt=1, description="records: first part of the time; images: of the rows"
     )

@@ -1,8 +1,9 @@
 """Diagnosis of an actuator record: where the nominal model misses, which effect is missing.
 
 The nominal model (:class:`~jaxafm.diagnose.plant.Plant`) is fitted to the training part of a
-record (the first ``train_fraction`` of it, after ``settle`` samples; or, with ``blocks``, every
-other of that many equal blocks in time); the richer hysteresis operators are tried (symmetric
+record (the first ``train_fraction`` of it, after ``settle`` samples -- by default until every
+drive has reversed once, :func:`first_reversal`; or, with ``blocks``, every other of that many
+equal blocks in time); the richer hysteresis operators are tried (symmetric
 PI -> twice the plays -> generalised PI -> Preisach: :data:`SHAPES`), then each candidate effect
 is added -- the same module the simulator uses -- and the model refitted, warm-started from the
 richest significant shape. The gap is the rms residual ``sqrt(mean((d - model)^2))`` (nm) on
@@ -345,6 +346,8 @@ class ActuatorRecord(DataKind):
             "train_samples": int(self.train.sum()),
             "heldout_samples": int(self.heldout.sum()),
             "split": f"blocked, {self.blocks} blocks" if self.blocks else "later",
+            "settle_samples": self.settle,
+            "settle_s": float(self.record.t[self.settle] - self.record.t[0]),
             "heldout_from_s": self.split_s,
             "duration_s": float(self.record.t[-1] - self.record.t[0]),
             "counts": "samples",
@@ -438,7 +441,7 @@ def diagnose_record(
     spec: Nominal,
     candidates,
     train_fraction: float = 0.6,
-    settle: int = 0,
+    settle: Optional[int] = None,
     history=None,
     rules: Rules = Rules(),
     log=print,
@@ -451,7 +454,7 @@ def diagnose_record(
         spec: the nominal model.
         candidates: effect names to try (those a record cannot show are skipped with the reason).
         train_fraction: the first part of the record (in time) the fits train on.
-        settle: samples at the start left out of training.
+        settle: samples at the start left out of training; ``None``: :func:`auto_settle`.
         history: inputs (H,) V applied before ``t[0]``, or ``None``.
         rules: when a candidate is significant, and the solver's step limit.
         log: called with a line per fit.
@@ -462,8 +465,64 @@ def diagnose_record(
         The :class:`~jaxafm.diagnose.core.Diagnosis`; its ``data`` is an :class:`ActuatorRecord`,
         its fits are :class:`RecordFit` s.
     """
+    if settle is None:
+        settle = auto_settle(record, train_fraction, history, blocks)
     data = ActuatorRecord.split_off(record, spec, train_fraction, settle, history, rules.max_steps, blocks)
     return diagnose(data, candidates, rules, log)
+
+
+#: A drive has reversed once it is this fraction of its range away from both its running maximum
+#: and its running minimum since the record's start (a margin well above command noise).
+REVERSAL_FRACTION = 0.05
+#: The automatic settle takes at most this fraction of the training part.
+MAX_SETTLE_FRACTION = 0.25
+#: A drive that stays within this fraction of its range of its first value over the first
+#: :data:`REST_SPAN` of the record (at least 10 samples) starts at rest.
+REST_FRACTION = 0.005
+REST_SPAN = 0.01
+
+
+def first_reversal(u, fraction: float = REVERSAL_FRACTION) -> int:
+    """The first sample by which every input column of ``u`` (T,) or (T, k) has reversed once:
+    is at least ``fraction`` of its range away from both its running maximum and its running
+    minimum since ``t[0]``; 0 for a column that never reverses (a ramp, a step and hold).
+
+    Before a drive's first reversal the model's memory -- which plays are engaged and where,
+    the creep stages' levels -- is what the motion before the record left, which the record
+    does not hold; the nominal model starts it at rest. A reversal of size ``s`` puts every play
+    of threshold up to ``s / 2`` in the state the record's own motion gives it (the wiping-out
+    property), whatever came before; larger plays and creep stages slower than the time elapsed
+    still carry the unknown start."""
+    out = 0
+    for col in _columns(np.asarray(u, dtype=float)).T:
+        margin = fraction * np.ptp(col)
+        if margin == 0:
+            continue
+        away = np.minimum(np.maximum.accumulate(col) - col, col - np.minimum.accumulate(col))
+        hit = np.flatnonzero(away >= margin)
+        out = max(out, int(hit[0]) if hit.size else 0)
+    return out
+
+
+def starts_at_rest(u) -> bool:
+    """Whether every input column of ``u`` (T,) or (T, k) holds still at the record's start:
+    within :data:`REST_FRACTION` of its range of its first value over the first
+    :data:`REST_SPAN` of the samples (at least 10)."""
+    u = _columns(np.asarray(u, dtype=float))
+    head = u[: max(10, int(REST_SPAN * len(u)))]
+    return bool(np.all(np.abs(head - u[0]) <= REST_FRACTION * np.ptp(u, axis=0)))
+
+
+def auto_settle(record: Record, train_fraction: float = 0.6, history=None, blocks: int = 0) -> int:
+    """The default ``settle``: 0 where the start state is known -- the inputs before the record
+    are given (``history``), or the drive starts at rest (:func:`starts_at_rest`, the nominal
+    model's start) -- else :func:`first_reversal` of the record's drive, at most
+    :data:`MAX_SETTLE_FRACTION` of the training part (the first block of a blocked split)."""
+    if history is not None or starts_at_rest(record.u):
+        return 0
+    n = len(record)
+    train = n // blocks if blocks else record.split(train_fraction)
+    return min(first_reversal(record.u), int(MAX_SETTLE_FRACTION * train))
 
 
 def decompose(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:

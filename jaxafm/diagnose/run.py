@@ -17,7 +17,7 @@ from ..config import resolve_data_path
 from . import withheld
 from .core import Diagnosis, Rules
 from .image import diagnose_image
-from .record import ActuatorRecord, diagnose_record
+from .record import ActuatorRecord, auto_settle, diagnose_record
 from .report import write
 from .scans import ScanPair, diagnose_scans
 
@@ -61,7 +61,11 @@ def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     except ValueError as e:
         key = "blocks" if blocks else "train_fraction"
         raise ValueError(f"{e}: give a longer record, or change {key} in {config_path}") from None
-    settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
+    history = None if cfg.history_v is None else np.asarray(cfg.history_v, dtype=float)
+    if cfg.settle_s == "auto":
+        settle = auto_settle(record, cfg.train_fraction, history, blocks)
+    else:
+        settle = int(round(cfg.settle_s / np.median(np.diff(record.t))))
     if int(data.train[settle:].sum()) < 10:
         raise ValueError(
             f"settle_s={cfg.settle_s} s leaves {int(data.train[settle:].sum())} training samples: lower "
@@ -69,12 +73,11 @@ def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
         )
     if "creep" in cfg.nominal.effects and (reason := data.cannot("creep")):
         raise ValueError(f"nominal.effects in {config_path}: 'creep' cannot be fitted: {reason}")
-    history = None if cfg.history_v is None else np.asarray(cfg.history_v, dtype=float)
     outputs = np.asarray(record.d).reshape(len(record), -1).shape[1]
     log(
         f"record: {record.meta['source']} - {len(record)} samples x {outputs} output(s); train "
-        f"{int(data.train[settle:].sum())}, hold out {int(data.heldout.sum())}"
-        + (f" ({blocks} alternating blocks)" if blocks else "")
+        f"{int(data.train[settle:].sum())} (from {record.t[settle] - record.t[0]:.3g} s on), hold out "
+        f"{int(data.heldout.sum())}" + (f" ({blocks} alternating blocks)" if blocks else "")
     )
     return diagnose_record(
         record, cfg.nominal, cfg.candidates, cfg.train_fraction, settle, history, rules, log, blocks
