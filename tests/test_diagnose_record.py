@@ -171,7 +171,7 @@ def test_auto_settle_is_zero_with_a_known_history_and_at_most_a_quarter_of_train
     assert D.first_reversal(fast.u) == pytest.approx(expect, abs=1)
     assert D.auto_settle(fast, 0.6) == 150
     assert D.auto_settle(fast, 0.6, history=np.zeros(3)) == 0
-    held = record(np.where(t < 1, 0.0, np.sin(w * (t - 1 + 1))))  # 1 s at rest, then the same sine
+    held = record(np.where(t < 1, 0.0, np.sin(w * (t - 1))))  # 1 s at rest at 0 V, then a sine
     assert D.starts_at_rest(held.u) and D.auto_settle(held, 0.6) == 0
     assert not D.starts_at_rest(fast.u)
 
