@@ -670,15 +670,15 @@ class Artefacts:
         return np.asarray(xy) @ grad + kappa * np.sum(np.asarray(xy) ** 2, axis=-1)
 
 
-def _line_artefacts(z, art: Artefacts, dt: float, rng) -> np.ndarray:
+def _line_artefacts(z, art: Artefacts, dt: float, rng):
     """The z-feedback lag along the time-ordered samples (:func:`lag_ramp`: the heights linear
     between samples; an edge's first moment moves by exactly tau), then per-line offsets:
-    ``z`` (lines, 2, n_line) in time order (trace, retrace)."""
+    ``z`` (lines, 2, n_line) in time order (trace, retrace). Returns them and the offsets (lines, 2)."""
     if art.feedback_tau_s > 0:
         z = lag_ramp(z.reshape(-1), art.feedback_tau_s, dt).reshape(z.shape)
     shared = rng.normal(0.0, art.line_offset_nm, (z.shape[0], 1, 1))
     own = rng.normal(0.0, art.line_offset_nm / 2, (z.shape[0], 2, 1))
-    return z + shared + own
+    return z + shared + own, (shared + own)[..., 0]
 
 
 def _pixel_artefacts(images, art: Artefacts, depth: float, rng):
@@ -736,7 +736,7 @@ def scan(
     order = np.stack([drive.trace, drive.retrace], axis=1)  # (lines, 2, n_line), time order
     tip = path[order]
     z = topography(tip, lattice, profile) + art.background(tip, raster.size_nm[0])
-    z = _line_artefacts(z, art, raster.dt, rng)
+    z, offsets = _line_artefacts(z, art, raster.dt, rng)
     n_os, cols = raster.overscan_px, slice(raster.overscan_px, raster.overscan_px + raster.pixels)
 
     def image_order(a):  # (lines, 2, n_line, ...) time order -> trace, retrace in image layout
@@ -758,6 +758,7 @@ def scan(
         "tip_retrace_full_nm": tip_r,
         "nominal_x_full_nm": drive.nominal,
         "raster_start_s": drive.raster_start * drive.h,
+        "line_offsets_nm": offsets[np.argsort(drive.rows)],  # (rows, [trace, retrace])
         "spikes": spikes,
         "saturated": saturated,
         "ceiling_nm": ceiling,

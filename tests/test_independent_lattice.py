@@ -278,6 +278,7 @@ def test_artefacts_spikes_saturation_offsets_noise():
     plain = ~(spikes | saturated)
     np.testing.assert_allclose(diff[plain], np.broadcast_to(rows[..., None], diff.shape)[plain], atol=1e-9)
     assert 3.5 < np.std(rows) < 8.0 and np.corrcoef(rows)[0, 1] > 0.5  # shared by trace and retrace
+    np.testing.assert_allclose(rows.T, s.truth["line_offsets_nm"], atol=1e-9)
     noisy = draw_case(17, artefacts=Artefacts(noise_nm=2.0), **common)["scans"][0]
     assert np.std(noisy.trace - clean.trace) == pytest.approx(2.0, rel=0.1)
 
