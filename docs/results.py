@@ -180,30 +180,14 @@ def render(made: Table, page: str) -> list[str]:
     return lines
 
 
-# --- the goals (docs/index.md, README.md) ----------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Goal:
-    """One goal checked on one run: its wording, the page that explains it, the result as a
-    sentence of formatted numbers, and whether it is met (``None``: measured, no goal)."""
-
-    name: str
-    goal: str
-    run: Run
-    page: str
-    result: Callable[[Any], str]
-    met: Callable[[Any], Optional[bool]] = field(default=lambda m: None)
-
+# --- the committed runs ------------------------------------------------------------------
 
 STEP_A_SIM = Run("step_a_simulated/metrics.json", "jaxafm calibrate configs/step_a_simulated.yaml")
 STEP_A_ABL = Run("step_a_ablation/metrics.json", "jaxafm calibrate configs/step_a_ablation.yaml")
 STEP_A_ANGLES = Run("step_a_angles/metrics.json", "python experiments/step_a_angles.py")
 STEP_A_LATTICES = Run("step_a_lattices/metrics.json", "python experiments/step_a_lattices.py")
 BENCH_STEP_A = Run("bench_step_a/metrics.json", "python experiments/bench_step_a.py --pixels 256")
-GPU_JACOBIAN = Run(
-    "gpu_h100/jacobian_profile.json", "python experiments/bench_step_a.py --pixels 256 (one H100)"
-)
+GPU_JACOBIAN = Run("gpu_h100/jacobian_profile.json", "python experiments/bench_step_a.py --pixels 256")
 PAPER = Run("paper/metrics.json", "jaxafm run configs/paper.yaml")
 PAPER_TRUE = Run("paper_true_model/metrics.json", "python experiments/paper_true_model.py")
 PUSH_STUDY = Run("push_study/metrics.json", "python experiments/push_study.py --fields 4")
@@ -219,7 +203,7 @@ STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.
 BENCH_STUDY = Run("bench_study/bench.json", "python experiments/bench_study.py")
 GPU_STUDY = Run(
     "gpu_h100/bench_study.json",
-    "python experiments/bench_study.py --batches 1024 4096 --calls 2 --loop 2 --full 0 (one H100)",
+    "python experiments/bench_study.py --batches 1024 4096 --calls 2 --loop 2 --full 0",
 )
 BENCH_HYSTERESIS = Run("bench_hysteresis.json", "python experiments/bench_hysteresis.py")
 BENCH_SCAN = Run("bench_scan.json", "python experiments/bench_scan.py")
@@ -269,6 +253,22 @@ DIAGNOSE_REAL = (
         diagnosis_run("diagnose_real/lattice", "diagnose_real_lattice"),
     ),
 )
+
+
+# --- the goals (docs/index.md, README.md) ----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Goal:
+    """One goal checked on one run: its wording, the page that explains it, the result as a
+    sentence of formatted numbers, and whether it is met (``None``: measured, no goal)."""
+
+    name: str
+    goal: str
+    run: Run
+    page: str
+    result: Callable[[Any], str]
+    met: Callable[[Any], Optional[bool]] = field(default=lambda m: None)
 
 
 def _linearity(m, prefix):
