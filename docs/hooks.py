@@ -1,9 +1,10 @@
-"""mkdocs hooks: the committed result figures, and Sphinx roles in docstrings.
+"""mkdocs hooks: the committed result figures and files, and Sphinx roles in docstrings.
 
-The pages link a figure as ``../experiments/results/<run>/<name>.png``, a path that is right for the
-Markdown file in the repository (``docs/<page>.md``). The hooks add every PNG under
+The pages link a figure as ``../experiments/results/<run>/<name>.png`` and a results table the file
+its numbers come from (``.../metrics.json``), paths that are right for the Markdown file in the
+repository (``docs/<page>.md``). The hooks add every PNG and JSON file under
 ``experiments/results/`` to the site at ``experiments/results/...`` and rewrite those links for the
-site, so the figures exist once, where the runs wrote them.
+site, so the figures and results exist once, where the runs wrote them.
 
 Docstrings name other objects as ``:func:`name```, ``:class:`Name``` and the like; Markdown shows the
 role as text before the code, so the hooks drop the role and keep the code.
@@ -22,11 +23,12 @@ ROLE = re.compile(r":(?:func|class|data|meth|attr|mod|obj|exc|const):(?=<code>)"
 
 
 def on_files(files, config):
-    """Add the result figures to the site's files."""
-    for png in sorted((ROOT / RESULTS).rglob("*.png")):
+    """Add the result figures and JSON files to the site's files."""
+    found = [*(ROOT / RESULTS).rglob("*.png"), *(ROOT / RESULTS).rglob("*.json")]
+    for path in sorted(found):
         files.append(
             File(
-                png.relative_to(ROOT).as_posix(),
+                path.relative_to(ROOT).as_posix(),
                 src_dir=str(ROOT),
                 dest_dir=config["site_dir"],
                 use_directory_urls=config["use_directory_urls"],

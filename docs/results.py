@@ -1,0 +1,1923 @@
+"""The results tables of the README and the docs, generated from the committed results.
+
+Every number that a page quotes from a run comes from a file under ``experiments/results/``
+through this script: each table sits on its page between ``<!-- results:NAME -->`` and
+``<!-- /results -->``, and says which file it comes from and which command makes that file.
+
+    python docs/results.py            # write every table into README.md and docs/**/*.md
+    python docs/results.py --check    # exit status 1 naming each stale table and cell
+
+``--check`` (run by ``.ci/run``) also fails on a table that no page shows, a marker naming no
+table, and a sentence that narrates when a number was measured ("this round", "earlier",
+"N min N s"): the pages say what is, the git log says what was. It needs the standard library
+alone, not jaxafm or JAX.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import statistics
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Union
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = "experiments/results"
+PAGES = ("README.md", "docs/*.md", "docs/guides/*.md")
+BEGIN = re.compile(r"<!-- results:([a-z0-9_]+) -->")
+END = "<!-- /results -->"
+#: Phrases that narrate when or how often something was measured; the git log keeps that.
+NARRATION = re.compile(
+    r"\b(this round|round before|sessions?|previously|no longer|used to|earlier|before this|until now|now|"
+    r"\d+ min \d+(\.\d+)? s)\b",
+    re.IGNORECASE,
+)
+
+
+# --- runs and values -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Run:
+    """A committed result file (under ``experiments/results/``) and the command that makes it."""
+
+    path: str
+    command: str
+
+    @property
+    def file(self) -> str:
+        """The file's path from the repository root."""
+        return f"{RESULTS}/{self.path}"
+
+
+class Results:
+    """The committed result files under ``root``, each read once."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self._loaded: dict[str, Any] = {}
+
+    def __call__(self, run: Run) -> Any:
+        """The parsed JSON of ``run``'s file."""
+        if run.path not in self._loaded:
+            path = self.root / run.file
+            try:
+                self._loaded[run.path] = json.loads(path.read_text())
+            except (OSError, ValueError) as e:
+                raise SystemExit(f"{path}: cannot read the results of `{run.command}`: {e}") from e
+        return self._loaded[run.path]
+
+
+def _unit(text: str, unit: str) -> str:
+    """``text`` followed by ``unit`` (``×`` and ``°`` without a space)."""
+    if not unit:
+        return text
+    return f"{text}{unit}" if unit in ("×", "°") else f"{text} {unit}"
+
+
+def q(value: Any, unit: str = "", digits: int = 1, tiny: bool = False) -> str:
+    """A number as the pages print it: ``digits`` decimals, thousands separated, then its unit.
+    ``None`` is a dash. With ``tiny``, a non-zero value too small for ``digits`` decimals is
+    written in powers of ten (a round-off error, say) instead of as zero."""
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    v = float(value)
+    if tiny and v and abs(v) < 0.5 * 10**-digits:
+        text = f"{v:.1e}"
+    else:
+        text = f"{v:,.{digits}f}"
+        text = text.lstrip("-") if not text.strip("-0.,") else text
+    return _unit(text.replace("-", "−"), unit)
+
+
+def count(value: Any) -> str:
+    """A whole number, thousands separated."""
+    return "–" if value is None else f"{int(value):,}"
+
+
+def span(values: Sequence[float], unit: str = "", digits: int = 1) -> str:
+    """The range of ``values``, ``lo–hi unit`` (``lo to hi`` where ``lo`` is negative; one value
+    where both ends print alike)."""
+    lo, hi = q(min(values), "", digits), q(max(values), "", digits)
+    return _unit(lo if lo == hi else f"{lo} to {hi}" if min(values) < 0 else f"{lo}–{hi}", unit)
+
+
+def verdict(met: Optional[bool]) -> str:
+    """A goal's verdict cell."""
+    return "measured" if met is None else "met" if met else "**not met**"
+
+
+# --- tables ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Link:
+    """A cell that links ``target`` (from the repository root, with an optional ``#anchor``)."""
+
+    text: str
+    target: str
+
+
+def source(run: Run) -> Link:
+    """The command that makes ``run``, linked to the file it writes."""
+    return Link(f"`{run.command}`", run.file)
+
+
+Cell = Union[str, Link]
+
+
+@dataclass
+class Table:
+    """A results table: its header, its rows of formatted cells, the runs its numbers come from,
+    and a short note printed after them (no numbers of its own)."""
+
+    header: list[str]
+    rows: list[list[Cell]]
+    runs: list[Run]
+    note: str = ""
+
+
+TABLES: dict[str, Callable[[Results], Table]] = {}
+
+
+def table(name: str):
+    """Register a function ``Results -> Table`` as the table ``name`` of the pages' markers."""
+
+    def register(make):
+        TABLES[name] = make
+        return make
+
+    return register
+
+
+def relative(target: str, page: str) -> str:
+    """``target`` (from the repository root, with an optional ``#anchor``) as a link from ``page``."""
+    path, _, anchor = target.partition("#")
+    rel = os.path.relpath(path, os.path.dirname(page) or ".").replace(os.sep, "/")
+    return rel + (f"#{anchor}" if anchor else "")
+
+
+def cell(c: Cell, page: str) -> str:
+    """A cell's Markdown on ``page``."""
+    return c if isinstance(c, str) else f"[{c.text}]({relative(c.target, page)})"
+
+
+def render(made: Table, page: str) -> list[str]:
+    """The Markdown lines of a table on ``page``: the table, then where its numbers come from."""
+    lines = ["| " + " | ".join(made.header) + " |", "|" + "---|" * len(made.header)]
+    lines += ["| " + " | ".join(cell(c, page) for c in row) + " |" for row in made.rows]
+    runs = list(dict.fromkeys(made.runs))
+    if runs:
+        sources = "; ".join(cell(source(r), page) for r in runs)
+        lines += ["", f"From {sources}." + (f" {made.note}" if made.note else "")]
+    return lines
+
+
+# --- the committed runs ------------------------------------------------------------------
+
+STEP_A_SIM = Run("step_a_simulated/metrics.json", "jaxafm calibrate configs/step_a_simulated.yaml")
+STEP_A_ABL = Run("step_a_ablation/metrics.json", "jaxafm calibrate configs/step_a_ablation.yaml")
+STEP_A_ANGLES = Run("step_a_angles/metrics.json", "python experiments/step_a_angles.py")
+STEP_A_LATTICES = Run("step_a_lattices/metrics.json", "python experiments/step_a_lattices.py")
+BENCH_STEP_A = Run("bench_step_a/metrics.json", "python experiments/bench_step_a.py --pixels 256")
+GPU_JACOBIAN = Run("gpu_h100/jacobian_profile.json", "python experiments/bench_step_a.py --pixels 256")
+PAPER = Run("paper/metrics.json", "jaxafm run configs/paper.yaml")
+PAPER_TRUE = Run("paper_true_model/metrics.json", "python experiments/paper_true_model.py")
+PUSH_STUDY = Run("push_study/metrics.json", "python experiments/push_study.py --fields 4")
+PUSH_0_90 = Run(
+    "push_study_0_90/metrics.json",
+    "python experiments/push_study.py --fields 1 --model experiments/results/step_a_simulated/model_gpi.json "
+    "--out experiments/results/push_study_0_90",
+)
+MINOR_LOOPS = Run("minor_loops.json", "python experiments/minor_loops.py")
+STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
+STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yaml")
+STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
+BENCH_STUDY = Run("bench_study/bench.json", "python experiments/bench_study.py")
+GPU_STUDY = Run(
+    "gpu_h100/bench_study.json",
+    "python experiments/bench_study.py --batches 1024 4096 --calls 2 --loop 2 --full 0",
+)
+BENCH_HYSTERESIS = Run("bench_hysteresis.json", "python experiments/bench_hysteresis.py")
+BENCH_SCAN = Run("bench_scan.json", "python experiments/bench_scan.py")
+BENCH_RENDER = Run("bench_render/metrics.json", "python experiments/bench_render.py")
+GRATING_SCAN = Run("simulated_grating_scan/metrics.json", "python experiments/simulated_grating_scan.py")
+PIEZO_FIT = Run("piezo_sine_1hz/metrics.json", "jaxafm fit configs/piezo_sine_1hz.yaml")
+CROSS_RECORD = Run("cross_record/metrics.json", "python experiments/cross_record.py")
+PREDICT = Run("predict_piezo/metrics.json", "jaxafm predict configs/predict_piezo.yaml")
+COMPENSATE = Run("compensate_piezo/metrics.json", "jaxafm compensate configs/compensate_piezo.yaml")
+REAL_GRATING = Run("real_grating/metrics.json", "python experiments/real_grating.py")
+REAL_LATTICE = Run("real_lattice/metrics.json", "python experiments/real_lattice.py")
+WITHHELD = Run("withheld_effects/summary.json", "python experiments/withheld_effects.py")
+WITHHELD_CASES = Run("withheld_effects/cases.json", "python experiments/withheld_effects.py")
+RECORDS = Run(
+    "withheld_records_rerun/summary.json",
+    "python experiments/withheld_effects.py --kind record --out experiments/results/withheld_records_rerun",
+)
+RECORDS_CASES = Run("withheld_records_rerun/cases.json", RECORDS.command)
+INDEPENDENT = Run("independent_check/summary.json", "python experiments/independent_check.py")
+STABILITY = Run("stability/summary.json", "python experiments/stability.py")
+STABILITY_ROWS = (
+    Run("stability/rows-1-of-2.json", "python experiments/stability.py --shard 1/2"),
+    Run("stability/rows-2-of-2.json", "python experiments/stability.py --shard 2/2"),
+)
+
+
+def diagnosis_run(folder: str, config: str) -> Run:
+    """The ``diagnosis.json`` of a ``jaxafm diagnose`` run."""
+    return Run(f"{folder}/diagnosis.json", f"jaxafm diagnose configs/{config}.yaml")
+
+
+DIAGNOSE_SIMULATED = diagnosis_run("diagnose_simulated", "diagnose_simulated")
+DIAGNOSE_SCANS = diagnosis_run("diagnose_scans", "diagnose_scans")
+DIAGNOSE_SCANS_LATTICE = diagnosis_run("diagnose_scans_lattice", "diagnose_scans_lattice")
+#: The real data's diagnoses: (case as the table names it, run).
+DIAGNOSE_REAL = (
+    ("piezo, symmetric PI nominal", diagnosis_run("diagnose_real/piezo_pi", "diagnose_piezo_pi")),
+    ("piezo, generalised PI nominal", diagnosis_run("diagnose_real/piezo_gpi", "diagnose_piezo_gpi")),
+    ("piezo, Preisach nominal", diagnosis_run("diagnose_real/piezo_preisach", "diagnose_piezo_preisach")),
+    (
+        "second piezo record (step, then sine)",
+        diagnosis_run("diagnose_real/piezo_step", "diagnose_piezo_step"),
+    ),
+    ("1-D grating image", diagnosis_run("diagnose_real/grating", "diagnose_grating")),
+    (
+        "2-D lattice image, square pits, trace",
+        diagnosis_run("diagnose_real/lattice", "diagnose_real_lattice"),
+    ),
+)
+
+
+# --- the goals (docs/index.md, README.md) ----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Goal:
+    """One goal checked on one run: its wording, the page that explains it, the result as a
+    sentence of formatted numbers, and whether it is met (``None``: measured, no goal)."""
+
+    name: str
+    goal: str
+    run: Run
+    page: str
+    result: Callable[[Any], str]
+    met: Callable[[Any], Optional[bool]] = field(default=lambda m: None)
+
+
+def _linearity(m, prefix):
+    return m[f"{prefix}_linearity_error_trace_pct"], m[f"{prefix}_linearity_error_retrace_pct"]
+
+
+def _lattice_errors(rows):
+    return [abs(r["rotation_error_deg"]) for r in rows]
+
+
+GOALS = [
+    Goal(
+        "step_a_linearity",
+        "step A: linearity < 0.5 % after compensation",
+        STEP_A_SIM,
+        "docs/step_a.md",
+        lambda m: (
+            f"{q(m['gpi_analytic_linearity_error_trace_pct'], '%', 2)} trace, "
+            f"{q(m['gpi_analytic_linearity_error_retrace_pct'], '%', 2)} retrace from a 0° + 90° pair "
+            f"(uncompensated {span(_linearity(m, 'uncompensated'), '%')}, "
+            f"the paper's inverse {span(_linearity(m, 'paper'), '%')})"
+        ),
+        lambda m: max(_linearity(m, "gpi_analytic")) < 0.5,
+    ),
+    Goal(
+        "step_a_small_loops",
+        "step A from 0° + 90°: y small loops within 1 % (±0.1…±3 V)",
+        STEP_A_ANGLES,
+        "docs/step_a.md",
+        lambda m: (
+            f"y {q(m['0 + 90 deg']['minor_loop_max_error_pct'][1], '%', 2)}, "
+            f"x {q(m['0 + 90 deg']['minor_loop_max_error_pct'][0], '%', 2)} "
+            f"(from 0° alone: y {q(m['0 deg']['minor_loop_max_error_pct'][1], '%')})"
+        ),
+        lambda m: max(m["0 + 90 deg"]["minor_loop_max_error_pct"]) < 1,
+    ),
+    Goal(
+        "step_a_both_axes",
+        "step A from 0° + 90°: linearity < 0.25 % on both axes",
+        STEP_A_ANGLES,
+        "docs/step_a.md",
+        lambda m: (
+            f"x {q(m['0 + 90 deg']['linearity_x_at_0deg']['compensated_pct'], '%', 2)}, "
+            f"y {q(m['0 + 90 deg']['linearity_y_at_90deg']['compensated_pct'], '%', 2)} "
+            f"(from 0° alone: y {q(m['0 deg']['linearity_y_at_90deg']['compensated_pct'], '%', 2)})"
+        ),
+        lambda m: (
+            max(
+                m["0 + 90 deg"]["linearity_x_at_0deg"]["compensated_pct"],
+                m["0 + 90 deg"]["linearity_y_at_90deg"]["compensated_pct"],
+            )
+            < 0.25
+        ),
+    ),
+    Goal(
+        "step_a_rotation",
+        "step A on turned lattices (pits, pillars, 0–3°): rotation within 0.05°",
+        STEP_A_LATTICES,
+        "docs/step_a.md",
+        lambda rows: f"within {q(max(_lattice_errors(rows)), '°', 3)} in all {len(rows)}",
+        lambda rows: max(_lattice_errors(rows)) < 0.05,
+    ),
+    Goal(
+        "step_a_held_out",
+        "step A on turned lattices: held-out residual < 2 nm",
+        STEP_A_LATTICES,
+        "docs/step_a.md",
+        lambda rows: (
+            f"{span([r['held_out_rms_nm'] for r in rows], 'nm', 2)}; under 2 nm in "
+            f"{sum(r['held_out_rms_nm'] < 2 for r in rows)} of {len(rows)}"
+        ),
+        lambda rows: all(r["held_out_rms_nm"] < 2 for r in rows),
+    ),
+    Goal(
+        "step_a_speed",
+        "step A: 256² identification ≤ 30 s, compiling included",
+        BENCH_STEP_A,
+        "docs/step_a.md",
+        lambda m: (
+            f"{q(m['jaxafm geodesic LM, steps 20,14']['seconds'], 's')} "
+            f"({q(m['jaxafm geodesic LM, steps 20,14']['compile_s'], 's')} compiling); tip path "
+            f"{q(statistics.median(m['jaxafm geodesic LM, steps 20,14']['path_x_rms_nm_by_seed']), 'nm', 2)} "
+            f"rms, median over {m['seeds']} scans"
+        ),
+        lambda m: m["jaxafm geodesic LM, steps 20,14"]["seconds"] <= 30,
+    ),
+    Goal(
+        "after_b",
+        "after B: < 20 nm (p95)",
+        PAPER,
+        "docs/positioning.md",
+        lambda m: (
+            f"median {q(m['AB_polynomial_error_median_nm'], 'nm')}, p95 "
+            f"{q(m['AB_polynomial_error_p95_nm'], 'nm')}, worst {q(m['AB_polynomial_error_max_nm'], 'nm')} "
+            f"over {count(m['AB_polynomial_error_targets'])} targets"
+        ),
+        lambda m: m["AB_polynomial_error_p95_nm"] < 20,
+    ),
+    Goal(
+        "after_c",
+        "after C: < 0.1 R for every target",
+        PAPER,
+        "docs/positioning.md",
+        lambda m: (
+            f"{q(m['ABC_within_0p1R_pct'], '%')} of {count(m['ABC_polynomial_error_targets'])} "
+            f"targets, worst {q(m['ABC_error_over_radius_max'], 'R', 3)}"
+        ),
+        lambda m: m["ABC_within_0p1R_pct"] == 100,
+    ),
+    Goal(
+        "after_c_fields",
+        "after C, over four more particle fields: < 0.1 R for every target",
+        PUSH_STUDY,
+        "docs/positioning.md",
+        lambda m: (
+            f"{q(m['ABC_within_0p1R_pct'], '%')} of {count(m['push_trials'])}, "
+            f"worst {q(m['ABC_error_over_radius_max'], 'R', 3)}"
+        ),
+        lambda m: m["ABC_within_0p1R_pct"] == 100,
+    ),
+    Goal(
+        "push",
+        "push success ≥ 99 %",
+        PAPER,
+        "docs/positioning.md",
+        lambda m: (
+            f"{q(m['push_success_pct'], '%')} of {count(m['push_trials'])} pushes "
+            f"({q(m['push_first_success_pct'], '%')} at the first push)"
+        ),
+        lambda m: m["push_success_pct"] >= 99,
+    ),
+    Goal(
+        "push_fields",
+        "push success ≥ 99 %, over four more particle fields",
+        PUSH_STUDY,
+        "docs/positioning.md",
+        lambda m: (
+            f"{q(m['push_success_pct'], '%')} ({count(m['push_successes'])} of {count(m['push_trials'])})"
+        ),
+        lambda m: m["push_success_pct"] >= 99,
+    ),
+    Goal(
+        "study",
+        "study across 16 scanners (4096 trials): A+B+C within 0.1 R ≥ 99 %, push ≥ 99 %, ran 100 %",
+        STUDY,
+        "docs/study.md",
+        lambda m: (
+            f"A+B+C {q(m['ABC_success_pct'], '%')}, push {q(m['push_success_pct'], '%')}, "
+            f"ran {q(m['ABC_ran_pct'], '%')}; A+B median {q(m['AB_error_median_nm'], 'nm')}, "
+            f"p95 {q(m['AB_error_p95_nm'], 'nm')}"
+        ),
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 99 and m["ABC_ran_pct"] == 100,
+    ),
+    Goal(
+        "study_wide",
+        "wider scanner family (study_wide.yaml): ≥ 95 %",
+        STUDY_WIDE,
+        "docs/study.md",
+        lambda m: (
+            f"A+B+C {q(m['ABC_success_pct'], '%')}, push {q(m['push_success_pct'], '%')}, "
+            f"ran {q(m['ABC_ran_pct'], '%')}"
+        ),
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"], m["ABC_ran_pct"]) >= 95,
+    ),
+    Goal(
+        "study_rate",
+        "study: 30,000 B+C trials/min on 2 CPU cores",
+        BENCH_STUDY,
+        "docs/study.md",
+        lambda m: (
+            f"{count(m['best']['trials_per_min'])} per minute at a batch of "
+            f"{count(m['best']['batch'])} on {devices(m['best']['devices'])} "
+            f"({q(m['best']['trials_per_min'] / m['python_loop']['trials_per_min'], '×')} a Python loop)"
+        ),
+        lambda m: m["best"]["trials_per_min"] >= 30_000,
+    ),
+    Goal(
+        "study_gpu",
+        "study bench on one GPU (NVIDIA H100)",
+        GPU_STUDY,
+        "docs/study.md",
+        lambda m: (
+            f"{count(m['best']['trials_per_min'])} B+C trials per minute at a batch of "
+            f"{count(m['best']['batch'])}"
+        ),
+    ),
+    Goal(
+        "study_speed",
+        "study with step A per scanner: 64 scanners × 64 trials < 30 min on 2 cores",
+        STUDY_SPEED,
+        "docs/study.md",
+        lambda m: (
+            f"{q(m['wall_s'] / 60, 'min')} ({count(m['scanners'])} scanners, {count(m['trials'])} trials)"
+        ),
+        lambda m: m["wall_s"] < 30 * 60,
+    ),
+    Goal(
+        "preisach_speed",
+        "Preisach 50× faster than a NumPy loop (50 levels)",
+        BENCH_HYSTERESIS,
+        "docs/model.md#speed-python-experimentsbench_hysteresispy",
+        lambda m: (
+            f"{q(m['models'][0]['speedup_hard_vs_play_loop'], '×')} against a NumPy loop over the "
+            f"same O(n) plays; {q(m['models'][0]['speedup_hard_vs_relay_grid'], '×')} against the O(n²) relay grid"
+        ),
+        lambda m: m["models"][0]["speedup_hard_vs_play_loop"] >= 50,
+    ),
+    Goal(
+        "real_actuator",
+        "real actuator: held-out error below the published differentiable Preisach fit (4.3 % rms)",
+        PIEZO_FIT,
+        "docs/real_data.md",
+        lambda m: (
+            f"Preisach {q(m['preisach_heldout_rms_error_pct'], '%', 2)}, generalised PI + creep "
+            f"{q(m['gpi_creep_heldout_rms_error_pct'], '%', 2)} held-out rms"
+        ),
+        lambda m: max(m["preisach_heldout_rms_error_pct"], m["gpi_creep_heldout_rms_error_pct"]) < 4.3,
+    ),
+    Goal(
+        "predict",
+        "`jaxafm predict` reproduces the fit's held-out error",
+        PREDICT,
+        "docs/model.md",
+        lambda m: (
+            f"{q(m['rms_error_pct'], '%', 3)} rms, {q(m['max_error_pct'], '%', 3)} max "
+            "(the fit table's generalised PI row)"
+        ),
+    ),
+    Goal(
+        "compensate",
+        "`jaxafm compensate` then the model: tracking < 0.05 % of range",
+        COMPENSATE,
+        "docs/model.md",
+        lambda m: f"{q(m['tracking_rms_error_pct'], '%', 3, tiny=True)} rms through the model it inverts",
+        lambda m: m["tracking_max_error_pct"] < 0.05,
+    ),
+    Goal(
+        "minor_loops",
+        "models fitted on one major loop, scored on minor loops (second real record)",
+        CROSS_RECORD,
+        "docs/real_data.md",
+        lambda m: (
+            f"generalised PI {q(m['gpi_on_sine_scored_on_ramped_minor_rms_error_pct'], '%', 2)} rms "
+            f"({q(m['gpi_on_ramped_scored_on_ramped_minor_rms_error_pct'], '%', 2)} fitted on them); "
+            f"generalised PI + creep {q(m['gpi_creep_on_sine_scored_on_ramped_minor_rms_error_pct'], '%', 2)}"
+        ),
+    ),
+    Goal(
+        "real_grating",
+        "real 1-D grating: pitch and distortion from one image",
+        REAL_GRATING,
+        "docs/real_data.md",
+        lambda m: (
+            f"pitch {q(m['pitch_nm'], 'nm')} ± {q(m['pitch_se_nm'], 'nm')}; local pitch spread "
+            f"{q(m['raw_pitch_std_pct'], '%', 2)} raw, {q(m['corrected_pitch_std_pct'], '%', 2)} corrected"
+        ),
+    ),
+    Goal(
+        "diagnosis_top1",
+        "diagnosis (own simulator): top-1 ≥ 90 % at the middle magnitude",
+        WITHHELD,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: (
+            f"scan sets {q(m['scans']['top1_accuracy_middle_pct'], '%', 0)}, 2-D lattice scan sets "
+            f"{q(m['lattice']['top1_accuracy_middle_pct'], '%', 0)}"
+        ),
+        lambda m: min(m["scans"]["top1_accuracy_middle_pct"], m["lattice"]["top1_accuracy_middle_pct"]) >= 90,
+    ),
+    Goal(
+        "diagnosis_records_top1",
+        "diagnosis of records (own simulator): top-1 ≥ 90 % at the middle magnitude",
+        RECORDS,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: q(m["record"]["top1_accuracy_middle_pct"], "%", 0),
+        lambda m: m["record"]["top1_accuracy_middle_pct"] >= 90,
+    ),
+    Goal(
+        "diagnosis_controls",
+        "diagnosis (own simulator): ≤ 1 false alarm in 20 controls",
+        WITHHELD,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: f"{count(m['controls_flagged'])} of {count(m['controls'])} (records, scan sets, lattices)",
+        lambda m: m["controls_flagged"] <= m["controls"] / 20,
+    ),
+    Goal(
+        "diagnosis_records_controls",
+        "diagnosis of records (own simulator): ≤ 1 false alarm in 20 controls",
+        RECORDS,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: f"{count(m['record']['controls_flagged'])} of {count(m['record']['controls'])}",
+        lambda m: m["record"]["controls_flagged"] <= m["record"]["controls"] / 20,
+    ),
+    Goal(
+        "diagnosis_shrink",
+        "diagnosis (own simulator): median shrink of the held-out gap ≥ 80 %",
+        WITHHELD,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: (
+            f"scan sets {q(m['scans']['median_shrink_pct'], '%')}, 2-D lattice scan sets "
+            f"{q(m['lattice']['median_shrink_pct'], '%')}"
+        ),
+        lambda m: min(m["scans"]["median_shrink_pct"], m["lattice"]["median_shrink_pct"]) >= 80,
+    ),
+    Goal(
+        "diagnosis_records_shrink",
+        "diagnosis of records (own simulator): median shrink ≥ 80 %",
+        RECORDS,
+        "docs/diagnosis.md#checked-on-withheld-effects-python-experimentswithheld_effectspy",
+        lambda m: q(m["record"]["median_shrink_pct"], "%"),
+        lambda m: m["record"]["median_shrink_pct"] >= 80,
+    ),
+    Goal(
+        "independent_top1",
+        "diagnosis on an independent generator (half with the wrong hysteresis class): "
+        "top-1 ≥ 90 % at the middle magnitude",
+        INDEPENDENT,
+        "docs/diagnosis.md#checked-on-records-jaxafm-did-not-make-python-experimentsindependent_checkpy",
+        lambda m: f"{q(m['all']['top1_middle_pct'], '%')} of {count(m['all']['cases_middle'])}",
+        lambda m: m["all"]["top1_middle_pct"] >= 90,
+    ),
+    Goal(
+        "independent_controls",
+        "diagnosis on an independent generator: ≤ 1 false alarm in 20 controls",
+        INDEPENDENT,
+        "docs/diagnosis.md#checked-on-records-jaxafm-did-not-make-python-experimentsindependent_checkpy",
+        lambda m: f"{count(m['all']['controls_flagged'])} of {count(m['all']['controls'])}",
+        lambda m: m["all"]["controls_flagged"] <= m["all"]["controls"] / 20,
+    ),
+    Goal(
+        "independent_shrink",
+        "diagnosis on an independent generator: median shrink ≥ 80 %",
+        INDEPENDENT,
+        "docs/diagnosis.md#checked-on-records-jaxafm-did-not-make-python-experimentsindependent_checkpy",
+        lambda m: (
+            f"{q(m['all']['median_shrink_correct_pct'], '%')}; the generator's noise caps it at "
+            f"{q(m['all']['median_shrink_ceiling_correct_pct'], '%')} for any model"
+        ),
+        lambda m: m["all"]["median_shrink_correct_pct"] >= 80,
+    ),
+    Goal(
+        "stability",
+        "diagnosis: the verdict stays when a record is cropped by 10 % at either end or decimated by 2",
+        STABILITY,
+        "docs/diagnosis.md#the-verdict-on-a-record-cropped-or-decimated-python-experimentsstabilitypy",
+        lambda m: (
+            f"{count(m['verdict_flips'])} verdict and {count(m['shape_flips'])} shape flips in "
+            f"{count(m['cases'] * m['variants_per_case'])} variants of {count(m['cases'])} records"
+        ),
+        lambda m: m["verdict_flips"] == 0,
+    ),
+]
+#: The README's short table: the positioning goals and the real data.
+README_GOALS = (
+    "step_a_linearity",
+    "after_b",
+    "after_c",
+    "push",
+    "study",
+    "real_actuator",
+    "independent_top1",
+)
+
+
+PAGE_TITLES = {
+    "step_a": "step A",
+    "positioning": "positioning",
+    "study": "study",
+    "model": "model",
+    "real_data": "real data",
+    "diagnosis": "diagnosis",
+}
+
+
+def goals_table(names: Optional[Sequence[str]]) -> Callable[[Results], Table]:
+    """The goals named (all when ``None``), a row each: goal, result, verdict, run, page."""
+
+    def make(results: Results) -> Table:
+        rows = []
+        for g in GOALS:
+            if names is None or g.name in names:
+                data = results(g.run)
+                page = Link(PAGE_TITLES[Path(g.page.partition("#")[0]).stem], g.page)
+                rows.append([g.goal, g.result(data), verdict(g.met(data)), source(g.run), page])
+        return Table(["goal", "result", "", "run", "page"], rows, [])
+
+    return make
+
+
+TABLES["goals"] = goals_table(None)
+TABLES["readme"] = goals_table(README_GOALS)
+
+
+# --- tables of the form label x column, from one flat file ----------------------------------
+
+
+@dataclass(frozen=True)
+class Col:
+    """A column of a grid table: its header and the key that follows each row's prefix."""
+
+    header: str
+    key: str
+    unit: str = ""
+    digits: int = 1
+
+
+def grid(data: dict, rows: Sequence[tuple[str, str]], cols: Sequence[Col]) -> list[list[Cell]]:
+    """One row per ``(label, prefix)``, the value of ``prefix + col.key`` in each column."""
+    return [[label] + [q(data[prefix + c.key], c.unit, c.digits) for c in cols] for label, prefix in rows]
+
+
+def facts(rows: Sequence[tuple[str, str]]) -> list[list[Cell]]:
+    """A two-column table of ``(quantity, formatted value)``."""
+    return [[label, value] for label, value in rows]
+
+
+# --- step A (docs/step_a.md) -----------------------------------------------------------------
+
+COMPENSATED = (
+    Col("linearity trace", "linearity_error_trace_pct", "%", 2),
+    Col("linearity retrace", "linearity_error_retrace_pct", "%", 2),
+    Col("x rms", "x_rms_error_nm", "nm"),
+    Col("y max", "y_max_error_nm", "nm"),
+    Col("pitch std (trace)", "pitch_std_trace_pct", "%", 2),
+)
+
+
+@table("step_a_simulated")
+def step_a_simulated(results: Results) -> Table:
+    m = results(STEP_A_SIM)
+    drives = [
+        ("uncompensated (nominal)", "uncompensated_"),
+        ("the paper's polynomial + network (0° pair)", "paper_"),
+        ("end to end + analytic inverse", "gpi_analytic_"),
+        ("end to end + numerical inverse", "gpi_numerical_"),
+    ]
+    rows = grid(m, drives, COMPENSATED)
+    for row, (_, prefix) in zip(rows, drives):
+        row += [q(m[prefix + "fit_s"] or None, "s"), q(m[prefix + "inverse_s"] or None, "s")]
+    return Table(["drive"] + [c.header for c in COMPENSATED] + ["fit", "inverse"], rows, [STEP_A_SIM])
+
+
+@table("step_a_simulated_held_out")
+def step_a_simulated_held_out(results: Results) -> Table:
+    m = results(STEP_A_SIM)
+    rows = [
+        ("held-out lattice sites", count(m["gpi_held_out_features"])),
+        (
+            "held-out residual after each stage",
+            " · ".join(q(v, "nm", 2) for v in m["gpi_held_out_nm_by_stage"]),
+        ),
+        ("stages kept", f"{sum(m['gpi_stages_accepted'])} of {len(m['gpi_stages_accepted'])}"),
+        (
+            "held-out local pitch spread, raw → corrected",
+            f"{q(m['gpi_held_out_pitch_std_raw_pct'], '%')} → {q(m['gpi_held_out_pitch_std_corrected_pct'], '%', 2)}",
+        ),
+        ("image residual, rms of the depth", q(m["gpi_image_rms_pct"], "%", 2)),
+        ("plausible", q(m["gpi_plausible"])),
+    ]
+    return Table(["", "end to end (gpi)"], facts(rows), [STEP_A_SIM])
+
+
+def _parameter(name: str, value: float) -> str:
+    """A fitted scanner parameter in the unit its name gives."""
+    if name.endswith("_per_nm"):
+        return f"{value:.3g} /nm".replace("-", "−")
+    if name.endswith("_tau_s"):
+        return q(1e3 * value, "ms", 3)
+    if "creep_per_decade" in name:
+        return q(100 * value, "%/decade", 2)
+    return q(value, "", 4)
+
+
+PARAMETERS = (
+    ("coupling x from y", "coupling_xy"),
+    ("coupling y from x", "coupling_yx"),
+    ("bow x", "bow_x_per_nm"),
+    ("bow y", "bow_y_per_nm"),
+    ("feedback lag", "feedback_tau_s"),
+    ("creep x", "creep_per_decade_x"),
+    ("creep y", "creep_per_decade_y"),
+)
+
+
+@table("step_a_simulated_parameters")
+def step_a_simulated_parameters(results: Results) -> Table:
+    m = results(STEP_A_SIM)
+    rows = [
+        [label, _parameter(k, m[f"gpi_true_{k}"]), _parameter(k, m[f"gpi_fit_{k}"])]
+        for label, k in PARAMETERS
+    ]
+    return Table(["parameter", "true", "fitted"], rows, [STEP_A_SIM])
+
+
+@table("step_a_ablation")
+def step_a_ablation(results: Results) -> Table:
+    m = results(STEP_A_ABL)
+    models = [
+        ("full (gpi + creep + coupling + bow + lag)", "full"),
+        ("no creep", "no_creep"),
+        ("no asymmetry (symmetric PI)", "no_asymmetry"),
+        ("no coupling", "no_coupling"),
+    ]
+    rows = []
+    for label, name in models:
+        if m[f"{name}_plausible"]:
+            rows += grid(m, [(label, f"{name}_analytic_")], COMPENSATED)
+        else:
+            rows.append(
+                [label, "refused: " + "; ".join(m[f"{name}_failures"])] + ["–"] * (len(COMPENSATED) - 1)
+            )
+    return Table(["model"] + [c.header for c in COMPENSATED], rows, [STEP_A_ABL])
+
+
+@table("step_a_angles")
+def step_a_angles(results: Results) -> Table:
+    m = results(STEP_A_ANGLES)
+    rows = []
+    for label, key in (("0°", "0 deg"), ("0° + 90°", "0 + 90 deg")):
+        r = m[key]
+        loops = r["minor_loop_max_error_pct"]
+        rows.append(
+            [
+                label,
+                q(loops[0], "%", 2),
+                q(loops[1], "%", 2),
+                q(r["linearity_x_at_0deg"]["compensated_pct"], "%", 2),
+                q(r["linearity_y_at_90deg"]["compensated_pct"], "%", 2),
+                f"{q(r['held_out_rms_nm'], 'nm', 2)} ({count(r['held_out_features'])})",
+                q(r["fit_s"], "s", 0),
+            ]
+        )
+    header = ["scans", "small loops x: worst \\|fit/true − 1\\|", "small loops y", "linearity x (0°)"]
+    return Table(header + ["linearity y (90°)", "held-out sites", "fit"], rows, [STEP_A_ANGLES])
+
+
+#: The triangle amplitudes of ``experiments/step_a_angles.py`` (``AMPLITUDES_V``).
+SMALL_LOOPS_V = (0.1, 0.2, 0.5, 1.0, 3.0)
+
+
+@table("step_a_small_loops")
+def step_a_small_loops(results: Results) -> Table:
+    m = results(STEP_A_ANGLES)
+    series = [
+        (f"{axis} from {label}", m[key][f"minor_loop_ratio_{axis}"])
+        for key, label in (("0 deg", "0°"), ("0 + 90 deg", "0° + 90°"))
+        for axis in ("x", "y")
+    ]
+    rows = [[name] + [q(v, "", 3) for v in ratios] for name, ratios in series]
+    header = ["fitted / true travel"] + [f"±{a:g} V" for a in SMALL_LOOPS_V]
+    return Table(header, rows, [STEP_A_ANGLES])
+
+
+@table("step_a_lattices")
+def step_a_lattices(results: Results) -> Table:
+    rows = [
+        [
+            r["lattice"],
+            q(r["rotation_deg"], "°"),
+            q(r["true_rotation_from_x_axis_deg"], "°", 3),
+            q(r["fit_rotation_deg"], "°", 3),
+            q(r["rotation_error_deg"], "°", 3),
+            q(r["held_out_rms_nm"], "nm", 2),
+            f"{q(r['held_out_pitch_std_raw_pct'], '%', 2)} → {q(r['held_out_pitch_std_corrected_pct'], '%', 2)}",
+            q(all(r["stages_accepted"]) and r["plausible"]),
+        ]
+        for r in results(STEP_A_LATTICES)
+    ]
+    header = ["lattice", "turned on the stage", "true angle from x", "fitted", "error", "held-out residual"]
+    return Table(
+        header + ["held-out pitch spread raw → corrected", "all stages kept, plausible"],
+        rows,
+        [STEP_A_LATTICES],
+    )
+
+
+BENCH_RUNS = (
+    "jaxafm geodesic LM, steps 20,14",
+    "optimistix LM, steps 20,14",
+    "scipy least_squares (trf), evaluations 20,14",
+    "optimistix LM, 30 steps a stage",
+)
+
+
+@table("bench_step_a")
+def bench_step_a(results: Results) -> Table:
+    m = results(BENCH_STEP_A)
+    rows = []
+    for name in BENCH_RUNS:
+        r = m[name]
+        by_seed = r["path_x_rms_nm_by_seed"]
+        rows.append(
+            [
+                name,
+                q(r["seconds"], "s"),
+                q(r["compile_s"], "s"),
+                q(r["seconds_compiled"], "s"),
+                " · ".join(q(v, "", 1) for v in r["stage_seconds"]) + " s",
+                f"{q(statistics.median(by_seed), '', 2)} ({q(max(by_seed), '', 2)}) nm",
+                " · ".join(q(v, "", 1) for v in r["stage_path_x_rms_nm"]) + " nm",
+            ]
+        )
+    header = [
+        "run",
+        "total (first)",
+        "compiling",
+        "compiled",
+        "stages",
+        "tip path x rms: median (max) over scans",
+    ]
+    return Table(header + ["after each stage (first scan)"], rows, [BENCH_STEP_A])
+
+
+@table("bench_step_a_jacobian")
+def bench_step_a_jacobian(results: Results) -> Table:
+    profile, gpu = results(BENCH_STEP_A)["jacobian_profile"], results(GPU_JACOBIAN)["parts"]
+    cpu = profile["parts"]
+    rows = [[part, q(cpu[part]["median_s"], "s", 2), q(gpu[part]["median_s"], "s", 2)] for part in cpu]
+    repeats = next(iter(cpu.values()))["repeats"]
+    size = f"{count(profile['parameters'])} parameters, {count(profile['samples'])} samples; medians of {repeats}."
+    header = ["one forward-mode Jacobian of", "2-core CPU", "one NVIDIA H100"]
+    return Table(header, rows, [BENCH_STEP_A, GPU_JACOBIAN], size)
+
+
+# --- positioning (docs/positioning.md) -------------------------------------------------------
+
+STAGE_COLS = (
+    Col("targets", "_error_targets", "", 0),
+    Col("median", "_error_median_nm", "nm"),
+    Col("p95", "_error_p95_nm", "nm"),
+    Col("worst", "_error_max_nm", "nm"),
+    Col("scanning", "_scan_time_s", "s", 0),
+)
+STAGES = (
+    ("open loop", "open_loop"),
+    ("A", "A"),
+    ("B without A (polynomial)", "B_polynomial"),
+    ("B without A (pairwise, eq. 4-5 variant)", "B_pairwise"),
+    ("A+B (polynomial)", "AB_polynomial"),
+    ("A+B (pairwise, eq. 4-5 variant)", "AB_pairwise"),
+    ("A+B+C", "ABC_polynomial"),
+)
+
+
+def stages_table(run: Run) -> Callable[[Results], Table]:
+    """The ablation table of a ``jaxafm run``: errors per stage, true tip to true centre."""
+
+    def make(results: Results) -> Table:
+        rows = grid(results(run), STAGES, STAGE_COLS)
+        return Table(["stage"] + [c.header for c in STAGE_COLS], rows, [run])
+
+    return make
+
+
+TABLES["paper_stages"] = stages_table(PAPER)
+TABLES["paper_true_model_stages"] = stages_table(PAPER_TRUE)
+
+
+def run_summary(run: Run) -> Callable[[Results], Table]:
+    """Step C and the push of a ``jaxafm run``, and what step A and B cost."""
+
+    def make(results: Results) -> Table:
+        m = results(run)
+        rows = [
+            ("A+B+C within 0.1 R", q(m["ABC_within_0p1R_pct"], "%")),
+            (
+                "A+B+C error / R: median, worst",
+                f"{q(m['ABC_error_over_radius_median'], '', 3)}, {q(m['ABC_error_over_radius_max'], '', 3)}",
+            ),
+            ("local scans verified", q(m["ABC_found_pct"], "%")),
+            ("local scan lines, mean", q(m["ABC_lines_mean"], "", 2)),
+            ("local scan time, mean", q(m["ABC_local_scan_s_mean"], "s")),
+            ("push success (within 1 R of the goal)", q(m["push_success_pct"], "%")),
+            ("push success after the first push", q(m.get("push_first_success_pct"), "%")),
+            ("corrective pushes per particle", q(m.get("push_corrections_mean"), "", 2)),
+            (
+                "push miss: median, worst",
+                f"{q(m['push_error_median_nm'], 'nm')}, {q(m['push_error_max_nm'], 'nm')}",
+            ),
+            (
+                "landmarks found (B, A+B)",
+                f"{count(m['B_landmarks_found'])}, {count(m['AB_landmarks_found'])} of "
+                f"{count(m['landmarks_n'] ** 2)}",
+            ),
+            ("step A's identification", q(m["step_a_fit_s"] or None, "s")),
+        ]
+        return Table(["", "value"], facts(rows), [run])
+
+    return make
+
+
+TABLES["paper_summary"] = run_summary(PAPER)
+TABLES["paper_true_model_summary"] = run_summary(PAPER_TRUE)
+
+
+def push_fields(run: Run, folder: str) -> Callable[[Results], Table]:
+    """``experiments/push_study.py``: A+B, step C and the push per particle field, then all."""
+
+    def make(results: Results) -> Table:
+        total = results(run)
+        fields = [Run(f"{folder}/field_{i}/metrics.json", run.command) for i in range(total["fields"])]
+        rows = []
+        for i, f in enumerate(fields):
+            m = results(f)
+            rows.append(
+                [
+                    f"field {i}",
+                    q(m["AB_polynomial_error_median_nm"], "nm"),
+                    q(m["AB_polynomial_error_max_nm"], "nm"),
+                    q(m["ABC_within_0p1R_pct"], "%"),
+                    q(m["ABC_error_over_radius_max"], "R", 3),
+                    q(m["push_success_pct"], "%"),
+                    q(m["push_error_max_nm"], "nm"),
+                ]
+            )
+        rows.append(
+            [
+                f"all {count(total['push_trials'])} targets",
+                "–",
+                q(total["AB_polynomial_error_max_nm"], "nm"),
+                q(total["ABC_within_0p1R_pct"], "%"),
+                q(total["ABC_error_over_radius_max"], "R", 3),
+                q(total["push_success_pct"], "%"),
+                q(total["push_error_max_nm"], "nm"),
+            ]
+        )
+        header = [
+            "particles",
+            "A+B median",
+            "A+B worst",
+            "A+B+C within 0.1 R",
+            "worst",
+            "push success",
+            "worst miss",
+        ]
+        return Table(header, rows, [run])
+
+    return make
+
+
+TABLES["push_study"] = push_fields(PUSH_STUDY, "push_study")
+TABLES["push_study_0_90"] = push_fields(PUSH_0_90, "push_study_0_90")
+
+
+@table("minor_loops")
+def minor_loops(results: Results) -> Table:
+    rows = [
+        [q(r["sweep_v"], "V")]
+        + [
+            f"{q(r['true_nm'][a], '', 0)} / {q(r['fit_nm'][a], '', 0)} nm ({q(r['ratio'][a], '', 3)})"
+            for a in (0, 1)
+        ]
+        for r in results(MINOR_LOOPS)
+    ]
+    return Table(["sweep", "x: true / fitted (ratio)", "y: true / fitted (ratio)"], rows, [MINOR_LOOPS])
+
+
+# --- studies (docs/study.md) -----------------------------------------------------------------
+
+STUDY_COLS = (
+    Col("ran", "_ran_pct", "%"),
+    Col("median", "_error_median_nm", "nm"),
+    Col("p95", "_error_p95_nm", "nm"),
+    Col("p99", "_error_p99_nm", "nm"),
+    Col("worst", "_error_max_nm", "nm"),
+    Col("success", "_success_pct", "%"),
+    Col("scanning", "_scan_time_s", "s", 0),
+)
+
+
+def study_stages(run: Run) -> Callable[[Results], Table]:
+    """A study's table per stage: errors over the trials that ran, success over all trials."""
+
+    def make(results: Results) -> Table:
+        rows = grid(results(run), (("A+B", "AB"), ("A+B+C", "ABC"), ("push", "push")), STUDY_COLS)
+        return Table(["stage"] + [c.header for c in STUDY_COLS], rows, [run])
+
+    return make
+
+
+def study_summary(run: Run, wall: bool = True) -> Callable[[Results], Table]:
+    """A study's size, time, and what its step C and push did beyond the stage table. ``wall``:
+    whether the file's ``wall_s`` is the study's own (not that of a call that only summarised
+    its stored chunks)."""
+
+    def make(results: Results) -> Table:
+        m = results(run)
+        rows = [
+            (
+                "trials, scanners",
+                f"{count(m['trials'])} on {count(m['scanners'])} ({count(m['trials_per_scanner'])} each)",
+            ),
+            ("wall time of the command", q(m["wall_s"] / 60, "min") if wall else "–"),
+            ("local scans verified", q(m["ABC_found_pct"], "%")),
+            ("local scan lines, mean", q(m["ABC_lines_mean"], "", 2)),
+            ("push success after the first push", q(m["push_first_success_pct"], "%")),
+            ("corrective pushes per trial", q(m["push_corrections_mean"], "", 2)),
+        ]
+        return Table(["", "value"], facts(rows), [run])
+
+    return make
+
+
+def failure_modes(run: Run) -> Callable[[Results], Table]:
+    """Why a study's trials failed, stage by stage (a stage's reasons exclusive)."""
+
+    def make(results: Results) -> Table:
+        m = results(run)
+        rows = [
+            [stage, reason, f"{count(n)} ({q(100 * n / m['trials'], '%')})"]
+            for stage, reasons in m["failure_modes"].items()
+            for reason, n in reasons.items()
+            if n
+        ]
+        return Table(["stage", "failure", "trials"], rows, [run], "Reasons that no trial met are left out.")
+
+    return make
+
+
+for _name, _run, _wall in (
+    ("study", STUDY, True),
+    ("study_wide", STUDY_WIDE, False),
+    ("study_speed", STUDY_SPEED, True),
+):
+    TABLES[f"{_name}_stages"] = study_stages(_run)
+    TABLES[f"{_name}_summary"] = study_summary(_run, _wall)
+    TABLES[f"{_name}_failures"] = failure_modes(_run)
+
+
+@table("bench_study")
+def bench_study(results: Results) -> Table:
+    m = results(BENCH_STUDY)
+    rate = {(r["batch"], r["devices"]): r["trials_per_min"] for r in m["bc_fixed_model"]}
+    batches = sorted({b for b, _ in rate})
+    rows = [[count(b), count(rate.get((b, 1))), count(rate.get((b, 2)))] for b in batches]
+    return Table(["batch", "1 device", "2 host devices"], rows, [BENCH_STUDY], "Trials per minute.")
+
+
+def devices(n: int) -> str:
+    """``n`` host devices, in words."""
+    return f"{n} device" + ("s" if n > 1 else "")
+
+
+#: The bench's names of its parts, where they need words.
+PARTS = {"before: inverse per sample + twin run": "step A's inverse sample by sample, the twin run again"}
+
+
+def bench_extras(run: Run) -> Callable[[Results], Table]:
+    """The study bench beside its batches: the loop, the inverse sample by sample, the costs."""
+
+    def make(results: Results) -> Table:
+        m = results(run)
+        split = m["batch_split"]
+        rows = [
+            (
+                "best batch",
+                f"{count(m['best']['trials_per_min'])} trials/min (batch {count(m['best']['batch'])}, "
+                f"{devices(m['best']['devices'])})",
+            ),
+            ("one trial per call, Python loop", f"{count(m['python_loop']['trials_per_min'])} trials/min"),
+            (
+                "best batch, step A's inverse sample by sample",
+                f"{count(m['old_inverse']['trials_per_min'])} trials/min",
+            ),
+            ("warm-up of the best batch (compiling)", q(m["best"]["warm_up_s"], "s", 0)),
+            (
+                "local scan lines, mean; trials that search again",
+                f"{q(m['best']['lines_mean'], '', 2)}; {q(m['best']['second_pass_pct'], '%')}",
+            ),
+            (
+                f"one batch of {count(split['batch'])}: first pass, second pass, rest",
+                f"{q(split['first_pass_s'], 's', 2)}, {q(split['second_pass_s'], 's', 2)}, "
+                f"{q(split['total_s'] - split['first_pass_s'] - split['second_pass_s'], 's', 2)}",
+            ),
+            (
+                "where each particle shows in the survey: coarse to fine, every pixel",
+                f"{q(split['image_position_s'], 's', 3)}, {q(split['image_position_every_pixel_s'], 's', 3)} "
+                f"(positions equal to {q(split['image_position_max_difference_nm'], 'nm')})",
+            ),
+        ]
+        rows += [
+            (f"per drive sample and trial: {PARTS.get(part, part)}", q(v["us"], "µs", 3, tiny=True))
+            for part, v in m["us_per_sample"].items()
+        ]
+        if "full_pipeline" in m:
+            full = m["full_pipeline"]
+            rows.append(
+                (
+                    f"a new scanner: step A, surveys, then {count(full['trials'])} trials",
+                    f"{q(full['prepare_s'], 's', 0)} (step A {q(full['step_a_fit_s'], 's', 0)}) + "
+                    f"{q(full['trials_s'], 's', 0)}: {count(full['trials_per_min'])} trials/min",
+                )
+            )
+        return Table(["", "value"], facts(rows), [run])
+
+    return make
+
+
+TABLES["bench_study_extras"] = bench_extras(BENCH_STUDY)
+TABLES["bench_study_gpu"] = bench_extras(GPU_STUDY)
+
+
+# --- diagnosis (docs/diagnosis.md, docs/real_data.md) ----------------------------------------
+
+
+UNITS = (  # a fitted size's name ends in its unit: (ending, how it prints)
+    ("_per_nm", lambda v: f"{v:.2g} /nm".replace("-", "−")),
+    ("_nm_per_s", lambda v: q(v, "nm/s", 3)),
+    ("_per_decade", lambda v: q(100 * v, "%/decade", 2)),
+    ("_hz", lambda v: q(v, "Hz", 0)),
+    ("_s", lambda v: q(1e3 * v, "ms", 3) if abs(v) < 1 else q(v, "s", 2)),
+    ("_nm", lambda v: q(v, "nm", 1)),
+    ("", lambda v: f"{v:.3g}".replace("-", "−")),
+)
+
+
+def _fitted(fitted: dict, nominal: dict) -> str:
+    """The sizes a candidate's fit adds to the nominal's, in the units their names give."""
+
+    def one(name: str, v: float) -> str:
+        return next(show(v) for end, show in UNITS if name.endswith(end))
+
+    parts = []
+    for name, v in fitted.items():
+        if name in nominal:
+            continue
+        values = v if isinstance(v, list) else [v]
+        label = re.sub(r"_(per_nm|nm_per_s|per_decade|hz|s|nm)$", "", name).replace("_", " ")
+        parts.append(f"{label} {' / '.join(one(name, x) for x in values)}")
+    return "; ".join(parts)
+
+
+def _candidate(c: dict, kind: str, nominal: dict) -> list[Cell]:
+    return [
+        f"{kind} {c['effect']}",
+        q(c["heldout_gap_after_nm"], "nm", 2),
+        q(c["shrink_pct"], "%"),
+        q(c["delta_bic"], "", 0),
+        q(c["significant"]),
+        _fitted(c["fitted"], nominal["fitted"]) or "–",
+    ]
+
+
+def diagnosis_table(run: Run) -> Callable[[Results], Table]:
+    """One diagnosis: the nominal model, the shapes tried, each candidate effect, the verdict."""
+
+    def make(results: Results) -> Table:
+        d = results(run)
+        nominal = d["nominal"]
+        rows: list[list[Cell]] = [
+            [f"nominal: {nominal['model']}", q(nominal["heldout_gap_nm"], "nm", 2), "–", "–", "–", "–"]
+        ]
+        rows += [_candidate(c, "shape", nominal) for c in d.get("hysteresis_shapes", [])]
+        rows += [_candidate(c, "effect", nominal) for c in d["candidates"]]
+        v = d["verdict"]
+        rows.append(
+            [
+                f"**verdict: {v['text'] or 'no significant unmodelled effect'}**",
+                q(v["heldout_gap_after_nm"], "nm", 2),
+                q(v["total_shrink_pct"], "%"),
+                "",
+                "",
+                "",
+            ]
+        )
+        header = ["model", "held-out gap", "shrink", "ΔBIC", "significant", "fitted"]
+        return Table(
+            header,
+            rows,
+            [run],
+            "The shrink is against the model each row was added to; the verdict's, from the nominal.",
+        )
+
+    return make
+
+
+TABLES["diagnose_simulated"] = diagnosis_table(DIAGNOSE_SIMULATED)
+TABLES["diagnose_scans"] = diagnosis_table(DIAGNOSE_SCANS)
+TABLES["diagnose_scans_lattice"] = diagnosis_table(DIAGNOSE_SCANS_LATTICE)
+for _name, _run in DIAGNOSE_REAL:
+    TABLES["diagnose_" + _run.path.split("/")[1]] = diagnosis_table(_run)
+
+
+@table("diagnose_real")
+def diagnose_real(results: Results) -> Table:
+    rows = []
+    for case, run in DIAGNOSE_REAL:
+        d = results(run)
+        shapes = [c for c in d.get("hysteresis_shapes", []) if c["significant"]]
+        effects = [c for c in d["candidates"] if c["significant"]]
+        rows.append(
+            [
+                case,
+                q(d["nominal"]["heldout_gap_nm"], "nm", 0),
+                "; ".join(
+                    f"{c['effect']} {q(c['heldout_gap_after_nm'], 'nm', 0)} ({q(c['shrink_pct'], '%')})"
+                    for c in shapes
+                )
+                or "–",
+                "; ".join(
+                    f"{c['effect']} {q(c['heldout_gap_after_nm'], 'nm', 0)} ({q(c['shrink_pct'], '%')})"
+                    for c in effects
+                )
+                or "–",
+                f"**{d['verdict']['text'] or 'none'}**",
+            ]
+        )
+    header = [
+        "data, nominal model",
+        "nominal held-out gap",
+        "significant shapes",
+        "significant effects on it",
+    ]
+    return Table(header + ["verdict"], rows, [run for _, run in DIAGNOSE_REAL])
+
+
+@table("diagnose_real_noise")
+def diagnose_real_noise(results: Results) -> Table:
+    rows = []
+    for case, run in DIAGNOSE_REAL[:4]:
+        m = results(Run(run.path.replace("diagnosis.json", "metrics.json"), run.command))
+        rows.append(
+            [
+                case,
+                q(m["noise_floor_nm"], "nm"),
+                q(m["nominal_heldout_gap_above_floor_nm"], "nm", 0),
+                q(m["final_heldout_gap_above_floor_nm"], "nm", 0),
+            ]
+        )
+    header = ["record, nominal model", "noise floor", "nominal gap above it", "final gap above it"]
+    return Table(
+        header,
+        rows,
+        [Run(r.path.replace("diagnosis.json", "metrics.json"), r.command) for _, r in DIAGNOSE_REAL[:4]],
+    )
+
+
+def _cases(results: Results, run: Run, kind: str) -> list:
+    return [r for r in results(run) if r.get("data", "record") == kind]
+
+
+def withheld_table(cases_run: Run, summary_run: Run, kind: str) -> Callable[[Results], Table]:
+    """Per withheld effect of one kind of data: magnitudes, top-1 and median shrink per level."""
+
+    def make(results: Results) -> Table:
+        summary = results(summary_run)
+        cases = _cases(results, cases_run, kind)
+        levels = ("low", "middle", "high")
+        rows = []
+        for effect, mags in summary["magnitudes"][kind].items():
+            unit = summary["units"][kind][effect]
+            per = [[c for c in cases if c["truth"] == effect and c["level"] == lv] for lv in levels]
+            rows.append(
+                [
+                    effect.replace("_", " "),
+                    " / ".join(f"{m:g}" for m in mags) + f" {unit}",
+                    ", ".join(f"{sum(c['verdict'] == effect for c in sel)}/{len(sel)}" for sel in per),
+                    " / ".join(
+                        q(statistics.median(c["verdict_shrink_pct"] for c in sel), "", 0) for sel in per
+                    )
+                    + " %",
+                ]
+            )
+        controls = [c for c in cases if c["truth"] is None]
+        largest = max(max((r[1] for r in c["ranking"]), default=0.0) for c in controls)
+        rows.append(
+            [
+                "none (controls)",
+                "–",
+                f"{sum(c['verdict'] is None for c in controls)}/{len(controls)} no significant effect",
+                f"largest shrink of any candidate {q(largest, '%')}",
+            ]
+        )
+        header = ["withheld effect", "low / middle / high magnitude", "top-1 (low, middle, high)"]
+        return Table(header + ["median shrink (low / middle / high)"], rows, [cases_run])
+
+    return make
+
+
+TABLES["withheld_record"] = withheld_table(RECORDS_CASES, RECORDS, "record")
+TABLES["withheld_scans"] = withheld_table(WITHHELD_CASES, WITHHELD, "scans")
+TABLES["withheld_lattice"] = withheld_table(WITHHELD_CASES, WITHHELD, "lattice")
+
+
+@table("withheld_summary")
+def withheld_summary(results: Results) -> Table:
+    rows = []
+    for label, run, kind in (
+        ("records", RECORDS, "record"),
+        ("scan sets", WITHHELD, "scans"),
+        ("2-D lattice scan sets", WITHHELD, "lattice"),
+    ):
+        s = results(run)[kind]
+        rows.append(
+            [
+                label,
+                q(s["top1_accuracy_middle_pct"], "%", 0),
+                f"{count(s['controls_flagged'])} of {count(s['controls'])}",
+                q(s["median_shrink_pct"], "%"),
+                q(s["median_shrink_middle_pct"], "%"),
+                q(s.get("median_rms_shrink_pct"), "%"),
+                q(s["seconds_per_case_median"], "s"),
+            ]
+        )
+    header = [
+        "data",
+        "top-1, middle magnitude",
+        "controls flagged",
+        "median shrink",
+        "at the middle magnitude",
+    ]
+    return Table(header + ["per crossing, noise included", "per case"], rows, [RECORDS, WITHHELD])
+
+
+def _wrong(confusion: dict, labels: list) -> int:
+    """Cases given an effect other than their own (a miss, "none", is not wrong)."""
+    none = labels.index("none")
+    return sum(
+        n
+        for m in confusion.values()
+        for i, row in enumerate(m)
+        for j, n in enumerate(row)
+        if j not in (i, none)
+    )
+
+
+def _share(pct: float, n: int) -> str:
+    """``k/n (pct %)`` for a percentage of ``n`` cases."""
+    return f"{round(pct * n / 100)}/{n} ({q(pct, '%', 0)})"
+
+
+@table("independent_check")
+def independent_check(results: Results) -> Table:
+    m = results(INDEPENDENT)
+    rows = []
+    for label, key in (
+        ("nominal class = truth's", "same"),
+        ("nominal class ≠ truth's", "different"),
+        ("all", "all"),
+    ):
+        s = m[key]
+        top1 = [_share(s[f"top1_{lv}_pct"], s[f"cases_{lv}"]) for lv in ("low", "middle", "high")]
+        rows.append(
+            [
+                label,
+                *top1,
+                f"{s['controls_flagged']}/{s['controls']}",
+                count(_wrong(s["confusion"], m["labels"])),
+            ]
+        )
+    header = ["", "top-1 low", "top-1 middle", "top-1 high", "controls flagged", "cases given a wrong effect"]
+    return Table(header, rows, [INDEPENDENT])
+
+
+@table("independent_shrink")
+def independent_shrink(results: Results) -> Table:
+    m = results(INDEPENDENT)["all"]
+    by_level = m["median_shrink_and_ceiling_by_level_pct"]
+    rows = [
+        ("each effect's own shrink, median over the correctly named", q(m["median_shrink_correct_pct"], "%")),
+        (
+            "from the nominal to the final model (shape and effect)",
+            q(m["median_total_shrink_correct_pct"], "%"),
+        ),
+        ("own shrink above the noise floor", q(m["median_shrink_above_floor_correct_pct"], "%")),
+        ("nominal to final, above the noise floor", q(m["median_total_shrink_above_floor_correct_pct"], "%")),
+        (
+            "the most any model could shrink (the generator's noise)",
+            q(m["median_shrink_ceiling_correct_pct"], "%"),
+        ),
+        (
+            "own shrink / its ceiling, low · middle · high",
+            " · ".join(
+                f"{q(a, '', 1)} / {q(b, '', 1)} %"
+                for a, b in (by_level[lv] for lv in ("low", "middle", "high"))
+            ),
+        ),
+        ("noise floor estimated from the held-out output, median", q(m["median_noise_floor_nm"], "nm", 2)),
+        (
+            "shapes found (none, generalised PI, Preisach)",
+            ", ".join(count(m["shape_findings"].get(k, 0)) for k in ("None", "gpi", "preisach")),
+        ),
+        ("time per case, median", q(m["seconds_per_case_median"], "s", 0)),
+    ]
+    return Table(["median over the correctly named cases", "value"], facts(rows), [INDEPENDENT])
+
+
+@table("independent_by_effect")
+def independent_by_effect(results: Results) -> Table:
+    m = results(INDEPENDENT)["all"]
+    rows = []
+    for effect, shrinks in m["median_shrink_by_effect_pct"].items():
+        right = m["correct_by_effect_and_level"][effect]
+        named = [f"{sum(right[lv])}/{len(right[lv])}" for lv in ("low", "middle", "high")]
+        rows.append(
+            [effect.replace("_", " "), ", ".join(named), " / ".join(q(v, "", 0) for v in shrinks) + " %"]
+        )
+    header = ["effect", "named (low, middle, high)", "own shrink, median (low / middle / high)"]
+    return Table(header, rows, [INDEPENDENT], "An asymmetry counts as named when the shape found holds it.")
+
+
+@table("stability")
+def stability(results: Results) -> Table:
+    rows = []
+    for run in STABILITY_ROWS:
+        for case in results(run):
+            name = f"{case['effect'] or 'control'}, {case['truth_hysteresis']} truth, {case['nominal_kind']} nominal"
+            rows.append(
+                [name] + [f"{v['verdict'] or '–'} ({v['shape'] or 'nominal'})" for v in case["variants"]]
+            )
+    header = ["case (middle magnitude)"] + [v["variant"] for v in results(STABILITY_ROWS[0])[0]["variants"]]
+    return Table(header, rows, list(STABILITY_ROWS), "Each cell: the verdict (the hysteresis shape found).")
+
+
+@table("stability_summary")
+def stability_summary(results: Results) -> Table:
+    m = results(STABILITY)
+    rows = [
+        [variant, count(v["verdict_flips"]), count(v["shape_flips"])]
+        for variant, v in m["per_variant"].items()
+    ]
+    rows.append(
+        [
+            f"all {count(m['cases'] * m['variants_per_case'])} variants",
+            count(m["verdict_flips"]),
+            count(m["shape_flips"]),
+        ]
+    )
+    return Table(
+        ["variant", "verdict flips", "shape flips"],
+        rows,
+        [STABILITY],
+        f"Right on the whole record: {m['right_whole']} of {m['cases']}; in every variant: "
+        f"{m['right_all_variants']} of {m['cases']}.",
+    )
+
+
+# --- real data (docs/real_data.md) -----------------------------------------------------------
+
+FIT_COLS = (
+    Col("train rms", "_train_rms_error_pct", "%", 2),
+    Col("held-out rms", "_heldout_rms_error_pct", "%", 2),
+    Col("held-out max", "_heldout_max_error_pct", "%", 2),
+    Col("fit time", "_fit_s", "s"),
+    Col("solver steps", "_solver_steps", "", 0),
+)
+PIEZO_MODELS = (
+    ("straight line (optimistix LM)", "line"),
+    ("PI, 20 plays (optimistix LM)", "pi"),
+    ("PI, 20 plays (jaxopt L-BFGS)", "pi_jaxopt"),
+    ("generalised PI, 20 plays + 3+3 dead zones (optimistix LM)", "gpi"),
+    ("generalised PI (jaxopt LM)", "gpi_jaxopt"),
+    ("Preisach, 30 levels (optimistix BFGS)", "preisach"),
+    ("generalised PI + creep (optimistix LM)", "gpi_creep"),
+    ("generalised PI + lag + creep (optimistix LM)", "gpi_lag_creep"),
+)
+
+
+@table("piezo_fit")
+def piezo_fit(results: Results) -> Table:
+    m = results(PIEZO_FIT)
+    rows = grid(m, PIEZO_MODELS, FIT_COLS)
+    for row, (_, prefix) in zip(rows, PIEZO_MODELS):
+        row.append(q(m[f"{prefix}_converged"]))
+    header = ["model (solver)"] + [c.header for c in FIT_COLS] + ["converged"]
+    return Table(header, rows, [PIEZO_FIT], "Errors in % of the output range.")
+
+
+CROSS_COLS = (
+    Col("offset", "offset_nm", "nm", 0),
+    Col("raw rms", "raw_rms_error_pct", "%", 2),
+    Col("rms", "all_rms_error_pct", "%", 2),
+    Col("max", "all_max_error_pct", "%", 2),
+)
+
+
+@table("cross_record")
+def cross_record(results: Results) -> Table:
+    m = results(CROSS_RECORD)
+    names = {
+        "pi": "PI",
+        "gpi": "generalised PI",
+        "preisach": "Preisach, 30 levels",
+        "gpi_creep": "generalised PI + creep",
+    }
+    rows = []
+    for fitted, scored in (("sine", "ramped"), ("ramped", "ramped"), ("ramped", "sine"), ("sine", "sine")):
+        for model, name in names.items():
+            prefix = f"{model}_on_{fitted}_scored_on_{scored}_"
+            row = grid(m, [(name, prefix)], CROSS_COLS)[0]
+            minor = [m.get(prefix + k) for k in ("minor_rms_error_pct", "minor_max_error_pct")]
+            rows.append(row[:1] + [fitted, scored] + row[1:] + [q(v, "%", 2) for v in minor])
+    header = ["model", "fitted on", "scored on"] + [c.header for c in CROSS_COLS] + ["minor rms", "minor max"]
+    return Table(header, rows, [CROSS_RECORD], "Errors in % of the scored record's output range.")
+
+
+@table("predict_compensate")
+def predict_compensate(results: Results) -> Table:
+    p, c, fit = results(PREDICT), results(COMPENSATE), results(PIEZO_FIT)
+    rows = [
+        (
+            "`jaxafm predict`: the generalised PI on the held-out part, rms / max",
+            f"{q(p['rms_error_pct'], '%', 3)} / {q(p['max_error_pct'], '%', 3)}",
+        ),
+        (
+            "the fit table's held-out rms / max for the same model",
+            f"{q(fit['gpi_heldout_rms_error_pct'], '%', 3)} / {q(fit['gpi_heldout_max_error_pct'], '%', 3)}",
+        ),
+        (
+            "`jaxafm compensate`: the drive through the generalised PI, rms / max",
+            " / ".join(q(c[f"tracking_{k}_error_nm"], "nm", 2, tiny=True) for k in ("rms", "max")),
+        ),
+        (
+            "the same drive through the Preisach model, rms / max",
+            f"{q(c['check_model_preisach_tracking_rms_error_pct'], '%', 2)} / "
+            f"{q(c['check_model_preisach_tracking_max_error_pct'], '%', 2)}",
+        ),
+        (
+            "the same drive through the generalised PI + creep model, rms / max",
+            f"{q(c['check_model_gpi_creep_tracking_rms_error_pct'], '%', 2)} / "
+            f"{q(c['check_model_gpi_creep_tracking_max_error_pct'], '%', 2)}",
+        ),
+    ]
+    return Table(["", "value"], facts(rows), [PREDICT, PIEZO_FIT, COMPENSATE])
+
+
+@table("real_grating")
+def real_grating(results: Results) -> Table:
+    m = results(REAL_GRATING)
+    rows = [
+        ("edges fitted (rows)", f"{count(m['edges'])} ({count(m['rows_used'])})"),
+        ("pitch", f"{q(m['pitch_nm'], 'nm')} ± {q(m['pitch_se_nm'], 'nm')}"),
+        ("x calibration against a 3 µm nominal pitch", q(m["x_calibration_error_pct"], "%", 2)),
+        (
+            "fast-axis nonlinearity, peak to peak",
+            f"{q(m['nonlinearity_ptp_nm'], 'nm')} "
+            f"({q(m['nonlinearity_ptp_pct_of_width'], '%', 2)} of the width)",
+        ),
+        (
+            "skew",
+            f"{q(m['skew_nm_per_nm'], '', 4)} ± {q(m['skew_se_nm_per_nm'], '', 5)} "
+            f"({q(m['skew_angle_deg'], '°', 2)} if a rotation)",
+        ),
+        ("bow", f"{q(m['bow_nm'], 'nm')} ± {q(m['bow_se_nm'], 'nm')}"),
+        ("x-scale drift over the frame", q(m["x_scale_drift_pct"], "%", 2)),
+        ("edge residual, rms", q(m["residual_rms_nm"], "nm")),
+        (
+            "local pitch spread, raw → corrected",
+            f"{q(m['raw_pitch_std_nm'], 'nm')} ({q(m['raw_pitch_std_pct'], '%', 2)}) → "
+            f"{q(m['corrected_pitch_std_nm'], 'nm')} ({q(m['corrected_pitch_std_pct'], '%', 2)})",
+        ),
+        (
+            "local pitch peak to peak, raw → corrected",
+            f"{q(m['raw_pitch_ptp_nm'], 'nm', 0)} → {q(m['corrected_pitch_ptp_nm'], 'nm', 0)}",
+        ),
+        ("pitch over the model variants, range", q(m["pitch_range_over_models_nm"], "nm", 2)),
+    ]
+    return Table(["", "value"], facts(rows), [REAL_GRATING])
+
+
+@table("real_lattice")
+def real_lattice(results: Results) -> Table:
+    rows = [
+        [
+            frame.replace("_", " ").replace(" trace", ", trace").replace(" retrace", ", retrace"),
+            q(r["turn_deg"], "°", 2),
+            f"{q(r['nominal_heldout_gap_nm'], '', 0)} → {q(r['verdict_heldout_gap_nm'], '', 0)} nm",
+            q(r["verdict_shrink_pct"], "%"),
+            q(r["skew_beyond_turn"], "", 4),
+            q(r["shape_slope"], "", 3),
+            r["verdict"],
+        ]
+        for frame, r in results(REAL_LATTICE).items()
+    ]
+    header = [
+        "frame",
+        "turn (rows' tilt)",
+        "held-out gap, nominal → verdict",
+        "shrink",
+        "skew beyond the turn",
+    ]
+    return Table(header + ["chord-midpoint slope", "verdict"], rows, [REAL_LATTICE])
+
+
+# --- the model and the instrument (docs/model.md, docs/instrument.md) -------------------------
+
+
+def _timed(r: dict) -> str:
+    return f"{q(1e3 * r['median_s'], 'ms', 0)} ({q(r['compile_s'], 's', 2)})"
+
+
+def _kinds(m: dict) -> list:
+    """The bench's variants of one model: (label, kind, old baseline, fair baseline)."""
+    if not m["model"].startswith("Preisach"):
+        return [(m["model"], "hard", "loop", "play_loop")]
+    return [
+        (f"{m['model']}, relay grid", "hard", "relay_grid", "play_loop"),
+        (f"{m['model']}, smooth", "smooth", None, "play_loop_smooth"),
+    ]
+
+
+@table("bench_hysteresis")
+def bench_hysteresis(results: Results) -> Table:
+    rows = []
+    for m in results(BENCH_HYSTERESIS)["models"]:
+        for label, kind, old, fair in _kinds(m):
+            rows.append(
+                [
+                    label,
+                    _timed(m[f"fwd_{kind}"]),
+                    q(m["numpy"][old]["median_s"], "s", 2) if old else "–",
+                    q(m[f"speedup_{kind}_vs_{old}"], "×") if old else "–",
+                    q(1e3 * m["numpy"][fair]["median_s"], "ms", 0),
+                    q(m[f"speedup_{kind}_vs_{fair}"], "×"),
+                ]
+            )
+    header = ["model", "JAX forward (compile)", "naive baseline", "vs naive", "fair baseline", "vs fair"]
+    return Table(header, rows, [BENCH_HYSTERESIS])
+
+
+@table("bench_hysteresis_grad")
+def bench_hysteresis_grad(results: Results) -> Table:
+    rows = []
+    for m in results(BENCH_HYSTERESIS)["models"]:
+        for label, kind, _, _ in _kinds(m):
+            rows.append(
+                [
+                    label,
+                    f"{q(m[f'grad_over_fwd_{kind}'], '', 2)} ({q(m[f'grad_{kind}']['compile_s'], 's', 2)})",
+                    f"{q(m[f'grad_all_over_fwd_{kind}'], '', 2)} ({q(m[f'grad_all_{kind}']['compile_s'], 's', 2)})",
+                ]
+            )
+    header = ["model", "value+grad / forward, fitted arrays (compile)", "every array (compile)"]
+    return Table(header, rows, [BENCH_HYSTERESIS])
+
+
+@table("bench_scan")
+def bench_scan(results: Results) -> Table:
+    m = results(BENCH_SCAN)
+    n = m["scan"]["samples_per_image"]
+    vec = m["numpy_vectorised"]
+    rows = [
+        [
+            "JAX forward (jitted)",
+            q(m["jax_forward"]["median_s"], "s", 2),
+            q(1e6 * m["jax_forward"]["median_s"] / n, "µs", 2),
+            q(m["jax_forward"]["compile_s"], "s"),
+        ],
+        [
+            f"JAX forward + gradient ({m['grad']['parameters']} parameters)",
+            q(m["jax_forward_grad"]["median_s"], "s", 2),
+            q(1e6 * m["jax_forward_grad"]["median_s"] / n, "µs", 2),
+            q(m["jax_forward_grad"]["compile_s"], "s"),
+        ],
+        [
+            "NumPy loop over samples",
+            q(m["numpy"]["image_s"], "s"),
+            q(1e6 * m["numpy"]["image_s"] / n, "µs", 0),
+            "–",
+        ],
+        [
+            "NumPy, only the sequential stages looped",
+            q(vec["median_s"], "s", 2),
+            q(1e6 * vec["median_s"] / n, "µs", 2),
+            "–",
+        ],
+    ]
+    return Table(["", "per image", "per sample", "compile"], rows, [BENCH_SCAN])
+
+
+@table("bench_scan_ratios")
+def bench_scan_ratios(results: Results) -> Table:
+    m = results(BENCH_SCAN)
+    loops = m["numpy_vectorised"]["sequential_loops_s"]
+    agree = max(m["max_abs_diff_jax_vs_numpy_nm"].values())
+    rows = [
+        ("samples per image", count(m["scan"]["samples_per_image"])),
+        ("JAX forward against the NumPy loop", q(m["numpy_over_jax_forward"], "×", 0)),
+        ("JAX forward against the vectorised NumPy scan", q(m["numpy_vectorised_over_jax_forward"], "×")),
+        ("gradient / forward", q(m["grad_over_forward"], "×")),
+        (
+            "the vectorised scan's loops: plays, lags and wander",
+            ", ".join(q(v, "s", 2) for v in loops.values()),
+        ),
+        ("JAX and NumPy agree on every pixel to", q(agree, "nm", tiny=True)),
+        ("peak memory", q(m["peak_rss_gib"], "GiB")),
+    ]
+    return Table(["", "value"], facts(rows), [BENCH_SCAN])
+
+
+@table("bench_render")
+def bench_render(results: Results) -> Table:
+    m = results(BENCH_RENDER)
+    rows = [
+        [name.replace("\n", " "), q(r["median_s"], "s", 2), q(r["compile_s"], "s", 2)]
+        for name, r in m["runs"].items()
+    ]
+    agree = q(m["max_difference_nm"], "nm", tiny=True)
+    note = f"{m['particles']} spheres on a {m['pixels']}² survey; the images agree to {agree}."
+    return Table(["the tip image of", "median", "compile"], rows, [BENCH_RENDER], note)
+
+
+@table("simulated_grating_scan")
+def simulated_grating_scan(results: Results) -> Table:
+    m = results(GRATING_SCAN)
+    rows = [
+        (
+            "true tip position against the wanted one: rms, max",
+            f"{q(m['position_error_rms_nm'], 'nm', 0)}, {q(m['position_error_max_nm'], 'nm', 0)}",
+        ),
+        (
+            "x error range, y error range",
+            f"{span(m['x_error_range_nm'], 'nm', 0)}, {span(m['y_error_range_nm'], 'nm', 0)}",
+        ),
+        ("trace against retrace positions, rms", q(m["trace_retrace_offset_rms_nm"], "nm", 0)),
+        ("trace image against retrace image, rms", q(m["trace_minus_retrace_rms_nm"], "nm", 0)),
+        ("instrument time of the frame", q(m["frame_time_s"], "s", 0)),
+    ]
+    return Table(["", "value"], facts(rows), [GRATING_SCAN])
+
+
+# --- pages -----------------------------------------------------------------------------------
+
+
+def pages(root: Path) -> list[str]:
+    """The pages that may hold tables, from the repository root."""
+    found = {p.relative_to(root).as_posix() for pattern in PAGES for p in root.glob(pattern)}
+    return sorted(found)
+
+
+def make(name: str, results: Results) -> Table:
+    """The table ``name``, or an error naming it and the key its results lack."""
+    try:
+        return TABLES[name](results)
+    except (KeyError, IndexError, TypeError) as e:
+        raise SystemExit(f"table {name!r}: its results have no {e}") from e
+
+
+def blocks(text: str, page: str) -> list[tuple[str, int, int, str]]:
+    """``(table, start, end, indent)`` for each marked block of ``text``: its body is
+    ``text[start:end]``, and ``indent`` the spaces before its marker (a table inside a list item)."""
+    found = []
+    for m in BEGIN.finditer(text):
+        end = text.find(END, m.end())
+        if end < 0:
+            raise SystemExit(f"{page}: <!-- results:{m.group(1)} --> has no {END}")
+        if m.group(1) not in TABLES:
+            raise SystemExit(
+                f"{page}: <!-- results:{m.group(1)} --> names no table; tables: {', '.join(TABLES)}"
+            )
+        indent = text[text.rfind("\n", 0, m.start()) + 1 : m.start()]
+        found.append((m.group(1), m.end(), end, indent if not indent.strip() else ""))
+    return found
+
+
+def written(text: str, page: str, results: Results) -> str:
+    """``text`` with every marked block holding the table it names."""
+    out, at = [], 0
+    for name, start, end, indent in blocks(text, page):
+        lines = [indent + line if line else "" for line in render(make(name, results), page)]
+        out += [text[at:start], "\n" + "\n".join(lines) + "\n" + indent]
+        at = end
+    return "".join(out + [text[at:]])
+
+
+def _cells(line: str) -> list[str]:
+    """The cells of a Markdown table row."""
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def first_difference(name: str, page: str, old: str, new: str) -> str:
+    """Where a stale table's text first differs from what the results give: the row and the
+    column of a table cell, else the line."""
+    old_lines, new_lines = (t.strip("\n").split("\n") for t in (old, new))
+    header = _cells(new_lines[0])
+    for i in range(max(len(old_lines), len(new_lines))):
+        a = old_lines[i].strip() if i < len(old_lines) else ""
+        b = new_lines[i].strip() if i < len(new_lines) else ""
+        if a == b:
+            continue
+        if a.startswith("|") and b.startswith("|"):
+            ca, cb = _cells(a), _cells(b)
+            for j in range(max(len(ca), len(cb))):
+                x, y = (ca[j] if j < len(ca) else ""), (cb[j] if j < len(cb) else "")
+                if x != y:
+                    col = header[j] if j < len(header) else f"column {j + 1}"
+                    return (
+                        f"{page}: table {name!r}, row {cb[0]!r}, column {col!r}: "
+                        f"the page has {x!r}, the results give {y!r}"
+                    )
+        return f"{page}: table {name!r}, line {i + 1}: the page has {a!r}, the results give {b!r}"
+    return f"{page}: table {name!r} differs in its blank lines or indentation"
+
+
+def narration(text: str, page: str) -> list[str]:
+    """Each line of ``text`` (outside code blocks and code spans) that narrates when something
+    was measured."""
+    found, fenced = [], False
+    for i, line in enumerate(text.split("\n"), 1):
+        fenced ^= line.lstrip().startswith("```")
+        m = None if fenced else NARRATION.search(re.sub(r"`[^`]*`", "", line))
+        if m:
+            found.append(
+                f"{page}:{i}: {m.group(0)!r} narrates history (the git log keeps it): {line.strip()}"
+            )
+    return found
+
+
+def check(root: Path) -> list[str]:
+    """Every problem with the pages under ``root``: stale tables, tables on no page, narration."""
+    results, problems, shown = Results(root), [], set()
+    for page in pages(root):
+        text = (root / page).read_text()
+        new = written(text, page, results)
+        for (name, start, end, _), (_, nstart, nend, _) in zip(blocks(text, page), blocks(new, page)):
+            shown.add(name)
+            if text[start:end] != new[nstart:nend]:
+                problems.append(first_difference(name, page, text[start:end], new[nstart:nend]))
+        problems += narration(text, page)
+    problems += [
+        f"table {name!r} is on no page: mark it or remove it" for name in TABLES if name not in shown
+    ]
+    return problems
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Write the tables (or ``--check`` them); return the exit status."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", action="store_true", help="change nothing; exit 1 naming what is stale")
+    ap.add_argument("--root", type=Path, default=ROOT, help="the repository (default: this one)")
+    args = ap.parse_args(argv)
+    root = args.root.resolve()
+    if args.check:
+        problems = check(root)
+        for p in problems:
+            print(p, file=sys.stderr)
+        if problems:
+            print(
+                f"{len(problems)} problem(s); `python docs/results.py` rewrites the tables", file=sys.stderr
+            )
+        return 1 if problems else 0
+    results = Results(root)
+    for page in pages(root):
+        text = (root / page).read_text()
+        new = written(text, page, results)
+        if new != text:
+            (root / page).write_text(new)
+            print(f"wrote {page}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
