@@ -1,0 +1,213 @@
+"""Chords of a calibration lattice's features: the image levelled, the features found, and where
+every scan line (and every pixel column) enters and leaves each feature, to a fraction of a pixel.
+
+Step A's feature stage fits these crossings instead of whole images or feature centroids: they do
+not depend on the height background a real image carries (a plane tilt, a bow, the z feedback's
+line-to-line offsets), and a lattice of a few features gives hundreds of them.
+
+**Levelling** (:func:`level`). The height is modelled as ``z = s f + B + o_l + e``: the features
+``f`` (0 on the surface, 1 on a pillar's top or a pit's floor) of height ``s``, a background ``B``
+(a 2-D polynomial in Legendre form, :func:`background_design`), an offset ``o_l`` per scan line,
+and noise. ``B`` and ``o_l`` are fitted to the surface pixels only, which are found again after
+each fit (below half the feature height, and within five robust standard deviations of the
+surface), so the features never bend the background. What is left, divided by ``s``, is the
+levelled image ``n``: about 0 on the surface and 1 on the features. Pixels that stand above (or
+below) all four of their neighbours by more than eight robust standard deviations of the surface
+and a quarter of the feature height (spikes), and pixels at the image's extreme value where a few share it (an
+amplifier's clipping), are outliers.
+
+**Features and chords** (:func:`find_chords`). A feature is a connected region where ``n > 1/2``
+that touches no image edge and is not much smaller than the others (a spike is). A chord is a run
+of one scan line (or one pixel column) through a feature: its two ends are where ``n`` crosses
+1/2, interpolated linearly between the two pixels on either side. A chord shorter than half the
+feature's longest one grazes its rim, where the crossing is ill-defined, and is dropped, as is a
+chord with an outlier at either end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import ndimage
+
+#: a feature at most this fraction of the median feature's area is a spike or a fragment
+MIN_FEATURE_AREA = 0.3
+#: a chord shorter than this fraction of its feature's longest chord (same direction) grazes the rim
+MIN_CHORD = 0.5
+#: the background's polynomial order, Legendre in x and y (0: offset, 1: plane, 2: plus a bow)
+BACKGROUND_ORDER = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelledImage:
+    """An image levelled for its features (:func:`level`).
+
+    Attributes:
+        levelled: ``(z - background) / height`` (lines, pixels): 0 on the surface, 1 on the features.
+        background: the fitted background and line offsets (lines, pixels) nm.
+        height: the features' height above (pillars) or depth below (pits) the surface, nm.
+        surface: the pixels the background was fitted to (lines, pixels).
+        outliers: spikes and clipped pixels (lines, pixels).
+        noise_nm: the surface's robust standard deviation, nm.
+    """
+
+    levelled: np.ndarray
+    background: np.ndarray
+    height: float
+    surface: np.ndarray
+    outliers: np.ndarray
+    noise_nm: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Chords:
+    """The features and chords of one image (:func:`find_chords`).
+
+    Attributes:
+        ends: where each chord enters and leaves its feature, (n, 2, 2) fractional pixels
+            (row, col), in the order the scan met them (along a line: left then right; along a
+            column: bottom then top).
+        feature: each chord's feature, an index into ``centres`` (n,).
+        along_lines: whether a chord runs along a scan line (else along a pixel column) (n,).
+        centres: each feature's centroid (features, 2) fractional pixels (row, col).
+        image: the levelled image the chords were found in.
+    """
+
+    ends: np.ndarray
+    feature: np.ndarray
+    along_lines: np.ndarray
+    centres: np.ndarray
+    image: LevelledImage
+
+
+def background_design(shape: tuple, order: int = BACKGROUND_ORDER) -> np.ndarray:
+    """The background's columns (lines * pixels, k): the products ``P_a(x) P_b(y)`` of Legendre
+    polynomials with ``a + b <= order``, x and y from -1 to 1 across the image."""
+    lines, pixels = shape
+    x = np.polynomial.legendre.legvander(np.linspace(-1, 1, pixels), order)  # (pixels, order + 1)
+    y = np.polynomial.legendre.legvander(np.linspace(-1, 1, lines), order)
+    cols = [np.outer(y[:, b], x[:, a]).ravel() for a in range(order + 1) for b in range(order + 1 - a)]
+    return np.stack(cols, axis=-1)
+
+
+def _robust_sd(v: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(v - np.median(v)))) if v.size else 0.0
+
+
+def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUND_ORDER) -> LevelledImage:
+    """Level ``z`` (lines, pixels) nm for its features (the module's equation).
+
+    Raises:
+        ValueError: naming the image, when no feature level stands out of the surface.
+    """
+    s = -np.asarray(z, dtype=float) if pits else np.asarray(z, dtype=float)
+    lines, pixels = s.shape
+    clipped = _clipped(s)
+    design = background_design(s.shape, order)
+    surface = ~clipped
+    offsets = np.zeros(lines)
+    for i in range(10):
+        w = surface.ravel()
+        coef = np.linalg.lstsq(design[w], (s - offsets[:, None]).ravel()[w], rcond=None)[0]
+        r = s - (design @ coef).reshape(s.shape)
+        if i:  # line offsets once the features are out of the surface
+            offsets = np.array(
+                [np.median(r[k][surface[k]]) if surface[k].sum() > pixels // 4 else 0.0 for k in range(lines)]
+            )
+            offsets -= np.median(offsets)
+        r = r - offsets[:, None]
+        r -= np.median(r[surface])
+        sd = _robust_sd(r[surface])
+        above = r[(r > 0.5 * np.percentile(r[~clipped], 99.5)) & ~clipped]
+        height = float(np.median(above)) if above.size else 0.0
+        new = (r < 0.5 * height) & (np.abs(r) < max(5 * sd, 0.02 * height)) & ~clipped
+        if np.array_equal(new, surface):
+            break
+        surface = new
+    if not height > 10 * sd:
+        raise ValueError(
+            f"{name}: no feature level stands out of the surface after levelling (features "
+            f"{height:.3g} nm, surface noise {sd:.3g} nm): is it a lattice of "
+            f"{'pits' if pits else 'pillars'}? (grating.pits)"
+        )
+    spikes = _spikes(r, max(8 * sd, 0.25 * height))
+    background = (s - r) * (-1.0 if pits else 1.0)
+    return LevelledImage(r / height, background, height, surface, spikes | clipped, sd)
+
+
+def _spikes(r: np.ndarray, step: float) -> np.ndarray:
+    """Pixels above (or below) all four neighbours by more than ``step``: a feature's edge pixel
+    has a neighbour on its own level, a spike none."""
+    p = np.pad(r, 1, mode="edge")
+    near = np.stack([p[:-2, 1:-1], p[2:, 1:-1], p[1:-1, :-2], p[1:-1, 2:]])
+    return np.all(r - near > step, axis=0) | np.all(near - r > step, axis=0)
+
+
+def _clipped(s: np.ndarray) -> np.ndarray:
+    """Pixels at the image's highest or lowest value where a few (2 to 1 % of the image) share it:
+    an amplifier's clipping; a plateau that many pixels share is the image's own level."""
+    out = np.zeros(s.shape, bool)
+    for v in (s.max(), s.min()):
+        at = s == v
+        if 1 < at.sum() <= 0.01 * s.size:
+            out |= at
+    return out
+
+
+def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
+    """The features and chords of the lattice image ``z`` (lines, pixels) nm (the module's rules).
+
+    Raises:
+        ValueError: naming the image, when it shows no complete feature.
+    """
+    image = level(z, pits, name)
+    n = image.levelled
+    labels, count = ndimage.label(n > 0.5)
+    ids = np.arange(1, count + 1)
+    area = ndimage.sum_labels(np.ones_like(n), labels, ids)
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    inside = ~np.isin(ids, edge)
+    if not inside.any():
+        raise ValueError(f"{name}: no complete feature (all touch the image's edges): scan a larger area")
+    keep = ids[inside & (area > MIN_FEATURE_AREA * np.median(area[inside]))]
+    centres = np.array(ndimage.center_of_mass(n > 0.5, labels, keep)).reshape(-1, 2)
+    index = np.full(count + 1, -1)
+    index[keep] = np.arange(len(keep))
+    runs = [_runs(n, labels, image.outliers, index, along_lines) for along_lines in (True, False)]
+    ends = np.concatenate([r[0] for r in runs])
+    feature = np.concatenate([r[1] for r in runs])
+    along = np.concatenate([np.full(len(r[1]), k == 0) for k, r in enumerate(runs)])
+    return Chords(ends, feature, along, centres, image)
+
+
+def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:
+    """The chords along the lines (rows) or the pixel columns: ends (m, 2, 2) (row, col) and
+    features (m,), those grazing a rim or ending at an outlier dropped."""
+    if not along_lines:
+        n, labels, outliers = n.T, labels.T, outliers.T
+    ends, feature = [], []
+    for k, row in enumerate(n):
+        above = row > 0.5
+        starts = np.flatnonzero(~above[:-1] & above[1:]) + 1
+        stops = np.flatnonzero(above[:-1] & ~above[1:])
+        for a in starts:
+            b = stops[stops >= a]
+            if not len(b):
+                break
+            b = b[0]
+            f = index[labels[k, a]]
+            if f < 0 or outliers[k, a - 1 : a + 1].any() or outliers[k, b : b + 2].any():
+                continue
+            left = a - 1 + (0.5 - row[a - 1]) / (row[a] - row[a - 1])
+            right = b + (row[b] - 0.5) / (row[b] - row[b + 1])
+            ends.append([[k, left], [k, right]])
+            feature.append(f)
+    ends = np.asarray(ends, dtype=float).reshape(-1, 2, 2)
+    feature = np.asarray(feature, dtype=int)
+    length = ends[:, 1, 1] - ends[:, 0, 1]
+    longest = np.zeros(index.max() + 1)
+    np.maximum.at(longest, feature, length)
+    keep = length > MIN_CHORD * longest[feature]
+    ends, feature = ends[keep], feature[keep]
+    return (ends if along_lines else ends[..., ::-1]), feature
