@@ -128,7 +128,7 @@ def test_level_crossings_of_a_rise_after_an_unsettled_fall():
     row = np.where(u < 200, 30 * np.exp(-u / lam), np.minimum(z0 + (30 - z0) * (u - 200) / w, 30.0))
     image = np.tile(row, (10, 1))
     re = S.row_edges(image, (dx, dx))
-    got = S._edge_levels(image, re, S.LEVELS) * dx
+    got = S.edge_levels(image, re, S.LEVELS) * dx
     lo, hi = np.percentile(row, [10, 90])
     level = lo + np.array(S.LEVELS) * (hi - lo)
     e = re.edges
@@ -204,7 +204,7 @@ def test_lattice_scan_set_finds_a_withheld_feedback_lag():
     res = S.diagnose_scans(pairs, W.SIM_LATTICE, LOOKALIKES, 0.6, Rules())
     assert res.verdict == "feedback_lag"
     assert res.data.groups is not None and res.data.describe()["source"].endswith("2-D lattice")
-    assert len(np.unique(res.data.f["row"])) < pairs[0].trace.shape[0]  # rows between pits left out
+    assert len(np.unique(res.data.crossings.row)) < pairs[0].trace.shape[0]  # rows between pits left out
     top = res.candidates[0]
     assert top.shrink_pct > 60 and top.fit.fitted["tau_s"] == pytest.approx(3e-4, rel=0.1)
 
