@@ -36,7 +36,7 @@ from jax.flatten_util import ravel_pytree
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from jaxafm.config import CalibrationModel, Grating, SimulatedCalibration
+from jaxafm.config import CalibrationLattice, CalibrationModel, SimulatedCalibration
 from jaxafm.identify import fit, geodesic, stages
 from jaxafm.identify.image_ops import gaussian_kernel
 from jaxafm.identify.scan_model import KEY, ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
@@ -89,7 +89,9 @@ def main():
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
     scans = [
-        simulate_calibration(SimulatedCalibration(pixels=a.pixels, seed=seed), Grating(rotation_deg=0.0))
+        simulate_calibration(
+            SimulatedCalibration(pixels=a.pixels, seed=seed), CalibrationLattice(rotation_deg=0.0)
+        )
         for seed in range(a.seeds)
     ]
     spec = CalibrationModel(name="gpi")

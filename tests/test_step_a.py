@@ -439,7 +439,7 @@ def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
 
 def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     """Trace and retrace files, read back with their size, give the scan the images came from."""
-    from jaxafm.config import CalibrationImages, Grating
+    from jaxafm.config import CalibrationImages, CalibrationLattice
     from jaxafm.identify.step_a import read_calibration
     from jaxafm.instrument.images import from_scan, save_image
 
@@ -453,10 +453,10 @@ def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
         line_rate_hz=2.0,
         history_v=CYCLE.tolist(),
     )
-    (back,) = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
+    (back,) = read_calibration(spec, CalibrationLattice(pitch_nm=1000.0), tmp_path / "c.yaml")
     assert np.array_equal(np.asarray(back.retrace), np.asarray(scan.retrace))
     assert back.raster.pixel_size == pytest.approx(scan.raster.pixel_size)
     assert back.history == scan.history
     spec = spec.model_copy(update={"retrace": "missing.npz"})
     with pytest.raises(OSError, match="missing.npz"):
-        read_calibration(spec, Grating(), tmp_path / "c.yaml")
+        read_calibration(spec, CalibrationLattice(), tmp_path / "c.yaml")

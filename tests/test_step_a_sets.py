@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.config import CalibrationImages, Grating, SimulatedCalibration
+from jaxafm.config import CalibrationImages, CalibrationLattice, SimulatedCalibration
 from jaxafm.identify import features, held_out, staged_fit, step_a
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.plausibility import implausible
@@ -104,7 +104,7 @@ def _scans(angles=(0.0, 90.0), rotation=2.0, pits=False):
     spec = SimulatedCalibration(
         pixels=64, size_nm=6000, angles_deg=list(angles), lattice_rotation_deg=rotation
     )
-    return step_a.simulate_calibration(spec, Grating(pitch_nm=1000, pits=pits, rotation_deg="fit"))
+    return step_a.simulate_calibration(spec, CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit"))
 
 
 def _true_model(sim):

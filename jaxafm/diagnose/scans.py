@@ -47,7 +47,7 @@ from numpy.polynomial import legendre
 from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
-from ..config import ScanGrating  # the grating and tip of a scan set: its config schema
+from ..config import ScanSample  # the grating and tip of a scan set: its config schema
 from ..identify.features import check_image, edge_crossings
 from ..identify.line_grating import MIN_ROWS, GratingEdges
 from ..identify.projection import project_out
@@ -307,7 +307,7 @@ def _passage(row: np.ndarray, a0: float, b0: float, centre: float, rising: bool)
 
 
 def edge_shape(
-    grating: ScanGrating,
+    grating: ScanSample,
     depth: float,
     dx: float,
     levels,
@@ -477,7 +477,7 @@ class ScanSet(DataKind):
 
     crossings: Crossings
     pairs: list
-    grating: ScanGrating
+    grating: ScanSample
     depth: float
     train: np.ndarray
     scale: float = 1.0
@@ -493,7 +493,7 @@ class ScanSet(DataKind):
     tries = CANDIDATES
 
     @classmethod
-    def split_off(cls, pairs, grating: ScanGrating, train_fraction: float) -> ScanSet:
+    def split_off(cls, pairs, grating: ScanSample, train_fraction: float) -> ScanSet:
         """The crossings of ``pairs`` (:class:`ScanPair`), the first ``train_fraction`` of every
         pair's rows to train on, and the calibration scale.
 
@@ -749,7 +749,7 @@ def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched:
     )
 
 
-def _groups(f: Crossings, pairs, grating: ScanGrating) -> Optional[np.ndarray]:
+def _groups(f: Crossings, pairs, grating: ScanSample) -> Optional[np.ndarray]:
     """For a lattice, each crossing's row group (:attr:`ScanSet.groups`); ``None`` for lines."""
     if grating.kind != "lattice":
         return None
@@ -846,7 +846,7 @@ def _search_asymmetry(fit_at, lo: float, hi: float) -> tuple:
 
 
 def diagnose_scans(
-    pairs, grating: ScanGrating, candidates, train_fraction: float, rules: Rules = Rules(), log=None
+    pairs, grating: ScanSample, candidates, train_fraction: float, rules: Rules = Rules(), log=None
 ) -> Diagnosis:
     """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs``.
 

@@ -26,9 +26,9 @@ from .. import plots
 from ..config import (
     CalibrateConfig,
     CalibrationImages,
+    CalibrationLattice,
     CalibrationModel,
     CalibrationSolver,
-    Grating,
     SimulatedCalibration,
 )
 from ..instrument.afm import AFM, Raster, RasterScan, default_afm, move, raster_scan
@@ -60,7 +60,9 @@ class Simulation:
     key: jax.Array
 
 
-def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Optional[AFM] = None) -> tuple:
+def simulate_calibration(
+    spec: SimulatedCalibration, grating: CalibrationLattice, afm: Optional[AFM] = None
+) -> tuple:
     """The calibration scans of the simulated AFM (``default_afm()`` unless given), one per scan
     angle, each from rest after the initialisation cycle: ``(scans, Simulation)``; the
     simulation's ``measured`` is the last scan."""
@@ -100,7 +102,9 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
     return tuple(scans), Simulation(afm, lattice, cycle, out, key_k)
 
 
-def read_calibration(spec: CalibrationImages, grating: Grating, config_path: Path, log=print) -> tuple:
+def read_calibration(
+    spec: CalibrationImages, grating: CalibrationLattice, config_path: Path, log=print
+) -> tuple:
     """The measured trace/retrace pairs (``data`` of ``config_path``) as
     :class:`~jaxafm.identify.calibration_scan.CalibrationScan`s, with the nominal sensitivity
     given or its default (:func:`nominal_sensitivity`)."""
@@ -196,7 +200,7 @@ def calibration_about(model, scans: tuple, source: str) -> dict:
 
 
 def identify_model(
-    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: Grating, log=print
+    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: CalibrationLattice, log=print
 ) -> Identification:
     """Step A's identification (:func:`~jaxafm.identify.staged_fit.identify`) of the configured
     ``model`` from ``scans`` of ``grating`` with the configured ``solver``."""

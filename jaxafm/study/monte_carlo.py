@@ -56,7 +56,7 @@ from ..position.strategy import (
     find_landmarks,
     identify_scanner,
     landmark_maps,
-    read_model_file,
+    load_fixed_scanner,
     stage_key,
     survey,
     trials,
@@ -502,7 +502,7 @@ def run(
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
-    read_model_file(cfg, config_path)
+    load_fixed_scanner(cfg, config_path)
     if jax.process_count() > 1:
         from .._version import __version__
 
