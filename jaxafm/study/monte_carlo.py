@@ -657,7 +657,7 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
 def failure_modes(r: dict, cfg: StudyConfig) -> dict:
     """Why trials failed, stage by stage (counts of trials; the reasons of a stage exclude each other).
 
-    A+B: step A refused its model (:func:`~jaxafm.identify.calibration.implausible`), the survey
+    A+B: step A refused its model (:func:`~jaxafm.identify.plausibility.implausible`), the survey
     found too few landmarks for a map, the particle lay outside the survey image,
     the target lay outside the landmarks found (the map extrapolated), or the error left is beyond
     the local scan's search margin. A+B+C: the search found no particle, the verification did not
