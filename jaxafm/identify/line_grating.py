@@ -324,25 +324,40 @@ def fit_line_grating(
         if d < 1:
             raise ValueError(f"degree must be >= 1 (1: no nonlinearity), got {d}")
         design = edge_design(e, d, slow, widths)
-        names, xr, yr = design.names, design.x_range_nm, design.y_range_nm
         theta, se, rss, p, w = _solve(design.columns, e.x_nm, e, widths, name)
-        n = len(e.x_nm)
         fits[d] = (
-            bic(rss, n, p),
-            dict(zip(names, theta)),
-            dict(zip(names, se)),
+            bic(rss, len(e.x_nm), p),
+            design,
+            dict(zip(design.names, theta)),
+            dict(zip(design.names, se)),
             rss,
             w,
         )
     best = min(fits, key=lambda d: fits[d][0])
-    best_bic, sol, se, rss, w = fits[best]
+    fit = _grating_fit(e, best, fits, widths, grooves)
+    res = fit.residuals_nm()
+    worst = int(np.argmax(np.abs(res)))
+    pitch = fit.pitch_nm
+    if abs(res[worst]) > TOL * pitch:
+        raise ValueError(
+            f"{name}: edge indexing is inconsistent: an edge in row {e.row[worst]} at x = {e.x_nm[worst]:.0f} nm "
+            f"lies {res[worst]:+.0f} nm off its line (pitch {pitch:.0f} nm): a defect or a partial line there; "
+            "crop it"
+        )
+    return fit
+
+
+def _grating_fit(e: GratingEdges, best: int, fits: dict, widths: bool, grooves: bool) -> LineGratingFit:
+    """The :class:`LineGratingFit` of degree ``best`` from :func:`fit_line_grating`'s solves
+    ``fits`` (per degree: BIC, design, values and standard errors by name, RSS, row widths)."""
+    best_bic, design, sol, se, rss, w = fits[best]
     pitch = sol["pitch"]
     if widths:  # W_r about its mean; the mean splits the centre phase into the two edges'
         mean = float(np.nanmean(w))
         w = (w - mean) * (1 if grooves else -1)
         sol["phase_rise"], sol["phase_fall"] = sol["phase"] + mean / 2, sol["phase"] - mean / 2
     groove_width = (sol["phase_rise"] - sol["phase_fall"]) % pitch
-    fit = LineGratingFit(
+    return LineGratingFit(
         pitch_nm=float(pitch),
         pitch_se_nm=float(se["pitch"]),
         coeffs_nm=tuple(float(sol[f"c{k}"]) for k in range(2, best + 1)),
@@ -358,20 +373,11 @@ def fit_line_grating(
         line_width_nm=float(groove_width if grooves else pitch - groove_width),
         degree=best,
         residual_rms_nm=float(np.sqrt(rss / len(e.x_nm))),
-        x_range_nm=xr,
-        y_range_nm=yr,
+        x_range_nm=design.x_range_nm,
+        y_range_nm=design.y_range_nm,
         bic=float(best_bic),
         bic_by_degree={d: float(f[0]) for d, f in fits.items()},
         row_width_nm=w,
         edges=e,
         grooves=grooves,
     )
-    res = fit.residuals_nm()
-    worst = int(np.argmax(np.abs(res)))
-    if abs(res[worst]) > TOL * pitch:
-        raise ValueError(
-            f"{name}: edge indexing is inconsistent: an edge in row {e.row[worst]} at x = {e.x_nm[worst]:.0f} nm "
-            f"lies {res[worst]:+.0f} nm off its line (pitch {pitch:.0f} nm): a defect or a partial line there; "
-            "crop it"
-        )
-    return fit
