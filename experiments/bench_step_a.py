@@ -26,7 +26,6 @@ import argparse
 import json
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -37,13 +36,17 @@ from jax.flatten_util import ravel_pytree
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from jaxafm.config import CalibrationModel, Grating, SimulatedCalibration
-from jaxafm.identify import calibration, fit, geodesic
+from jaxafm.config import CalibrationLattice, CalibrationModel, SimulatedCalibration
+from jaxafm.identify import fit, geodesic, stages
+from jaxafm.identify.image_ops import gaussian_kernel
+from jaxafm.identify.scan_model import KEY, ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
+from jaxafm.identify.staged_fit import identify as identify_scanner
+from jaxafm.identify.stages import FitPlan
 from jaxafm.identify.step_a import simulate_calibration
 from jaxafm.instrument.afm import RasterScan, raster_times, render
 
 
-def path_error(model: calibration.ScanModel, scan, truth: RasterScan) -> dict:
+def path_error(model: ScanModel, scan, truth: RasterScan) -> dict:
     """Fitted against true tip path over the image (nm), the unobservable mean shift removed."""
     paths = zip(model.paths(scan), ("path_trace", "path_retrace"))
     e = np.stack([np.asarray(p) - np.asarray(getattr(truth, k)) for p, k in paths])
@@ -61,8 +64,7 @@ def cleared() -> None:
     """Forget every compiled function: JAX's caches and jaxafm's caches of jitted solver functions."""
     jax.clear_caches()
     geodesic.compiled.cache_clear()
-    fit._jitted.cache_clear()
-    fit._flat.cache_clear()
+    fit.clear_caches()
 
 
 def main():
@@ -87,7 +89,9 @@ def main():
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
     scans = [
-        simulate_calibration(SimulatedCalibration(pixels=a.pixels, seed=seed), Grating(rotation_deg=0.0))
+        simulate_calibration(
+            SimulatedCalibration(pixels=a.pixels, seed=seed), CalibrationLattice(rotation_deg=0.0)
+        )
         for seed in range(a.seeds)
     ]
     spec = CalibrationModel(name="gpi")
@@ -105,16 +109,10 @@ def main():
         cleared()
 
         def identify(scan, solver=solver, limit=limit, log=lambda s: None):
-            return calibration.identify(
+            return identify_scanner(
                 scan,
-                kind=spec.kind,
-                effects=spec.effects,
-                operators=spec.operators,
-                solver=solver,
-                blur_px=blur,
-                coarsen="auto",
-                max_steps=limit,
-                hold_out=False,
+                ScanModelSpec(spec.kind, tuple(spec.effects), spec.operators),
+                FitPlan(solver, blur, "auto", limit, hold_out=False),
                 log=log,
             )
 
@@ -195,17 +193,18 @@ def jacobian_profile(scan, spec: CalibrationModel, repeats: int) -> dict:
     at the start model, and of its parts along the chain: each axis's hysteresis (its plays
     run over blocks), hysteresis and creep, the whole scanner, the rendered heights and the
     feedback lag."""
-    model = calibration.initial_model(scan, spec.kind, spec.effects, spec.operators, spec.deadzones)
-    model = calibration._start_lattice(model, scan, scan.features())
-    model = jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, model)
-    raw0, rebuild = calibration.parameters(model, scan)
+    model = nominal_scan_model(
+        scan, ScanModelSpec(spec.kind, tuple(spec.effects), spec.operators, spec.deadzones)
+    )
+    model = start_lattice(model, scan, scan.features()).as_float64()
+    raw0, rebuild = model.free_parameters(scan)
     x0, unravel = ravel_pytree(raw0)
     afm = model.afm(scan)
-    start = model._start(afm, scan)
+    start = model.start(afm, scan)
     u = afm.nominal_volts(jnp.asarray(scan.raster.wanted().reshape(-1, 2)))
     t = raster_times(scan.raster, scan.t0 + 0.1)
     s0 = start.scanner
-    kernel = jnp.asarray(calibration.gaussian_kernel(2.0, 6))
+    kernel = jnp.asarray(gaussian_kernel(2.0, 6))
     args = (model, (scan,), (kernel, (jnp.ones((2, scan.raster.lines, scan.raster.pixels)),)))
 
     def m(x):
@@ -218,7 +217,7 @@ def jacobian_profile(scan, spec: CalibrationModel, repeats: int) -> dict:
         return m(x).scanner.x.run(u[:, 0], t, s0.x, s0.t)[0]
 
     def path(x):
-        return m(x).scanner.run(u, t, s0, calibration.KEY)[0]
+        return m(x).scanner.run(u, t, s0, KEY)[0]
 
     def heights(x):
         return render(m(x).lattice, None, path(x))
@@ -232,7 +231,7 @@ def jacobian_profile(scan, spec: CalibrationModel, repeats: int) -> dict:
         "scanner (both axes, coupling, bow)": path,
         "+ rendered heights": heights,
         "+ feedback lag": recorded,
-        "image residuals (+ blur)": lambda x: calibration._image_residuals(unravel(x), args),
+        "image residuals (+ blur)": lambda x: stages.image_residuals(unravel(x), args),
     }
     timed = {k: time_jax(jax.jacfwd(f), x0, repeats=repeats)[0] for k, f in parts.items()}
     return {"parameters": int(x0.size), "samples": int(u.shape[0]), "parts": timed}

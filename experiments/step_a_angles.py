@@ -32,7 +32,7 @@ import numpy as np
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from jaxafm.config import CalibrationModel, CalibrationSolver, Grating, SimulatedCalibration
+from jaxafm.config import CalibrationLattice, CalibrationModel, CalibrationSolver, SimulatedCalibration
 from jaxafm.identify import step_a
 from jaxafm.instrument.afm import Raster
 
@@ -85,7 +85,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "step_a_angles")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    grating = Grating(pitch_nm=1000, rotation_deg=0.0)
+    grating = CalibrationLattice(pitch_nm=1000, rotation_deg=0.0)
     spec = CalibrationModel(name="gpi", kind="gpi", operators=16, deadzones=3)
     # optimistix's solver, step A's default when the committed results were made
     solver = CalibrationSolver(

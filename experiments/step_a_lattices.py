@@ -19,7 +19,7 @@ import argparse
 import json
 from pathlib import Path
 
-from jaxafm.config import CalibrationModel, CalibrationSolver, Grating, SimulatedCalibration
+from jaxafm.config import CalibrationLattice, CalibrationModel, CalibrationSolver, SimulatedCalibration
 from jaxafm.identify import step_a
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +40,7 @@ def main() -> None:
     )
     rows = []
     for pits in (False, True):
-        grating = Grating(pitch_nm=1000, pits=pits, rotation_deg="fit")
+        grating = CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit")
         for rot in ROTATIONS_DEG:
             sim_spec = SimulatedCalibration(
                 pixels=args.pixels, angles_deg=[0.0, 90.0], lattice_rotation_deg=rot

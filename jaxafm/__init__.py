@@ -23,9 +23,9 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from ._version import __version__  # noqa: F401  (jaxafm.__version__)
+from ._version import __version__  # jaxafm.__version__
 
-#: public name -> the module that defines it
+#: public name -> the module that defines it: the one list of the public names
 _HOMES = {
     "AFM": "instrument.afm",
     "Raster": "instrument.afm",
@@ -72,51 +72,9 @@ _HOMES = {
     "default_scanner": "model.scanner",
 }
 
-__all__ = [  # = sorted(_HOMES); a literal list, for static tools
-    "AFM",
-    "AFMImage",
-    "AbstractHysteresis",
-    "AbstractSample",
-    "Anhysteretic",
-    "Axis",
-    "Bow",
-    "Coupling",
-    "Creep",
-    "Deadzone",
-    "Drift",
-    "EFFECTS",
-    "FeedbackLag",
-    "GeneralizedPI",
-    "Grating",
-    "HeightMap",
-    "Indented",
-    "Lattice",
-    "Linear",
-    "Noise",
-    "Particles",
-    "Plane",
-    "PrandtlIshlinskii",
-    "Preisach",
-    "Raster",
-    "RasterScan",
-    "RateDependence",
-    "Scanner",
-    "Tip",
-    "default_afm",
-    "default_scanner",
-    "line_scan",
-    "load_image",
-    "load_model",
-    "move",
-    "play",
-    "predict",
-    "press",
-    "raster_scan",
-    "read_image",
-    "read_model_file",
-    "save_image",
-    "save_model",
-]
+#: the public names: the keys of ``_HOMES``; the ``TYPE_CHECKING`` imports below name the same
+#: names from the same modules for static tools (``tests/test_layout.py`` checks they agree)
+__all__ = sorted(_HOMES)
 
 
 def __getattr__(name: str):

@@ -699,7 +699,7 @@ def numerical_inverse_per_sample(model, wanted, t, state, u0, u_max):
     import jax.numpy as jnp
     from jax import lax
 
-    from jaxafm.identify.inverse import _targets
+    from jaxafm.identify.inverse import axis_targets
     from jaxafm.model.scanner import AxisState
 
     def dynamics(axis, h, tn, s, t0):
@@ -725,6 +725,6 @@ def numerical_inverse_per_sample(model, wanted, t, state, u0, u_max):
         u = jnp.stack([ux, uy])
         return (sx, sy, tn, u), (u, jnp.stack([bad_x, bad_y]))
 
-    v = _targets(model, wanted, t, state)
+    v = axis_targets(model, wanted, t, state)
     _, (u, saturated) = lax.scan(step, (state.x, state.y, state.t, jnp.asarray(u0, dtype=float)), (v, t))
     return u, saturated

@@ -1453,22 +1453,14 @@ def _fit(u=None, d=None, **kw):
 
 
 def _identify(**kw):
-    from jaxafm.identify import identify
+    """``identify`` of a small model; ``kw`` overrides fields of its ScanModelSpec or FitPlan."""
+    from jaxafm.identify import FitPlan, ScanModelSpec, identify
 
-    return lambda: identify(
-        _scan(),
-        **(
-            {
-                "kind": "pi",
-                "operators": 4,
-                "effects": (),
-                "max_steps": 1,
-                "blur_px": (1.0,),
-                "log": lambda *a: None,
-            }
-            | kw
-        ),
-    )
+    given = {"kind": "pi", "operators": 4, "effects": (), "max_steps": 1, "blur_px": (1.0,)} | kw
+    fields = {cls: {f.name for f in dataclasses.fields(cls)} for cls in (ScanModelSpec, FitPlan)}
+    assert set(given) <= set.union(*fields.values()), set(given) - set.union(*fields.values())
+    pick = lambda cls: cls(**{k: v for k, v in given.items() if k in fields[cls]})
+    return lambda: identify(_scan(), pick(ScanModelSpec), pick(FitPlan), log=lambda *a: None)
 
 
 def _calibration_scan(**kw):

@@ -39,7 +39,9 @@ def test_withheld_effect_is_found_with_its_size(effect, magnitude):
         np.testing.assert_allclose([2 * float(a.creep.weights[0]) for a in plant.axes], magnitude, rtol=0.3)
     else:  # the simulator couples y into x by m, x into y by -0.6 m
         np.testing.assert_allclose(
-            [float(plant.coupling.xy), float(plant.coupling.yx)], [magnitude, -0.6 * magnitude], rtol=0.1
+            [float(plant.scanner.coupling.xy), float(plant.scanner.coupling.yx)],
+            [magnitude, -0.6 * magnitude],
+            rtol=0.1,
         )
 
 

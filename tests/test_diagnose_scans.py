@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from jaxafm.cli import app
-from jaxafm.config import ConfigError, DiagnoseConfig, ScanGrating, load_config
+from jaxafm.config import ConfigError, DiagnoseConfig, ScanSample, load_config
 from jaxafm.diagnose import scans as S
 from jaxafm.diagnose import withheld as W
 from jaxafm.diagnose.core import Rules
@@ -82,16 +82,16 @@ def test_edge_shape_closed_forms():
     lambda ln(1 / (1 - l)) after the step, lambda = lag_samples dx, in the scan direction."""
     levels = (0.3, 0.5, 0.7)
     w, depth, radius = 17.32, 30.0, 8.0
-    ramp = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels)
+    ramp = S.edge_shape(ScanSample(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels)
     np.testing.assert_allclose(ramp[0, 0], (np.array(levels) - 0.5) * w, atol=1e-3)  # rising, trace
     np.testing.assert_allclose(ramp[1, 1], -(np.array(levels) - 0.5) * w, atol=1e-3)  # falling, retrace
-    tipped = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels, radius=radius)
+    tipped = S.edge_shape(ScanSample(pitch_nm=400.0, edge_width_nm=w), depth, 0.5, levels, radius=radius)
     a = np.arctan(depth / w)
     np.testing.assert_allclose(
         tipped[0, 0] - ramp[0, 0], -radius * (1 / np.cos(a) - 1) / np.tan(a), atol=0.02
     )
     dx, lag = 0.05, 100.0
-    step = S.edge_shape(ScanGrating(pitch_nm=400.0, edge_width_nm=0.01), depth, dx, levels, lag_samples=lag)
+    step = S.edge_shape(ScanSample(pitch_nm=400.0, edge_width_nm=0.01), depth, dx, levels, lag_samples=lag)
     expect = lag * dx * np.log(1 / (1 - np.array(levels)))
     np.testing.assert_allclose(step[0, 0], expect, atol=2 * dx)  # trace: lag to the right
     np.testing.assert_allclose(
@@ -106,7 +106,7 @@ def test_edge_shape_asymmetric_feedback_closed_form():
     tau ln(1 / (1 - l)) after the step, of a step down tau ln(1 / l), along the scan."""
     levels = np.array((0.3, 0.5, 0.7))
     dx, rise, fall = 0.05, 20.0, 100.0
-    grating = ScanGrating(pitch_nm=400.0, edge_width_nm=0.01)
+    grating = ScanSample(pitch_nm=400.0, edge_width_nm=0.01)
     step = S.edge_shape(grating, 30.0, dx, tuple(levels), asymmetry_samples=(rise, fall))
     up, down = np.log(1 / (1 - levels)), np.log(1 / levels)
     np.testing.assert_allclose(step[0, 0], rise * dx * up, atol=2 * dx)  # rising edge, trace: up
@@ -128,7 +128,7 @@ def test_level_crossings_of_a_rise_after_an_unsettled_fall():
     row = np.where(u < 200, 30 * np.exp(-u / lam), np.minimum(z0 + (30 - z0) * (u - 200) / w, 30.0))
     image = np.tile(row, (10, 1))
     re = S.row_edges(image, (dx, dx))
-    got = S._edge_levels(image, re, S.LEVELS) * dx
+    got = S.edge_levels(image, re, S.LEVELS) * dx
     lo, hi = np.percentile(row, [10, 90])
     level = lo + np.array(S.LEVELS) * (hi - lo)
     e = re.edges
@@ -204,7 +204,7 @@ def test_lattice_scan_set_finds_a_withheld_feedback_lag():
     res = S.diagnose_scans(pairs, W.SIM_LATTICE, LOOKALIKES, 0.6, Rules())
     assert res.verdict == "feedback_lag"
     assert res.data.groups is not None and res.data.describe()["source"].endswith("2-D lattice")
-    assert len(np.unique(res.data.f["row"])) < pairs[0].trace.shape[0]  # rows between pits left out
+    assert len(np.unique(res.data.crossings.row)) < pairs[0].trace.shape[0]  # rows between pits left out
     top = res.candidates[0]
     assert top.shrink_pct > 60 and top.fit.fitted["tau_s"] == pytest.approx(3e-4, rel=0.1)
 

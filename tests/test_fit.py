@@ -22,7 +22,7 @@ from jaxafm import (
     RateDependence,
 )
 from jaxafm.identify import fit
-from jaxafm.identify.fit import error_metrics, evaluator, fit_operator, initial_model
+from jaxafm.identify.fit import error_metrics, evaluator, fit_operator, initial_operator
 from jaxafm.instrument.records import read_record
 
 REAL = Path(__file__).parents[1] / "jaxafm" / "data" / "real" / "piezo_sine_1hz.dat"
@@ -48,10 +48,10 @@ def test_pi_weights_recovered(solver):
     a few standard errors of the noise (sigma = 0.01 nm on a ~10 nm output)."""
     u, _ = drive()
     w_true = jnp.array([2.0, 0.4, 0.25, 0.6, 0.1, 0.3])
-    grid = PrandtlIshlinskii.uniform(6, (u.max() - u.min()) / 2).thresholds  # initial_model's grid
+    grid = PrandtlIshlinskii.uniform(6, (u.max() - u.min()) / 2).thresholds  # initial_operator's grid
     truth = PrandtlIshlinskii(grid, w_true, jnp.asarray(1.5))
     d = noisy(truth(jnp.asarray(u)), 0.01)
-    start = initial_model("pi", u, d, operators=6)
+    start = initial_operator("pi", u, d, operators=6)
     np.testing.assert_array_equal(np.asarray(start.thresholds), np.asarray(grid))
     res = fit_operator(start, u, d, solver=solver)
     assert res.converged, res.message
@@ -93,12 +93,12 @@ def test_generalized_pi_recovered_on_heldout_data():
 
 
 def test_preisach_density_fit_matches_truth_output():
-    """A Preisach truth with a random density on the plane initial_model builds: BFGS from
-    initial_model's start predicts held-out minor loops to within twice the noise
+    """A Preisach truth with a random density on the plane initial_operator builds: BFGS from
+    initial_operator's start predicts held-out minor loops to within twice the noise
     (the density itself need not be unique). The truth's output comes from NumPy relays
     (the smooth plane by its definition), not from the plays the fit uses."""
     u, _ = drive()
-    grid = initial_model("preisach", u, u, levels=6)
+    grid = initial_operator("preisach", u, u, levels=6)
     density = np.tril(np.random.default_rng(4).random((6, 6)))
     m = 2000  # sub-relays per relay: the definition's output within sum_k max_j M[k, j] / m
     line_max = [max(density[j + k, j] for j in range(6 - k)) for k in range(6)]
@@ -107,7 +107,7 @@ def test_preisach_density_fit_matches_truth_output():
     clean = 2.0 + reference.preisach_spread_relays(u, density, u_min, u_max, m)
     d = noisy(clean, 0.01)
     n = int(0.6 * T)
-    start = initial_model("preisach", u, d, levels=6)
+    start = initial_operator("preisach", u, d, levels=6)
     res = fit_operator(start, u[:n], d[:n], solver="optimistix.bfgs")
     assert res.converged, res.message
     assert bool(jnp.all(res.model.density >= 0))
@@ -130,7 +130,7 @@ def test_creep_recovered_with_hysteresis():
     d = noisy(clean, 0.002)
     fitted = {}
     for creep in (False, True):
-        start = initial_model("pi", u, d, operators=4)
+        start = initial_operator("pi", u, d, operators=4)
         start = Axis(start, creep=Creep.logarithmic(0.0, 0.1, 100.0)) if creep else start
         res = fit_operator(start, u, d, t=t)
         pred = res.model(jnp.asarray(u), jnp.asarray(t)) if creep else res.model(jnp.asarray(u))
@@ -152,7 +152,9 @@ def test_rate_dependence_lag_recovered():
     truth = Axis(pi, rate_dependence=RateDependence(jnp.asarray(0.03)))
     clean = np.asarray(truth(jnp.asarray(u), jnp.asarray(t)))
     d = noisy(clean, 0.002)
-    start = Axis(initial_model("pi", u, d, operators=4), rate_dependence=RateDependence(jnp.asarray(0.005)))
+    start = Axis(
+        initial_operator("pi", u, d, operators=4), rate_dependence=RateDependence(jnp.asarray(0.005))
+    )
     res = fit_operator(start, u, d, t=t)
     assert res.converged, res.message
     assert float(res.model.rate_dependence.tau) == pytest.approx(0.03, rel=0.05)
@@ -163,7 +165,7 @@ def test_rate_dependence_lag_recovered():
 def test_straight_line_on_real_record_matches_its_readme():
     """jaxafm/data/real/README.md: a straight-line fit u -> d leaves 3.41 um rms (6.9 % of range)."""
     r = read_record(REAL, input_columns=[1], output_columns=[5], sample_rate_hz=200, output_unit="um")
-    res = fit_operator(initial_model("linear", r.u, r.d), r.u, r.d)
+    res = fit_operator(initial_operator("linear", r.u, r.d), r.u, r.d)
     m = error_metrics(np.asarray(res.model(jnp.asarray(r.u))), r.d)
     # each figure to the README's rounding: half a unit of its last digit
     assert m["rms_error_nm"] == pytest.approx(3410, abs=5)
@@ -177,7 +179,7 @@ def test_pi_on_real_record_heldout_under_one_percent():
     r = read_record(REAL, input_columns=[1], output_columns=[5], sample_rate_hz=200, output_unit="um")
     n = r.split(0.6)
     res = fit_operator(
-        initial_model("pi", r.u[:n], r.d[:n], operators=20), r.u[:n], r.d[:n], history=(0.0,), settle=20
+        initial_operator("pi", r.u[:n], r.d[:n], operators=20), r.u[:n], r.d[:n], history=(0.0,), settle=20
     )
     pred = np.asarray(res.model(jnp.asarray(r.u), (0.0,)))
     held = error_metrics(pred[n:], r.d[n:], float(r.d.max() - r.d.min()))
@@ -188,7 +190,7 @@ def test_pi_on_real_record_heldout_under_one_percent():
 def test_not_converged_is_reported_with_last_loss():
     u, _ = drive()
     d = 3.0 * u + 0.5 * np.sin(3 * u)
-    res = fit_operator(initial_model("pi", u, d, operators=6), u, d, max_steps=2)
+    res = fit_operator(initial_operator("pi", u, d, operators=6), u, d, max_steps=2)
     assert not res.converged
     assert "did NOT converge" in res.message and "last loss" in res.message
     assert np.isfinite(res.loss)
@@ -197,17 +199,17 @@ def test_not_converged_is_reported_with_last_loss():
 def test_bad_fit_arguments():
     u, _ = drive(100)
     with pytest.raises(ValueError, match="unknown solver"):
-        fit_operator(initial_model("linear", u, u), u, u, solver="scipy.magic")
+        fit_operator(initial_operator("linear", u, u), u, u, solver="scipy.magic")
     with pytest.raises(ValueError, match="unknown model kind"):
-        initial_model("neural", u, u)
+        initial_operator("neural", u, u)
     with pytest.raises(ValueError, match="output falls as the input rises"):
-        initial_model("pi", u, -u)
+        initial_operator("pi", u, -u)
     with pytest.raises(ValueError, match="settle"):
-        fit_operator(initial_model("linear", u, u), u, u, settle=100)
+        fit_operator(initial_operator("linear", u, u), u, u, settle=100)
     with pytest.raises(ValueError, match="input u"):
         bad = u.copy()
         bad[5] = np.inf
-        fit_operator(initial_model("pi", u, u, operators=4), bad, u)
+        fit_operator(initial_operator("pi", u, u, operators=4), bad, u)
 
 
 @pytest.mark.parametrize("kind", ["pi", "preisach"])
@@ -217,15 +219,15 @@ def test_fit_gradient_matches_finite_differences(kind, monkeypatch):
     and the loss the fit reports is this function's value."""
     u, _ = drive(300)
     d = u + 0.3 * np.sin(u)
-    start = initial_model(kind, u, d, operators=5, levels=4)
+    start = initial_operator(kind, u, d, operators=5, levels=4)
     handed = {}
 
     def spy(*args, **kwargs):  # keep what the solver is handed; return the start unchanged
         handed.update(inspect.signature(solve).bind(*args, **kwargs).arguments)
         return handed["raw0"], 0, False
 
-    solve = fit._solve
-    monkeypatch.setattr(fit, "_solve", spy)
+    solve = fit.solve
+    monkeypatch.setattr(fit, "solve", spy)
     res = fit_operator(start, u, d)
     flat0, unravel = ravel_pytree(handed["raw0"])
     loss = jax.jit(lambda x: handed["loss"](unravel(x), handed.get("args")))  # one compile, all calls
@@ -244,7 +246,7 @@ def test_preisach_design_matrix_equals_numpy_relays(smooth):
     relays exactly, the smooth plane by its definition, m sub-relays per relay, each column
     within 1 / m (a unit weight's midpoint-rule error). The output adds the offset."""
     u, _ = drive(300)
-    plane = initial_model("preisach", u, u, levels=6)
+    plane = initial_operator("preisach", u, u, levels=6)
     u_min, u_max = float(plane.u_min), float(plane.u_max)
     model = Preisach(plane.density, plane.u_min, plane.u_max, jnp.asarray(0.0), smooth)
     f = evaluator(model, jnp.asarray(u))

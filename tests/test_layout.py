@@ -94,3 +94,23 @@ def test_module_level_imports_form_no_cycle():
     for m in sorted(GRAPH):
         if m not in state:
             visit(m, [m])
+
+
+def test_the_public_names_have_one_list():
+    """``jaxafm``'s public names are the keys of its ``_HOMES`` (``__all__`` is derived from it),
+    and the ``TYPE_CHECKING`` imports that static tools read name the same names from the same
+    modules. Read from the source, as the static tools read it."""
+    tree = ast.parse((PACKAGE / "__init__.py").read_text())
+    homes = next(
+        ast.literal_eval(n.value)
+        for n in tree.body
+        if isinstance(n, ast.Assign) and any(getattr(t, "id", None) == "_HOMES" for t in n.targets)
+    )
+    static = next(
+        n for n in tree.body if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING"
+    )
+    imported = {a.asname or a.name: node.module for node in static.body for a in node.names}
+    assert imported == homes
+    import jaxafm
+
+    assert jaxafm.__all__ == sorted(homes)

@@ -11,8 +11,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.identify import calibration, features
+from jaxafm.identify import features, held_out, stages
+from jaxafm.identify.calibration_scan import CalibrationScan
+from jaxafm.identify.image_ops import gaussian_kernel
 from jaxafm.identify.inverse import Compensator, train_neural_inverse
+from jaxafm.identify.polynomial_baseline import BranchPolynomials, fit_polynomials
+from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model
+from jaxafm.identify.staged_fit import identify
+from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import Raster, RasterScan, default_afm, raster_scan
 from jaxafm.instrument.samples import Lattice
 from jaxafm.model.effects import Drift
@@ -128,11 +134,11 @@ def test_branch_polynomials_from_a_hysteretic_scan_are_ordered():
     """At the same drive the falling branch lies above the rising one (an anticlockwise piezo
     loop), and a degree the features cannot support is refused."""
     scan, _ = _simulated_scan()
-    poly = calibration.fit_polynomials(scan, degree=3)
+    poly = fit_polynomials(scan, degree=3)
     u = np.linspace(-2.5, 2.5, 11)
     assert (np.polyval(poly.x_down, u) > np.polyval(poly.x_up, u)).all()
     with pytest.raises(ValueError, match="degree-5 polynomial needs more than 5"):
-        calibration.fit_polynomials(scan, degree=5)
+        fit_polynomials(scan, degree=5)
 
 
 @functools.cache
@@ -150,7 +156,7 @@ def _simulated_scan(depth_nm=100.0, phase_nm=(130.0, 70.0)):
     )
     raster = Raster(6000.0, 72, 72, line_rate=2.0)
     out = raster_scan(truth, lattice, truth.initial_state((0.0, 0.0), 0.0, CYCLE), raster)
-    scan = calibration.CalibrationScan(
+    scan = CalibrationScan(
         out.trace,
         out.retrace,
         raster,
@@ -170,8 +176,11 @@ def test_identification_recovers_coupling_and_the_tip_path():
     the whole scan, recovers the simulator's coupling and tip path."""
     scan, (truth, out) = _simulated_scan()
     said = []
-    ident = calibration.identify(
-        scan, effects=("coupling",), operators=16, max_steps=12, blur_px=(1.5,), coarsen=2, log=said.append
+    ident = identify(
+        scan,
+        ScanModelSpec(effects=("coupling",), operators=16),
+        FitPlan(max_steps=12, blur_px=(1.5,), coarsen=2),
+        log=said.append,
     )
     assert any("feature points, 36 px a line" in s for s in said)
     assert not any("images, blur 1.5 px, 36 px" in s for s in said)  # the last stage is whole
@@ -202,7 +211,12 @@ def test_a_second_scan_reuses_the_compiled_solves(caplog):
     for scan in (first, second):
         caplog.clear()
         with jax.log_compiles(), caplog.at_level(logging.WARNING):
-            calibration.identify(scan, effects=("coupling",), max_steps=2, blur_px=(), log=lambda m: None)
+            identify(
+                scan,
+                ScanModelSpec(effects=("coupling",)),
+                FitPlan(max_steps=2, blur_px=()),
+                log=lambda m: None,
+            )
         programs = ("jit(linearised)", "jit(flat)")  # the geodesic solver's Jacobian and residuals
         traced.append([r.getMessage() for r in caplog.records if any(p in r.getMessage() for p in programs)])
     assert traced[0], "the first scan's solves were not compiled: the log says nothing to test"
@@ -214,13 +228,13 @@ def test_padded_features_leave_the_feature_loss_unchanged():
     half the mean square of the unpadded features' site errors (computed here without padding)."""
     scan = _simulated_scan()[0]
     trace, retrace = scan.features()
-    model = calibration.initial_model(scan, operators=16)
-    raw = calibration.parameters(model, scan)[0]
+    model = nominal_scan_model(scan, ScanModelSpec(operators=16))
+    raw = model.free_parameters(scan)[0]
     unpadded = [(f.rc, f.ij) for f in (trace, retrace)]
-    padded = tuple(calibration._padded(rc, ij) for rc, ij in unpadded)
+    padded = tuple(stages.pad_features(rc, ij) for rc, ij in unpadded)
     assert [len(p[0]) for p in padded] == [1 << (len(rc) - 1).bit_length() for rc, _ in unpadded]
     errors = np.concatenate([np.ravel(e) for e in model.site_errors(scan, unpadded)])
-    loss = calibration._point_loss(raw, (model, (scan,), (padded,)))
+    loss = stages.point_loss(raw, (model, (scan,), (padded,)))
     np.testing.assert_allclose(float(loss), 0.5 * np.mean(errors**2), rtol=1e-12)
 
 
@@ -228,13 +242,13 @@ def test_held_out_image_residual_is_the_rms_over_the_held_out_pixels():
     """The held-out image residual, taken from the stage's compiled loss, is the rms of the
     blurred image residual over the held-out pixels (here summed directly), % of the depth."""
     scan = _simulated_scan()[0]
-    model = calibration.initial_model(scan, effects=("coupling",), operators=16)
-    kernel = jnp.asarray(calibration.gaussian_kernel(1.5, 5))
-    _, held = calibration._split_masks(model, (scan,), True)
-    raw = calibration.parameters(model, scan)[0]
-    r = np.asarray(calibration._image_residuals(raw, (model, (scan,), (kernel, held))))
+    model = nominal_scan_model(scan, ScanModelSpec(effects=("coupling",), operators=16))
+    kernel = jnp.asarray(gaussian_kernel(1.5, 5))
+    _, held = held_out.split_masks(model, (scan,), True)
+    raw = model.free_parameters(scan)[0]
+    r = np.asarray(stages.image_residuals(raw, (model, (scan,), (kernel, held))))
     direct = 100 * np.sqrt(np.sum(r**2) / np.sum(np.asarray(held[0])))
-    np.testing.assert_allclose(calibration._held_out_image(model, (scan,), kernel, held), direct, rtol=1e-9)
+    np.testing.assert_allclose(held_out.held_out_image(model, (scan,), kernel, held), direct, rtol=1e-9)
 
 
 @pytest.mark.parametrize("factor", [2, 4])
@@ -245,7 +259,7 @@ def test_coarse_scan_averages_pixels_and_keeps_the_drive(factor):
     raster = Raster(8000.0, 256, 6, line_rate=1.0)
     rng = np.random.default_rng(0)
     trace, retrace = rng.normal(size=(2, 6, 256))
-    scan = calibration.CalibrationScan(trace, retrace, raster, 1000.0, 500.0, 10.0)
+    scan = CalibrationScan(trace, retrace, raster, 1000.0, 500.0, 10.0)
     coarse = scan.coarse(factor)
     r = coarse.raster
     assert (r.lines, r.pixels) == (6, 256 // factor)
@@ -265,21 +279,21 @@ def test_coarse_scan_averages_pixels_and_keeps_the_drive(factor):
 
 def test_coarse_factor_keeps_eight_pixels_a_pitch():
     """'auto': the largest power of two that leaves 8 px per pitch and divides the lines."""
-    make = lambda pixels, pitch: calibration.CalibrationScan(
+    make = lambda pixels, pitch: CalibrationScan(
         np.zeros((4, pixels)), np.zeros((4, pixels)), Raster(8000.0, pixels, 4), pitch, 500.0, 10.0
     )
-    assert calibration.coarse_factor((make(256, 1000.0),)) == 4  # 32 px a pitch -> 8
-    assert calibration.coarse_factor((make(128, 1000.0),)) == 2
-    assert calibration.coarse_factor((make(64, 1000.0),)) == 1
-    assert calibration.coarse_factor((make(192, 2000.0),)) == 4  # 48 px a pitch; 192 = 4 x 48
-    assert calibration.coarse_factor((make(256, 1000.0), make(128, 1000.0))) == 2
-    assert calibration.coarse_factor((make(256, 1000.0),), 8) == 8
+    assert stages.coarse_factor((make(256, 1000.0),)) == 4  # 32 px a pitch -> 8
+    assert stages.coarse_factor((make(128, 1000.0),)) == 2
+    assert stages.coarse_factor((make(64, 1000.0),)) == 1
+    assert stages.coarse_factor((make(192, 2000.0),)) == 4  # 48 px a pitch; 192 = 4 x 48
+    assert stages.coarse_factor((make(256, 1000.0), make(128, 1000.0))) == 2
+    assert stages.coarse_factor((make(256, 1000.0),), 8) == 8
 
 
 def test_parameters_rebuild_the_model_they_came_from():
     scan, _ = _simulated_scan()
-    model = calibration.initial_model(scan)
-    raw, rebuild = calibration.parameters(model, scan)
+    model = nominal_scan_model(scan)
+    raw, rebuild = model.free_parameters(scan)
     back = rebuild(raw)
     for a, b in zip(jax.tree.leaves(model), jax.tree.leaves(back)):
         assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
@@ -290,7 +304,7 @@ def test_parameters_rebuild_the_model_they_came_from():
 
 def test_branch_polynomial_continues_along_its_end_tangent():
     """Beyond the drive its features covered, a branch goes on straight, with the end's slope."""
-    poly = calibration.BranchPolynomials(
+    poly = BranchPolynomials(
         np.array([1.0, 0.0, 2.0, 0.0]),
         np.array([3.0, 0.0]),
         np.array([3.0, 0.0]),
@@ -304,14 +318,13 @@ def test_branch_polynomial_continues_along_its_end_tangent():
 
 def test_fitted_dead_zones_stay_monotone_and_invertible():
     """Whatever the solver does to the raw parameters, every partial slope stays > 0."""
-    from jaxafm.identify.fit import free_parameters
     from jaxafm.model.hysteresis import Deadzone, GeneralizedPI, PrandtlIshlinskii
 
     g = GeneralizedPI(
         PrandtlIshlinskii.uniform(5, 10.0, 100.0),
         Deadzone.identity(-jnp.array([500.0, 1000.0]), jnp.array([500.0, 1000.0, 1500.0])),
     )
-    raw, rebuild = free_parameters(g, 20.0, 1000.0)
+    raw, rebuild = g.free_parameters(20.0, 1000.0)
     assert np.allclose(rebuild(raw).deadzone.upper_weights, 0.0, atol=1e-9)
     noisy = jax.tree.map(lambda r: r + 5 * jax.random.normal(jax.random.key(1), jnp.shape(r)), raw)
     dz = rebuild(noisy).deadzone
@@ -426,7 +439,7 @@ def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
 
 def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     """Trace and retrace files, read back with their size, give the scan the images came from."""
-    from jaxafm.config import CalibrationImages, Grating
+    from jaxafm.config import CalibrationImages, CalibrationLattice
     from jaxafm.identify.step_a import read_calibration
     from jaxafm.instrument.images import from_scan, save_image
 
@@ -440,10 +453,10 @@ def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
         line_rate_hz=2.0,
         history_v=CYCLE.tolist(),
     )
-    (back,) = read_calibration(spec, Grating(pitch_nm=1000.0), tmp_path / "c.yaml")
+    (back,) = read_calibration(spec, CalibrationLattice(pitch_nm=1000.0), tmp_path / "c.yaml")
     assert np.array_equal(np.asarray(back.retrace), np.asarray(scan.retrace))
     assert back.raster.pixel_size == pytest.approx(scan.raster.pixel_size)
     assert back.history == scan.history
     spec = spec.model_copy(update={"retrace": "missing.npz"})
     with pytest.raises(OSError, match="missing.npz"):
-        read_calibration(spec, Grating(), tmp_path / "c.yaml")
+        read_calibration(spec, CalibrationLattice(), tmp_path / "c.yaml")

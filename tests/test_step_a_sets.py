@@ -10,8 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.config import CalibrationImages, Grating, SimulatedCalibration
-from jaxafm.identify import calibration, features, step_a
+from jaxafm.config import CalibrationImages, CalibrationLattice, SimulatedCalibration
+from jaxafm.identify import features, held_out, staged_fit, step_a
+from jaxafm.identify.calibration_scan import CalibrationScan
+from jaxafm.identify.plausibility import implausible
+from jaxafm.identify.scan_model import ScanModel, ScanModelSpec
+from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
 from jaxafm.instrument.samples import Grating as LineGrating
 from jaxafm.instrument.samples import Tip
@@ -100,11 +104,11 @@ def _scans(angles=(0.0, 90.0), rotation=2.0, pits=False):
     spec = SimulatedCalibration(
         pixels=64, size_nm=6000, angles_deg=list(angles), lattice_rotation_deg=rotation
     )
-    return step_a.simulate_calibration(spec, Grating(pitch_nm=1000, pits=pits, rotation_deg="fit"))
+    return step_a.simulate_calibration(spec, CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit"))
 
 
 def _true_model(sim):
-    return calibration.ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, True)
+    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, True)
 
 
 @pytest.mark.parametrize("pits", [False, True])
@@ -130,7 +134,7 @@ def test_held_out_residual_separates_the_true_scanner_from_a_wrong_one():
     wrong = eqx.tree_at(
         lambda m: m.scanner.x.hysteresis.pi.weights, true, 1.02 * true.scanner.x.hysteresis.pi.weights
     )
-    floor, off = calibration.held_out_rms(true, scans, test), calibration.held_out_rms(wrong, scans, test)
+    floor, off = held_out.held_out_rms(true, scans, test), held_out.held_out_rms(wrong, scans, test)
     assert floor < 12.0 and off > 25.0
 
 
@@ -138,10 +142,10 @@ def test_training_masks_cover_a_quarter_pitch_about_even_rows():
     """Closed form: bands of half a pitch about every other row are a quarter of the area (up
     to the partial bands at the image's ends: half a band each over more than 5 pitches)."""
     scans, sim = _scans(angles=(0.0,), rotation=0.0)
-    (train,), (held,) = calibration._split_masks(_true_model(sim), scans, hold_out=True)
+    (train,), (held,) = held_out.split_masks(_true_model(sim), scans, hold_out=True)
     assert abs(float(np.mean(train)) - 0.25) < 0.5 / 5 and abs(float(np.mean(held)) - 0.25) < 0.5 / 5
     assert float(np.max(train * held)) == 0.0
-    (full,), none = calibration._split_masks(_true_model(sim), scans, hold_out=False)
+    (full,), none = held_out.split_masks(_true_model(sim), scans, hold_out=False)
     assert float(np.min(full)) == 1.0 and none is None
 
 
@@ -149,10 +153,13 @@ def test_an_image_stage_that_worsens_the_held_out_features_is_not_kept(monkeypat
     """Rejected beyond 3 / sqrt(2 n) of the best: 10 nm -> 50 nm is far beyond it."""
     scans, _ = _scans(angles=(0.0,), rotation=0.0)
     after_each_stage = iter([10.0, 50.0])  # nm: the feature stage, then the image stage
-    monkeypatch.setattr(calibration, "held_out_rms", lambda *a: next(after_each_stage))
-    monkeypatch.setattr(calibration, "validate", lambda *a: {})
-    ident = calibration.identify(
-        scans, kind="pi", effects=(), operators=4, max_steps=3, blur_px=(1.5,), log=lambda *_: None
+    monkeypatch.setattr(staged_fit, "held_out_rms", lambda *a: next(after_each_stage))
+    monkeypatch.setattr(staged_fit, "validate", lambda *a: {})
+    ident = staged_fit.identify(
+        scans,
+        ScanModelSpec(kind="pi", effects=(), operators=4),
+        FitPlan(max_steps=3, blur_px=(1.5,)),
+        log=lambda *_: None,
     )
     assert ident.accepted == (True, False) and ident.held_out_nm == (10.0, 50.0)
     assert eqx.tree_equal(ident.model, ident.stages[0].model)
@@ -162,16 +169,16 @@ def test_an_image_stage_that_worsens_the_held_out_features_is_not_kept(monkeypat
 def test_implausible_models_are_named():
     scans, sim = _scans(angles=(0.0,), rotation=0.0)
     true = _true_model(sim)
-    assert calibration.implausible(true, scans) == []
+    assert implausible(true, scans) == []
     pi = lambda m: m.scanner.x.hysteresis.pi
     weights = pi(true).weights
     tripled = eqx.tree_at(lambda m: pi(m).weights, true, 3 * weights)
     falling = eqx.tree_at(lambda m: pi(m).weights, true, weights.at[0].set(-1.0))
     creep = true.scanner.x.creep
     backwards = eqx.tree_at(lambda m: m.scanner.x.creep.weights, true, -jnp.abs(creep.weights) - 0.01)
-    assert any("times its width" in f for f in calibration.implausible(tripled, scans))
-    assert any("creep runs against the move" in f for f in calibration.implausible(backwards, scans))
-    assert any("branch falls" in f for f in calibration.implausible(falling, scans))
+    assert any("times its width" in f for f in implausible(tripled, scans))
+    assert any("creep runs against the move" in f for f in implausible(backwards, scans))
+    assert any("branch falls" in f for f in implausible(falling, scans))
 
 
 def test_default_sensitivity_from_the_stated_range_or_the_images():
@@ -240,7 +247,7 @@ def test_a_lattice_that_does_not_fill_the_image_is_refused():
     scans, _ = _scans(angles=(0.0,), rotation=0.0)
     z = np.asarray(scans[0].trace).copy()
     z[:, 40:] = np.median(z)  # the right third bare
-    bare = calibration.CalibrationScan(z, z, scans[0].raster, 1000.0, (500.0, 500.0), 10.0)
+    bare = CalibrationScan(z, z, scans[0].raster, 1000.0, (500.0, 500.0), 10.0)
     with pytest.raises(ValueError, match=r"the lattice covers only rows .* crop the image"):
         bare.features()
 
@@ -248,7 +255,7 @@ def test_a_lattice_that_does_not_fill_the_image_is_refused():
 def test_an_implausible_fit_saves_no_model(tmp_path, monkeypatch):
     from jaxafm.config import CalibrateConfig
 
-    monkeypatch.setattr(calibration, "implausible", lambda *a: ["the tip travels 9 µm over a 3 µm image"])
+    monkeypatch.setattr(staged_fit, "implausible", lambda *a: ["the tip travels 9 µm over a 3 µm image"])
     cfg = CalibrateConfig(
         simulate={"pixels": 32, "size_nm": 4000},
         models=[{"name": "pi", "kind": "pi", "operators": 4, "effects": []}],

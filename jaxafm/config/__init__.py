@@ -15,11 +15,11 @@ from .apply import CompensateConfig, PredictConfig, RasterTrajectory, Trajectory
 from .calibrate import (
     CalibrateConfig,
     CalibrationImages,
+    CalibrationLattice,
     CalibrationModel,
     CalibrationPair,
     CalibrationSolver,
     Compensation,
-    Grating,
     SimulatedCalibration,
 )
 from .common import (
@@ -39,7 +39,7 @@ from .diagnose import (
     DiagnoseScans,
     DiagnoseSimulation,
     ScanFiles,
-    ScanGrating,
+    ScanSample,
     ScanSimulation,
 )
 from .fit import ActuatorFitConfig, ModelSpec, SimulatedData
@@ -79,7 +79,7 @@ __all__ = [
     "DiagnoseScans",
     "DiagnoseSimulation",
     "Distribution",
-    "Grating",
+    "CalibrationLattice",
     "HysteresisSpec",
     "ImageFile",
     "ImagePair",
@@ -94,7 +94,7 @@ __all__ = [
     "RecordData",
     "RunConfig",
     "ScanFiles",
-    "ScanGrating",
+    "ScanSample",
     "ScanSimulation",
     "SimulatedCalibration",
     "SimulatedData",

@@ -25,9 +25,9 @@ from .common import (
 from .names import MODEL_EFFECTS, check_effect_names
 
 
-class Grating(Strict):
-    """The calibration grating: a square lattice of pillars (or pits) of known pitch, and its
-    angle on the stage."""
+class CalibrationLattice(Strict):
+    """The calibration lattice (the config's ``grating``): a square lattice of pillars (or pits)
+    of known pitch, and its angle on the stage."""
 
     pitch_nm: float = Field(1000.0, gt=0, description="lattice pitch, nm (both axes)")
     pits: bool = Field(False, description="pits instead of pillars")
@@ -240,7 +240,9 @@ def check_stage_steps(solver: CalibrationSolver, scans: int) -> None:
         )
 
 
-def check_coarsen(solver: CalibrationSolver, simulate: SimulatedCalibration, grating: Grating) -> None:
+def check_coarsen(
+    solver: CalibrationSolver, simulate: SimulatedCalibration, grating: CalibrationLattice
+) -> None:
     """Refuse a ``solver.coarsen`` that does not fit the simulated scan (:func:`coarsen_fits`)
     before anything is simulated."""
     f = solver.coarsen
@@ -259,7 +261,7 @@ class CalibrateConfig(Strict):
 
     data: Optional[CalibrationImages] = None
     simulate: Optional[SimulatedCalibration] = None
-    grating: Grating = Grating()
+    grating: CalibrationLattice = CalibrationLattice()
     models: list[CalibrationModel] = Field([CalibrationModel(name="gpi")], min_length=1)
     solver: CalibrationSolver = CalibrationSolver()
     compensate: Optional[Compensation] = Compensation()

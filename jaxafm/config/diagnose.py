@@ -49,7 +49,7 @@ class DiagnoseSimulation(Strict):
         return self
 
 
-GratingKind = Literal["lines", "lattice"]
+SampleKind = Literal["lines", "lattice"]
 _PITCH_ALLOWED = "a length > 0 nm, or [x, y] nm for a lattice whose pitches differ"
 
 
@@ -78,7 +78,7 @@ class DiagnoseImage(ImageFile):
     ``ImageFile``: any format ``jaxafm.instrument.images.read_image`` reads; rows are taken in
     scan order (row 0 first)."""
 
-    kind: GratingKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
+    kind: SampleKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
     pitch_nm: Any = Field(
         None,
         description="nm: the pitch along x (or [x, y]); required for a lattice, fitted for lines",
@@ -95,12 +95,12 @@ class DiagnoseImage(ImageFile):
         return self
 
 
-class ScanGrating(Strict):
+class ScanSample(Strict):
     """The calibration sample a scan set images (its datasheet) and the tip's cone: a 1-D
     grating (``kind: lines``) or a 2-D lattice of pits or pillars (``kind: lattice``); the
     pitch along the fast axis x (``pitch_nm``: one number, or [x, y] for a lattice)."""
 
-    kind: GratingKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
+    kind: SampleKind = Field("lines", description="lines: a 1-D grating; lattice: pits or pillars")
     pitch_nm: Any = Field(None, description=f"nm: {_PITCH_ALLOWED}")
     edge_width_nm: float = Field(gt=0, description="width of an edge's linear ramp (nm)")
     tip_half_angle_deg: float = Field(20.0, gt=0, lt=90)
@@ -136,7 +136,7 @@ class ScanSimulation(Strict):
         None, description="the effect switched on; none: a control"
     )
     magnitude: float = Field(0.0, ge=0, description="units: jaxafm.diagnose.withheld.SCAN_UNITS")
-    sample: GratingKind = Field(
+    sample: SampleKind = Field(
         "lines", description="lines: the 1-D grating; lattice: the 2-D pit lattice (withheld.SIM_LATTICE)"
     )
     line_rates_hz: list[float] = Field([1.0, 4.0], min_length=2)
@@ -160,7 +160,7 @@ class DiagnoseScans(Strict):
     """Trace/retrace images of a 1-D grating or a 2-D lattice at two or more scan speeds (``jaxafm.diagnose``):
     ``pairs`` from files, or ``simulate``; ``grating`` is required with files."""
 
-    grating: Optional[ScanGrating] = None
+    grating: Optional[ScanSample] = None
     pairs: Optional[list[ScanFiles]] = Field(None, min_length=2)
     simulate: Optional[ScanSimulation] = None
 

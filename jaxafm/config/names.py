@@ -1,7 +1,7 @@
 """Names and unit tables that configs are checked against, kept free of JAX.
 
 Each constant lives here once; the JAX modules that use them (``model.scanner``,
-``instrument.afm``, ``instrument.images``, ``instrument.records``, ``identify.calibration``,
+``instrument.afm``, ``instrument.images``, ``instrument.records``, ``identify.scan_model``,
 ``identify.fit``, ``diagnose.core``) import them from here, so
 that validating a YAML file never imports JAX. Effect names and units: ``docs/conventions.md``.
 """

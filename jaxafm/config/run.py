@@ -9,10 +9,10 @@ from typing import Literal, Optional
 from pydantic import Field, model_validator
 
 from .calibrate import (
+    CalibrationLattice,
     CalibrationModel,
     CalibrationSolver,
     Compensation,
-    Grating,
     SimulatedCalibration,
     check_coarsen,
     check_stage_steps,
@@ -26,7 +26,7 @@ class StepA(Strict):
     written by ``jaxafm calibrate`` from the same calibration scan)."""
 
     simulate: SimulatedCalibration = SimulatedCalibration()
-    grating: Grating = Grating()
+    grating: CalibrationLattice = CalibrationLattice()
     model: CalibrationModel = CalibrationModel(name="gpi")
     solver: CalibrationSolver = CalibrationSolver()
     model_file: Optional[str] = Field(None, description="relative to the config file; skips identification")

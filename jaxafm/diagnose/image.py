@@ -33,7 +33,8 @@ import dataclasses
 import numpy as np
 
 from ..identify.features import lattice_features
-from ..identify.line_grating import GratingEdges, _design
+from ..identify.line_grating import GratingEdges, edge_design
+from ..identify.projection import project_out
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
 from .report import autocorrelation, binned_rms, rms
 from .scans import LATTICE_CHORD, row_edges
@@ -121,21 +122,19 @@ class GratingImage(DataKind):
         if frame is not None:  # the lattice's turn: a feature centred at y_c is seen tan(a) y_c to the left
             tilt, y_c = frame[1][1] / frame[1][0], _feature_y(e, chord, frame)
             e = dataclasses.replace(e, x_nm=e.x_nm + tilt * y_c)
-        a, names, _, _ = _design(e, 3, True, lattice)
+        design = edge_design(e, 3, True, lattice)
+        a, names = design.columns, design.names
         if frame is not None:  # a chord's midpoint moves along its feature as the feature's shape has it
             a, names = np.column_stack([a, e.y_nm - y_c]), [*names, "shape"]
         return cls(image, e, train, int(cut), a, names, lattice, tilt, chord)
 
     def _within(self, v: np.ndarray) -> np.ndarray:
         """Lattice: ``v`` (edges, ...) less its projection on a width per chord (rising edge
-        +1/2, falling -1/2; Frisch-Waugh-Lovell, as ``line_grating._solve``): both edges of a
+        +1/2, falling -1/2; Frisch-Waugh-Lovell, :func:`~jaxafm.identify.projection.project_out`): both edges of a
         chord become its midpoint; else ``v``."""
         if not self.lattice:
             return v
-        sign = np.where(self.edges.rising, 0.5, -0.5)
-        flat = v.reshape(len(v), -1)
-        proj = np.stack([np.bincount(self.chord, sign * c) for c in flat.T], -1) / 0.5
-        return (flat - sign[:, None] * proj[self.chord]).reshape(v.shape)
+        return project_out(v, np.where(self.edges.rising, 0.5, -0.5), self.chord)
 
     def _fit(self, cols: list) -> ImageFit:
         """Least squares on the training edges (a lattice: chord midpoints, each counted once);

@@ -1,17 +1,19 @@
 """The model of an actuator record and its fit: ``Plant``, the nominal model's start, a candidate added.
 
-Actuator records (one or two axes) are modelled as :class:`Plant`: one
-:class:`~jaxafm.model.scanner.Axis` per output (hysteresis, rate dependence, creep), then
-:class:`~jaxafm.model.effects.Coupling`, :class:`~jaxafm.model.effects.Bow` and the
-deterministic part of :class:`~jaxafm.model.effects.Drift` (``v t``) -- the same modules the
-simulator uses. Each candidate effect is added where it changes nothing (:func:`with_effect`),
-so its refit starts from the nominal fit.
+Actuator records (one or two axes) are modelled as :class:`Plant`: a
+:class:`~jaxafm.model.scanner.Scanner` -- one :class:`~jaxafm.model.scanner.Axis` per output
+(hysteresis, rate dependence, creep, vibration), then :class:`~jaxafm.model.effects.Coupling`,
+:class:`~jaxafm.model.effects.Bow` and the deterministic part of
+:class:`~jaxafm.model.effects.Drift` (``v t``) -- the same modules, composed the same way, as
+the simulator. Each candidate effect is added where it changes nothing (:func:`with_effect`), so
+its refit starts from the nominal fit.
 
 Hysteresis weights start from a non-negative least-squares solve (:func:`_nnls_start`) and are
 then fitted unconstrained (outputs are linear in them, so Levenberg-Marquardt needs a few
 steps); creep is one logarithmic rate ``gamma >= 0`` per axis over lags from 0.1 s to the record's
 length; a mechanical mode (``vibration``) is a frequency below the Nyquist frequency and a
-damping in (0, 1) per axis. Units: nm, s, V.
+damping in (0, 1) per axis. Each module's parameters at order one are its own
+(``free_parameters``), with the scales of :class:`RecordScales`. Units: nm, s, V.
 """
 
 from __future__ import annotations
@@ -22,27 +24,41 @@ from typing import Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import nnls
 
 from ..config import DiagnoseNominal as Nominal  # the nominal model: its config schema
-from ..identify.fit import evaluator, free_parameters, initial_model
+from ..identify.fit import initial_operator, solve
 from ..model.effects import Bow, Coupling, Creep, Drift, RateDependence, Vibration
-from ..model.hysteresis import Deadzone, FactorizedPreisach, GeneralizedPI, Preisach, play, softplus_inverse
-from ..model.scanner import Axis
+from ..model.hysteresis import (
+    Deadzone,
+    FactorizedPreisach,
+    GeneralizedPI,
+    Linear,
+    Preisach,
+    play,
+)
+from ..model.scanner import Axis, Scanner
 
 Array = jax.Array
-CREEP_TAU_MIN = 0.1  # s, the shortest creep lag; the longest is the record's length (2 lags per decade)
+CREEP_TAU_MIN = 0.1  # s, the shortest creep lag; the longest is the record's length
+CREEP_PER_DECADE = 2  # creep lags per decade of time
 LAG0_S = 1e-3  # the rate-dependence lag a candidate starts from
 GAMMA0 = 1e-4  # the creep rate (per decade) a candidate starts from
 MAX_DAMPING = 0.7  # a mode rings (has a resonant peak) only below 1/sqrt(2); above, it is a lag
+# What a raw parameter of 1 stands for: 1 % (of coupling, of the creep per decade, of the
+# output range for bow, drift and creep start, scaled as RecordScales says), and a 10 ms lag.
+RELATIVE_SCALE = 0.01
+LAG_SCALE_S = 0.01
+SOLVER = "optimistix.levenberg_marquardt"
+RTOL, ATOL = 1e-6, 1e-9
 
 
 class Plant(eqx.Module):
-    """Drive ``u`` (T, k) V -> output (T, k) nm: one Axis per output, then coupling, bow, drift.
+    """Drive ``u`` (T, k) V -> output (T, k) nm: a :class:`~jaxafm.model.scanner.Scanner`, of
+    which a one-output record (k = 1) drives the x axis alone (its y axis stands still at 0 nm,
+    a zero line, and has no parameters).
 
     ``p_i = axes[i](u_i, t)``; coupling ``x += xy y, y += yx x``; bow ``x += bx y^2, y += by x^2``;
     drift ``p += v (t - t_0)`` (the Drift module with sigma = 0). A creep stage's lags start at
@@ -50,143 +66,180 @@ class Plant(eqx.Module):
     record that begins in the middle of a motion carries the creep of what came before it.
     """
 
-    axes: tuple
-    coupling: Optional[Coupling] = None
-    bow: Optional[Bow] = None
-    drift: Optional[Drift] = None
+    scanner: Scanner
+    outputs: int = eqx.field(static=True)
     creep_start: Optional[Array] = None
+
+    @classmethod
+    def of(cls, axes: tuple, creep_start: Optional[Array] = None, **two_axis) -> Plant:
+        """The plant with ``axes`` (one per output) and the two-axis modules ``two_axis``
+        (``coupling``, ``bow``, ``drift``)."""
+        still = Axis(Linear(jnp.zeros(()), jnp.zeros(())))
+        x, y = (axes[0], still) if len(axes) == 1 else axes
+        return cls(Scanner(x, y, **two_axis), len(axes), creep_start)
+
+    @property
+    def axes(self) -> tuple:
+        """The axes the outputs come from."""
+        return (self.scanner.x, self.scanner.y)[: self.outputs]
 
     @property
     def effects(self) -> frozenset:
-        own = {n for n in ("coupling", "bow", "drift") if getattr(self, n) is not None}
+        own = {n for n in ("coupling", "bow", "drift") if getattr(self.scanner, n) is not None}
         return frozenset(own).union(*(a.effects for a in self.axes))
 
+    def with_axes(self, axes: tuple) -> Plant:
+        """The same plant with other axes (one per output)."""
+        s = self.scanner
+        return Plant.of(axes, self.creep_start, coupling=s.coupling, bow=s.bow, drift=s.drift)
 
-def _rebuild_extras(plant: Plant, scale: dict):
-    """Order-one raw parameters of coupling, bow and drift, and the map back."""
-    names = [n for n in ("coupling", "bow", "drift") if getattr(plant, n) is not None]
-    raw = {}
-    if plant.coupling is not None:
-        raw["coupling"] = jnp.stack([plant.coupling.xy, plant.coupling.yx]) / 0.01
-    if plant.bow is not None:
-        raw["bow"] = jnp.stack([plant.bow.bx, plant.bow.by]) * scale["half_range"] / 0.01
-    if plant.drift is not None:
-        raw["drift"] = plant.drift.velocity * scale["duration"] / (0.01 * scale["range"])
+    def with_module(self, name: str, module) -> Plant:
+        """The same plant with the two-axis module ``name`` (``coupling``, ``bow``, ``drift``)."""
+        return dataclasses.replace(self, scanner=dataclasses.replace(self.scanner, **{name: module}))
 
-    def rebuild(p):
-        out = {}
-        if "coupling" in p:
-            out["coupling"] = Coupling(0.01 * p["coupling"][0], 0.01 * p["coupling"][1])
-        if "bow" in p:
-            b = 0.01 * p["bow"] / scale["half_range"]
-            out["bow"] = Bow(b[0], b[1])
-        if "drift" in p:
-            out["drift"] = Drift(
-                p["drift"] * 0.01 * scale["range"] / scale["duration"], jnp.zeros(2), jnp.asarray(1e-3)
-            )
-        return out
-
-    return {n: raw[n] for n in names}, rebuild
+    def predict(self, hysteresis: tuple, t: Array) -> Array:
+        """The outputs (T, k) nm, given each axis's hysteresis output (T,) nm at times ``t``
+        (T,) s: each axis's stages from rest (creep from ``creep_start``), then the scanner's
+        two-axis stages, with the y axis still for one output."""
+        start = jnp.zeros(self.outputs) if self.creep_start is None else self.creep_start
+        cols = []
+        for a, v, c in zip(self.axes, hysteresis, start):
+            state = a.stages_at_rest(v[0])
+            if a.creep is not None:  # its lags already off the rest level by the creep in progress
+                level = v[0] + c
+                state = eqx.tree_at(lambda s: s.creep, state, (jnp.full_like(a.creep.taus, level), level))
+            cols.append(a.run_stages(v, t, state, t[0])[0])
+        p = jnp.stack(cols + [jnp.zeros_like(cols[0])] * (2 - self.outputs), -1)
+        return self.scanner.couple(p, t, jax.random.key(0), jnp.zeros(2), t[0], t[0])[0][:, : self.outputs]
 
 
-def _scales(u, t, d) -> dict:
-    rng = jnp.max(d, 0) - jnp.min(d, 0)
-    return {
-        "span": jnp.max(u, 0) - jnp.min(u, 0),
-        "range_k": rng,
-        "range": jnp.max(rng),
-        "half_range": jnp.max(rng) / 2,
-        "duration": t[-1] - t[0],
-    }
+class RecordScales(eqx.Module):
+    """A record's sizes that set the plant's order-one scales.
+
+    Attributes:
+        span: the input span per axis (k,) V.
+        range_k: the output range per axis (k,) nm.
+        range: the largest output range (nm): the residuals' unit.
+        duration: the record's length (s).
+    """
+
+    span: Array
+    range_k: Array
+    range: Array
+    duration: Array
+
+    @classmethod
+    def of(cls, u, t, d) -> RecordScales:
+        """The scales of drives ``u`` (T, k) V, times ``t`` (T,) s and outputs ``d`` (T, k) nm."""
+        rng = jnp.max(d, 0) - jnp.min(d, 0)
+        return cls(jnp.max(u, 0) - jnp.min(u, 0), rng, jnp.max(rng), t[-1] - t[0])
+
+    @property
+    def bow(self):
+        """1 % of the range's bend over half the range (1/nm)."""
+        return RELATIVE_SCALE / (self.range / 2)
+
+    @property
+    def drift(self):
+        """1 % of the range over the record (nm/s)."""
+        return RELATIVE_SCALE * self.range / self.duration
 
 
-def _axis_parameters(axis: Axis, span, rng):
-    """Raw parameters of an Axis without creep: its hysteresis and, if present, its lag's tau."""
+def _axis_parameters(axis: Axis, span, rng, nyquist) -> tuple:
+    """Raw parameters of one axis and the map back: its hysteresis and lag
+    (:meth:`~jaxafm.model.scanner.Axis.free_parameters`), its creep as one rate
+    ``gamma >= 0`` (weights ``gamma / 2`` on lags two per decade, :func:`creep_stage`) and its
+    mode below the Nyquist frequency, each present one's own ``free_parameters``."""
     # Unlike identification, PI weights are not kept positive: the outputs stay linear in them, so
     # Levenberg-Marquardt converges in a few steps from any start, and a diagnosis never inverts
     # them. A Preisach density is: the cells a training drive never reaches are free without it,
     # and a negative density there makes the held-out loops wild (held-out gaps of um, not nm).
+    inner = dataclasses.replace(axis, creep=None, vibration=None)
     positive = isinstance(axis.hysteresis, Preisach)
-    raw_h, rebuild_h = axis.hysteresis.free_parameters(span, rng, positive=positive)
-    if axis.rate_dependence is None:
-        return raw_h, lambda p: Axis(rebuild_h(p))
-    raw_l, rebuild_l = free_parameters(axis.rate_dependence, span, rng)
-    return (raw_h, raw_l), lambda p: Axis(rebuild_h(p[0]), rate_dependence=rebuild_l(p[1]))
+    parts = [inner.free_parameters(span, rng, positive, lag_scale_s=LAG_SCALE_S)]
+    if axis.creep is not None:
+        parts.append(axis.creep.free_parameters(RELATIVE_SCALE / CREEP_PER_DECADE, rate=True))
+    if axis.vibration is not None:
+        parts.append(axis.vibration.free_parameters(nyquist, MAX_DAMPING))
+
+    def rebuild(p):
+        out = parts[0][1](p[0])
+        stages = [n for n in ("creep", "vibration") if getattr(axis, n) is not None]
+        return dataclasses.replace(out, **{n: rb(q) for n, (_, rb), q in zip(stages, parts[1:], p[1:])})
+
+    return tuple(r for r, _ in parts), rebuild
 
 
-def _model_fn(plant: Plant, u, t, d, history):
-    """``(raw0, predict, to_plant)``: order-one parameters of ``plant``, ``predict(raw)`` (T, k) nm
-    and the fitted plant. A creep stage is fitted as one logarithmic rate ``gamma`` per axis
-    (weights ``gamma / 2`` on lags two per decade, :meth:`Creep.logarithmic`), ``gamma >= 0``; a
-    mechanical mode as ``frequency = f_N sigmoid(a)`` below the Nyquist frequency ``f_N`` and
-    ``damping = MAX_DAMPING sigmoid(b)``."""
-    s = _scales(u, t, d)
-    nyquist = 0.5 / jnp.median(jnp.diff(t))
-    inner = [dataclasses.replace(a, creep=None, vibration=None) for a in plant.axes]
-    parts = [_axis_parameters(a, s["span"][i], s["range_k"][i]) for i, a in enumerate(inner)]
-    evals = [
-        evaluator(a, u[:, i], t, None if history is None else history[:, i]) for i, a in enumerate(inner)
-    ]
-    creeps = [a.creep for a in plant.axes]
-    modes = [a.vibration for a in plant.axes]
-    crept = [i for i, c in enumerate(creeps) if c is not None]
-    gamma0 = tuple(softplus_inverse(2 * creeps[i].weights[0] / 0.01) for i in crept)
-    start0 = jnp.zeros(len(plant.axes)) if plant.creep_start is None else plant.creep_start
-    start0 = tuple(start0[i] / (0.01 * s["range_k"][i]) for i in crept)
-    logit = lambda p: jnp.log(p) - jnp.log1p(-p)
-    mode0 = tuple(
-        jnp.stack([logit(m.frequency / nyquist), logit(m.damping / MAX_DAMPING)])
-        for m in modes
-        if m is not None
+def plant_parameters(plant: Plant, s: RecordScales, nyquist) -> tuple:
+    """``(raw, rebuild)``: the order-one parameters of ``plant`` (each axis's, the two-axis
+    modules', the creep starts in 1 % of the axis's range) and ``rebuild(raw) -> Plant``."""
+    axes = [_axis_parameters(a, s.span[i], s.range_k[i], nyquist) for i, a in enumerate(plant.axes)]
+    sc = plant.scanner
+    scales = {"coupling": RELATIVE_SCALE, "bow": s.bow, "drift": s.drift}
+    two_axis = {n: getattr(sc, n).free_parameters(scales[n]) for n in scales if getattr(sc, n) is not None}
+    crept = [i for i, a in enumerate(plant.axes) if a.creep is not None]
+    start0 = jnp.zeros(plant.outputs) if plant.creep_start is None else plant.creep_start
+    raw = (
+        tuple(r for r, _ in axes),
+        {n: r for n, (r, _) in two_axis.items()},
+        tuple(start0[i] / (RELATIVE_SCALE * s.range_k[i]) for i in crept),
     )
-    extras0, rebuild_extras = _rebuild_extras(plant, s)
-    raw0 = (tuple(p[0] for p in parts), extras0, gamma0, mode0, start0)
 
-    def creep_start(raw):
-        out = jnp.zeros(len(plant.axes))
-        for i, r in zip(crept, raw[4]):
-            out = out.at[i].set(r * 0.01 * s["range_k"][i])
-        return out
+    def rebuild(p):
+        start = jnp.zeros(plant.outputs)
+        for i, r in zip(crept, p[2]):
+            start = start.at[i].set(r * RELATIVE_SCALE * s.range_k[i])
+        modules = {n: rb(p[1][n]) for n, (_, rb) in two_axis.items()}
+        fitted = tuple(rb(q) for (_, rb), q in zip(axes, p[0]))
+        return Plant.of(fitted, start if crept else None, **modules)
 
-    def axes(raw):
-        gammas = iter(0.01 * jax.nn.softplus(g) for g in raw[2])
-        fitted_modes = iter(jax.nn.sigmoid(m) for m in raw[3])
-        out = []
-        for (_, rb), r, c, m in zip(parts, raw[0], creeps, modes):
-            creep = None if c is None else Creep(c.taus, jnp.full_like(c.taus, next(gammas) / 2))
-            mode = None if m is None else next(fitted_modes)
-            vib = None if m is None else Vibration(nyquist * mode[0], MAX_DAMPING * mode[1])
-            out.append(dataclasses.replace(rb(r), creep=creep, vibration=vib))
-        return tuple(out)
+    return raw, rebuild
 
-    def predict(raw):
-        cols = []
-        starts = creep_start(raw)
-        for k, (f, a) in enumerate(zip(evals, axes(raw))):
-            v = f(dataclasses.replace(a, creep=None, vibration=None))
-            if a.creep is not None:
-                level = v[0] + starts[k]
-                v = a.creep.run(v, t, (jnp.full_like(a.creep.taus, level), level), t[0])[0]
-            cols.append(v if a.vibration is None else a.vibration(v, t))
-        p = jnp.stack(cols, -1)
-        ex = rebuild_extras(raw[1])
-        if "coupling" in ex:
-            p = ex["coupling"](p)
-        if "bow" in ex:
-            p = ex["bow"](p)
-        if "drift" in ex:
-            p = p + ex["drift"](t, jax.random.key(0))[:, : p.shape[1]]
-        return p
 
-    def to_plant(raw):
-        return Plant(axes(raw), **rebuild_extras(raw[1]), creep_start=creep_start(raw) if crept else None)
+def _hysteresis(plant: Plant, u, history) -> tuple:
+    """Per axis, the evaluator of its hysteresis on its drive ``u[:, i]``, plays run once (the
+    threshold grids stay fixed: :meth:`~jaxafm.model.hysteresis.AbstractHysteresis.evaluator`)."""
+    return tuple(
+        a.hysteresis.evaluator(u[:, i], None if history is None else history[:, i])
+        for i, a in enumerate(plant.axes)
+    )
 
-    return raw0, predict, to_plant
+
+def _predict(raw, plant: Plant, hysteresis: tuple, t, d, scales: RecordScales) -> Array:
+    """The outputs (T, k) nm of the plant ``raw`` stands for (:func:`plant_parameters`)."""
+    fitted = plant_parameters(plant, scales, 0.5 / jnp.median(jnp.diff(t)))[1](raw)
+    return fitted.predict(tuple(f(a.hysteresis) for f, a in zip(hysteresis, fitted.axes)), t)
+
+
+def _residuals(raw, args) -> Array:
+    """``(model - d) weight / range``, flat: the plant fit's residuals; ``args = (plant, the axes'
+    hysteresis evaluators, t, d, weight, scales)``, the plays run once before the fit."""
+    plant, hysteresis, t, d, weight, scales = args
+    return ((_predict(raw, plant, hysteresis, t, d, scales) - d) * weight[:, None] / scales.range).ravel()
+
+
+def _loss(raw, args) -> Array:
+    return 0.5 * jnp.sum(_residuals(raw, args) ** 2)
 
 
 @eqx.filter_jit
-def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int):
-    """Levenberg-Marquardt fit of ``plant`` to ``d`` where ``weight`` is 1 (0: not fitted).
+def _start(plant: Plant, u, t, d, history) -> tuple:
+    """``(raw0, hysteresis evaluators, scales)`` of a fit of ``plant`` to the record."""
+    scales = RecordScales.of(u, t, d)
+    raw0 = plant_parameters(plant, scales, 0.5 / jnp.median(jnp.diff(t)))[0]
+    return raw0, _hysteresis(plant, u, history), scales
+
+
+@eqx.filter_jit
+def _finish(raw, plant: Plant, hysteresis: tuple, t, d, scales: RecordScales) -> tuple:
+    """The fitted plant and its outputs (T, k) nm."""
+    fitted = plant_parameters(plant, scales, 0.5 / jnp.median(jnp.diff(t)))[1](raw)
+    return fitted, _predict(raw, plant, hysteresis, t, d, scales)
+
+
+def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int) -> tuple:
+    """Levenberg-Marquardt fit (:func:`~jaxafm.identify.fit.solve`) of ``plant`` to ``d`` where
+    ``weight`` is 1 (0: not fitted).
 
     The residuals ``(model - d) weight / range`` are scaled by the outputs' largest range.
     Compiled once per plant structure and data shape; the data are arguments.
@@ -203,20 +256,17 @@ def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int):
     Returns:
         The fitted plant, its prediction (T, k) nm and the solver's step count.
     """
-    raw0, predict, to_plant = _model_fn(plant, u, t, d, history)
-    scale = _scales(u, t, d)["range"]
-
-    def residuals(raw, _):
-        return ((predict(raw) - d) * weight[:, None] / scale).ravel()
-
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-9, linear_solver=lx.Normal(lx.Cholesky()))
-    sol = optx.least_squares(residuals, solver, raw0, max_steps=max_steps, throw=False)
-    return to_plant(sol.value), predict(sol.value), sol.stats["num_steps"]
+    raw0, hysteresis, scales = _start(plant, u, t, d, history)
+    args = (plant, hysteresis, t, d, weight, scales)
+    raw, steps, _ = solve(SOLVER, _residuals, _loss, raw0, max_steps, RTOL, ATOL, args)
+    fitted, prediction = _finish(raw, plant, hysteresis, t, d, scales)
+    return fitted, prediction, steps
 
 
 def n_parameters(plant: Plant, u, t, d) -> int:
     """Free parameters of ``plant`` (what the fit moves)."""
-    raw0 = _model_fn(plant, jnp.asarray(u), jnp.asarray(t), jnp.asarray(d), None)[0]
+    scales = RecordScales.of(jnp.asarray(u), jnp.asarray(t), jnp.asarray(d))
+    raw0 = plant_parameters(plant, scales, 0.5 / jnp.median(jnp.diff(jnp.asarray(t))))[0]
     return int(ravel_pytree(raw0)[0].size)
 
 
@@ -245,7 +295,7 @@ def nominal_plant(
     axes = []
     for i in range(u.shape[1]):
         try:
-            h = initial_model(
+            h = initial_operator(
                 kind,
                 u[train, i],
                 d[train, i],
@@ -261,7 +311,7 @@ def nominal_plant(
         if kind == "preisach":
             h = _alternating_start(FactorizedPreisach.from_plane(h), u[:, i], d[:, i], train, hist)
         axes.append(Axis(_nnls_start(h, u[:, i], d[:, i], train, hist)))
-    plant = Plant(tuple(axes))
+    plant = Plant.of(tuple(axes))
     for name in ("rate_dependence", "creep", "coupling", "bow", "drift"):
         if name in spec.effects:
             plant = with_effect(plant, name, u, d, t)
@@ -328,7 +378,7 @@ def creep_stage(t: np.ndarray, gamma: float = GAMMA0) -> Creep:
             f"the record lasts {span:.3g} s: too short for a creep stage, whose lags span "
             f"{CREEP_TAU_MIN:g} s to the record's length (at least one decade, {10 * CREEP_TAU_MIN:g} s)"
         )
-    return Creep.logarithmic(gamma, CREEP_TAU_MIN, span)
+    return Creep.logarithmic(gamma, CREEP_TAU_MIN, span, CREEP_PER_DECADE)
 
 
 def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) -> Plant:
@@ -354,9 +404,8 @@ def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) 
         "vibration": lambda k: Vibration(jnp.asarray(mode[k][0]), jnp.asarray(mode[k][1])),
     }
     if name in stage:
-        return dataclasses.replace(
-            plant,
-            axes=tuple(dataclasses.replace(a, **{name: stage[name](k)}) for k, a in enumerate(plant.axes)),
+        return plant.with_axes(
+            tuple(dataclasses.replace(a, **{name: stage[name](k)}) for k, a in enumerate(plant.axes))
         )
     if name == "asymmetry":
         axes = []
@@ -364,14 +413,14 @@ def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) 
             steps = (np.arange(3) + 1) / 4 * np.ptp(d[:, i]) / 2
             dz = Deadzone.identity(-steps, steps, centre=float(np.mean(d[:, i])))
             axes.append(dataclasses.replace(a, hysteresis=GeneralizedPI(a.hysteresis, dz)))
-        return dataclasses.replace(plant, axes=tuple(axes))
+        return plant.with_axes(tuple(axes))
     zero = jnp.zeros(())
     module = {
         "coupling": lambda: Coupling(zero, zero),
         "bow": lambda: Bow(zero, zero),
         "drift": lambda: Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3)),
     }[name]()
-    return dataclasses.replace(plant, **{name: module})
+    return plant.with_module(name, module)
 
 
 def sizes(plant: Plant) -> dict:
@@ -381,16 +430,17 @@ def sizes(plant: Plant) -> dict:
     out = {}
     for name, key, get in (
         ("rate_dependence", "rate_dependence_tau_s", lambda m: float(m.tau)),
-        ("creep", "creep_gamma_per_decade", lambda m: float(2 * m.weights[0])),
+        ("creep", "creep_gamma_per_decade", lambda m: float(CREEP_PER_DECADE * m.weights[0])),
         ("vibration", "vibration_frequency_hz", lambda m: float(m.frequency)),
         ("vibration", "vibration_damping", lambda m: float(m.damping)),
     ):
         if getattr(plant.axes[0], name) is not None:
             out[key] = [get(getattr(a, name)) for a in plant.axes]
-    if plant.coupling is not None:
-        out["coupling_xy_yx"] = [float(plant.coupling.xy), float(plant.coupling.yx)]
-    if plant.bow is not None:
-        out["bow_per_nm"] = [float(plant.bow.bx), float(plant.bow.by)]
-    if plant.drift is not None:
-        out["drift_nm_per_s"] = np.asarray(plant.drift.velocity)[: len(plant.axes)].tolist()
+    s = plant.scanner
+    if s.coupling is not None:
+        out["coupling_xy_yx"] = [float(s.coupling.xy), float(s.coupling.yx)]
+    if s.bow is not None:
+        out["bow_per_nm"] = [float(s.bow.bx), float(s.bow.by)]
+    if s.drift is not None:
+        out["drift_nm_per_s"] = np.asarray(s.drift.velocity)[: plant.outputs].tolist()
     return out

@@ -47,9 +47,10 @@ from numpy.polynomial import legendre
 from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
-from ..config import ScanGrating  # the grating and tip of a scan set: its config schema
-from ..identify.features import _check_image, edge_crossings
+from ..config import ScanSample  # the grating and tip of a scan set: its config schema
+from ..identify.features import check_image, edge_crossings
 from ..identify.line_grating import MIN_ROWS, GratingEdges
+from ..identify.projection import project_out
 from ..instrument.samples import Tip
 from ..model.effects import FeedbackAsymmetry
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
@@ -116,7 +117,7 @@ def row_edges(z, pixel_size, name: str = "image", kind: str = "lines", pitch_nm=
         ValueError: for an image that is not 2-D and finite, a non-positive pixel size, or
             fewer than ``MIN_ROWS`` rows with edges of both kinds, with what to change.
     """
-    z = _check_image(np.asarray(z, dtype=float), name)
+    z = check_image(np.asarray(z, dtype=float), name)
     dx, dy = (float(p) for p in np.broadcast_to(np.asarray(pixel_size, dtype=float), (2,)))
     if not (dx > 0 and dy > 0):
         raise ValueError(f"{name}: pixel size must be > 0 nm on both axes, got {pixel_size}")
@@ -192,9 +193,33 @@ def _centres(x: np.ndarray, rising: np.ndarray) -> np.ndarray:
     return out
 
 
-def crossings(pairs, levels=LEVELS, kind: str = "lines", pitch_nm=None) -> dict:
-    """Level crossings of every edge: flat arrays (one entry per edge and level) of ``x``
-    (nominal nm), ``level``, ``pair``, ``retrace``, ``row``, ``y`` nm, ``index``, ``rising``.
+@dataclasses.dataclass(frozen=True)
+class Crossings:
+    """Level crossings of edges, flat arrays (one entry per edge and level).
+
+    Attributes:
+        x: where the profile crosses the level (nominal nm).
+        level: the level, a fraction of the row's contrast (:data:`LEVELS`).
+        pair: the pair's number (``pairs`` slowest first).
+        retrace: True in the retrace image.
+        row: the image row.
+        y: the row's nominal y (nm).
+        index: the edge's line index (the same line in every image).
+        rising: True on a rising edge.
+    """
+
+    x: np.ndarray
+    level: np.ndarray
+    pair: np.ndarray
+    retrace: np.ndarray
+    row: np.ndarray
+    y: np.ndarray
+    index: np.ndarray
+    rising: np.ndarray
+
+
+def crossings(pairs, levels=LEVELS, kind: str = "lines", pitch_nm=None) -> Crossings:
+    """Level crossings of every edge of every image of ``pairs`` (:class:`Crossings`).
 
     A line keeps its index across the images: each image's indices are shifted by the whole
     periods that bring its edges nearest to the reference image's -- the trace of the same pair
@@ -214,7 +239,7 @@ def crossings(pairs, levels=LEVELS, kind: str = "lines", pitch_nm=None) -> dict:
     for (p, retrace), re in edges.items():
         e = re.edges
         z = pairs[p].retrace if retrace else pairs[p].trace
-        x = _edge_levels(np.asarray(z, float), re, levels, kind) * e.pixel_size[0]
+        x = edge_levels(np.asarray(z, float), re, levels, kind) * e.pixel_size[0]
         ok = np.isfinite(x)
         for k, v in (("row", e.row), ("y", e.y_nm), ("index", e.index), ("rising", e.rising)):
             cols[k].append(np.repeat(v, len(levels))[ok.ravel()])
@@ -222,7 +247,7 @@ def crossings(pairs, levels=LEVELS, kind: str = "lines", pitch_nm=None) -> dict:
         cols["level"].append(np.tile(levels, len(e.row))[ok.ravel()])
         cols["pair"].append(np.full(ok.sum(), p))
         cols["retrace"].append(np.full(ok.sum(), retrace))
-    return {k: np.concatenate(v) for k, v in cols.items()}
+    return Crossings(**{k: np.concatenate(v) for k, v in cols.items()})
 
 
 def _align(re: RowEdges, ref: RowEdges) -> RowEdges:
@@ -237,7 +262,7 @@ def _align(re: RowEdges, ref: RowEdges) -> RowEdges:
     return dataclasses.replace(re, edges=dataclasses.replace(e, index=index))
 
 
-def _edge_levels(z: np.ndarray, re: RowEdges, levels, kind: str = "lines") -> np.ndarray:
+def edge_levels(z: np.ndarray, re: RowEdges, levels, kind: str = "lines") -> np.ndarray:
     """(edges, levels) px: per edge, the mean crossing of each level of its row's ``lo`` to
     ``hi`` within a quarter period (lines), or within half the way to its neighbouring edges in
     the row (lattice: a pit's or pillar's walls may be closer than a quarter period)."""
@@ -282,7 +307,7 @@ def _passage(row: np.ndarray, a0: float, b0: float, centre: float, rising: bool)
 
 
 def edge_shape(
-    grating: ScanGrating,
+    grating: ScanSample,
     depth: float,
     dx: float,
     levels,
@@ -439,7 +464,7 @@ class ScanSet(DataKind):
     what the model needs of them, flat over edges and levels.
 
     Attributes:
-        f: the crossings (:func:`crossings`).
+        crossings: the edges' level crossings (:func:`crossings`).
         pairs: the :class:`ScanPair` s, slowest first.
         grating: what is known of the grating and the tip.
         depth: the edges' depth (nm), the median 10-90 % contrast of the rows.
@@ -450,9 +475,9 @@ class ScanSet(DataKind):
             width and wall slope are its own (:func:`_within`). ``None`` for a 1-D grating.
     """
 
-    f: dict
+    crossings: Crossings
     pairs: list
-    grating: ScanGrating
+    grating: ScanSample
     depth: float
     train: np.ndarray
     scale: float = 1.0
@@ -468,7 +493,7 @@ class ScanSet(DataKind):
     tries = CANDIDATES
 
     @classmethod
-    def split_off(cls, pairs, grating: ScanGrating, train_fraction: float) -> ScanSet:
+    def split_off(cls, pairs, grating: ScanSample, train_fraction: float) -> ScanSet:
         """The crossings of ``pairs`` (:class:`ScanPair`), the first ``train_fraction`` of every
         pair's rows to train on, and the calibration scale.
 
@@ -489,8 +514,8 @@ class ScanSet(DataKind):
                 "two speeds: give a pair scanned at another line rate"
             )
         f = crossings(pairs, kind=grating.kind, pitch_nm=grating.pitch_x_nm)
-        rows = np.array([p.trace.shape[0] for p in pairs])[f["pair"]]
-        train = f["row"] < np.round(train_fraction * rows)
+        rows = np.array([p.trace.shape[0] for p in pairs])[f.pair]
+        train = f.row < np.round(train_fraction * rows)
         if train.sum() < 50 or (~train).sum() < 50:
             raise ValueError(
                 f"{int(train.sum())} training and {int((~train).sum())} held-out crossings at "
@@ -503,37 +528,37 @@ class ScanSet(DataKind):
         data = cls(
             f, list(pairs), grating, float(np.median(contrast)), train, groups=_groups(f, pairs, grating)
         )
-        scale = _solve(data, list(NOMINAL), np.zeros(len(f["x"])), 1.0).theta["pitch"] / grating.pitch_x_nm
+        scale = _solve(data, list(NOMINAL), np.zeros(len(f.x)), 1.0).theta["pitch"] / grating.pitch_x_nm
         return dataclasses.replace(data, scale=scale)
 
     @property
     def sign(self) -> np.ndarray:  # +1 trace, -1 retrace
-        return np.where(self.f["retrace"], -1.0, 1.0)
+        return np.where(self.crossings.retrace, -1.0, 1.0)
 
     def field(self) -> tuple:
         """Legendre coordinate ``s`` in [-1, 1] of each crossing across its pair's field, and ds/dx."""
-        width = np.array([(p.trace.shape[1] - 1) * p.pixel_size[0] for p in self.pairs])[self.f["pair"]]
-        return 2 * self.f["x"] / width - 1, 2 / width
+        width = np.array([(p.trace.shape[1] - 1) * p.pixel_size[0] for p in self.pairs])[self.crossings.pair]
+        return 2 * self.crossings.x / width - 1, 2 / width
 
     def linear_columns(self) -> dict:
         """Nominal and linear-candidate columns (the model's right side, without the edge shape)."""
         s, _ = self.field()
-        f, re = self.f, self.f["retrace"].astype(float)
+        f, re = self.crossings, self.crossings.retrace.astype(float)
         p2, p3 = (legendre.legval(s, np.eye(4)[j]) for j in (2, 3))
-        rows = np.array([p.trace.shape[0] - 1 for p in self.pairs])[f["pair"]]
-        t = 2 * f["row"] / np.maximum(rows, 1) - 1
-        speed = np.array([p.speed_nm_s for p in self.pairs])[f["pair"]]
+        rows = np.array([p.trace.shape[0] - 1 for p in self.pairs])[f.pair]
+        t = 2 * f.row / np.maximum(rows, 1) - 1
+        speed = np.array([p.speed_nm_s for p in self.pairs])[f.pair]
         return {
-            "phase_rise": f["rising"].astype(float),
-            "phase_fall": (~f["rising"]).astype(float),
-            "pitch": f["index"].astype(float),
+            "phase_rise": f.rising.astype(float),
+            "phase_fall": (~f.rising).astype(float),
+            "pitch": f.index.astype(float),
             "c2_trace": -p2 * (1 - re),
             "c3_trace": -p3 * (1 - re),
             "c2_retrace": -p2 * re,
             "c3_retrace": -p3 * re,
             "offset_retrace": re,
             "rate_dependence": self.sign * speed,
-            "coupling": -f["y"],
+            "coupling": -f.y,
             "bow": -0.5 * (3 * t**2 - 1),
         }
 
@@ -663,10 +688,10 @@ class ScanSet(DataKind):
         if top is None:
             axes[1].axis("off")
         a = axes[2]
-        f, r = self.f, nominal.residual
+        f, r = self.crossings, nominal.residual
         for d, name in ((False, "trace"), (True, "retrace")):
-            sel = ~self.train & (f["retrace"] == d) & (f["level"] == 0.5)
-            a.plot(f["x"][sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
+            sel = ~self.train & (f.retrace == d) & (f.level == 0.5)
+            a.plot(f.x[sel] / 1e3, r[sel], ".", ms=2, alpha=0.4, label=name)
         a.set(
             xlabel="x (nominal) [um]",
             ylabel="residual at mid level [nm]",
@@ -678,8 +703,8 @@ class ScanSet(DataKind):
 def _shape(data: ScanSet, scale: float, radius=None, tau_s: float = 0.0, asymmetry_s=None) -> np.ndarray:
     """The edge-shape term ``S_l`` (true nm) of every crossing; ``asymmetry_s``: (tau_rise,
     tau_fall) s of a ``FeedbackAsymmetry``."""
-    f, out = data.f, np.empty(len(data.f["x"]))
-    li = np.searchsorted(LEVELS, f["level"])
+    f, out = data.crossings, np.empty(len(data.crossings.x))
+    li = np.searchsorted(LEVELS, f.level)
     for p, pair in enumerate(data.pairs):
         dt = pair.sample_time_s
         table = edge_shape(
@@ -691,8 +716,8 @@ def _shape(data: ScanSet, scale: float, radius=None, tau_s: float = 0.0, asymmet
             tau_s / dt,
             None if asymmetry_s is None else (asymmetry_s[0] / dt, asymmetry_s[1] / dt),
         )
-        sel = f["pair"] == p
-        out[sel] = table[(~f["rising"][sel]).astype(int), f["retrace"][sel].astype(int), li[sel]]
+        sel = f.pair == p
+        out[sel] = table[(~f.rising[sel]).astype(int), f.retrace[sel].astype(int), li[sel]]
     return out
 
 
@@ -705,10 +730,10 @@ def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched:
     s, ds = data.field()
     gain = np.ones_like(s)
     for _ in range(2):
-        b = _within(data, data.f["x"] - shape * scale / gain)
+        b = _within(data, data.crossings.x - shape * scale / gain)
         theta = np.linalg.lstsq(a[data.train], b[data.train], rcond=None)[0]
         th = dict(zip(cols, theta))
-        for d, sel in (("trace", ~data.f["retrace"]), ("retrace", data.f["retrace"])):
+        for d, sel in (("trace", ~data.crossings.retrace), ("retrace", data.crossings.retrace)):
             c = np.array([0, 0, th[f"c2_{d}"], th[f"c3_{d}"]])
             gain[sel] = 1 + legendre.legval(s[sel], legendre.legder(c)) * ds[sel]
     r = b - a @ theta
@@ -724,41 +749,32 @@ def _solve(data: ScanSet, cols: list, shape: np.ndarray, scale: float, searched:
     )
 
 
-def _groups(f: dict, pairs, grating: ScanGrating) -> Optional[np.ndarray]:
+def _groups(f: Crossings, pairs, grating: ScanSample) -> Optional[np.ndarray]:
     """For a lattice, each crossing's row group (:attr:`ScanSet.groups`); ``None`` for lines."""
     if grating.kind != "lattice":
         return None
     same = len({(p.trace.shape[0], round(p.pixel_size[1], 9)) for p in pairs}) == 1
-    return f["row"] if same else f["pair"] * (1 + f["row"].max()) + f["row"]
+    return f.row if same else f.pair * (1 + f.row.max()) + f.row
 
 
 def _nuisance_columns(data: ScanSet) -> np.ndarray:
     """(crossings, 2): a row's feature width (+-1/2 on rising and falling edges) and its walls'
     slope along the row (the same times the level's offset from mid-level)."""
-    sign = np.where(data.f["rising"], 0.5, -0.5)
-    return np.stack([sign, sign * (data.f["level"] - 0.5)], -1)
+    sign = np.where(data.crossings.rising, 0.5, -0.5)
+    return np.stack([sign, sign * (data.crossings.level - 0.5)], -1)
 
 
 def _within(data: ScanSet, v: np.ndarray) -> np.ndarray:
     """``v`` (crossings, ...) less its projection, row group by row group, on the lattice's
-    per-row columns (:func:`_nuisance_columns`; Frisch-Waugh-Lovell: the fit is then the full
+    per-row columns (:func:`_nuisance_columns`; Frisch-Waugh-Lovell,
+    :func:`~jaxafm.identify.projection.project_out`: the fit is then the full
     one with a width and a wall slope per row, the held-out rows' own from their own edges).
     A lattice row grazes or crosses its features where it happens to lie, so each row's feature
     chord and apparent wall are its own; what moves with the scan direction or speed is not.
     Unchanged for a 1-D grating."""
     if data.groups is None:
         return v
-    g = np.unique(data.groups, return_inverse=True)[1]
-    z = _nuisance_columns(data)
-    n = g.max() + 1
-    zz = np.zeros((n, 2, 2))
-    np.add.at(zz, g, z[:, :, None] * z[:, None, :])
-    inv = np.linalg.pinv(zz)
-    flat = v.reshape(len(v), -1)
-    zv = np.zeros((n, 2, flat.shape[1]))
-    np.add.at(zv, g, z[:, :, None] * flat[:, None, :])
-    coef = inv @ zv  # (groups, 2, columns)
-    return (flat - np.einsum("ij,ijk->ik", z, coef[g])).reshape(v.shape)
+    return project_out(v, _nuisance_columns(data), data.groups)
 
 
 def _nuisance(data: ScanSet) -> int:
@@ -774,13 +790,13 @@ def _systematic(data: ScanSet, r: np.ndarray) -> float:
 def _cell_means(data: ScanSet, r: np.ndarray, sel: np.ndarray) -> np.ndarray:
     """Mean residual (pairs, direction [trace, retrace], kind [rising, falling], levels) nm over
     the crossings ``sel``; NaN where a cell has none."""
-    f, shape = data.f, (len(data.pairs), 2, 2, len(LEVELS))
+    f, shape = data.crossings, (len(data.pairs), 2, 2, len(LEVELS))
     cell = np.ravel_multi_index(
         (
-            f["pair"],
-            f["retrace"].astype(int),
-            (~f["rising"]).astype(int),
-            np.searchsorted(LEVELS, f["level"]),
+            f.pair,
+            f.retrace.astype(int),
+            (~f.rising).astype(int),
+            np.searchsorted(LEVELS, f.level),
         ),
         shape,
     )
@@ -830,7 +846,7 @@ def _search_asymmetry(fit_at, lo: float, hi: float) -> tuple:
 
 
 def diagnose_scans(
-    pairs, grating: ScanGrating, candidates, train_fraction: float, rules: Rules = Rules(), log=None
+    pairs, grating: ScanSample, candidates, train_fraction: float, rules: Rules = Rules(), log=None
 ) -> Diagnosis:
     """Nominal and nominal + candidate fits to the edge-level crossings of ``pairs``.
 

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..config import ScanGrating
+from ..config import ScanSample
 from ..instrument.afm import AFM, Raster, raster_scan
 from ..instrument.records import Record
 from ..instrument.samples import Grating, Lattice, Tip
@@ -114,11 +114,11 @@ SCAN_UNITS = {
 #: tau_rise / tau_fall of a simulated ``feedback_asymmetry``.
 RISE_RATIO = 0.1
 #: The simulated calibration grating: 400 nm pitch, 30 nm deep, 60-degree walls (17.3 nm ramps).
-SIM_GRATING = ScanGrating(pitch_nm=400.0, edge_width_nm=30.0 / np.tan(np.deg2rad(60.0)))
+SIM_GRATING = ScanSample(pitch_nm=400.0, edge_width_nm=30.0 / np.tan(np.deg2rad(60.0)))
 SIM_DEPTH_NM = 30.0
 #: The simulated 2-D lattice: round pits 150 nm in radius, 30 nm deep, with the grating's walls,
 #: on a square lattice of 400 nm.
-SIM_LATTICE = ScanGrating(kind="lattice", pitch_nm=[400.0, 400.0], edge_width_nm=SIM_GRATING.edge_width_nm)
+SIM_LATTICE = ScanSample(kind="lattice", pitch_nm=[400.0, 400.0], edge_width_nm=SIM_GRATING.edge_width_nm)
 SIM_PIT_RADIUS_NM = 150.0
 SETTLE_LINES = 2  # the first lines run while the scanner's loop settles: dropped
 

@@ -1,24 +1,35 @@
 """Identification: from images and records to a fitted scanner model, and its inverse.
 
-``features`` and ``line_grating`` (what an image shows), ``fit`` (fitting hysteresis models to
-a record), ``calibration`` (step A's end-to-end fit of the scanner to a grating image pair),
-``inverse`` (compensation), ``actuator_fit`` (the ``jaxafm fit`` job) and ``step_a`` (the
-``jaxafm calibrate`` job). Imports the model, the instrument and the shared leaves; importing
-it switches JAX to float64 (``jaxafm._precision``).
+What an image shows: ``features`` (lattice feature points) and ``line_grating`` (a 1-D
+grating's pitch and distortion). Fitting a record: ``fit`` (the solvers and hysteresis fits)
+and ``projection`` (nuisance parameters projected out of a linear least-squares problem).
+Step A, the scanner from calibration-lattice images: ``calibration_scan`` (the data),
+``scan_model`` (the model and its parameters), ``image_ops`` (interpolation and blur),
+``stages`` (what each stage fits), ``staged_fit`` (:func:`identify`), ``held_out`` (held-out
+validation), ``plausibility`` (what makes a model unusable) and ``polynomial_baseline`` (the
+paper's). Then ``inverse`` (compensation), ``actuator_fit`` (the ``jaxafm fit`` job) and
+``step_a`` (the ``jaxafm calibrate`` job). Imports the model, the instrument and the shared
+leaves; importing it switches JAX to float64 (``jaxafm._precision``).
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)
-from .calibration import CalibrationScan, Identification, identify
+from .calibration_scan import CalibrationScan
 from .features import lattice_features
 from .fit import FitResult, error_metrics, fit_operator
 from .inverse import Compensator, numerical_inverse
 from .line_grating import fit_line_grating
+from .scan_model import ScanModel, ScanModelSpec
+from .staged_fit import Identification, identify
+from .stages import FitPlan
 
 __all__ = [
     "CalibrationScan",
     "Compensator",
+    "FitPlan",
     "FitResult",
     "Identification",
+    "ScanModel",
+    "ScanModelSpec",
     "error_metrics",
     "fit_line_grating",
     "fit_operator",

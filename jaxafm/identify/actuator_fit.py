@@ -16,7 +16,7 @@ from ..model.apply import predict
 from ..model.effects import Creep, RateDependence
 from ..model.io import describe, save_model
 from ..model.scanner import Axis, default_scanner
-from .fit import error_metrics, fit_operator, initial_model
+from .fit import error_metrics, fit_operator, initial_operator
 
 MODEL_CREEP = dict(gamma=0.0, tau_min=0.1, tau_max=100.0)  # the creep stage a fit starts from
 MODEL_LAG_S = 0.005  # the rate-dependence lag a fit starts from
@@ -49,7 +49,7 @@ def simulate_record(spec: SimulatedData) -> tuple[Record, Axis]:
 
 
 def _build(spec, u, d):
-    model = initial_model(
+    model = initial_operator(
         spec.kind, u, d, operators=spec.operators, levels=spec.levels, deadzones=spec.deadzones
     )
     if not (spec.creep or spec.rate_dependence):

@@ -28,9 +28,9 @@ from ..config import CompensateConfig, Trajectory, resolve_data_path
 from ..config.names import LENGTH_TO_NM
 from ..instrument.afm import Raster
 from ..instrument.records import write_columns
-from ..model.apply import axes_of, mean_scanner, predict
+from ..model.apply import axes_of, predict
 from ..model.hysteresis import AbstractHysteresis
-from ..model.scanner import Axis, Scanner
+from ..model.scanner import Axis, Scanner, mean_scanner
 from .fit import error_metrics
 from .inverse import Compensator, invert_axis
 from .predict import load

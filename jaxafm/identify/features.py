@@ -27,7 +27,12 @@ class LatticeFeatures:
     angle: float = 0.0
 
 
-def _check_image(z: np.ndarray, name: str) -> np.ndarray:
+def check_image(z: np.ndarray, name: str) -> np.ndarray:
+    """``z`` as a float image, checked: 2-D, at least 8 x 8 pixels, finite and not flat.
+
+    Raises:
+        ValueError: naming the image ``name`` and what is wrong with it.
+    """
     z = np.asarray(z, dtype=float)
     if z.ndim != 2 or min(z.shape) < 8:
         raise ValueError(f"{name} must be a 2-D image of at least 8 x 8 pixels, got shape {z.shape}")
@@ -51,7 +56,7 @@ def feature_centres(z: np.ndarray, name: str = "image", smooth: bool = False) ->
     comparing two images of one feature needs). Regions touching the border are cut and
     dropped.
     """
-    z = _check_image(z, name)
+    z = check_image(z, name)
     level = filters.threshold_otsu(z)
     mask = z > level
     labels = measure.label(mask)

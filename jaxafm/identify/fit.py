@@ -27,15 +27,12 @@ from jax.flatten_util import ravel_pytree
 
 from .. import checks
 from ..config.names import SOLVERS
-from ..model.effects import Creep, RateDependence
 from ..model.hysteresis import (
-    AbstractHysteresis,
     Deadzone,
     GeneralizedPI,
     Linear,
     PrandtlIshlinskii,
     Preisach,
-    softplus_inverse,
 )
 from ..model.scanner import Axis
 from . import geodesic
@@ -44,7 +41,7 @@ Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
 
 
-def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):
+def initial_operator(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):
     """A start for ``kind`` from the record's ranges: the straight line through the data.
 
     ``pi``: ``operators`` thresholds evenly over half the input span (wider
@@ -74,32 +71,6 @@ def initial_model(kind: str, u, d, *, operators: int = 20, levels: int = 20, dea
         margin = 1e-6 * span
         return Preisach.uniform(levels, u_lo - margin, u_hi + margin, total=rng / 2, offset=float(np.mean(d)))
     raise ValueError(f"unknown model kind {kind!r}; one of {', '.join(MODEL_KINDS)}")
-
-
-def free_parameters(model, u_span: float, d_range: float):
-    """The fitted parameters as an order-one pytree, and the map back.
-
-    Arguments:
-        model: a hysteresis operator (its :meth:`~jaxafm.model.hysteresis.AbstractHysteresis.free_parameters`,
-            weights kept non-negative), a creep or rate-dependence stage, or an
-            :class:`~jaxafm.model.scanner.Axis` of those.
-        u_span: the span of the fitted input (V).
-        d_range: the range of the fitted output (nm).
-
-    Returns:
-        ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> model``.
-    """
-    if isinstance(model, AbstractHysteresis):
-        return model.free_parameters(u_span, d_range)
-    if isinstance(model, Creep):
-        return model.weights / 0.01, lambda p: Creep(model.taus, p * 0.01)
-    if isinstance(model, RateDependence):
-        return softplus_inverse(model.tau / 0.01), lambda p: RateDependence(jax.nn.softplus(p) * 0.01)
-    if isinstance(model, Axis):
-        stages = [n for n in ("hysteresis", "rate_dependence", "creep") if getattr(model, n) is not None]
-        raws, rebuilds = zip(*(free_parameters(getattr(model, n), u_span, d_range) for n in stages))
-        return raws, lambda p: Axis(**{n: rebuild(q) for n, rebuild, q in zip(stages, rebuilds, p)})
-    raise TypeError(f"cannot fit a {type(model).__name__}")
 
 
 def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Callable:
@@ -180,7 +151,7 @@ def fit_operator(
     if not 0 <= settle < len(d) - 1:
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(d)})")
     d_range = float(d[settle:].max() - d[settle:].min())
-    raw0, rebuild = free_parameters(model, float(u.max() - u.min()), d_range)
+    raw0, rebuild = model.free_parameters(float(u.max() - u.min()), d_range)
     forward = evaluator(model, u, t, history)
 
     def residuals(raw, _=None):
@@ -191,7 +162,7 @@ def fit_operator(
         return 0.5 * jnp.mean(r**2)
 
     start = time.perf_counter()
-    raw, steps, ok = _solve(solver, residuals, loss, raw0, max_steps, rtol, atol)
+    raw, steps, ok = solve(solver, residuals, loss, raw0, max_steps, rtol, atol)
     final = float(2 * loss(raw))
     seconds = time.perf_counter() - start
     message = (
@@ -228,7 +199,7 @@ def _check_record(u, d, t) -> None:
             )
 
 
-def _solve(
+def solve(
     solver: str,
     residuals: Callable,
     loss: Callable,
@@ -238,51 +209,84 @@ def _solve(
     atol: float,
     args=None,
     curvature: str = "jvp",
-):
-    """Minimise with the named solver; ``residuals(raw, args)`` and ``loss(raw, args)``.
+) -> tuple:
+    """Minimise with the named solver: every fit of the package goes through here.
 
     Pass data through ``args``, not closures, with module-level functions: the
-    compiled solver is then reused for other data of the same shapes. ``curvature``: how the
-    geodesic solver has its second derivative (:func:`~jaxafm.identify.geodesic.solve`).
+    compiled solver is then reused for other data of the same shapes.
+
+    Arguments:
+        solver: one of :data:`~jaxafm.config.names.SOLVERS` (``library.method``).
+        residuals: ``residuals(raw, args)``, the residual vector (least-squares solvers).
+        loss: ``loss(raw, args)``, the scalar loss (minimisers: BFGS, L-BFGS).
+        raw0: the start, a pytree of order-one parameters.
+        max_steps: the step limit (function evaluations for scipy).
+        rtol: relative tolerance.
+        atol: absolute tolerance.
+        args: the data, passed to ``residuals`` and ``loss``.
+        curvature: how the geodesic solver has its second derivative
+            (:func:`~jaxafm.identify.geodesic.solve`).
+
+    Returns:
+        ``(raw, steps, converged)``: the solution (the structure of ``raw0``), the steps taken
+        and whether the solver met its tolerances.
     """
     library, method = solver.split(".")
     flat0, unravel, packed = _packed(raw0, args)
     if library == "optimistix":
-        if method == "bfgs":
-            sol = optx.minimise(
-                _flat(loss), optx.BFGS(rtol=rtol, atol=atol), flat0, packed, max_steps=max_steps, throw=False
-            )
-        else:
-            cls = {
-                "levenberg_marquardt": optx.LevenbergMarquardt,
-                "gauss_newton": optx.GaussNewton,
-                "dogleg": optx.Dogleg,
-            }[method]
-            # normal equations + Cholesky: the parameters are few, the residuals many (7x faster than QR)
-            opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-            sol = optx.least_squares(_flat(residuals), opt, flat0, packed, max_steps=max_steps, throw=False)
-        return unravel(sol.value), int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
-    if library == "jaxafm":  # Levenberg-Marquardt with geodesic acceleration, on the host
+        x, steps, ok = _optimistix(method, residuals, loss, flat0, packed, max_steps, rtol, atol)
+    elif library == "jaxafm":  # Levenberg-Marquardt with geodesic acceleration, on the host
         x, steps, ok = geodesic.solve(_flat(residuals), flat0, packed, max_steps, rtol, atol, curvature)
-        return unravel(jnp.asarray(x)), steps, ok
-    if library == "scipy":  # trust-region reflective, the Jacobian by jax (forward mode), on the host
-        from scipy.optimize import least_squares
+    elif library == "scipy":
+        x, steps, ok = _scipy(residuals, flat0, packed, max_steps, rtol, atol)
+    else:
+        x, steps, ok = _jaxopt(method, residuals, loss, flat0, unravel, args, max_steps, rtol, atol)
+    return unravel(jnp.asarray(x)), steps, ok
 
-        fun, jac = _jitted(residuals)
-        res = least_squares(
-            lambda x: np.asarray(fun(x, packed)),
-            np.asarray(flat0),
-            jac=lambda x: np.asarray(jac(x, packed)),
-            method="trf",
-            max_nfev=max_steps,
-            xtol=rtol,
-            ftol=rtol,
-            gtol=atol,
+
+def _optimistix(method: str, residuals, loss, flat0, packed, max_steps, rtol, atol) -> tuple:
+    """:func:`solve` with optimistix (jitted): BFGS on ``loss``, else a least-squares solver."""
+    if method == "bfgs":
+        sol = optx.minimise(
+            _flat(loss), optx.BFGS(rtol=rtol, atol=atol), flat0, packed, max_steps=max_steps, throw=False
         )
-        return unravel(jnp.asarray(res.x)), int(res.nfev), bool(res.status > 0)
+    else:
+        cls = {
+            "levenberg_marquardt": optx.LevenbergMarquardt,
+            "gauss_newton": optx.GaussNewton,
+            "dogleg": optx.Dogleg,
+        }[method]
+        # normal equations + Cholesky: the parameters are few, the residuals many (7x faster than QR)
+        opt = cls(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
+        sol = optx.least_squares(_flat(residuals), opt, flat0, packed, max_steps=max_steps, throw=False)
+    return sol.value, int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
+
+
+def _scipy(residuals, flat0, packed, max_steps, rtol, atol) -> tuple:
+    """:func:`solve` with scipy's trust-region reflective least squares on the host, the
+    Jacobian by jax (forward mode); steps are function evaluations."""
+    from scipy.optimize import least_squares
+
+    fun, jac = _jitted(residuals)
+    res = least_squares(
+        lambda x: np.asarray(fun(x, packed)),
+        np.asarray(flat0),
+        jac=lambda x: np.asarray(jac(x, packed)),
+        method="trf",
+        max_nfev=max_steps,
+        xtol=rtol,
+        ftol=rtol,
+        gtol=atol,
+    )
+    return res.x, int(res.nfev), bool(res.status > 0)
+
+
+def _jaxopt(method: str, residuals, loss, flat0, unravel, args, max_steps, rtol, atol) -> tuple:
+    """:func:`solve` with jaxopt: L-BFGS on ``loss``, Levenberg-Marquardt (relative step or
+    gradient, as optimistix's rtol/atol) or Gauss-Newton on ``residuals``."""
     if method == "lbfgs":
         opt = jaxopt.LBFGS(fun=lambda x, a: loss(unravel(x), a), maxiter=max_steps, tol=atol)
-    elif method == "levenberg_marquardt":  # relative step or gradient, as optimistix's rtol/atol
+    elif method == "levenberg_marquardt":
         opt = jaxopt.LevenbergMarquardt(
             residual_fun=lambda x, a: residuals(unravel(x), a),
             maxiter=max_steps,
@@ -296,7 +300,14 @@ def _solve(
         )
     flat, state = opt.run(flat0, args)
     steps = int(state.iter_num)
-    return unravel(flat), steps, bool(steps < max_steps)
+    return flat, steps, bool(steps < max_steps)
+
+
+def clear_caches() -> None:
+    """Forget the jitted residual functions and Jacobians kept for reuse (:func:`solve`'s), as
+    ``jax.clear_caches`` forgets JAX's: the next solve compiles afresh (for timing a first solve)."""
+    _flat.cache_clear()
+    _jitted.cache_clear()
 
 
 @functools.lru_cache(maxsize=64)

@@ -61,8 +61,10 @@ def _undo_coupling(model: Scanner, q: Array, iterations: int = 8) -> Array:
     return lax.fori_loop(0, iterations, lambda _, v: q - forward_extra(v), q)
 
 
-def _targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -> Array:
-    """Axis outputs (T, 2) nm wanted before coupling, bow and drift."""
+def axis_targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -> Array:
+    """The axes' outputs (T, 2) nm that put the tip at ``wanted`` (T, 2) nm at times ``t`` (T,) s:
+    the scanner's two-axis stages (:meth:`~jaxafm.model.scanner.Scanner.couple`) undone, its
+    mean drift since ``state.origin`` taken off, then coupling and bow inverted."""
     q = wanted
     if model.drift is not None:
         q = q - model.drift.velocity * (t - state.origin)[:, None]
@@ -244,7 +246,7 @@ def _invert(axes: list, v: Array, t: Array, states: list, t0, u0: Array, lo, hi)
 
 def _scanner_inverse(model: Scanner, wanted: Array, t: Array, state: ScannerState, u0: Array, u_max) -> tuple:
     """:func:`numerical_inverse`'s drive and saturation, and the axes' states after the drive."""
-    v = _targets(model, wanted, t, state)
+    v = axis_targets(model, wanted, t, state)
     u0 = jnp.asarray(u0, dtype=float)
     out = _invert([model.x, model.y], v, t, [state.x, state.y], state.t, u0, -u_max, u_max)
     return jnp.stack([o[0] for o in out], axis=-1), jnp.stack([o[1] for o in out], axis=-1), out
@@ -284,7 +286,7 @@ def invert_axis(axis: Axis, wanted: Array, t: Array, state: AxisState, t0, u0, l
 
 @eqx.filter_jit
 def _analytic(model: Scanner, wanted: Array, t: Array, state: ScannerState, history: Array):
-    v = _targets(model, wanted, t, state)
+    v = axis_targets(model, wanted, t, state)
     u = []
     for k, (axis, s) in enumerate(((model.x, state.x), (model.y, state.y))):
         H = axis.hysteresis

@@ -42,8 +42,9 @@ from typing import Optional
 import numpy as np
 from numpy.polynomial import legendre
 
-from .features import _check_image, edge_crossings, pitch_spread
+from .features import check_image, edge_crossings, pitch_spread
 from .fit import bic
+from .projection import project_out
 
 MIN_ROWS = 8  # scan lines: enough to see the skew against the edge jitter
 MIN_PERIODS = 3  # complete periods (same-type edge to same-type edge) in a typical row
@@ -168,7 +169,7 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
             f"{name} has {z.shape[0]} scan line(s); fitting the skew needs at least {MIN_ROWS}: "
             "scan more lines"
         )
-    z = _check_image(z, name)
+    z = check_image(z, name)
     dx, dy = (float(p) for p in np.broadcast_to(np.asarray(pixel_size, dtype=float), (2,)))
     if not (dx > 0 and dy > 0):
         raise ValueError(f"{name}: pixel size must be > 0 nm on both axes, got {pixel_size}")
@@ -222,9 +223,28 @@ def grating_edges(z: np.ndarray, pixel_size, name: str = "image") -> GratingEdge
     return GratingEdges(row, x * dx, row * dy, rising, index, z.shape, (dx, dy))
 
 
-def _design(e: GratingEdges, degree: int, slow: bool, widths: bool) -> tuple:
-    """Columns and names of x_nom = phase + n p - sum c_k P_k(s) - skew y - slow terms (the
-    per-row widths are not columns: ``_solve`` projects them out)."""
+@dataclasses.dataclass(frozen=True)
+class EdgeDesign:
+    """The linear model of a grating's edges (:func:`edge_design`).
+
+    Attributes:
+        columns: (edges, m) the right side's columns.
+        names: their names (``c2``.., ``skew``, [``bow``, ``drift``], the phases, ``pitch``).
+        x_range_nm: the x range (nm) that ``s`` spans (first to last column centre).
+        y_range_nm: the y range (nm) that ``t`` spans (first to last row centre).
+    """
+
+    columns: np.ndarray
+    names: list
+    x_range_nm: tuple
+    y_range_nm: tuple
+
+
+def edge_design(e: GratingEdges, degree: int, slow: bool, widths: bool) -> EdgeDesign:
+    """The design of the module's model: the columns of
+    ``x_nom = phase + n p - sum_{k=2..degree} c_k P_k(s) - skew y [- bow P_2(t) - drift (x - x_mid) t / 2]``
+    (the slow terms with ``slow``). With ``widths`` one centre ``phase`` (the per-row widths are
+    not columns: :func:`_solve` projects them out), else a ``phase_rise`` and a ``phase_fall``."""
     rows, cols = e.shape
     xr, yr = (0.0, (cols - 1) * e.pixel_size[0]), (0.0, (rows - 1) * e.pixel_size[1])
     s = 2 * (e.x_nm - xr[0]) / (xr[1] - xr[0]) - 1
@@ -244,25 +264,22 @@ def _design(e: GratingEdges, degree: int, slow: bool, widths: bool) -> tuple:
         names += ["phase_rise", "phase_fall"]
     columns.append(e.index.astype(float))
     names.append("pitch")
-    return np.stack(columns, -1), names, xr, yr
+    return EdgeDesign(np.stack(columns, -1), names, xr, yr)
 
 
 def _solve(a: np.ndarray, b: np.ndarray, e: GratingEdges, widths: bool, name: str) -> tuple:
     """Least squares for x_nom = a @ theta (+ W_r sign / 2 per row where ``widths``).
 
-    The W_r are projected out of ``a`` and ``b`` (Frisch-Waugh-Lovell: within a row, the
-    sign-weighted mean is removed), which leaves theta, its covariance and the residuals
-    as in the full problem. Returns parameters, standard errors, the residual sum of
-    squares, the number of parameters and W_r (rows without edges: NaN).
+    The W_r are projected out of ``a`` and ``b`` (Frisch-Waugh-Lovell,
+    :func:`~jaxafm.identify.projection.project_out`: within a row, the sign-weighted mean is
+    removed), which leaves theta, its covariance and the residuals as in the full problem.
+    Returns parameters, standard errors, the residual sum of squares, the number of parameters
+    and W_r (rows without edges: NaN).
     """
     n_rows = e.shape[0]
     sign = np.where(e.rising, 1.0, -1.0)
     count = np.bincount(e.row, minlength=n_rows)
-
-    def within(v):  # v minus its projection on the W_r columns
-        return v - sign * (np.bincount(e.row, sign * v, n_rows) / np.maximum(count, 1))[e.row]
-
-    at, bt = (np.stack([within(c) for c in a.T], -1), within(b)) if widths else (a, b)
+    at, bt = (project_out(a, sign, e.row), project_out(b, sign, e.row)) if widths else (a, b)
     norm = np.linalg.norm(at, axis=0)
     norm[norm == 0] = 1.0
     sol, _, rank, _ = np.linalg.lstsq(at / norm, bt, rcond=None)
@@ -306,25 +323,41 @@ def fit_line_grating(
     for d in DEGREES if degree is None else (int(degree),):
         if d < 1:
             raise ValueError(f"degree must be >= 1 (1: no nonlinearity), got {d}")
-        a, names, xr, yr = _design(e, d, slow, widths)
-        theta, se, rss, p, w = _solve(a, e.x_nm, e, widths, name)
-        n = len(e.x_nm)
+        design = edge_design(e, d, slow, widths)
+        theta, se, rss, p, w = _solve(design.columns, e.x_nm, e, widths, name)
         fits[d] = (
-            bic(rss, n, p),
-            dict(zip(names, theta)),
-            dict(zip(names, se)),
+            bic(rss, len(e.x_nm), p),
+            design,
+            dict(zip(design.names, theta)),
+            dict(zip(design.names, se)),
             rss,
             w,
         )
     best = min(fits, key=lambda d: fits[d][0])
-    best_bic, sol, se, rss, w = fits[best]
+    fit = _grating_fit(e, best, fits, widths, grooves)
+    res = fit.residuals_nm()
+    worst = int(np.argmax(np.abs(res)))
+    pitch = fit.pitch_nm
+    if abs(res[worst]) > TOL * pitch:
+        raise ValueError(
+            f"{name}: edge indexing is inconsistent: an edge in row {e.row[worst]} at x = {e.x_nm[worst]:.0f} nm "
+            f"lies {res[worst]:+.0f} nm off its line (pitch {pitch:.0f} nm): a defect or a partial line there; "
+            "crop it"
+        )
+    return fit
+
+
+def _grating_fit(e: GratingEdges, best: int, fits: dict, widths: bool, grooves: bool) -> LineGratingFit:
+    """The :class:`LineGratingFit` of degree ``best`` from :func:`fit_line_grating`'s solves
+    ``fits`` (per degree: BIC, design, values and standard errors by name, RSS, row widths)."""
+    best_bic, design, sol, se, rss, w = fits[best]
     pitch = sol["pitch"]
     if widths:  # W_r about its mean; the mean splits the centre phase into the two edges'
         mean = float(np.nanmean(w))
         w = (w - mean) * (1 if grooves else -1)
         sol["phase_rise"], sol["phase_fall"] = sol["phase"] + mean / 2, sol["phase"] - mean / 2
     groove_width = (sol["phase_rise"] - sol["phase_fall"]) % pitch
-    fit = LineGratingFit(
+    return LineGratingFit(
         pitch_nm=float(pitch),
         pitch_se_nm=float(se["pitch"]),
         coeffs_nm=tuple(float(sol[f"c{k}"]) for k in range(2, best + 1)),
@@ -340,20 +373,11 @@ def fit_line_grating(
         line_width_nm=float(groove_width if grooves else pitch - groove_width),
         degree=best,
         residual_rms_nm=float(np.sqrt(rss / len(e.x_nm))),
-        x_range_nm=xr,
-        y_range_nm=yr,
+        x_range_nm=design.x_range_nm,
+        y_range_nm=design.y_range_nm,
         bic=float(best_bic),
         bic_by_degree={d: float(f[0]) for d, f in fits.items()},
         row_width_nm=w,
         edges=e,
         grooves=grooves,
     )
-    res = fit.residuals_nm()
-    worst = int(np.argmax(np.abs(res)))
-    if abs(res[worst]) > TOL * pitch:
-        raise ValueError(
-            f"{name}: edge indexing is inconsistent: an edge in row {e.row[worst]} at x = {e.x_nm[worst]:.0f} nm "
-            f"lies {res[worst]:+.0f} nm off its line (pitch {pitch:.0f} nm): a defect or a partial line there; "
-            "crop it"
-        )
-    return fit

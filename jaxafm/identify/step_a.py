@@ -26,9 +26,9 @@ from .. import plots
 from ..config import (
     CalibrateConfig,
     CalibrationImages,
+    CalibrationLattice,
     CalibrationModel,
     CalibrationSolver,
-    Grating,
     SimulatedCalibration,
 )
 from ..instrument.afm import AFM, Raster, RasterScan, default_afm, move, raster_scan
@@ -36,8 +36,14 @@ from ..instrument.images import read_image_file
 from ..instrument.samples import Lattice, Plane, Tip
 from ..model.io import describe, save_model
 from ..model.scanner import Scanner
-from . import calibration, features
+from . import features
+from .calibration_scan import CalibrationScan
+from .image_ops import sample_at
 from .inverse import Compensator, train_neural_inverse
+from .polynomial_baseline import BranchPolynomials, fit_polynomials
+from .scan_model import KEY, ScanModel, ScanModelSpec
+from .staged_fit import Identification, identify
+from .stages import FitPlan
 
 SETTLE_S = 0.5  # each leg of the initialisation cycle, s
 
@@ -54,7 +60,9 @@ class Simulation:
     key: jax.Array
 
 
-def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Optional[AFM] = None) -> tuple:
+def simulate_calibration(
+    spec: SimulatedCalibration, grating: CalibrationLattice, afm: Optional[AFM] = None
+) -> tuple:
     """The calibration scans of the simulated AFM (``default_afm()`` unless given), one per scan
     angle, each from rest after the initialisation cycle: ``(scans, Simulation)``; the
     simulation's ``measured`` is the last scan."""
@@ -77,7 +85,7 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
         key_k = key if k == 0 else jax.random.fold_in(key, k)
         out = raster_scan(afm, lattice, afm.initial_state((0.0, 0.0), t0, cycle), raster, key=key_k)
         scans.append(
-            calibration.CalibrationScan(
+            CalibrationScan(
                 out.trace,
                 out.retrace,
                 raster,
@@ -94,9 +102,11 @@ def simulate_calibration(spec: SimulatedCalibration, grating: Grating, afm: Opti
     return tuple(scans), Simulation(afm, lattice, cycle, out, key_k)
 
 
-def read_calibration(spec: CalibrationImages, grating: Grating, config_path: Path, log=print) -> tuple:
+def read_calibration(
+    spec: CalibrationImages, grating: CalibrationLattice, config_path: Path, log=print
+) -> tuple:
     """The measured trace/retrace pairs (``data`` of ``config_path``) as
-    :class:`~jaxafm.identify.calibration.CalibrationScan`s, with the nominal sensitivity
+    :class:`~jaxafm.identify.calibration_scan.CalibrationScan`s, with the nominal sensitivity
     given or its default (:func:`nominal_sensitivity`)."""
     images, rasters = [], []
     for key, pair in spec.pairs:
@@ -129,7 +139,7 @@ def read_calibration(spec: CalibrationImages, grating: Grating, config_path: Pat
         )
     sensitivity = nominal_sensitivity(spec, rasters, log)
     return tuple(
-        calibration.CalibrationScan(
+        CalibrationScan(
             trace.z,
             retrace.z,
             raster,
@@ -190,25 +200,16 @@ def calibration_about(model, scans: tuple, source: str) -> dict:
 
 
 def identify_model(
-    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: Grating, log=print
-) -> calibration.Identification:
-    """Step A's identification (:func:`~jaxafm.identify.calibration.identify`) of the configured
+    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: CalibrationLattice, log=print
+) -> Identification:
+    """Step A's identification (:func:`~jaxafm.identify.staged_fit.identify`) of the configured
     ``model`` from ``scans`` of ``grating`` with the configured ``solver``."""
-    return calibration.identify(
-        scans,
-        kind=model.kind,
-        effects=model.effects,
-        operators=model.operators,
-        deadzones=model.deadzones,
-        levels=model.levels,
-        rotation=grating.rotation_rad,
-        hold_out=solver.hold_out,
-        solver=solver.name,
-        blur_px=solver.blur_px,
-        coarsen=solver.coarsen,
-        max_steps=solver.max_steps,
-        log=log,
+    spec = ScanModelSpec(
+        model.kind, tuple(model.effects), model.operators, model.deadzones, model.levels, grating.rotation_rad
     )
+    max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
+    plan = FitPlan(solver.name, tuple(solver.blur_px), solver.coarsen, max_steps, hold_out=solver.hold_out)
+    return identify(scans, spec, plan, log=log)
 
 
 def drive_range(scans: tuple) -> np.ndarray:
@@ -217,7 +218,7 @@ def drive_range(scans: tuple) -> np.ndarray:
     return np.stack([u.min(axis=0), u.max(axis=0)], axis=-1)
 
 
-def paper_inverse(poly: calibration.BranchPolynomials, sensitivity, samples: int = 400) -> Callable:
+def paper_inverse(poly: BranchPolynomials, sensitivity, samples: int = 400) -> Callable:
     """The paper's inverse: per branch, a network trained on (position, voltage) pairs of the
     polynomial over the drive its feature points covered. Beyond the positions it was
     trained on the drive goes on at the nominal ``sensitivity`` (2,) nm/V: the polynomial
@@ -309,15 +310,11 @@ def twin_state(scanner: Scanner, scans: tuple, cycle: np.ndarray):
     ``AFMState``)."""
     scan = scans[-1]
     twin = AFM(scanner, Tip(), jnp.asarray(scan.sensitivity), None, u_max=scan.u_max, dilate=False)
-    s = raster_scan(
-        twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster, key=calibration.KEY
-    ).state
-    return run_cycle(twin, Plane(), s, cycle, calibration.KEY)
+    s = raster_scan(twin, Plane(), twin.initial_state(scan.u0, scan.t0, cycle), scan.raster, key=KEY).state
+    return run_cycle(twin, Plane(), s, cycle, KEY)
 
 
-def model_compensator(
-    model: calibration.ScanModel, scans: tuple, sim: Simulation, method: str
-) -> Compensator:
+def model_compensator(model: ScanModel, scans: tuple, sim: Simulation, method: str) -> Compensator:
     """The model's inverse from the state its twin reaches (:func:`twin_state`), so it knows
     where its plays and creep stand."""
     s = twin_state(model.scanner, scans, sim.cycle)
@@ -332,10 +329,10 @@ def model_compensator(
     )
 
 
-def parameters_vs_truth(sim: Simulation, model: calibration.ScanModel) -> dict:
+def parameters_vs_truth(sim: Simulation, model: ScanModel) -> dict:
     """Fitted against true values for the parameters both have. The lattice's true rotation is
     measured, as the fit's, from the direction the x piezo moves the tip
-    (:func:`~jaxafm.identify.calibration.parameters`): its stage angle less
+    (:meth:`~jaxafm.identify.scan_model.ScanModel.free_parameters`): its stage angle less
     ``atan(coupling.yx)``."""
     afm = sim.afm
     t, m, out = afm.scanner, model.scanner, {}
@@ -420,7 +417,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
         images["uncompensated"] = _measure(sim, work, None, "uncompensated", 0.0, metrics, rows)
         if comp.paper_baseline and first.raster.angle_deg == 0:
             start = time.perf_counter()
-            volts = paper_inverse(calibration.fit_polynomials(first), np.asarray(sim.afm.sensitivity))
+            volts = paper_inverse(fit_polynomials(first), np.asarray(sim.afm.sensitivity))
             fit_s = time.perf_counter() - start
             log(f"paper: polynomials + networks in {fit_s:.1f} s")
             images["paper (poly + NN)"] = _measure(sim, work, volts, "paper", fit_s, metrics, rows)
@@ -480,7 +477,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Path, prepare=lambda: None
     return metrics
 
 
-def identification_metrics(ident: calibration.Identification) -> dict:
+def identification_metrics(ident: Identification) -> dict:
     """What ``metrics.json`` keeps of one identification: time, convergence, each stage's
     message, acceptance and held-out residual (nm), the held-out validation, the fitted lattice
     rotation, and the plausibility checks."""
@@ -500,7 +497,7 @@ def identification_metrics(ident: calibration.Identification) -> dict:
     return out | ident.validation
 
 
-def _validation_line(name: str, ident: calibration.Identification) -> str:
+def _validation_line(name: str, ident: Identification) -> str:
     v = ident.validation
     if not v.get("held_out_features"):
         return f"  {name}: no features held out"
@@ -512,16 +509,14 @@ def _validation_line(name: str, ident: calibration.Identification) -> str:
     )
 
 
-def _validation_figure(
-    scan: calibration.CalibrationScan, model: calibration.ScanModel, path, name, source, held_out: bool
-):
+def _validation_figure(scan: CalibrationScan, model: ScanModel, path, name, source, held_out: bool):
     """:func:`~jaxafm.plots.step_a_validation` for the first scan: measured against model
     trace, and its held-out features (the odd sites of a checkerboard) raw and corrected."""
     ft, _ = scan.features()
     held = ft.ij.sum(axis=1) % 2 == 1
     rc, ij = ft.rc[held], ft.ij[held]
     sites = np.asarray(model.lattice.sites(ij))
-    corrected = calibration._at(model.paths(scan)[0], rc) - sites
+    corrected = sample_at(model.paths(scan)[0], rc) - sites
     raw = scan.raster.nominal(rc) - sites
     r = scan.raster
     extent = [r.origin[0] - r.pixel_size[0] / 2, r.origin[0] + r.size[0] - r.pixel_size[0] / 2]

@@ -28,6 +28,7 @@ import numpy as np
 from jax import lax
 
 from .. import checks
+from ..model.hysteresis import softplus_inverse
 
 Array = jax.Array
 
@@ -173,6 +174,41 @@ class Lattice(AbstractSample):
         checks.positive("Lattice.radius", self.radius)
         checks.positive("Lattice.edge_width", self.edge_width)
         checks.finite("Lattice.depth", self.depth)
+
+    def free_parameters(
+        self, length_scale, depth_scale, edge_scale, angle_scale: Optional[float] = None
+    ) -> tuple:
+        """The lattice's unknowns at order one, and the map back (the pitch is known and stays):
+        ``phase / length_scale``, ``softplus^-1(radius / length_scale)``, ``depth / depth_scale``,
+        ``softplus^-1(edge_width / edge_scale)`` (radius and edge width kept > 0) and, with an
+        ``angle_scale`` (rad), ``angle / angle_scale`` (without one the angle is known and stays).
+
+        Returns:
+            ``(raw, rebuild)``: a tuple of raw parameters in that order and ``rebuild(raw) -> Lattice``.
+        """
+        raw = (
+            self.phase / length_scale,
+            softplus_inverse(self.radius / length_scale),
+            self.depth / depth_scale,
+            softplus_inverse(self.edge_width / edge_scale),
+        )
+        if angle_scale is not None:
+            raw += (self.angle / angle_scale,)
+
+        def rebuild(p):
+            values = (
+                p[0] * length_scale,
+                jax.nn.softplus(p[1]) * length_scale,
+                p[2] * depth_scale,
+                jax.nn.softplus(p[3]) * edge_scale,
+            )
+            fields = lambda lat: (lat.phase, lat.radius, lat.depth, lat.edge_width)
+            if angle_scale is not None:
+                values += (p[4] * angle_scale,)
+                fields = lambda lat: (lat.phase, lat.radius, lat.depth, lat.edge_width, lat.angle)
+            return eqx.tree_at(fields, self, values)
+
+        return raw, rebuild
 
     def coordinates(self, xy: Array) -> Array:
         """Lattice coordinates (..., 2) of positions ``xy`` (..., 2) nm: in pitches along the

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from typing import Optional
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -43,26 +41,13 @@ def predict(model, u, t=None, history=None) -> np.ndarray:
         raise ValueError(
             f"a {type(model).__name__} takes an input u of shape {('(T,)', '(T, 2)')[axes - 1]} V, got {u.shape}"
         )
-    needs_t = not isinstance(model, AbstractHysteresis)
-    if needs_t and t is None:
+    if not isinstance(model, (AbstractHysteresis, Axis, Scanner)):
+        raise ValueError(f"cannot apply a {type(model).__name__}: not a hysteresis operator, axis or scanner")
+    if t is None and not isinstance(model, AbstractHysteresis):
         raise ValueError(
             f"a {type(model).__name__} (with {', '.join(sorted(model.effects))}) needs the sample times t (s)"
         )
-    if isinstance(model, AbstractHysteresis):
-        return np.asarray(model(u, history))
-    if isinstance(model, Axis):
-        return np.asarray(model(u, jnp.asarray(t, dtype=float), history))
-    if isinstance(model, Scanner):
-        return np.asarray(mean_scanner(model)(u, jnp.asarray(t, dtype=float), jax.random.key(0), history))
-    raise ValueError(f"cannot apply a {type(model).__name__}: not a hysteresis operator, axis or scanner")
-
-
-def mean_scanner(model: Scanner) -> Scanner:
-    """The scanner without its random parts: no position noise, no drift wander."""
-    model = model.without("noise")
-    if model.drift is None:
-        return model
-    return eqx.tree_at(lambda m: m.drift.sigma, model, jnp.zeros_like(model.drift.sigma))
+    return np.asarray(model.predict(u, None if t is None else jnp.asarray(t, dtype=float), history))
 
 
 def axes_of(model) -> int:

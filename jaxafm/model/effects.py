@@ -15,8 +15,16 @@ import numpy as np
 from jax import lax
 
 from .. import checks
+from .hysteresis import softplus_inverse
 
 Array = jax.Array
+
+# Every module a fit moves has ``free_parameters(...) -> (raw, rebuild)``, as the hysteresis
+# operators do (:meth:`~jaxafm.model.hysteresis.AbstractHysteresis.free_parameters`): its fitted
+# parameters divided by a scale, so that a solver sees numbers of order one and Jacobian columns
+# of similar size, and ``rebuild(raw)`` the module back. The caller passes the scale where it
+# depends on the data (a record's range and duration, an image's pitch) or on how loosely the
+# fit should start.
 
 
 def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -> tuple:
@@ -79,6 +87,24 @@ class Creep(eqx.Module):
         taus = jnp.logspace(np.log10(tau_min), np.log10(tau_max), n)
         return cls(taus, jnp.full(n, gamma / per_decade))
 
+    def free_parameters(self, scale: float, rate: bool = False) -> tuple:
+        """The fitted weights at order one, and the map back (the time constants stay).
+
+        Arguments:
+            scale: the weight a raw value of 1 stands for (dimensionless).
+            rate: fit one creep rate shared by every lag, kept >= 0 (creep continues the move),
+                so that a logarithmic bank stays logarithmic: ``raw`` is the mean over the lags of
+                ``softplus^-1(g_k / scale)``, every ``g_k = softplus(raw) scale``. Otherwise every
+                weight is free, of either sign: ``raw = g / scale``.
+
+        Returns:
+            ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> Creep``.
+        """
+        if rate:
+            raw = jnp.mean(softplus_inverse(self.weights / scale))
+            return raw, lambda p: Creep(self.taus, jax.nn.softplus(p) * scale * jnp.ones_like(self.weights))
+        return self.weights / scale, lambda p: Creep(self.taus, p * scale)
+
     def initial_state(self, v0) -> tuple:
         """Relaxed at ``v0``: the lags (K,) and the rest level ``v0`` they creep from."""
         v0 = jnp.asarray(v0, dtype=float)
@@ -101,6 +127,17 @@ class FirstOrderLag(eqx.Module):
 
     def __check_init__(self):
         checks.positive(f"{type(self).__name__}.tau", self.tau)
+
+    def free_parameters(self, scale: float) -> tuple:
+        """The time constant at order one, kept > 0: ``raw = softplus^-1(tau / scale)``.
+
+        Arguments:
+            scale: the time constant (s) a raw value of about 1 stands for.
+
+        Returns:
+            ``(raw, rebuild)``: the raw parameter and ``rebuild(raw)``, a lag of the same kind.
+        """
+        return softplus_inverse(self.tau / scale), lambda p: type(self)(jax.nn.softplus(p) * scale)
 
     def initial_state(self, v0) -> Array:
         return jnp.reshape(jnp.asarray(v0, dtype=float), (1,))
@@ -195,6 +232,29 @@ class Vibration(eqx.Module):
         if checks.is_concrete(self.damping) and not np.all(np.asarray(self.damping) < 1):
             raise ValueError(f"Vibration.damping must be < 1 (an under-damped mode), got {self.damping}")
 
+    def free_parameters(self, max_frequency, max_damping: float) -> tuple:
+        """Frequency and damping at order one, kept in ``(0, max_frequency)`` Hz and
+        ``(0, max_damping)``: ``frequency = max_frequency sigmoid(a)``,
+        ``damping = max_damping sigmoid(b)``, ``raw = (a, b)`` stacked.
+
+        Arguments:
+            max_frequency: the highest frequency (Hz) the fit may reach (a record's Nyquist
+                frequency: no mode above it shows in the samples).
+            max_damping: the highest damping (below 1; a mode rings, has a resonant peak, only
+                below 1/sqrt(2)).
+
+        Returns:
+            ``(raw, rebuild)``: the raw parameters (2,) and ``rebuild(raw) -> Vibration``.
+        """
+        logit = lambda p: jnp.log(p) - jnp.log1p(-p)
+        raw = jnp.stack([logit(self.frequency / max_frequency), logit(self.damping / max_damping)])
+
+        def rebuild(p):
+            q = jax.nn.sigmoid(p)
+            return Vibration(max_frequency * q[0], max_damping * q[1])
+
+        return raw, rebuild
+
     def initial_state(self, v0) -> Array:
         """At rest at ``v0``: position ``v0`` nm, velocity 0 nm/s."""
         return jnp.stack([jnp.asarray(v0, dtype=float), jnp.zeros(())])
@@ -227,6 +287,21 @@ class Coupling(eqx.Module):
     xy: Array
     yx: Array
 
+    def free_parameters(self, scale: float, hold_yx: bool = False) -> tuple:
+        """``(xy / scale, yx / scale)``, or ``(xy / scale,)`` with ``yx`` held (a gauge fixed
+        elsewhere), and the map back.
+
+        Arguments:
+            scale: the coupling a raw value of 1 stands for (dimensionless).
+            hold_yx: keep ``yx`` as it is.
+
+        Returns:
+            ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> Coupling``.
+        """
+        if hold_yx:
+            return (self.xy / scale,), lambda p: Coupling(p[0] * scale, self.yx)
+        return (self.xy / scale, self.yx / scale), lambda p: Coupling(p[0] * scale, p[1] * scale)
+
     def __call__(self, p: Array) -> Array:
         x, y = p[..., 0], p[..., 1]
         return jnp.stack([x + self.xy * y, y + self.yx * x], axis=-1)
@@ -237,6 +312,18 @@ class Bow(eqx.Module):
 
     bx: Array
     by: Array
+
+    def free_parameters(self, scale) -> tuple:
+        """``(bx / scale, by / scale)`` and the map back.
+
+        Arguments:
+            scale: the bow (1/nm) a raw value of 1 stands for: about the relative bend over the
+                travel divided by the travel.
+
+        Returns:
+            ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> Bow``.
+        """
+        return (self.bx / scale, self.by / scale), lambda p: Bow(p[0] * scale, p[1] * scale)
 
     def __call__(self, p: Array) -> Array:
         x, y = p[..., 0], p[..., 1]
@@ -260,6 +347,15 @@ class Drift(eqx.Module):
         checks.finite("Drift.velocity", self.velocity)
         checks.nonnegative("Drift.sigma", self.sigma)
         checks.nonnegative("Drift.theta", self.theta)
+
+    def free_parameters(self, scale) -> tuple:
+        """The velocity (2,) in units of ``scale`` nm/s, and the map back; the wander
+        (``sigma``, ``theta``) stays as it is (no fit to one realisation can tell it).
+
+        Returns:
+            ``(raw, rebuild)``: the raw velocity and ``rebuild(raw) -> Drift``.
+        """
+        return self.velocity / scale, lambda p: Drift(p * scale, self.sigma, self.theta)
 
     def __call__(self, t: Array, key: Array) -> Array:
         return self.run(t, key, jnp.zeros(2), t[0], t[0])[0]

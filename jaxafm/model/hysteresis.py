@@ -133,6 +133,22 @@ def _weight_maps(positive: bool) -> tuple:
     return (lambda w: w), (lambda p: p)
 
 
+def _called(u: Array, history, m: "AbstractHysteresis") -> Array:
+    """``m(u, history)``: an operator's output (:meth:`AbstractHysteresis.evaluator`)."""
+    return m(u, history)
+
+
+def _from_plays(P: Array, m: "PlayOperator") -> Array:
+    """``m``'s output from its plays ``P`` (T, n) run once (:meth:`PlayOperator.evaluator`)."""
+    return m.from_plays(P)
+
+
+def _from_relays(states: Array, m: "Preisach") -> Array:
+    """A Preisach plane's output from its relay states (T, n, n) computed once
+    (:meth:`Preisach.evaluator`): ``offset + sum_ij states_ij density_ij``."""
+    return m.offset + jnp.einsum("tij,ij->t", states, m.density)
+
+
 class BlockInverse(NamedTuple):
     """An operator's inverse as plays (:meth:`AbstractHysteresis.block_inverse`).
 
@@ -234,9 +250,10 @@ class AbstractHysteresis(eqx.Module):
         """``f(m) = m(u, history)`` for operators ``m`` shaped like this one.
 
         Operators whose sequential part does not depend on the fitted parameters
-        run it once here, so that a fit evaluates only the rest.
+        run it once here, so that a fit evaluates only the rest. The evaluator is a pytree
+        (``jax.tree_util.Partial``) holding what it computed: it passes through ``jit`` as data.
         """
-        return lambda m: m(u, history)
+        return jax.tree_util.Partial(_called, u, history)
 
     def design_matrix(self, u: Array, history=None) -> Array:
         """Columns ``A`` (T, m) with output ``offset + A @ weights`` (dead zones, if any, at identity).
@@ -381,8 +398,7 @@ class PlayOperator(AbstractHysteresis):
 
     def evaluator(self, u: Array, history=None) -> Callable:
         """``f(m) = m(u, history)`` with the plays run once: fits keep the radii fixed."""
-        P = play(u, self.radii(), history)
-        return lambda m: m.from_plays(P)
+        return jax.tree_util.Partial(_from_plays, play(u, self.radii(), history))
 
 
 class Anhysteretic(AbstractHysteresis):
@@ -968,8 +984,7 @@ class Preisach(PlayOperator):
     def evaluator(self, u: Array, history=None) -> Callable:
         """``f(m) = m(u, history)`` through the relay states, computed once: the output is
         linear in the density, so a fit evaluates one design matrix."""
-        states = self.relay_states(play(u, self.radii(), history))
-        return lambda m: m.offset + jnp.einsum("tij,ij->t", states, m.density)
+        return jax.tree_util.Partial(_from_relays, self.relay_states(play(u, self.radii(), history)))
 
     def design_matrix(self, u: Array, history=None) -> Array:
         """The relay states (T, n(n+1)/2) of the lower triangle, row by row."""

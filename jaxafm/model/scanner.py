@@ -73,6 +73,41 @@ class Axis(eqx.Module):
         every model of one axis is called (:meth:`AbstractHysteresis.predict`)."""
         return self(u, t, history)
 
+    def free_parameters(
+        self, u_span, d_range, positive: bool = True, lag_scale_s: float = 0.01, creep_scale: float = 0.01
+    ) -> tuple:
+        """The fitted parameters of the hysteresis, the lag and the creep at order one, and the
+        map back: each stage's own ``free_parameters``, in the axis's order.
+
+        Arguments:
+            u_span: the span of the fitted input (V).
+            d_range: the range of the fitted output (nm).
+            positive: keep the hysteresis weights non-negative
+                (:meth:`AbstractHysteresis.free_parameters`).
+            lag_scale_s: the rate-dependence time constant (s) a raw value of about 1 stands for.
+            creep_scale: the creep weight a raw value of 1 stands for (every weight free).
+
+        Returns:
+            ``(raw, rebuild)``: a tuple of the present stages' raw parameters and
+            ``rebuild(raw) -> Axis``.
+
+        Raises:
+            TypeError: for an axis with a mechanical mode, whose bounds depend on the record
+                (:meth:`~jaxafm.model.effects.Vibration.free_parameters`).
+        """
+        if self.vibration is not None:
+            raise TypeError(
+                "an Axis with a vibration stage: its frequency's bound is the record's Nyquist frequency; "
+                "fit its stages' free_parameters one by one"
+            )
+        parts = {"hysteresis": self.hysteresis.free_parameters(u_span, d_range, positive)}
+        if self.rate_dependence is not None:
+            parts["rate_dependence"] = self.rate_dependence.free_parameters(lag_scale_s)
+        if self.creep is not None:
+            parts["creep"] = self.creep.free_parameters(creep_scale)
+        raw = tuple(r for r, _ in parts.values())
+        return raw, lambda p: Axis(**{n: rebuild(q) for (n, (_, rebuild)), q in zip(parts.items(), p)})
+
     def initial_state(self, u0, history=None) -> AxisState:
         """At rest at the input ``u0`` (V) after ``history``: the lags and creep relaxed there."""
         if history is not None:
@@ -83,15 +118,30 @@ class Axis(eqx.Module):
     def run(self, u: Array, t: Array, state: AxisState, t0) -> tuple:
         """Positions (T,) nm and the next state, continuing from ``state`` reached at time ``t0``."""
         v, plays = self.hysteresis.run(u, state.plays)
-        lag, creep = state.lag, state.creep
+        return self.run_stages(v, t, eqx.tree_at(lambda s: s.plays, state, plays), t0)
+
+    def run_stages(self, v: Array, t: Array, state: AxisState, t0) -> tuple:
+        """The stages after the hysteresis, in order (rate dependence, creep, vibration), on its
+        output ``v`` (T,) nm at times ``t`` (T,) s, continuing from ``state`` at time ``t0``:
+        positions (T,) nm and the next state (its plays as given)."""
+        lag, creep, vibration = state.lag, state.creep, state.vibration
         if self.rate_dependence is not None:
             v, lag = self.rate_dependence.run(v, t, lag, t0)
         if self.creep is not None:
             v, creep = self.creep.run(v, t, creep, t0)
-        vibration = state.vibration
         if self.vibration is not None:
             v, vibration = self.vibration.run(v, t, vibration, t0)
-        return v, AxisState(plays, lag, creep, vibration)
+        return v, AxisState(state.plays, lag, creep, vibration)
+
+    def stages_at_rest(self, v0, plays: Array = None) -> AxisState:
+        """The state of the stages after the hysteresis at rest at its output ``v0`` nm (the
+        lags and the creep relaxed there, the mode still), with the hysteresis at ``plays``
+        (none given: empty)."""
+        plays = jnp.zeros((0,)) if plays is None else plays
+        lag = jnp.zeros((0,)) if self.rate_dependence is None else self.rate_dependence.initial_state(v0)
+        creep = () if self.creep is None else self.creep.initial_state(v0)
+        vibration = () if self.vibration is None else self.vibration.initial_state(v0)
+        return AxisState(plays, lag, creep, vibration)
 
     def __call__(self, u: Array, t: Array, history=None) -> Array:
         t = jnp.asarray(t, dtype=float)
@@ -117,10 +167,7 @@ def _at_rest(axis: Axis, u0: Array, history) -> AxisState:
     run of the plays would trace and compile its scan anew at every call."""
     plays = axis.hysteresis.initial_state(u0, history)
     v0 = axis.hysteresis.run(jnp.reshape(u0, (1,)), plays)[0][0]
-    lag = jnp.zeros((0,)) if axis.rate_dependence is None else axis.rate_dependence.initial_state(v0)
-    creep = () if axis.creep is None else axis.creep.initial_state(v0)
-    vibration = () if axis.vibration is None else axis.vibration.initial_state(v0)
-    return AxisState(plays, lag, creep, vibration)
+    return axis.stages_at_rest(v0, plays)
 
 
 class ScannerState(eqx.Module):
@@ -194,20 +241,26 @@ class Scanner(eqx.Module):
             )
         x, sx = self.x.run(u[:, 0], t, state.x, state.t)
         y, sy = self.y.run(u[:, 1], t, state.y, state.t)
-        p = jnp.stack([x, y], axis=-1)
+        p, wander = self.couple(jnp.stack([x, y], axis=-1), t, key, state.wander, state.t, state.origin)
+        return p, ScannerState(sx, sy, wander, t[-1], state.origin)
+
+    def couple(self, p: Array, t: Array, key: Optional[Array], wander: Array, t0, origin) -> tuple:
+        """The two-axis stages after the axes, in order, on the axes' positions ``p`` (T, 2) nm at
+        times ``t`` (T,) s: coupling, bow, drift (since ``origin``, its wander continuing from
+        ``wander`` (2,) nm at ``t0``) and noise (``key`` draws the random parts). Returns the
+        positions (T, 2) nm and the wander after the last sample."""
         if self.coupling is not None:
             p = self.coupling(p)
         if self.bow is not None:
             p = self.bow(p)
         if key is not None:
             k_drift, k_noise = jax.random.split(key)
-        wander = state.wander
         if self.drift is not None:
-            d, wander = self.drift.run(t, k_drift, wander, state.t, state.origin)
+            d, wander = self.drift.run(t, k_drift, wander, t0, origin)
             p = p + d
         if self.noise is not None:
             p = p + self.noise(p.shape, k_noise)
-        return p, ScannerState(sx, sy, wander, t[-1], state.origin)
+        return p, wander
 
     def __call__(self, u: Array, t: Array, key: Optional[Array] = None, history=None) -> Array:
         """Tip positions (T, 2) nm from rest at ``u[0]``; ``history``: per-axis pre-history (H, 2) V."""
@@ -219,6 +272,12 @@ class Scanner(eqx.Module):
             u, t, self.initial_state(u[0], t[0] if t.ndim == 1 and t.size else 0.0, history), key
         )[0]
 
+    def predict(self, u: Array, t: Array, history=None) -> Array:
+        """The mean positions (T, 2) nm for drives ``u`` (T, 2) V at times ``t`` (T,) s from rest
+        after ``history`` (H, 2) V: without the random parts (:func:`mean_scanner`), as every
+        model is applied to a record (:meth:`Axis.predict`)."""
+        return mean_scanner(self)(u, t, jax.random.key(0), history)
+
     def without(self, *names: str) -> Scanner:
         """The same scanner with the named effects switched off."""
         check_effect_names(names, "Scanner.without")
@@ -228,6 +287,15 @@ class Scanner(eqx.Module):
                 s = eqx.tree_at(lambda m: getattr(m, n), s, None, is_leaf=lambda v: v is None)
             s = eqx.tree_at(lambda m: (m.x, m.y), s, (s.x.without(n), s.y.without(n)))
         return s
+
+
+def mean_scanner(model: Scanner) -> Scanner:
+    """The scanner without its random parts: no position noise, no drift wander (its mean
+    drift kept)."""
+    model = model.without("noise")
+    if model.drift is None:
+        return model
+    return eqx.tree_at(lambda m: m.drift.sigma, model, jnp.zeros_like(model.drift.sigma))
 
 
 def pi_with_loop_width(n: int, span: float, travel: float, loop_width: float) -> PrandtlIshlinskii:

@@ -78,7 +78,7 @@ class ImplausibleModel(ValueError):
     """Step A's identified model failed its plausibility checks (the message says which)."""
 
 
-def read_model_file(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
+def load_fixed_scanner(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
     """The scanner in ``calibration.model_file`` (None without one), checked.
 
     Raises:
@@ -108,7 +108,7 @@ def identify_scanner(cfg: Positioning, scans: tuple, config_path: Path, log) -> 
     spec = cfg.calibration
     if spec.model_file is not None:
         log(f"step A: the scanner model from {resolve_data_path(spec.model_file, config_path)}")
-        return read_model_file(cfg, config_path), 0.0
+        return load_fixed_scanner(cfg, config_path), 0.0
     m = spec.model
     log(f"step A: identifying {m.name} ({m.kind}, {', '.join(m.effects)}) from the calibration scan ...")
     ident = identify_model(scans, m, spec.solver, spec.grating, log)
@@ -303,7 +303,7 @@ def _setup(cfg: RunConfig, config_path: Path) -> tuple:
     afm = default_afm(drift_nm_per_min=tuple(cfg.drift_nm_per_min))
     work, grid, D = workspace_layout(cfg)
     afm.check_range(afm.nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
-    read_model_file(cfg, config_path)
+    load_fixed_scanner(cfg, config_path)
     return afm, work, grid, D, particle_field(cfg, grid, D)
 
 

@@ -56,7 +56,7 @@ from ..position.strategy import (
     find_landmarks,
     identify_scanner,
     landmark_maps,
-    read_model_file,
+    load_fixed_scanner,
     stage_key,
     survey,
     trials,
@@ -502,7 +502,7 @@ def run(
     draws = trial_draws(cfg, D)
     scanners = scanner_draws(cfg)
     mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
-    read_model_file(cfg, config_path)
+    load_fixed_scanner(cfg, config_path)
     if jax.process_count() > 1:
         from .._version import __version__
 
@@ -657,7 +657,7 @@ def summarise(cfg: StudyConfig, out: Path, draws: dict, info: dict, seconds: flo
 def failure_modes(r: dict, cfg: StudyConfig) -> dict:
     """Why trials failed, stage by stage (counts of trials; the reasons of a stage exclude each other).
 
-    A+B: step A refused its model (:func:`~jaxafm.identify.calibration.implausible`), the survey
+    A+B: step A refused its model (:func:`~jaxafm.identify.plausibility.implausible`), the survey
     found too few landmarks for a map, the particle lay outside the survey image,
     the target lay outside the landmarks found (the map extrapolated), or the error left is beyond
     the local scan's search margin. A+B+C: the search found no particle, the verification did not

@@ -1,0 +1,85 @@
+"""Step A's plausibility checks: what makes a fitted scanner unusable, in words
+(:func:`implausible`): a tip that travels far more or less than the image, a falling
+hysteresis branch, creep against the move, a loop wider than its travel."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.hysteresis import AbstractHysteresis
+from ..model.io import check_monotone
+from ..model.scanner import Scanner
+from .scan_model import ScanModel
+
+Array = jax.Array
+
+#: how far (a fraction of the step) a fitted creep's step response may fall back or below the
+#: step before the model counts as creeping against the move: 0.1 %, 3 nm after a 3 µm move,
+#: under the calibration image's feature precision and 1/40 of the creep of 0.01 per decade
+#: over the four decades of the bank
+CREEP_FALL = 1e-3
+
+
+def implausible(model: ScanModel, scans: tuple) -> list:
+    """What makes a fitted model unusable, in words (empty: plausible): per scan, the tip's
+    travel along the fast axis over the image outside 0.5 to 2 times the image's width; a
+    hysteresis branch that falls (:func:`~jaxafm.model.io.check_monotone`); creep of the
+    wrong sign (it must continue the move, :func:`creep_fall`); a loop wider than the travel."""
+    failures = []
+    for scan in scans:
+        path = np.asarray(model.paths(scan)[0]).reshape(-1, 2)
+        travel = float(np.ptp(path @ scan.raster.rotation[:, 0]))
+        ratio = travel / scan.raster.size[0]
+        if not 0.5 < ratio < 2:
+            failures.append(
+                f"{scan.name}: the tip travels {travel / 1e3:.4g} µm along the fast axis over a "
+                f"{scan.raster.size[0] / 1e3:.4g} µm image ({ratio:.2f} times its width)"
+            )
+    try:
+        check_monotone(model.scanner)
+    except ValueError as e:
+        failures.append(f"a hysteresis branch falls: {e}")
+    for a in ("x", "y"):
+        creep = getattr(model.scanner, a).creep
+        fall = None if creep is None else creep_fall(creep)
+        if fall is not None and fall > CREEP_FALL:
+            failures.append(
+                f"{a} creep runs against the move: after a step its response falls back by "
+                f"{100 * fall:.2g} % of the step (allowed {100 * CREEP_FALL:g} %)"
+            )
+    failures += _loop_widths(model.scanner, scans)
+    return failures
+
+
+def creep_fall(creep) -> float:
+    """How far (a fraction of the step) the step response ``sum_k g_k (1 - exp(-t / tau_k))`` of
+    ``creep`` falls below its running maximum or below zero, for t from tau_min / 10 to
+    10 tau_max: 0 for creep that continues the move (every weight non-negative)."""
+    taus, g = np.asarray(creep.taus), np.asarray(creep.weights)
+    t = np.geomspace(taus.min() / 10, taus.max() * 10, 400)
+    r = np.concatenate([[0.0], (g * (1 - np.exp(-t[:, None] / taus))).sum(axis=1)])
+    return float(np.max(np.maximum.accumulate(r) - r))
+
+
+@eqx.filter_jit
+def _swept(h: AbstractHysteresis, u: Array, history: Array) -> Array:
+    """``h(u, history)``, compiled once for both axes' operators (op by op it compiles each step)."""
+    return h(u, history)
+
+
+def _loop_widths(scanner: Scanner, scans: tuple) -> list:
+    """A loop over the drive the scans used that is wider than its own travel, per axis."""
+    u = np.concatenate([s.raster.wanted().reshape(-1, 2) / np.asarray(s.sensitivity) for s in scans])
+    out = []
+    for k, a in enumerate("xy"):
+        lo, hi = u[:, k].min(), u[:, k].max()
+        sweep = np.concatenate([np.linspace(lo, hi, 200), np.linspace(hi, lo, 200)])
+        d = np.asarray(_swept(getattr(scanner, a).hysteresis, jnp.asarray(sweep), jnp.asarray([hi, lo])))
+        up, down = d[:200], d[200:][::-1]
+        travel, width = float(np.ptp(d)), float(np.max(np.abs(down - up)))
+        if width > travel:
+            out.append(f"the {a} loop is {width:.4g} nm wide over a travel of {travel:.4g} nm")
+    return out

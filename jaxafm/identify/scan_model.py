@@ -1,0 +1,258 @@
+"""What step A fits (:class:`ScanModel`: the scanner, the z-feedback's lag and the lattice's
+unknowns), the nominal model a fit starts from (:func:`nominal_scan_model`, after the
+:class:`ScanModelSpec`), and its parameters at order one (:meth:`ScanModel.free_parameters`,
+each module's own ``free_parameters`` with step A's scales).
+
+The model is the simulated AFM itself (:func:`~jaxafm.instrument.afm.raster_scan`) with the
+candidate scanner: it images the known lattice along the scan's drive, so a fitted model and the
+truth simulator are one code path with different parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..config.names import MODEL_EFFECTS
+from ..instrument.afm import AFM, RasterScan, raster_scan
+from ..instrument.samples import Lattice, Plane, Tip
+from ..model.effects import Bow, Coupling, Creep, Drift, FeedbackLag, RateDependence
+from ..model.hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
+from ..model.scanner import Axis, Scanner
+from .calibration_scan import CalibrationScan
+from .image_ops import interpolate, sample_at
+
+Array = jax.Array
+KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key never matters
+
+#: step A's starting creep, fraction per decade: positive, as its fit keeps it (a tenth of the
+#: 0.01-0.02 of published data)
+CREEP_START = 1e-3
+
+# The order-one scales of step A's parameters (what a raw value of 1 stands for). Phase and
+# radius are in pitches and the depth in the image's height range (the scan's ``depth_scale``);
+# the hysteresis weights in travel / drive span; the creep rate spread over the bank's lags.
+EDGE_SCALE_NM = 50.0
+ANGLE_SCALE_RAD = 0.01
+COUPLING_SCALE = 0.01
+BOW_SCALE_PER_NM = 1e-6
+DRIFT_SCALE_NM_S = 0.05
+LAG_SCALE_S = 1e-3
+CREEP_SCALE = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class ScanModelSpec:
+    """Which scanner model step A fits (:func:`nominal_scan_model`).
+
+    Attributes:
+        kind: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
+            ``deadzones`` dead zones a side, evenly over the imaged half width: beyond it no data
+            would hold them; a ``gpi`` without ``asymmetry`` among the effects is a ``pi``) or
+            ``preisach`` (``levels`` levels over ``+-u_max``).
+        effects: the other effects to fit (names as in docs/conventions.md; those of
+            :data:`~jaxafm.config.names.MODEL_EFFECTS`).
+        operators: plays per axis.
+        deadzones: dead zones a side.
+        levels: Preisach levels.
+        rotation: the lattice's known angle on the stage (rad), or ``None`` to fit it.
+    """
+
+    kind: str = "gpi"
+    effects: tuple = MODEL_EFFECTS
+    operators: int = 20
+    deadzones: int = 3
+    levels: int = 20
+    rotation: Optional[float] = 0.0
+
+
+class ScanModel(eqx.Module):
+    """What step A fits: the scanner, the z-feedback lag, and the lattice's unknowns
+    (phase, radius, depth, edge width; the pitch is known). ``rotation_free``: the lattice's
+    angle on the stage is fitted too (:meth:`free_parameters` says how that fixes a gauge)."""
+
+    scanner: Scanner
+    feedback: Optional[FeedbackLag]
+    lattice: Lattice
+    rotation_free: bool = eqx.field(static=True, default=False)
+
+    def afm(self, scan: CalibrationScan) -> AFM:
+        """The simulated AFM with this model as its scanner (tip dilation off)."""
+        return AFM(
+            self.scanner, Tip(), jnp.asarray(scan.sensitivity), self.feedback, u_max=scan.u_max, dilate=False
+        )
+
+    def paths(self, scan: CalibrationScan) -> tuple:
+        """The tip's path (lines, pixels, 2) nm over the trace and the retrace pixels, along the
+        scan's drive (the heights are not rendered)."""
+        afm = eqx.tree_at(lambda a: a.feedback, self.afm(scan), None, is_leaf=lambda v: v is None)
+        out = raster_scan(afm, Plane(), self.start(afm, scan), scan.raster, key=KEY)
+        return out.path_trace, out.path_retrace
+
+    def start(self, afm: AFM, scan: CalibrationScan):
+        """Where ``afm`` (this model's) stands before the scan: at rest at ``scan.u0`` at
+        ``scan.t0`` after its drive history."""
+        return afm.initial_state(
+            scan.u0, scan.t0, None if scan.history is None else jnp.asarray(scan.history)
+        )
+
+    def image(self, scan: CalibrationScan) -> RasterScan:
+        """:func:`~jaxafm.instrument.afm.raster_scan` of the lattice through this model, along the
+        scan's drive."""
+        afm = self.afm(scan)
+        return raster_scan(afm, self.lattice, self.start(afm, scan), scan.raster, key=KEY)
+
+    def site_errors(self, scan: CalibrationScan, images: Sequence) -> list:
+        """Per image of ``scan`` (trace, retrace), where this model puts the tip at each feature
+        ``(rc, ij)`` of ``images`` less that feature's lattice site, in pitches (n, 2) along the
+        lattice's axes."""
+        return [
+            self.lattice.coordinates(interpolate(path, jnp.asarray(rc))) - jnp.asarray(ij)
+            for (rc, ij), path in zip(images, self.paths(scan))
+        ]
+
+    def as_float64(self) -> ScanModel:
+        """This model with every floating-point leaf a float64 array (none weakly typed), so that
+        the stages' compiled functions see the same argument types from every model."""
+        return jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, self)
+
+    def free_parameters(self, scan: CalibrationScan) -> tuple:
+        """``(raw, rebuild)``: the fitted parameters at order one, and the map back to a model.
+
+        Each module's own ``free_parameters`` with step A's scales (the module's constants; the
+        lattice's in the scan's pitch and depth, the hysteresis weights in the travel over the
+        drive span). Two gauges, as no image can tell them apart. The hysteresis offsets stay
+        at 0: a translation of the whole image is the lattice's phase, so the scanner's zero
+        stays where its virgin state put it. With the lattice's rotation fitted, the coupling
+        of y from x (``coupling.yx``) stays 0: turning the lattice by ``a`` and adding ``a`` to
+        ``coupling.yx`` and ``-a`` to ``coupling.xy`` move every image alike (to first order),
+        so the scanner's x axis is defined as the direction its x piezo moves the tip, and
+        the fitted rotation is the lattice's from that axis.
+
+        Returns:
+            ``raw``, a pair (the lattice's and the effects' raw parameters in a list, the two
+            hysteresis operators' in another), and ``rebuild(raw) -> ScanModel``.
+        """
+        s = self.scanner
+        angle = ANGLE_SCALE_RAD if self.rotation_free else None
+        lattice = self.lattice.free_parameters(min(scan.pitch), scan.depth_scale, EDGE_SCALE_NM, angle)
+        parts = [(lambda m: m.lattice, lattice)]
+        if s.coupling is not None:
+            coupling = s.coupling.free_parameters(COUPLING_SCALE, hold_yx=self.rotation_free)
+            parts.append((lambda m: m.scanner.coupling, coupling))
+        if s.bow is not None:
+            parts.append((lambda m: m.scanner.bow, s.bow.free_parameters(BOW_SCALE_PER_NM)))
+        if s.drift is not None:
+            parts.append((lambda m: m.scanner.drift, s.drift.free_parameters(DRIFT_SCALE_NM_S)))
+        if self.feedback is not None:
+            parts.append((lambda m: m.feedback, self.feedback.free_parameters(LAG_SCALE_S)))
+        for a in ("x", "y"):
+            axis = getattr(s, a)
+            if axis.creep is not None:  # one rate per axis, its lags as configured, >= 0
+                creep = axis.creep.free_parameters(CREEP_SCALE / axis.creep.weights.size, rate=True)
+                parts.append((lambda m, a=a: getattr(m.scanner, a).creep, creep))
+            if axis.rate_dependence is not None:
+                lag = axis.rate_dependence.free_parameters(LAG_SCALE_S)
+                parts.append((lambda m, a=a: getattr(m.scanner, a).rate_dependence, lag))
+        travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
+        hysteresis = [getattr(s, a).hysteresis.free_parameters(2 * scan.u_max, travel) for a in ("x", "y")]
+        raw = ([r for _, (r, _) in parts], [r for r, _ in hysteresis])
+
+        def rebuild(raw):
+            modules = [rb(r) for (_, (_, rb)), r in zip(parts, raw[0])]
+            m = eqx.tree_at(lambda m: [where(m) for where, _ in parts], self, modules)
+            h = [
+                _zero_offset(rb(r), getattr(s, a).hysteresis)
+                for (_, rb), r, a in zip(hysteresis, raw[1], ("x", "y"))
+            ]
+            return eqx.tree_at(lambda m: (m.scanner.x.hysteresis, m.scanner.y.hysteresis), m, tuple(h))
+
+        return raw, rebuild
+
+
+def _zero_offset(h: AbstractHysteresis, start: AbstractHysteresis) -> AbstractHysteresis:
+    """``h`` with the offset of ``start`` (for a generalised PI, its PI operator's)."""
+    return eqx.tree_at(lambda g: g.offset, h, start.offset)
+
+
+def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpec()) -> ScanModel:
+    """The nominal model a fit starts from: the straight calibration line, no other effect yet
+    (each effect of ``spec`` present where it changes nothing, or nearly: creep at
+    :data:`CREEP_START`, lags of 5 ms and 0.5 ms); the lattice's depth from the image, its radius
+    a quarter pitch, its angle ``spec.rotation`` (0 when fitted).
+
+    Raises:
+        ValueError: for an effect that cannot be fitted from images or an unknown kind.
+    """
+    effects = spec.effects
+    unknown = [e for e in effects if e not in MODEL_EFFECTS]
+    if unknown:
+        raise ValueError(
+            f"effect {unknown[0]!r} cannot be fitted from grating images; "
+            f"choose from {', '.join(MODEL_EFFECTS)}"
+        )
+    has = lambda e, module: module if e in effects else None
+    scanner = Scanner(
+        _nominal_axis(scan, spec, 0),
+        _nominal_axis(scan, spec, 1),
+        has("coupling", Coupling(jnp.zeros(()), jnp.zeros(()))),
+        has("bow", Bow(jnp.zeros(()), jnp.zeros(()))),
+        has("drift", Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))),
+    )
+    z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
+    depth = float(np.percentile(z, 98) - np.percentile(z, 2))
+    lattice = Lattice(
+        jnp.asarray(scan.pitch),
+        jnp.asarray(0.25 * min(scan.pitch)),
+        jnp.asarray(-depth if scan.pits else depth),
+        jnp.asarray(50.0),
+        jnp.asarray(0.0 if spec.rotation is None else spec.rotation),
+        jnp.zeros(2),
+    )
+    feedback = has("feedback_lag", FeedbackLag(jnp.asarray(5e-4)))
+    return ScanModel(scanner, feedback, lattice, spec.rotation is None)
+
+
+def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
+    """Axis ``k`` of :func:`nominal_scan_model`: the nominal line through ``spec.kind``'s operator."""
+    kind = "pi" if spec.kind == "gpi" and "asymmetry" not in spec.effects else spec.kind
+    gain = scan.sensitivity[k]
+    if kind == "preisach":
+        h = Preisach.uniform(spec.levels, -scan.u_max, scan.u_max, total=gain * scan.u_max)
+    else:
+        h = PrandtlIshlinskii.uniform(spec.operators, scan.u_max, gain, others=1e-3)
+        if kind == "gpi":
+            imaged = scan.raster.size[k] / 2  # dead zones where the image constrains them
+            steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1) * imaged
+            h = GeneralizedPI(h, Deadzone.identity(-steps, steps))
+        elif kind != "pi":
+            raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
+    return Axis(
+        h,
+        RateDependence(jnp.asarray(5e-3)) if "rate_dependence" in spec.effects else None,
+        Creep.logarithmic(CREEP_START, per_decade=1) if "creep" in spec.effects else None,
+    )
+
+
+def start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> ScanModel:
+    """``model`` with its lattice placed on the scan's features: the angle from the trace's
+    features (if fitted), the phase from them through the model, the radius from the pillars'
+    (or pits') area, ``sqrt(area / pi)``."""
+    ft = features[0]
+    if model.rotation_free:
+        model = eqx.tree_at(lambda m: m.lattice.angle, model, jnp.asarray(ft.angle))
+    lattice = model.lattice
+    from_phase = np.asarray(lattice.sites(ft.ij)) - np.asarray(lattice.phase)
+    phase = np.mean(sample_at(model.paths(scan)[0], ft.rc) - from_phase, axis=0)
+    z = -np.asarray(scan.trace) if scan.pits else np.asarray(scan.trace)
+    area = (z > 0.5 * (z.max() + z.min())).mean() * np.prod(scan.pitch)
+    radius = float(np.sqrt(area / np.pi))
+    return eqx.tree_at(
+        lambda m: (m.lattice.phase, m.lattice.radius), model, (jnp.asarray(phase), jnp.asarray(radius))
+    )

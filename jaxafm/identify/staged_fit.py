@@ -1,0 +1,271 @@
+"""Step A: identify the scanner end to end from trace/retrace images of a calibration lattice.
+
+The paper (section III-A) turns feature points of one image pair into (voltage, true position)
+pairs and fits a polynomial per branch (the baseline:
+:mod:`~jaxafm.identify.polynomial_baseline`). Here the scanner model itself is fitted: the
+simulated AFM images the known lattice through the candidate model along the same drive, and the
+solver matches the two images, trace and retrace together (:func:`identify`).
+
+A periodic lattice makes the image loss many-valleyed. The fit stays in the right valley in three
+ways: (1) the feature points carry lattice indices, and trace and retrace columns are matched at
+the line reversal, where the tip is continuous, so they cannot slip by a pitch
+(:mod:`~jaxafm.identify.calibration_scan`); (2) the model is first fitted to those points, a
+smooth problem with one valley; (3) the image fit then starts from there on Gaussian-blurred
+images (both blurred alike), whose basin is as wide as the blur, and sharpens in stages
+(:mod:`~jaxafm.identify.stages`). Held-out features judge every stage
+(:mod:`~jaxafm.identify.held_out`) and the result is checked for plausibility
+(:mod:`~jaxafm.identify.plausibility`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Optional
+
+import jax.numpy as jnp
+import numpy as np
+
+from .calibration_scan import CalibrationScan, check_scan_set
+from .fit import FitResult
+from .held_out import held_out_image, held_out_rms, judge_stage, split_features, split_masks, validate
+from .plausibility import implausible
+from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
+from .stages import (
+    FitPlan,
+    Stage,
+    StageKind,
+    check_plan,
+    coarse_factor,
+    feature_data,
+    fit_stage,
+    plan_stages,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class Identification:
+    """What :func:`identify` returns.
+
+    Attributes:
+        model: the fitted :class:`~jaxafm.identify.scan_model.ScanModel` (the last accepted
+            stage's).
+        stages: one :class:`~jaxafm.identify.fit.FitResult` per stage (feature points, then
+            each blur), in order.
+        seconds: the whole identification's wall time (s).
+        accepted: per stage, whether its result was kept (an image stage that worsens the
+            held-out features is not, :func:`~jaxafm.identify.held_out.judge_stage`).
+        held_out_nm: per stage, the held-out features' rms residual (nm) after it
+            (:func:`~jaxafm.identify.held_out.held_out_rms`); NaN when no feature is held out.
+        validation: the held-out features' summary (:func:`~jaxafm.identify.held_out.validate`).
+        failures: what failed the plausibility checks
+            (:func:`~jaxafm.identify.plausibility.implausible`); empty if none.
+    """
+
+    model: ScanModel
+    stages: tuple
+    seconds: float
+    accepted: tuple = ()
+    held_out_nm: tuple = ()
+    validation: dict = dataclasses.field(default_factory=dict)
+    failures: tuple = ()
+
+    @property
+    def converged(self) -> bool:
+        return all(
+            s.converged for s, ok in zip(self.stages, self.accepted or [True] * len(self.stages)) if ok
+        )
+
+    @property
+    def plausible(self) -> bool:
+        return not self.failures
+
+
+def identify(
+    scans,
+    spec: ScanModelSpec = ScanModelSpec(),
+    plan: FitPlan = FitPlan(),
+    start: Optional[ScanModel] = None,
+    log: Callable = print,
+) -> Identification:
+    """Fit the scanner end to end: to the feature points, then to the images at each blur.
+
+    Several scans (e.g. at scan angles 0 and 90 degrees, so that both axes reverse in the
+    data) are fitted together; the first one's feature fit fixes how the others' lattice
+    indices line up with its own (:func:`_align`). Half the lattice's sites are held out
+    (``plan.hold_out``, :mod:`~jaxafm.identify.held_out`), and an image stage is kept only if it
+    does not worsen the held-out features' residual beyond its uncertainty: a slip by a pitch
+    shows there first. The feature stages fit scans with up to ``plan.coarsen`` pixels of a line
+    averaged into one (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.coarse`), the
+    image stages the whole scans. Never returns a silently bad fit: each stage's convergence,
+    acceptance and loss are in the result, a stage whose loss is not finite raises, and the
+    fitted model is checked (:func:`~jaxafm.identify.plausibility.implausible`).
+
+    Arguments:
+        scans: a :class:`~jaxafm.identify.calibration_scan.CalibrationScan` or several, of one
+            lattice and one instrument.
+        spec: the model to fit (:class:`~jaxafm.identify.scan_model.ScanModelSpec`).
+        plan: how to fit it (:class:`~jaxafm.identify.stages.FitPlan`).
+        start: the model to start from instead of ``spec``'s nominal one
+            (:func:`~jaxafm.identify.scan_model.nominal_scan_model`).
+        log: where each stage's one-line summary goes.
+
+    Returns:
+        An :class:`Identification`.
+
+    Raises:
+        ValueError: for scans of different lattices or instruments, a bad plan (blur, step
+            limits, solver, tolerances, coarsening) or spec, or images whose features cannot be
+            found or matched.
+    """
+    scans = (scans,) if isinstance(scans, CalibrationScan) else tuple(scans)
+    check_scan_set(scans)
+    stages = plan_stages(len(scans), plan.blur_px)
+    limits = check_plan(plan, stages)
+    factor = coarse_factor(scans, plan.coarsen)
+    began = time.perf_counter()
+    trace, retraces = scans[0].feature_matches()
+    found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
+    model = nominal_scan_model(scans[0], spec) if start is None else start
+    model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
+    train, test = split_features(found, plan.hold_out)  # the first stage may change the first retrace
+    fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test)
+    for i, (stage, limit) in enumerate(zip(stages, limits)):
+        if i == 1 and len(scans) > 1:
+            fit.train, fit.test = _align(fit.model, scans, fit.found, fit.train, fit.test)
+        fit.run(stage, limit, i, len(stages))
+    return Identification(
+        fit.model,
+        tuple(fit.results),
+        time.perf_counter() - began,
+        tuple(fit.accepted),
+        tuple(fit.held_nm),
+        validate(fit.model, scans, fit.test),
+        tuple(implausible(fit.model, scans)),
+    )
+
+
+@dataclasses.dataclass
+class _StagedFit:
+    """:func:`identify`'s stages as they run: the scans, the plan, the coarse factor and the
+    first scan's retrace matches; the model so far (the last kept stage's), the features (the
+    first stage may re-match the first scan's retrace) and their split, the image masks (made
+    at the first image stage), and per stage its result, acceptance and held-out residual."""
+
+    scans: tuple
+    plan: FitPlan
+    factor: int
+    retraces: list
+    log: Callable
+    model: ScanModel
+    found: list
+    train: list
+    test: list
+    masks: Optional[tuple] = None
+    results: list = dataclasses.field(default_factory=list)
+    accepted: list = dataclasses.field(default_factory=list)
+    held_nm: list = dataclasses.field(default_factory=list)
+    comparable: list = dataclasses.field(default_factory=list)  # held_nm of stages on every scan
+
+    def run(self, stage: Stage, limit: int, i: int, total: int) -> None:
+        """Stage ``i`` of ``total``: fit it from the model so far, judge it, log and record it."""
+        images = stage.kind is StageKind.IMAGES
+        fitted = stage.scans(self.scans)
+        k = 1 if images else self.factor  # the feature points on the coarse scans, the images whole
+        level = tuple(scan.coarse(k) for scan in fitted)
+        name = stage.label + (f", {level[0].raster.pixels} px a line" if k > 1 else "")
+        self.log(f"  stage {i + 1}/{total} {name} ...")
+        began = time.perf_counter()
+        fit, kernel, matched = self._fit(stage, level, limit, first=i == 0)
+        solver = self.plan.solver
+        message = (
+            f"{solver}: converged in {fit.steps} steps, loss {fit.loss:.3e}"
+            if fit.converged
+            else f"{solver}: did NOT converge in {fit.steps} steps (max_steps={limit}); last loss {fit.loss:.3e}"
+        ) + matched
+        error = held_out_rms(fit.model, fitted, self.test[: len(fitted)])
+        keep, verdict = judge_stage(self.comparable, error, self.test) if images else (True, "")
+        if not np.isnan(error):
+            message += f", held-out features {error:.2f} nm" + verdict
+        if images and self.masks[1] is not None:
+            held = held_out_image(fit.model, level, kernel, self.masks[1])
+            message += f", held-out image {held:.3f} % of depth"
+        self.model = fit.model if keep else self.model
+        seconds = time.perf_counter() - began
+        self.results.append(
+            FitResult(fit.model, solver, fit.converged, fit.steps, fit.loss, seconds, message)
+        )
+        self.accepted.append(keep)
+        self.held_nm.append(error)
+        if len(fitted) == len(self.scans):
+            self.comparable.append(error)
+        self.log(f"  stage {i + 1}/{total} {name}: {message}, {seconds:.1f} s")
+
+    def _fit(self, stage: Stage, level: tuple, limit: int, first: bool) -> tuple:
+        """``(fit, kernel, note)``: the stage fitted on the scans ``level`` (an image stage's
+        blur kernel, else ``None``; a note for its message)."""
+        if stage.kind is StageKind.IMAGES:
+            self.masks = self.masks or split_masks(self.model, level, self.plan.hold_out)
+            kernel = jnp.asarray(stage.kernel())
+            return fit_stage(stage, self.model, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
+        if first:
+            fit, note = self._first_features(stage, level, limit)
+            return fit, None, note
+        data = feature_data(self.train, self.factor)
+        return fit_stage(stage, self.model, level, data, self.plan, limit), None, ""
+
+    def _first_features(self, stage: Stage, level: tuple, limit: int) -> tuple:
+        """The first scan's feature stage, fitted once for each way of matching its retrace's
+        indices to its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`); the
+        best fit (lowest loss) says which is right, and its features and their split are kept:
+        a retrace indexed a pitch off asks the hysteresis loop for a branch separation a pitch
+        off near the reversal, where the loop closes, which no scanner model fits (on scanner 3
+        of configs/study.yaml its loss is 150 times the right match's). Returns the fit and a
+        note for the stage's message (empty with one match)."""
+        tried = []
+        for retrace in self.retraces:
+            features = [(self.found[0][0], retrace)] + list(self.found[1:])
+            split = split_features(features, self.plan.hold_out)
+            data = feature_data(split[0][:1], self.factor)
+            tried.append((fit_stage(stage, self.model, level, data, self.plan, limit), features, split))
+        losses = [fit.loss for fit, _, _ in tried]
+        best = int(np.argmin(losses))
+        others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
+        note = (
+            f"; retrace indices matched the {'nearer' if best == 0 else 'other'} way at the line reversal "
+            f"(loss {losses[best]:.3e}; {others} the other way)"
+            if len(tried) > 1
+            else ""
+        )
+        fit, self.found, (self.train, self.test) = tried[best]
+        return fit, note
+
+
+def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list) -> tuple:
+    """Shift each later scan's lattice indices onto the first scan's. Through ``model`` (fitted
+    to the first scan's features) the later scan's trace features land near whole lattice
+    coordinates: its rising fast axis follows the branch that the first scan's slow axis
+    traced, while its retrace follows a branch no earlier image showed (its retrace indices
+    follow the trace's, :meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`). The shift
+    is the nearest whole number of their median; unless four in five trace features round to
+    that same shift, the scans are unmatchable (an error naming the scan)."""
+    train, test = list(train), list(test)
+    for k in range(1, len(scans)):
+        trace = found[k][0]
+        d = np.asarray(model.site_errors(scans[k], [(trace.rc, trace.ij)])[0])
+        shift = np.round(np.median(d, axis=0))
+        agree = float(np.mean(np.all(np.round(d) == shift, axis=1)))
+        if agree < 0.8:
+            raise ValueError(
+                f"{scans[k].name}: only {100 * agree:.0f} % of its trace features lie nearest the same "
+                f"lattice sites through the model fitted to {scans[0].name}: the scans do not image one "
+                "lattice with one scanner (check the scan angles, sizes and centres), or that fit is too "
+                "loose (raise solver.max_steps)"
+            )
+
+        def move(part):
+            return [(rc, ij + shift.astype(int)) for rc, ij in part]
+
+        train[k], test[k] = move(train[k]), move(test[k])
+    return train, test

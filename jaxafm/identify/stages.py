@@ -1,0 +1,283 @@
+"""The stages of step A's fit and what each minimises.
+
+A periodic lattice makes the image loss many-valleyed. The fit stays in the right valley by
+fitting the model first to the feature points, each with its lattice indices (a smooth problem
+with one valley: :func:`point_residuals`), and then to the images, both Gaussian-blurred alike
+(:func:`image_residuals`), whose basin is as wide as the blur, sharpening in stages. The stages
+are :class:`Stage` records (:func:`plan_stages`) and the solver's settings a :class:`FitPlan`;
+:func:`fit_stage` runs one. The feature stages may climb a pyramid of coarsened scans
+(:func:`coarse_factor`).
+
+Every residual function takes ``(raw, args)`` with the data in ``args``, so that a compiled
+solve serves every scan of the same shapes (:func:`~jaxafm.identify.fit.solve`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from collections.abc import Sequence
+from typing import Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..config.calibrate import coarsen_fits
+from .calibration_scan import CalibrationScan, coarse_pixels
+from .fit import check_solver, residual_values, solve
+from .image_ops import blur, gaussian_kernel
+from .scan_model import ScanModel
+
+Array = jax.Array
+
+#: the coarse stages keep at least this many pixels per lattice pitch along the lines
+COARSE_PX_PER_PITCH = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class FitPlan:
+    """How step A's staged fit runs (:func:`~jaxafm.identify.staged_fit.identify`).
+
+    Attributes:
+        solver: one of :data:`~jaxafm.config.names.SOLVERS`.
+        blur_px: the image stages' Gaussian blurs (pixels of the stage's scans), widest first.
+        coarsen: the most pixels of a line a feature stage averages into one (a power of two),
+            1 for none, ``"auto"`` for :func:`coarse_factor`'s choice.
+        max_steps: the stages' step limit: one for every stage, or one per stage in order (the
+            feature stages, then each blur).
+        rtol: each stage's relative tolerance.
+        atol: each stage's absolute tolerance.
+        hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
+    """
+
+    solver: str = "jaxafm.geodesic_levenberg_marquardt"
+    blur_px: tuple = (2.0, 1.0)
+    coarsen: Union[int, str] = 1
+    max_steps: Union[int, tuple] = 100
+    rtol: float = 1e-5
+    atol: float = 1e-8
+    hold_out: bool = True
+
+
+class StageKind(enum.Enum):
+    """What a stage fits: the feature points, or the blurred images."""
+
+    FEATURES = "feature points"
+    IMAGES = "images"
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """One stage of step A's fit.
+
+    Attributes:
+        kind: what it fits.
+        label: its name in the log and the metrics (display only).
+        first_scan_only: it fits the first scan alone (the first feature stage of several scans).
+        blur_px: an image stage's Gaussian sigma (px).
+        radius_px: the blur kernel's half width (px), one for every image stage so that their
+            compiled solves are one.
+    """
+
+    kind: StageKind
+    label: str
+    first_scan_only: bool = False
+    blur_px: float = 0.0
+    radius_px: int = 0
+
+    def scans(self, scans: tuple) -> tuple:
+        """The scans this stage fits."""
+        return scans[:1] if self.first_scan_only else scans
+
+    def kernel(self) -> np.ndarray:
+        """An image stage's blur kernel (:func:`~jaxafm.identify.image_ops.gaussian_kernel`)."""
+        return gaussian_kernel(self.blur_px, self.radius_px)
+
+
+def plan_stages(scans: int, blur_px: Sequence[float]) -> tuple:
+    """Step A's stages for ``scans`` scans: the feature points (of the first scan, then of all
+    when there are several), then the images at each blur of ``blur_px``, widest first.
+
+    Raises:
+        ValueError: for a blur outside 0 to 64 px.
+    """
+    for b in blur_px:
+        if not 0 <= b <= 64:
+            raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
+    several = scans > 1
+    plan = [Stage(StageKind.FEATURES, "feature points" + (", first scan" if several else ""), several)]
+    if several:
+        plan.append(Stage(StageKind.FEATURES, "feature points, all scans"))
+    radius = int(np.ceil(3 * max(blur_px, default=0)))
+    plan += [Stage(StageKind.IMAGES, f"images, blur {b:g} px", blur_px=b, radius_px=radius) for b in blur_px]
+    return tuple(plan)
+
+
+def stage_steps(max_steps: Union[int, Sequence[int]], stages: Sequence[Stage]) -> list:
+    """Each of ``stages``' step limit: ``max_steps`` for all, or its entries one per stage.
+
+    Raises:
+        ValueError: for a list of another length than the stages.
+    """
+    if isinstance(max_steps, (int, np.integer)):
+        return [max_steps] * len(stages)
+    limits = list(max_steps)
+    if len(limits) != len(stages):
+        raise ValueError(
+            f"max_steps (a config's solver.max_steps) = {limits} gives {len(limits)} step limits for "
+            f"{len(stages)} stages ({'; '.join(s.label for s in stages)}): give one number for every stage "
+            "or one per stage"
+        )
+    return limits
+
+
+def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "auto") -> int:
+    """The most pixels of a line step A's feature stages average into one (its pyramid's top).
+
+    ``"auto"``: the largest power of two that divides every scan's pixels per line and leaves
+    :data:`COARSE_PX_PER_PITCH` pixels per pitch; a given number must fit the scans
+    (:func:`~jaxafm.config.calibrate.coarsen_fits`).
+
+    Raises:
+        ValueError: for a given number that does not fit the scans, with what would.
+    """
+    pixels = [scan.raster.pixels for scan in scans]
+    per_pitch = min(min(scan.pitch) / scan.raster.pixel_size[0] for scan in scans)  # along a line
+    if coarsen == "auto":
+        factor = 1
+        while all(p % (2 * factor) == 0 for p in pixels) and per_pitch / (2 * factor) >= COARSE_PX_PER_PITCH:
+            factor *= 2
+        return factor
+    if not coarsen_fits(coarsen, pixels, per_pitch):
+        raise ValueError(
+            f"coarsen (a config's solver.coarsen) = {coarsen!r} must be a power of two (1: no coarse "
+            f"stages) that divides the scans' pixels per line {pixels} and leaves 2 px per pitch "
+            f"({per_pitch:.3g} px per pitch at full resolution); 'auto' would take {coarse_factor(scans)}"
+        )
+    return int(coarsen)
+
+
+# ---------------------------------------------------------------------------------------------
+# What the stages minimise
+
+
+def point_residuals(raw, args) -> Array:
+    """At each training feature point, where the model puts the tip less that feature's lattice
+    site, in pitches along the lattice's axes (every scan, trace and retrace), times its weight
+    (0 for the padding of :func:`pad_features`). Needs only the tip's path.
+    ``args = (start model, scans, points)``, ``points`` as :func:`feature_data` gives them."""
+    start, scans, points = args
+    model = start.free_parameters(scans[0])[1](raw)
+    return jnp.concatenate(
+        [
+            (e * w[:, None]).ravel()
+            for scan, images in zip(scans, points)
+            for e, (_, _, w) in zip(model.site_errors(scan, [(rc, ij) for rc, ij, _ in images]), images)
+        ]
+    )
+
+
+def count_features(points) -> Array:
+    """How many features (not padding) the feature stage's data ``points`` hold."""
+    return sum(jnp.sum(w) for images in points for _, _, w in images)
+
+
+def point_loss(raw, args) -> Array:
+    """Half the mean square of :func:`point_residuals` over the features (not the padding)."""
+    return jnp.sum(point_residuals(raw, args) ** 2) / (4 * count_features(args[2]))
+
+
+def pad_features(rc: np.ndarray, ij: np.ndarray) -> tuple:
+    """Features ``(rc, ij)`` (n, 2) padded to the next power of two with weight 0, and their
+    weights (1 for a feature): every scanner's feature fit then has one of a few shapes, and its
+    compiled solve is reused, although the features found differ from scan to scan."""
+    n = len(rc)
+    pad = (1 << max(n - 1, 0).bit_length()) - n
+    zeros = np.zeros((pad, 2))
+    return (
+        jnp.asarray(np.concatenate([rc, zeros])),
+        jnp.asarray(np.concatenate([ij, zeros.astype(np.asarray(ij).dtype)])),
+        jnp.asarray(np.r_[np.ones(n), np.zeros(pad)]),
+    )
+
+
+def feature_data(train: list, factor: int) -> tuple:
+    """A feature stage's data: per scan, per image, the fitted features ``(rc, ij)`` on the
+    scans coarsened by ``factor`` (:func:`~jaxafm.identify.calibration_scan.coarse_pixels`),
+    padded (:func:`pad_features`)."""
+    return tuple(tuple(pad_features(coarse_pixels(rc, factor), ij) for rc, ij in images) for images in train)
+
+
+def image_residuals(raw, args) -> Array:
+    """The model's image less the measured one, both blurred by ``kernel``, weighted by the
+    training ``masks`` (scan, 2, lines, pixels), trace and retrace, in fractions of the
+    measured depth. ``args = (start model, scans, (kernel, masks))``."""
+    start, scans, (kernel, masks) = args
+    model = start.free_parameters(scans[0])[1](raw)
+    out = []
+    for scan, mask in zip(scans, masks):
+        image = model.image(scan)
+        for w, m, z in zip(mask, (image.trace, image.retrace), (scan.trace, scan.retrace)):
+            out.append((w * (blur(m, kernel) - blur(z, kernel)) / scan.depth_scale).ravel())
+    return jnp.concatenate(out)
+
+
+def image_loss(raw, args) -> Array:
+    """Half the mean square of :func:`image_residuals`."""
+    return 0.5 * jnp.mean(image_residuals(raw, args) ** 2)
+
+
+# ---------------------------------------------------------------------------------------------
+# One stage
+
+
+@dataclasses.dataclass(frozen=True)
+class StageFit:
+    """What :func:`fit_stage` returns: the fitted ``model``, the solver's ``steps``, whether it
+    ``converged``, and the mean square residual ``loss`` (features: of the site errors in
+    pitches; images: in fractions of the depth)."""
+
+    model: ScanModel
+    steps: int
+    converged: bool
+    loss: float
+
+
+def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan, max_steps: int) -> StageFit:
+    """One stage fitted from ``model`` with ``plan``'s solver: the feature points (``data``:
+    per scan, per image ``(rc, ij, weight)``, :func:`feature_data`) or the images (``data``:
+    ``(kernel, masks)``) of ``scans``.
+
+    Raises:
+        RuntimeError: when the loss is not finite, naming the stage and the solver.
+    """
+    images = stage.kind is StageKind.IMAGES
+    residuals, loss_fn = (image_residuals, image_loss) if images else (point_residuals, point_loss)
+    model = model.as_float64()
+    args = (model, tuple(scans), data)
+    raw0, rebuild = model.free_parameters(scans[0])
+    # the path at fixed pixels is smooth in the parameters, a finite difference is as good there
+    # as the exact second derivative (the same tip path after the stage, to 0.01 nm, at 256²) and
+    # compiles nothing more; the images are not (3.6 against 3.3 nm after the image stage)
+    curvature = "jvp" if images else "difference"
+    raw, steps, ok = solve(
+        plan.solver, residuals, loss_fn, raw0, max_steps, plan.rtol, plan.atol, args, curvature
+    )
+    r = residual_values(residuals, raw, args)
+    loss = float(np.mean(r**2) if images else np.sum(r**2) / (2 * count_features(data)))
+    if not np.isfinite(loss):
+        raise RuntimeError(
+            f"step A stage '{stage.label}' diverged with {plan.solver} (loss {loss}); try another solver "
+            "or a smaller model"
+        )
+    return StageFit(rebuild(raw), steps, ok, loss)
+
+
+def check_plan(plan: FitPlan, stages: Sequence[Stage]) -> list:
+    """The stages' step limits (:func:`stage_steps`), each checked with the plan's solver and
+    tolerances (:func:`~jaxafm.identify.fit.check_solver`)."""
+    limits = stage_steps(plan.max_steps, stages)
+    for limit in limits:
+        check_solver(plan.solver, limit, plan.rtol, plan.atol)
+    return limits
