@@ -448,21 +448,7 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     if cut < 0:
         raise ValueError(f"{path} is not a Nanosurf .nid file (no '#!' line between header and data)")
     head = _nid_header(path, raw[:cut].decode("utf-8", errors="replace"))
-    groups = head["DataSet"]
-    order = [
-        groups[f"Gr{g}-Ch{c}"]
-        for g in range(int(groups.get("GroupCount", 0)))
-        for c in range(int(groups.get(f"Gr{g}-Count", 0)))
-        if f"Gr{g}-Ch{c}" in groups
-    ]
-    try:
-        blocks = [
-            (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
-        ]
-        for h, *_ in blocks:
-            float(h["Dim0Range"]), float(h["Dim1Range"]), float(h["Dim2Min"]), float(h["Dim2Range"])
-    except (KeyError, ValueError) as e:
-        raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
+    blocks = _nid_channels(path, head)
     frame = NID_FRAMES[direction or "trace"]
     channel = channel or "Topography"
     names = [f"{h.get('Dim2Name')} ({h.get('Frame')})" for h, *_ in blocks]
@@ -501,6 +487,31 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     size = tuple(float(h[f"Dim{k}Range"]) * LENGTH_TO_NM[units["xy"]] for k in (0, 1))
     first_row = {"Up": "bottom"}.get(up)  # Down: the file does not say where its row 0 lies
     return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row)
+
+
+def _nid_channels(path: Path, head: dict) -> list:
+    """The channels of a .nid header in the order their data are stored: ``(section, lines,
+    points, bits)`` each.
+
+    Raises:
+        ValueError: a channel's section lacks or garbles a key.
+    """
+    groups = head["DataSet"]
+    order = [
+        groups[f"Gr{g}-Ch{c}"]
+        for g in range(int(groups.get("GroupCount", 0)))
+        for c in range(int(groups.get(f"Gr{g}-Count", 0)))
+        if f"Gr{g}-Ch{c}" in groups
+    ]
+    try:
+        blocks = [
+            (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
+        ]
+        for h, *_ in blocks:
+            float(h["Dim0Range"]), float(h["Dim1Range"]), float(h["Dim2Min"]), float(h["Dim2Range"])
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
+    return blocks
 
 
 def _read_gwy(path: Path, channel: Optional[str]) -> _Stored:
