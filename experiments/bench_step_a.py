@@ -39,8 +39,8 @@ import matplotlib.pyplot as plt
 
 from jaxafm.config import CalibrationModel, Grating, SimulatedCalibration
 from jaxafm.identify import calibration, fit, geodesic
-from jaxafm.identify.step_a import simulate_calibration
 from jaxafm.instrument.afm import RasterScan, raster_times, render
+from jaxafm.jobs.calibrate import calibration_scans
 
 
 def path_error(model: calibration.ScanModel, scan, truth: RasterScan) -> dict:
@@ -87,7 +87,7 @@ def main():
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
     scans = [
-        simulate_calibration(SimulatedCalibration(pixels=a.pixels, seed=seed), Grating(rotation_deg=0.0))
+        calibration_scans(SimulatedCalibration(pixels=a.pixels, seed=seed), Grating(rotation_deg=0.0))
         for seed in range(a.seeds)
     ]
     spec = CalibrationModel(name="gpi")

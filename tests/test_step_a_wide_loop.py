@@ -4,8 +4,9 @@ Its own module so that ``--dist loadfile`` can hand it to whichever worker is fr
 import numpy as np
 
 from jaxafm.config import Grating, SimulatedCalibration
-from jaxafm.identify import calibration, step_a
+from jaxafm.identify import calibration
 from jaxafm.instrument.afm import default_afm
+from jaxafm.jobs import calibrate
 
 
 def _true_model(sim):
@@ -22,7 +23,7 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     nearest match leaves it about half a pitch (500 nm rms) off."""
     afm = default_afm(loop_width=0.177, creep_gamma=0.01, coupling=0.0003, noise_std=0.2)
     spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
-    (scan,), sim = step_a.simulate_calibration(spec, Grating(pitch_nm=1000, rotation_deg=0), afm)
+    (scan,), sim = calibrate.calibration_scans(spec, Grating(pitch_nm=1000, rotation_deg=0), afm)
     trace, retraces = scan.feature_matches()
     true = _true_model(sim)
 

@@ -2,9 +2,10 @@
 
 ``features`` and ``line_grating`` (what an image shows), ``fit`` (fitting hysteresis models to
 a record), ``calibration`` (step A's end-to-end fit of the scanner to a grating image pair),
-``inverse`` (compensation), ``actuator_fit`` (the ``jaxafm fit`` job) and ``step_a`` (the
-``jaxafm calibrate`` job). Imports the model, the instrument and the shared leaves; importing
-it switches JAX to float64 (``jaxafm._precision``).
+``inverse`` (compensation), ``compensate`` (the drive that makes a model follow a trajectory,
+after the initialisation cycle) and ``step_a`` (step A on the simulated AFM: calibration scans,
+the fitted scanner's twin, compensated scans and their errors). Imports the model, the
+instrument and the shared leaves; importing it switches JAX to float64 (``jaxafm._precision``).
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)

@@ -10,7 +10,7 @@ Readers convert to nm and say so in ``meta``: the Nanosurf text export and binar
 ``formats`` extra) Bruker .spm, Igor .ibw, JPK .jpk and TopoStats files, and
 Gwyddion .gwy through gwyfile. What a file lacks (its size, height unit, row
 order, fast axis, line rate, direction) the caller gives, as a config's
-``ImageFile`` does (:func:`read_image_file`).
+``ImageFile`` does.
 
 Saved images (``save_image``/``load_image``) are ``.npz`` files holding ``z``
 (float64, nm) and ``meta_json``, a JSON document ``{"format":
@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
-from ..config.common import ImageFile, resolve_data_path
 from ..config.names import LENGTH_TO_NM
 
 if TYPE_CHECKING:
@@ -310,29 +309,6 @@ def _pixel_size(path: Path, shape: tuple, given, own: Optional[tuple]) -> tuple:
             "remove it to use the file's"
         )
     return (w / cols, h / rows)
-
-
-def read_image_file(spec, config_path, key: str) -> AFMImage:
-    """The image a config key names, with the key's metadata (:func:`read_image`).
-
-    Arguments:
-        spec: the key's ``ImageFile``, or its path alone.
-        config_path: the config file; a relative path is relative to it.
-        key: the key as the user wrote it (``data.trace``), named in errors.
-
-    Returns:
-        The image; ``meta["source"]`` is the path as the config gives it.
-
-    Raises:
-        FileNotFoundError, ValueError: naming the config, the key, the file and the value.
-    """
-    spec = ImageFile.model_validate(spec)
-    given = spec.model_dump(exclude={"path"}, exclude_none=True, exclude_unset=True)
-    try:
-        image = read_image(resolve_data_path(spec.path, config_path), **given)
-    except (ValueError, FileNotFoundError) as e:
-        raise type(e)(f"{config_path}: {key}: {e}") from None
-    return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
 
 
 def _length_nm(path: Path, key: str, text: str) -> float:
