@@ -42,8 +42,8 @@ from jaxafm.identify.image_ops import gaussian_kernel
 from jaxafm.identify.scan_model import KEY, ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
 from jaxafm.identify.staged_fit import identify as identify_scanner
 from jaxafm.identify.stages import FitPlan
-from jaxafm.identify.step_a import simulate_calibration
 from jaxafm.instrument.afm import RasterScan, raster_times, render
+from jaxafm.jobs.calibrate import calibration_scans
 
 
 def path_error(model: ScanModel, scan, truth: RasterScan) -> dict:
@@ -89,7 +89,7 @@ def main():
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
     scans = [
-        simulate_calibration(
+        calibration_scans(
             SimulatedCalibration(pixels=a.pixels, seed=seed), CalibrationLattice(rotation_deg=0.0)
         )
         for seed in range(a.seeds)

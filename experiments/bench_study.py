@@ -52,6 +52,9 @@ from jaxafm.config import StudyConfig
 from jaxafm.identify.inverse import inverse_and_state
 from jaxafm.instrument.afm import render
 from jaxafm.instrument.samples import Particles
+from jaxafm.jobs import Output
+from jaxafm.jobs import study as job
+from jaxafm.jobs.run import workspace_layout
 from jaxafm.study import monte_carlo as study
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,14 +81,17 @@ def timed_chunks(cfg, contexts, draws, batch: int, mesh: Mesh, calls: int) -> di
     part = lambda k: {n: v[k * batch : (k + 1) * batch] for n, v in draws.items()}
     t0 = time.perf_counter()
     for k in range(8):
-        r = study.run_chunk(cfg, contexts, part(k), mesh)
+        r = study.run_chunk(contexts, part(k), mesh, job.trial_settings(cfg))
         if k == 0:
             first = time.perf_counter() - t0  # compilation, mostly
         if np.any(~r["ABC_found"] & (r["ABC_lines"] > study.FIRST_PASS_LINES)):
             break
     warm_s, used = time.perf_counter() - t0, k + 1
     t0 = time.perf_counter()
-    lines = [study.run_chunk(cfg, contexts, part(used + k), mesh)["ABC_lines"] for k in range(calls)]
+    lines = [
+        study.run_chunk(contexts, part(used + k), mesh, job.trial_settings(cfg))["ABC_lines"]
+        for k in range(calls)
+    ]
     s = (time.perf_counter() - t0) / calls
     lines = np.stack(lines)
     return {
@@ -107,13 +113,13 @@ def python_loop(cfg, contexts, draws, n: int, mesh: Mesh) -> dict:
     one = lambda k: {m: v[k : k + 1] for m, v in draws.items()}
     t0 = time.perf_counter()
     for k in range(len(draws["trial"])):
-        r = study.run_chunk(cfg, contexts, one(k), mesh)
+        r = study.run_chunk(contexts, one(k), mesh, job.trial_settings(cfg))
         if r["ABC_lines"][0] > study.FIRST_PASS_LINES:
             break
     warm_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     for j in range(k + 1, k + 1 + n):
-        study.run_chunk(cfg, contexts, one(j), mesh)
+        study.run_chunk(contexts, one(j), mesh, job.trial_settings(cfg))
     s = (time.perf_counter() - t0) / n
     return {
         "seconds_per_trial": s,
@@ -180,11 +186,11 @@ def batch_breakdown(cfg, contexts, draws, batch: int, mesh: Mesh, calls: int) ->
     try:
         t0 = time.perf_counter()
         for k in range(calls):
-            study.run_chunk(cfg, contexts, part(k), mesh)
+            study.run_chunk(contexts, part(k), mesh, job.trial_settings(cfg))
         total = (time.perf_counter() - t0) / calls
     finally:
         study.trials = trials
-    work, mean_path = study._layout(cfg)[0], contexts["A+B"][2]
+    work, mean_path = workspace_layout(cfg)[0], contexts["A+B"].mean_path
     locate = jax.vmap(study.image_position, (None, None, None, 0))
     place = lambda k: np.asarray(
         locate(
@@ -273,10 +279,10 @@ def main():
     print("(a) B+C with a fixed model: step A's stored model, one survey ...")
     n = max(a.batches) * (a.calls + 8)
     cfg = config(n, MODEL)
-    contexts, info = study.prepare_scanner(
-        cfg, ROOT / "configs" / "study.yaml", 0, study.scanner_draws(cfg)[0], tmp, print
+    contexts, info = job.prepare_scanner(
+        cfg, ROOT / "configs" / "study.yaml", 0, job.scanner_draws(cfg)[0], Output(tmp), print
     )
-    draws = study.trial_draws(cfg, study._layout(cfg)[2])
+    draws = job.trial_draws(cfg, workspace_layout(cfg)[2])
     rows = []
     for d in sorted({1, len(devices)}):
         mesh = Mesh(np.array(devices[:d]), ("trials",))
@@ -317,7 +323,7 @@ def main():
     per_device = -(-best["batch"] // best["devices"])
     print(f"per drive sample and trial (one local-scan line, {per_device} trials on one device, us):")
     ctx = contexts["A+B"]
-    costs = parts_per_sample(ctx[0], ctx[1], per_device)
+    costs = parts_per_sample(ctx.positioner, ctx.stand, per_device)
     for k, v in costs.items():
         print(f"  {k:42s} {v['us']:7.3f}   (compile {v['compile_s']:.1f} s)")
     ls = cfg.local_scan
@@ -338,14 +344,14 @@ def main():
         print(f"(b) the full pipeline: step A on a new scanner, then {a.full} trials ...")
         cfg = config(a.full, None)
         t0 = time.perf_counter()
-        contexts, info = study.prepare_scanner(
-            cfg, ROOT / "configs" / "study.yaml", 0, study.scanner_draws(cfg)[0], tmp / "full", print
+        contexts, info = job.prepare_scanner(
+            cfg, ROOT / "configs" / "study.yaml", 0, job.scanner_draws(cfg)[0], Output(tmp / "full"), print
         )
         prep = time.perf_counter() - t0
-        draws = study.trial_draws(cfg, study._layout(cfg)[2])
+        draws = job.trial_draws(cfg, workspace_layout(cfg)[2])
         mesh = Mesh(np.array(devices), ("trials",))
         t0 = time.perf_counter()
-        study.run_chunk(cfg, contexts, draws, mesh)
+        study.run_chunk(contexts, draws, mesh, job.trial_settings(cfg))
         trials_s = time.perf_counter() - t0
         full = {
             "trials": a.full,

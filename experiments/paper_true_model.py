@@ -14,10 +14,10 @@ from pathlib import Path
 import yaml
 
 import jaxafm
-from jaxafm.cli import run_folder
 from jaxafm.config import RunConfig
+from jaxafm.jobs import Output, run_folder
+from jaxafm.jobs import run as run_job
 from jaxafm.model.io import save_model
-from jaxafm.position import strategy
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,7 +32,7 @@ def main() -> None:
     with run_folder(out, "run", config, cfg, overwrite=True) as folder:
         folder.prepare()  # the true model is one of the run's files
         save_model(jaxafm.default_scanner().without("drift", "noise"), model)
-        strategy.run(cfg, config, out)
+        run_job.run(cfg, config, Output(out, lambda: None))  # prepared above
 
 
 if __name__ == "__main__":

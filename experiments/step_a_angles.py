@@ -35,6 +35,7 @@ import matplotlib.pyplot as plt
 from jaxafm.config import CalibrationLattice, CalibrationModel, CalibrationSolver, SimulatedCalibration
 from jaxafm.identify import step_a
 from jaxafm.instrument.afm import Raster
+from jaxafm.jobs import calibrate
 
 ROOT = Path(__file__).resolve().parents[1]
 AMPLITUDES_V = (0.1, 0.2, 0.5, 1.0, 3.0)
@@ -93,12 +94,12 @@ def main() -> None:
     )
     results = {}
     for name, angles in SETS.items():
-        scans, sim = step_a.simulate_calibration(
+        scans, sim = calibrate.calibration_scans(
             SimulatedCalibration(pixels=args.pixels, angles_deg=angles), grating
         )
         print(f"{name}: identifying from {len(scans)} scan(s) of {args.pixels}^2 px ...", flush=True)
         start = time.perf_counter()
-        ident = step_a.identify_model(scans, spec, solver, grating)
+        ident = calibrate.identify_model(scans, spec, solver, grating)
         fit_s = time.perf_counter() - start
         true = sim.afm.scanner.without("drift", "noise")
         ratios = minor_loop_ratios(true, ident.model.scanner, sim.afm.u_max)
@@ -109,7 +110,7 @@ def main() -> None:
             "minor_loop_max_error_pct": (100 * np.abs(ratios - 1).max(axis=0)).tolist(),
             "linearity_x_at_0deg": linearity(sim, scans, ident.model, 0.0),
             "linearity_y_at_90deg": linearity(sim, scans, ident.model, 90.0),
-        } | step_a.identification_metrics(ident)
+        } | calibrate.identification_metrics(ident)
         r = results[name]
         print(
             f"  {fit_s:.0f} s; minor loops max |fit/true - 1|: x {r['minor_loop_max_error_pct'][0]:.2f} %, "

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from jaxafm.config import CalibrationLattice, CalibrationModel, CalibrationSolver, SimulatedCalibration
 from jaxafm.identify import step_a
+from jaxafm.jobs import calibrate
 
 ROOT = Path(__file__).resolve().parents[1]
 ROTATIONS_DEG = (0.0, 1.5, 3.0)
@@ -45,11 +46,11 @@ def main() -> None:
             sim_spec = SimulatedCalibration(
                 pixels=args.pixels, angles_deg=[0.0, 90.0], lattice_rotation_deg=rot
             )
-            scans, sim = step_a.simulate_calibration(sim_spec, grating)
+            scans, sim = calibrate.calibration_scans(sim_spec, grating)
             kind = "pits" if pits else "pillars"
             print(f"{kind}, turned {rot:g} deg: identifying ...", flush=True)
-            ident = step_a.identify_model(scans, spec, solver, grating, log=lambda *_: None)
-            m = step_a.identification_metrics(ident) | step_a.parameters_vs_truth(sim, ident.model)
+            ident = calibrate.identify_model(scans, spec, solver, grating, log=lambda *_: None)
+            m = calibrate.identification_metrics(ident) | step_a.parameters_vs_truth(sim, ident.model)
             row = {
                 "lattice": kind,
                 "rotation_deg": rot,

@@ -223,18 +223,20 @@ def _examples(radii: np.ndarray, k: int = 3) -> np.ndarray:
     return order[np.linspace(0, len(order) - 1, k).round().astype(int)]
 
 
-def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
+def local_scans(r, truth: np.ndarray, radii: np.ndarray, path) -> None:
     """Step C: the local-scan lines of three targets, about the centre each scan found, with
-    the particle where it truly lies relative to the tip after the final move."""
+    the particle where it truly lies relative to the tip after the final move. ``r``: the
+    trials' results (``jaxafm.position.trials.TrialResults``, NumPy arrays) with step C."""
     names = {0: ("search (x)", "0.6"), 1: ("centre (y)", "tab:blue"), 2: ("centre (x)", "tab:red")}
     picks = _examples(radii)
     fig, axes = subplots(1, len(picks), figsize=(5.2 * len(picks), 5.4))
+    step_c, scan = r.step_c, r.step_c.scan
     for ax, i in zip(np.atleast_1d(axes), picks):
-        c = r["c_centre"][i]
-        n = int(r["c_lines"][i])
+        c = scan.centre[i]
+        n = int(scan.lines[i])
         for j in range(n):
-            phase = int(r["c_phases"][i, j])
-            a, b = r["c_starts"][i, j] - c, r["c_ends"][i, j] - c
+            phase = int(scan.phases[i, j])
+            a, b = scan.starts[i, j] - c, scan.ends[i, j] - c
             label, colour = names[phase]
             ax.plot(
                 [a[0], b[0]],
@@ -242,16 +244,16 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
                 color=colour,
                 lw=1.5,
                 alpha=0.8,
-                label=label if j == min(k for k in range(n) if int(r["c_phases"][i, k]) == phase) else None,
+                label=label if j == min(k for k in range(n) if int(scan.phases[i, k]) == phase) else None,
             )
-        p = truth[i] - r["c_tip"][i]
+        p = truth[i] - step_c.tip[i]
         ax.add_patch(Circle(p, radii[i], fill=False, color="k", lw=1.5, label="particle (true, vs tip)"))
-        guess = r["c_starts"][i, 0] * 0.5 + r["c_ends"][i, 0] * 0.5 - c
+        guess = scan.starts[i, 0] * 0.5 + scan.ends[i, 0] * 0.5 - c
         ax.plot(*guess, "x", color="tab:orange", ms=10, mew=2, label="target after A+B")
         ax.plot(0, 0, "k+", ms=14, mew=1.5, label="centre found")
         ax.set(
-            title=f"R = {radii[i]:.1f} nm: {n} lines, error {r['c_error_nm'][i]:.2f} nm "
-            f"({r['c_error_nm'][i] / radii[i]:.3f} R)",
+            title=f"R = {radii[i]:.1f} nm: {n} lines, error {step_c.error_nm[i]:.2f} nm "
+            f"({step_c.error_nm[i] / radii[i]:.3f} R)",
             xlabel="x - centre found [nm]",
             ylabel="y - centre found [nm]",
             aspect="equal",
@@ -262,24 +264,24 @@ def local_scans(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
+def pushes(r, truth: np.ndarray, radii: np.ndarray, path) -> None:
     """The push: three examples (tip path, particle before and after, goal and its tolerance),
-    and the miss distance of every particle in units of its radius."""
+    and the miss distance of every particle in units of its radius. ``r``: the trials' results
+    (``jaxafm.position.trials.TrialResults``, NumPy arrays) with the push."""
     picks = _examples(radii)
+    final, goal = r.push.final, r.push_goal
     fig, axes = subplots(1, len(picks) + 1, figsize=(5 * (len(picks) + 1), 5))
     for ax, i in zip(axes, picks):
         o = truth[i]
-        tip = r["push_path"][i] - o
+        tip = r.push.first.path[i] - o
         ax.plot(tip[:, 0], tip[:, 1], "-", color="tab:blue", lw=1, label="tip (true), first push")
         ax.add_patch(
             Circle((0, 0), radii[i], fill=False, color="0.5", lw=1.5, ls="--", label="particle before")
         )
-        ax.add_patch(
-            Circle(r["push_final"][i] - o, radii[i], fill=False, color="k", lw=1.5, label="particle after")
-        )
-        g = r["push_goal"][i] - o
+        ax.add_patch(Circle(final[i] - o, radii[i], fill=False, color="k", lw=1.5, label="particle after"))
+        g = goal[i] - o
         ax.plot(*g, "*", color="tab:red", ms=12, label="goal")
-        miss = np.linalg.norm(r["push_final"][i] - r["push_goal"][i])
+        miss = np.linalg.norm(final[i] - goal[i])
         ax.set(
             title=f"R = {radii[i]:.1f} nm: miss {miss:.2f} nm",
             xlabel="x [nm]",
@@ -287,7 +289,7 @@ def pushes(r: dict, truth: np.ndarray, radii: np.ndarray, path) -> None:
             aspect="equal",
         )
         ax.legend(fontsize=7, loc="best")
-    miss = np.linalg.norm(r["push_final"] - r["push_goal"], axis=-1) / radii
+    miss = np.linalg.norm(final - goal, axis=-1) / radii
     ax = axes[-1]
     ax.hist(miss, bins=40, color="tab:blue")
     ax.set(

@@ -12,7 +12,8 @@ import pytest
 from test_study import cli, results, write
 from typer.testing import CliRunner
 
-from jaxafm.cli import app, read_manifest
+from jaxafm.cli import app
+from jaxafm.jobs import read_manifest
 
 
 def _gloo() -> bool:

@@ -20,10 +20,11 @@ from jaxafm.instrument.images import (
     from_scan,
     load_image,
     read_image,
-    read_image_file,
     save_image,
 )
 from jaxafm.instrument.samples import Grating
+from jaxafm.jobs import Output
+from jaxafm.jobs.inputs import read_image_file
 
 GRATING_FILE = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 
@@ -308,7 +309,7 @@ def _read(tmp_path: Path, spec) -> AFMImage:
 
 
 def test_tiff_pair_with_size_from_the_calibrate_config(tmp_path):
-    from jaxafm.identify.step_a import read_calibration
+    from jaxafm.jobs.calibrate import read_calibration
 
     _tiff(tmp_path / "trace.tif")
     _tiff(tmp_path / "retrace.tif", Z_UM[:, ::-1])
@@ -331,7 +332,7 @@ def test_tiff_pair_with_size_from_the_calibrate_config(tmp_path):
 def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
     """A 1-D grating of 16 px pitch over 128 px of 4096 nm: the diagnosis fits a 512 nm pitch.
     Stored with its lines as columns (fast_axis: y), it is transposed first."""
-    from jaxafm.diagnose.run import run
+    from jaxafm.jobs.diagnose import run
 
     x = np.arange(128)
     z_um = np.where(x % 16 < 8, 0.0, 0.03) + np.random.default_rng(0).normal(0, 1e-4, (32, 128))
@@ -339,7 +340,7 @@ def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
     image = {"path": "g.tif", "size_nm": [4096, 1024], "z_unit": "um", "fast_axis": fast_axis}
     cfg, path = _config(tmp_path, {"image": image, "candidates": ["bow"], "max_steps": 5}, DiagnoseConfig)
     out = tmp_path / "out"
-    run(cfg, path, out, prepare=out.mkdir, log=lambda line: None)
+    run(cfg, path, Output(out, prepare=out.mkdir), log=lambda line: None)
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["data"]["pixels"] == [32, 128] and doc["data"]["pixel_size_nm"] == [32.0, 32.0]
     assert doc["nominal"]["fitted"]["pitch"] == pytest.approx(512.0, abs=0.1)
@@ -347,14 +348,14 @@ def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
 
 
 def test_scans_read_their_pairs_through_the_config_keys(tmp_path):
-    from jaxafm.diagnose.run import run
+    from jaxafm.jobs.diagnose import run
 
     _tiff(tmp_path / "t.tif")
     pair = {"trace": "t.tif", "retrace": {"path": "t.tif", "size_nm": [8000, 6000]}, "line_rate_hz": 1.0}
     scans = {"grating": {"pitch_nm": 400, "edge_width_nm": 20}, "pairs": [pair, pair]}
     cfg, path = _config(tmp_path, {"scans": scans}, DiagnoseConfig)
     with pytest.raises(ValueError, match=r"c.yaml: scans.pairs\[0\].trace: .*t.tif: .*give size_nm"):
-        run(cfg, path, tmp_path / "out", log=lambda line: None)
+        run(cfg, path, Output(tmp_path / "out"), log=lambda line: None)
 
 
 def test_a_plain_path_still_names_an_image(tmp_path):

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from jaxafm.cli import app, read_manifest
-from jaxafm.cli.output import MANIFEST
-from jaxafm.identify import actuator_fit
+from jaxafm.cli import app
+from jaxafm.jobs import JOBS, MANIFEST, Output, read_manifest
+from jaxafm.jobs import fit as fit_job
 
 runner = CliRunner()
 
@@ -50,6 +50,27 @@ def test_a_run_records_its_files_and_config(tmp_path):
     assert m["status"] == "complete" and m["command"] == "fit"
     assert set(m["files"]) == {"metrics.json", "fit.png", "model_pi.json"}
     assert m["config"]["models"][0]["operators"] == 4 and m["foreign"] == []
+
+
+def test_a_job_writes_the_files_its_command_plans(tmp_path):
+    """The files a job writes, as its :class:`~jaxafm.jobs.Output` records them, are every file
+    in its folder and each is one the command table plans for its command and config."""
+    from jaxafm.config import ActuatorFitConfig, load_config
+
+    path = config(tmp_path, FIT.replace("models:", "models:\n  - {name: line, kind: linear, max_steps: 5}"))
+    cfg = load_config(path, ActuatorFitConfig)
+    out = Output(tmp_path / "direct")
+    JOBS["fit"].run(cfg, path, out, log=lambda line: None)
+    on_disk = sorted(p.relative_to(out.path).as_posix() for p in out.path.rglob("*") if p.is_file())
+    assert sorted(out.written) == on_disk == ["fit.png", "metrics.json", "model_line.json", "model_pi.json"]
+    planned = JOBS["fit"].planned_outputs(cfg)
+    assert all(any(Path(f).match(pattern) for pattern in planned) for f in out.written), planned
+
+
+def test_every_command_is_a_job_of_the_table():
+    """The command line's commands are the command table's, and ``effects``."""
+    commands = {c.name or c.callback.__name__ for c in app.registered_commands}
+    assert commands == set(JOBS) | {"effects"}
 
 
 def test_overwrite_removes_only_what_jaxafm_wrote(tmp_path):
@@ -108,7 +129,7 @@ def test_a_failed_run_is_marked_and_the_next_one_replaces_it(tmp_path, monkeypat
     """A fit that fails after writing its first model leaves a folder marked 'failed' (the model
     listed as the failed run's file); the same command, without a flag, replaces it."""
     calls = []
-    real = actuator_fit.fit_operator
+    real = fit_job.fit_operator
 
     def fail_second(*args, **kwargs):
         calls.append(1)
@@ -116,7 +137,7 @@ def test_a_failed_run_is_marked_and_the_next_one_replaces_it(tmp_path, monkeypat
             raise RuntimeError("the solver broke down")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(actuator_fit, "fit_operator", fail_second)
+    monkeypatch.setattr(fit_job, "fit_operator", fail_second)
     two = FIT.replace("output: out", "  - {name: pi2, kind: pi, operators: 5, max_steps: 50}")
     cfg = config(tmp_path, two)
     out = tmp_path / "out"
@@ -127,7 +148,7 @@ def test_a_failed_run_is_marked_and_the_next_one_replaces_it(tmp_path, monkeypat
     m = read_manifest(out)
     assert m["status"] == "failed" and "the solver broke down" in m["error"]
     assert m["files"] == ["model_pi.json"]
-    monkeypatch.setattr(actuator_fit, "fit_operator", real)
+    monkeypatch.setattr(fit_job, "fit_operator", real)
     again = fit(cfg)
     assert again.exit_code == 0, again.output
     assert "replacing the unfinished results (failed)" in again.output
@@ -138,7 +159,7 @@ def test_ctrl_c_says_what_was_saved_and_how_to_go_on(tmp_path, monkeypatch):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(actuator_fit, "fit_operator", interrupt)
+    monkeypatch.setattr(fit_job, "fit_operator", interrupt)
     cfg = config(tmp_path)
     result = fit(cfg)
     out = tmp_path / "out"
@@ -203,7 +224,7 @@ def test_a_bug_is_reported_as_one_and_debug_shows_the_traceback(tmp_path, monkey
     def bug(*args, **kwargs):
         raise IndexError("index 3 is out of bounds")
 
-    monkeypatch.setattr(actuator_fit, "fit_operator", bug)
+    monkeypatch.setattr(fit_job, "fit_operator", bug)
     cfg = config(tmp_path)
     result = fit(cfg)
     assert result.exit_code == 3 and "bug in jaxafm" in result.output and "--debug" in result.output

@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from jaxafm.config import RunConfig
-from jaxafm.identify.step_a import run_cycle
-from jaxafm.instrument.afm import AFM, Raster, default_afm
+from jaxafm.instrument.afm import AFM, Raster, default_afm, run_cycle
 from jaxafm.instrument.samples import Indented, Particles, Plane, Tip, surface
 from jaxafm.position.landmarks import (
     LandmarkGrid,
@@ -306,12 +305,14 @@ def test_push_carries_the_particle_to_the_goal_and_misses_when_off_centre(drifti
     d, dist = jnp.array([0.6, 0.8]), jnp.asarray(150.0)
     res = jax.tree.map(lambda a: a[2], found[0])  # the local scan from p + (10, 10) nm
     push_once = eqx.filter_jit(push)  # compiled once for both pushes
-    final, moved, path, _ = push_once(pos, Plane(), stand, res.centre, p, R, d, dist, jax.random.key(5))
+    pushed, _ = push_once(pos, Plane(), stand, res.centre, p, R, d, dist, jax.random.key(5))
+    final, moved = pushed.final, pushed.contact
     assert bool(moved)
     assert float(jnp.linalg.norm(final - (p + dist * d))) < 2.0  # nm
     # aimed 2 (R + tip radius) to the side, the tip passes the particle by: it stays put
     side = jnp.array([-0.8, 0.6]) * 2 * (R + pos.afm.tip.radius)
-    final, moved, _, _ = push_once(pos, Plane(), stand, res.centre + side, p, R, d, dist, jax.random.key(5))
+    pushed, _ = push_once(pos, Plane(), stand, res.centre + side, p, R, d, dist, jax.random.key(5))
+    final, moved = pushed.final, pushed.contact
     assert not bool(moved)
     np.testing.assert_allclose(final, p)
 
@@ -338,8 +339,14 @@ def test_a_corrective_push_brings_a_short_push_towards_the_goal():
         res, s = local_scan(pos, sample, s, p + 8.0, jnp.asarray(R), k1)
         return res.found, push_and_check(pos, sample, s, res.centre, p, R, d, distance, k2, approach=approach)
 
-    found, (final, touched, _, first, made, _) = jax.vmap(scan_push_and_check)(
+    found, (checked, _) = jax.vmap(scan_push_and_check)(
         centres, directions, jax.random.split(jax.random.key(1), 4)
+    )
+    final, touched, first, made = (
+        checked.final,
+        checked.first.contact,
+        checked.first.final,
+        checked.corrections,
     )
     goal = centres + distance * directions
     miss_first = np.linalg.norm(np.asarray(first - goal), axis=1)
@@ -462,11 +469,11 @@ def test_a_survey_that_finds_no_particle_is_reported_not_a_crash(tmp_path, monke
     from typer.testing import CliRunner
 
     from jaxafm.cli import app
-    from jaxafm.position import strategy
+    from jaxafm.position import survey
 
-    real = strategy.find_targets
+    real = survey.find_targets
     nothing = lambda *a: tuple(x[:0] for x in real(*a))  # what a blank image gives
-    monkeypatch.setattr(strategy, "find_targets", nothing)
+    monkeypatch.setattr(survey, "find_targets", nothing)
     cfg = tmp_path / "run.yaml"
     cfg.write_text(BLANK_RUN)
     result = CliRunner().invoke(app, ["run", str(cfg), "--out", str(tmp_path / "out")])

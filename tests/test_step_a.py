@@ -440,8 +440,8 @@ def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
 def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     """Trace and retrace files, read back with their size, give the scan the images came from."""
     from jaxafm.config import CalibrationImages, CalibrationLattice
-    from jaxafm.identify.step_a import read_calibration
     from jaxafm.instrument.images import from_scan, save_image
+    from jaxafm.jobs.calibrate import read_calibration
 
     scan, (_, out) = _simulated_scan()
     for k in ("trace", "retrace"):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxafm.config import CalibrationImages, CalibrationLattice, SimulatedCalibration
-from jaxafm.identify import features, held_out, staged_fit, step_a
+from jaxafm.identify import features, held_out, staged_fit
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.plausibility import implausible
 from jaxafm.identify.scan_model import ScanModel, ScanModelSpec
@@ -19,6 +19,7 @@ from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
 from jaxafm.instrument.samples import Grating as LineGrating
 from jaxafm.instrument.samples import Tip
+from jaxafm.jobs import Output, calibrate
 
 
 def test_a_90_degree_raster_runs_its_lines_along_y():
@@ -104,7 +105,7 @@ def _scans(angles=(0.0, 90.0), rotation=2.0, pits=False):
     spec = SimulatedCalibration(
         pixels=64, size_nm=6000, angles_deg=list(angles), lattice_rotation_deg=rotation
     )
-    return step_a.simulate_calibration(spec, CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit"))
+    return calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit"))
 
 
 def _true_model(sim):
@@ -187,15 +188,17 @@ def test_default_sensitivity_from_the_stated_range_or_the_images():
     ranged = CalibrationImages(
         scans=[{"trace": "t", "retrace": "r", "line_rate_hz": 1}], scan_range_nm=100_000
     )
-    assert step_a.nominal_sensitivity(ranged, rasters, log=lambda *_: None) == (5000.0, 5000.0)
+    assert calibrate.nominal_sensitivity(ranged, rasters, log=lambda *_: None) == (5000.0, 5000.0)
     bare = ranged.model_copy(update={"scan_range_nm": None})
-    assert step_a.nominal_sensitivity(bare, rasters, log=lambda *_: None) == pytest.approx((468.75, 468.75))
+    assert calibrate.nominal_sensitivity(bare, rasters, log=lambda *_: None) == pytest.approx(
+        (468.75, 468.75)
+    )
     given = ranged.model_copy(update={"sensitivity_nm_per_v": [400.0, 400.0]})
     with pytest.raises(ValueError, match=r"needs \+-11.7 V"):
-        step_a.nominal_sensitivity(given, rasters, log=lambda *_: None)
+        calibrate.nominal_sensitivity(given, rasters, log=lambda *_: None)
     small = ranged.model_copy(update={"scan_range_nm": [5000.0]})
     with pytest.raises(ValueError, match="smaller than the images"):
-        step_a.nominal_sensitivity(small, rasters, log=lambda *_: None)
+        calibrate.nominal_sensitivity(small, rasters, log=lambda *_: None)
 
 
 def _write_pair(tmp_path, name, z, size):
@@ -263,7 +266,7 @@ def test_an_implausible_fit_saves_no_model(tmp_path, monkeypatch):
         compensate=None,
     )
     with pytest.raises(ValueError, match="failed the plausibility checks.*pi: the tip travels 9 µm"):
-        step_a.run(cfg, tmp_path / "c.yaml", tmp_path, log=lambda *_: None)
+        calibrate.run(cfg, tmp_path / "c.yaml", Output(tmp_path), log=lambda *_: None)
     assert not (tmp_path / "model_pi.json").exists() and (tmp_path / "metrics.json").is_file()
 
 

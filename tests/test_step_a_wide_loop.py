@@ -4,11 +4,11 @@ Its own module so that ``--dist loadfile`` can hand it to whichever worker is fr
 import numpy as np
 
 from jaxafm.config import CalibrationLattice, SimulatedCalibration
-from jaxafm.identify import step_a
 from jaxafm.identify.scan_model import ScanModel
 from jaxafm.identify.staged_fit import identify
 from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import default_afm
+from jaxafm.jobs import calibrate
 
 
 def _true_model(sim):
@@ -25,7 +25,7 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     nearest match leaves it about half a pitch (500 nm rms) off."""
     afm = default_afm(loop_width=0.177, creep_gamma=0.01, coupling=0.0003, noise_std=0.2)
     spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
-    (scan,), sim = step_a.simulate_calibration(spec, CalibrationLattice(pitch_nm=1000, rotation_deg=0), afm)
+    (scan,), sim = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000, rotation_deg=0), afm)
     trace, retraces = scan.feature_matches()
     true = _true_model(sim)
 

@@ -20,10 +20,13 @@ from typer.testing import CliRunner
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
+from jaxafm.jobs import Output
+from jaxafm.jobs import study as job
+from jaxafm.jobs.run import workspace_layout
 from jaxafm.model.io import save_model
-from jaxafm.position import strategy
+from jaxafm.position import survey
 from jaxafm.study import monte_carlo as study
-from jaxafm.study.monte_carlo import image_position, nearest_pixel, run
+from jaxafm.study.monte_carlo import Unsurveyed, image_position, nearest_pixel
 
 # step A's model, written beside each config by write() (no committed result is read): the
 # nominal scanner with a known misfit, its major loops 12 % of range wide where the instrument's
@@ -163,7 +166,7 @@ def baseline(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("baseline")
     path = write(tmp)
     cfg = load_config(path, StudyConfig)
-    metrics = run(cfg, path, tmp / "out", log=lambda m: None)
+    metrics = job.run(cfg, path, Output(tmp / "out"), log=lambda m: None)
     killed = start_killed(tmp_path_factory.mktemp("killed"))
     yield tmp / "out", metrics, killed
     killed[2].kill()  # a no-op once the thread has killed it
@@ -209,28 +212,30 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
         tmp_path, trials=4, trials_per_scanner=4, chunk=4, stages=["A+B", "A+B+C", "push"], scanner={}
     )
     cfg = load_config(path, StudyConfig)
-    D = study._layout(cfg)[2]
-    find = strategy.find_features
+    D = workspace_layout(cfg)[2]
+    find = survey.find_features
 
     def losing_two(z, raster, count, pits, *args, **kwargs):
         found = find(z, raster, count, pits, *args, **kwargs)
         lost = np.linalg.norm(found[:, None] - D[[0, 4]][None], axis=-1).min(axis=1) < 150.0  # nm
         return found[~lost] if pits else found
 
-    monkeypatch.setattr(strategy, "find_features", losing_two)
-    contexts, info = study.prepare_scanner(
-        cfg, path, 0, study.scanner_draws(cfg)[0], tmp_path, lambda m: None
+    monkeypatch.setattr(survey, "find_features", losing_two)
+    contexts, info = job.prepare_scanner(
+        cfg, path, 0, job.scanner_draws(cfg)[0], Output(tmp_path), lambda m: None
     )
-    assert info["AB_landmarks_found"] == 7 and not isinstance(contexts["A+B"], str)
+    assert info["AB_landmarks_found"] == 7 and not isinstance(contexts["A+B"], Unsurveyed)
     np.testing.assert_allclose(
-        np.sort(np.asarray(contexts["A+B"][0].frame.commands), 0), np.sort(D[[1, 2, 3, 5, 6, 7, 8]], 0)
+        np.sort(np.asarray(contexts["A+B"].positioner.frame.commands), 0),
+        np.sort(D[[1, 2, 3, 5, 6, 7, 8]], 0),
     )
-    draws = study.trial_draws(cfg, study._layout(cfg)[2])
+    draws = job.trial_draws(cfg, workspace_layout(cfg)[2])
+    settings = job.trial_settings(cfg)
     mesh = Mesh(np.array(jax.devices()[:1]), ("trials",))
     # a first pass of 1 line stops every local scan early (each takes 2 or more: one per axis),
     # so every trial runs again, alone, from the start with every line
     monkeypatch.setattr(study, "FIRST_PASS_LINES", 1)
-    r = study.run_chunk(cfg, contexts, draws, mesh)
+    r = study.run_chunk(contexts, draws, mesh, settings)
     assert np.all(r["ABC_lines"] > 1)
     # measured: A+B 26-30 nm, A+B+C 0.3-0.6 nm in 3 lines each, push misses 5-12 nm
     assert np.all(r["ABC_found"])
@@ -241,7 +246,8 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     # (measured: the same to the last bit)
     monkeypatch.setattr(study, "FIRST_PASS_LINES", cfg.local_scan.max_lines)
     one = [
-        study.run_chunk(cfg, contexts, {k: v[i : i + 1] for k, v in draws.items()}, mesh) for i in range(4)
+        study.run_chunk(contexts, {k: v[i : i + 1] for k, v in draws.items()}, mesh, settings)
+        for i in range(4)
     ]
     assert_same(r, {k: np.concatenate([o[k] for o in one]) for k in r})
 

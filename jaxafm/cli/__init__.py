@@ -1,8 +1,7 @@
-"""The ``jaxafm`` command line: one sub-command per pipeline stage (``commands``) and the
-output folders they write into, with their run manifests (``output``). Imports no JAX until a
-command runs its job."""
+"""The ``jaxafm`` command line (``commands``): one sub-command per job of :mod:`jaxafm.jobs`, a
+thin layer that validates, checks the output folder and runs; ``cache``: JAX's persistent
+compilation cache. Imports no JAX until a command runs its job."""
 
 from .commands import app, main
-from .output import RunFolder, read_manifest, run_folder
 
-__all__ = ["RunFolder", "app", "main", "read_manifest", "run_folder"]
+__all__ = ["app", "main"]

@@ -1,4 +1,6 @@
-"""The ``jaxafm`` command line: one sub-command per pipeline stage."""
+"""The ``jaxafm`` command line: one sub-command per job of the command table
+(:data:`jaxafm.jobs.JOBS`), which it validates the config for, checks the output folder for, and
+runs."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from typing import Optional
 
 import typer
 
-from .output import run_folder, shared_run_folder
+from ..jobs import JOBS, Output, run_folder, shared_run_folder
 
 app = typer.Typer(
     add_completion=False,
@@ -30,34 +32,21 @@ def _fail(message: str, code: int = 2) -> None:
 USER_ERRORS = (ValueError, OSError, RuntimeError)
 
 
-def _launch(
-    config: Path, out: Optional[Path], flags: dict, command: str, job: str, cluster=None, **options
-) -> None:
-    """Validate ``config`` against ``command``'s schema, check the output folder, then
-    ``jaxafm.<job>.run`` it (with ``options``); the folder is prepared only once the job has
-    checked its inputs. Errors become messages (``--debug``: with the traceback); Ctrl-C says
-    what was saved and how to go on. The job's module (and with it JAX) is imported only
-    here, so ``--help`` and a config error stay quick. With ``cluster`` (:func:`_cluster`), this
-    process first joins the others (:func:`_connect`), and only process 0 touches the folder."""
-    import importlib
-
-    from .. import config as configs
+def _launch(config: Path, out: Optional[Path], flags: dict, command: str, cluster=None, **options) -> None:
+    """Validate ``config`` against ``command``'s schema, check the output folder, then run the
+    command's job (with ``options``; :data:`~jaxafm.jobs.JOBS`); the folder is prepared only once
+    the job has checked its inputs. Errors become messages (``--debug``: with the traceback);
+    Ctrl-C says what was saved and how to go on. The job's module (and with it JAX) is imported
+    only here, so ``--help`` and a config error stay quick. With ``cluster`` (:func:`_cluster`),
+    this process first joins the others (:func:`_connect`), and only process 0 touches the folder."""
+    from ..config import load_config
     from .cache import enable_compilation_cache
 
     enable_compilation_cache()
-
-    schema = {
-        "fit": configs.ActuatorFitConfig,
-        "calibrate": configs.CalibrateConfig,
-        "run": configs.RunConfig,
-        "study": configs.StudyConfig,
-        "diagnose": configs.DiagnoseConfig,
-        "predict": configs.PredictConfig,
-        "compensate": configs.CompensateConfig,
-    }[command]
+    job = JOBS[command]
     folder = None
     try:
-        cfg = configs.load_config(config, schema)
+        cfg = load_config(config, job.schema)
         path = out or Path(cfg.output)
         if cluster is not None:
             _connect(**cluster)
@@ -66,9 +55,7 @@ def _launch(
         ) as folder:
             if folder.resuming:
                 options["resume"] = True
-            importlib.import_module(f"jaxafm.{job}").run(
-                cfg, config, path, prepare=folder.prepare, log=typer.echo, **options
-            )
+            job.run(cfg, config, Output(path, folder.prepare), log=typer.echo, **options)
     except KeyboardInterrupt:
         _interrupted(folder)
     except Exception as e:
@@ -90,7 +77,7 @@ def _interrupted(folder) -> None:
     if folder is None or not folder.prepared:
         _fail("interrupted before any result was written; the output folder is as it was", code=130)
     files = folder.saved
-    verb = "resumes it" if folder.command == "study" else "replaces them"
+    verb = "resumes it" if JOBS[folder.command].resumable else "replaces them"
     _fail(
         f"interrupted: {len(files)} file(s) saved in {folder.path}, marked unfinished in its "
         f"jaxafm-run.json; `{folder.again()}` {verb}",
@@ -109,7 +96,7 @@ DEBUG = typer.Option(False, help="show the traceback of an error")
 @app.command()
 def fit(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG):
     """Fit hysteresis models to an actuator record; write models, metrics.json and fit.png."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "fit", "identify.actuator_fit")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "fit")
 
 
 @app.command()
@@ -118,14 +105,14 @@ def calibrate(
 ):
     """Step A: identify the scanner from a grating image pair, invert it and compensate; write
     fitted scanners, metrics.json and compensation.png."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "calibrate", "identify.step_a")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "calibrate")
 
 
 @app.command()
 def run(config: Path = CONFIG, out: Optional[Path] = OUT, overwrite: bool = OVERWRITE, debug: bool = DEBUG):
     """The paper's whole strategy on the simulated AFM: step A, landmarks (B), local scans (C) and the
     push, with an ablation table; write metrics.json, trials.npz, the fitted scanner and figures."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "run", "position.strategy")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "run")
 
 
 @app.command()
@@ -134,7 +121,7 @@ def diagnose(
 ):
     """Sim-to-real gap: where the nominal model misses and which candidate effect closes the gap on
     held-out data; write diagnosis.json, metrics.json, residuals.png and report.md."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "diagnose", "diagnose.run")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "diagnose")
 
 
 @app.command()
@@ -143,7 +130,7 @@ def predict(
 ):
     """Apply a saved model (model_*.json) to a record's input; write the prediction
     (prediction.csv), its errors where the record has measured output (metrics.json) and predict.png."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "predict", "identify.predict")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "predict")
 
 
 @app.command()
@@ -153,7 +140,7 @@ def compensate(
     """The drive that makes a saved model (one axis or a scanner) follow a wanted trajectory (CSV,
     triangle or raster), after the initialisation cycle; write drive.csv, tracking.csv, metrics.json
     and compensate.png."""
-    _launch(config, out, dict(overwrite=overwrite, debug=debug), "compensate", "identify.compensate")
+    _launch(config, out, dict(overwrite=overwrite, debug=debug), "compensate")
 
 
 @app.command()
@@ -195,7 +182,6 @@ def study(
         out,
         dict(overwrite=overwrite, resume=resume, debug=debug),
         "study",
-        "study.monte_carlo",
         cluster=cluster,
     )
 

@@ -1,5 +1,5 @@
 """The sim-to-real gap: which unmodelled effect explains what the nominal model misses, in a
-record, an image or a set of scans (the ``jaxafm diagnose`` job).
+record, an image or a set of scans (what ``jaxafm diagnose`` runs: ``jaxafm.jobs.diagnose``).
 
 Sits beside identification and positioning: imports the model, the instrument, identification
 and the shared leaves; importing it switches JAX to float64 (``jaxafm._precision``).

@@ -1,15 +1,17 @@
 """Identification: from images and records to a fitted scanner model, and its inverse.
 
-What an image shows: ``features`` (lattice feature points) and ``line_grating`` (a 1-D
-grating's pitch and distortion). Fitting a record: ``fit`` (the solvers and hysteresis fits)
-and ``projection`` (nuisance parameters projected out of a linear least-squares problem).
-Step A, the scanner from calibration-lattice images: ``calibration_scan`` (the data),
-``scan_model`` (the model and its parameters), ``image_ops`` (interpolation and blur),
-``stages`` (what each stage fits), ``staged_fit`` (:func:`identify`), ``held_out`` (held-out
-validation), ``plausibility`` (what makes a model unusable) and ``polynomial_baseline`` (the
-paper's). Then ``inverse`` (compensation), ``actuator_fit`` (the ``jaxafm fit`` job) and
-``step_a`` (the ``jaxafm calibrate`` job). Imports the model, the instrument and the shared
-leaves; importing it switches JAX to float64 (``jaxafm._precision``).
+What an image shows: ``features`` (lattice feature points), ``chords`` (features' edge
+crossings) and ``line_grating`` (a 1-D grating's pitch and distortion). Fitting a record:
+``fit`` (the solvers and hysteresis fits) and ``projection`` (nuisance parameters projected out
+of a linear least-squares problem). Step A, the scanner from calibration-lattice images:
+``calibration_scan`` (the data), ``scan_model`` (the model and its parameters), ``image_ops``
+(interpolation and blur), ``stages`` (what each stage fits), ``staged_fit`` (:func:`identify`),
+``held_out`` (held-out validation), ``plausibility`` (what makes a model unusable),
+``polynomial_baseline`` (the paper's) and ``step_a`` (step A on the simulated AFM: calibration
+scans, the fitted scanner's twin, compensated scans and their errors). Then ``inverse``
+(compensation) and ``compensate`` (the drive that makes a model follow a trajectory, after the
+initialisation cycle). Imports the model, the instrument and the shared leaves; importing it
+switches JAX to float64 (``jaxafm._precision``).
 """
 
 from .. import _precision  # noqa: F401  (float64 before any array of this package exists)

@@ -214,6 +214,19 @@ def move(
     return path, state
 
 
+#: each leg of the initialisation cycle (:func:`run_cycle`), s
+SETTLE_S = 0.5
+
+
+def run_cycle(afm: AFM, sample, state: AFMState, cycle: np.ndarray, key: Optional[Array] = None) -> AFMState:
+    """The initialisation cycle from ``state``: a move to each drive of ``cycle`` (H, 2) V in
+    turn (e.g. ``-u_max`` then ``+u_max`` on both axes: the wiping-out property leaves every
+    play in a known state), each held :data:`SETTLE_S` s; returns the state after it."""
+    for target in cycle:
+        _, state = move(afm, sample, state, target, SETTLE_S, key=key)
+    return state
+
+
 def press(
     afm: AFM,
     sample: Indented,

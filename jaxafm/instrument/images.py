@@ -10,7 +10,7 @@ Readers convert to nm and say so in ``meta``: the Nanosurf text export and binar
 ``formats`` extra) Bruker .spm, Igor .ibw, JPK .jpk and TopoStats files, and
 Gwyddion .gwy through gwyfile. What a file lacks (its size, height unit, row
 order, fast axis, line rate, direction) the caller gives, as a config's
-``ImageFile`` does (:func:`read_image_file`).
+``ImageFile`` does.
 
 Saved images (``save_image``/``load_image``) are ``.npz`` files holding ``z``
 (float64, nm) and ``meta_json``, a JSON document ``{"format":
@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
-from ..config.common import ImageFile, resolve_data_path
 from ..config.names import LENGTH_TO_NM
 
 if TYPE_CHECKING:
@@ -312,29 +311,6 @@ def _pixel_size(path: Path, shape: tuple, given, own: Optional[tuple]) -> tuple:
     return (w / cols, h / rows)
 
 
-def read_image_file(spec, config_path, key: str) -> AFMImage:
-    """The image a config key names, with the key's metadata (:func:`read_image`).
-
-    Arguments:
-        spec: the key's ``ImageFile``, or its path alone.
-        config_path: the config file; a relative path is relative to it.
-        key: the key as the user wrote it (``data.trace``), named in errors.
-
-    Returns:
-        The image; ``meta["source"]`` is the path as the config gives it.
-
-    Raises:
-        FileNotFoundError, ValueError: naming the config, the key, the file and the value.
-    """
-    spec = ImageFile.model_validate(spec)
-    given = spec.model_dump(exclude={"path"}, exclude_none=True, exclude_unset=True)
-    try:
-        image = read_image(resolve_data_path(spec.path, config_path), **given)
-    except (ValueError, FileNotFoundError) as e:
-        raise type(e)(f"{config_path}: {key}: {e}") from None
-    return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
-
-
 def _length_nm(path: Path, key: str, text: str) -> float:
     m = re.fullmatch(r"\s*([-+0-9.eE]+)\s*(\S+)\s*", text)
     if not m or m.group(2) not in LENGTH_TO_NM:
@@ -448,21 +424,7 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     if cut < 0:
         raise ValueError(f"{path} is not a Nanosurf .nid file (no '#!' line between header and data)")
     head = _nid_header(path, raw[:cut].decode("utf-8", errors="replace"))
-    groups = head["DataSet"]
-    order = [
-        groups[f"Gr{g}-Ch{c}"]
-        for g in range(int(groups.get("GroupCount", 0)))
-        for c in range(int(groups.get(f"Gr{g}-Count", 0)))
-        if f"Gr{g}-Ch{c}" in groups
-    ]
-    try:
-        blocks = [
-            (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
-        ]
-        for h, *_ in blocks:
-            float(h["Dim0Range"]), float(h["Dim1Range"]), float(h["Dim2Min"]), float(h["Dim2Range"])
-    except (KeyError, ValueError) as e:
-        raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
+    blocks = _nid_channels(path, head)
     frame = NID_FRAMES[direction or "trace"]
     channel = channel or "Topography"
     names = [f"{h.get('Dim2Name')} ({h.get('Frame')})" for h, *_ in blocks]
@@ -501,6 +463,31 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     size = tuple(float(h[f"Dim{k}Range"]) * LENGTH_TO_NM[units["xy"]] for k in (0, 1))
     first_row = {"Up": "bottom"}.get(up)  # Down: the file does not say where its row 0 lies
     return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row)
+
+
+def _nid_channels(path: Path, head: dict) -> list:
+    """The channels of a .nid header in the order their data are stored: ``(section, lines,
+    points, bits)`` each.
+
+    Raises:
+        ValueError: a channel's section lacks or garbles a key.
+    """
+    groups = head["DataSet"]
+    order = [
+        groups[f"Gr{g}-Ch{c}"]
+        for g in range(int(groups.get("GroupCount", 0)))
+        for c in range(int(groups.get(f"Gr{g}-Count", 0)))
+        if f"Gr{g}-Ch{c}" in groups
+    ]
+    try:
+        blocks = [
+            (head[k], int(head[k]["Lines"]), int(head[k]["Points"]), int(head[k]["SaveBits"])) for k in order
+        ]
+        for h, *_ in blocks:
+            float(h["Dim0Range"]), float(h["Dim1Range"]), float(h["Dim2Min"]), float(h["Dim2Range"])
+    except (KeyError, ValueError) as e:
+        raise ValueError(f"{path}: a channel section of the .nid header lacks or garbles {e}") from None
+    return blocks
 
 
 def _read_gwy(path: Path, channel: Optional[str]) -> _Stored:

@@ -115,39 +115,106 @@ def read_record(
     must name ``t, u, d`` or ``t, ux, uy, x, y``, values already in s, V, nm.
     With ``require_output=False`` a record of inputs alone (no ``output_columns``) is read,
     with ``d`` None.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: naming the file, and the key, column, row or value at fault.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"record file {path} does not exist")
     header = _header(path, delimiter)
     if input_columns is None and output_columns is None:
-        names = set(header or [])
-        if {"t", "u", "d"} <= names:
-            input_columns, output_columns = ["u"], ["d"]
-        elif {"t", "ux", "uy", "x", "y"} <= names:
-            input_columns, output_columns = ["ux", "uy"], ["x", "y"]
-        else:
-            raise ValueError(
-                f"{path}: no column mapping given and the header {header} does not name "
-                "'t, u, d' or 't, ux, uy, x, y'; set input_columns, output_columns and "
-                "time_column or sample_rate_hz"
-            )
+        input_columns, output_columns, time_column = _named_columns(path, header, sample_rate_hz)
         output_unit = output_unit or "nm"
-        time_column = "t" if sample_rate_hz is None else None
     if not input_columns or (require_output and not output_columns):
         raise ValueError(f"{path}: give both input_columns and output_columns")
     output_columns = output_columns or []
-    if output_columns and output_unit is None:
+    _check_units(path, bool(output_columns), input_unit, output_unit)
+    if (time_column is None) == (sample_rate_hz is None):
+        raise ValueError(f"{path}: give exactly one of time_column and sample_rate_hz")
+    data = _rows(path, delimiter, header)
+    columns = {"input_columns": input_columns, "output_columns": output_columns}
+    columns["time_column"] = [] if time_column is None else [time_column]
+    i_in, i_out, i_t = _indices(path, header, columns, data.shape[1])
+    u = data[:, i_in] * VOLTAGE_TO_V[input_unit]
+    d = data[:, i_out] * LENGTH_TO_NM.get(output_unit, 1.0)
+    if sample_rate_hz is not None:
+        if not 0 < sample_rate_hz < np.inf:
+            raise ValueError(f"{path}: sample_rate_hz must be a finite rate > 0 Hz, got {sample_rate_hz}")
+        t = np.arange(len(data)) / sample_rate_hz
+    else:
+        t = data[:, i_t[0]]
+    _check_values(path, header, t, u, d, i_in, i_out)
+    meta = {
+        "source": str(path),
+        "samples": len(t),
+        "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g})"
+        + (f", output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})" if i_out else ", no output"),
+        "time": f"sample rate {sample_rate_hz} Hz" if sample_rate_hz else f"column {time_column}",
+    }
+    squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)
+    return Record(t, squeeze(u), None if not i_out else d[:, 0] if len(i_out) == 1 else d, meta)
+
+
+def _indices(path: Path, header: Optional[list], columns: dict, count: int) -> list:
+    """The 0-based indices of the columns each key maps (``input_columns``, ``output_columns``,
+    ``time_column``), in the file of ``count`` columns.
+
+    Raises:
+        ValueError: a column that names none, lies beyond the file's, or is mapped twice.
+    """
+    indices = [[_column(c, header, path, key) for c in specs] for key, specs in columns.items()]
+    for i in sum(indices, []):
+        if i >= count:
+            raise ValueError(f"{path}: column {i + 1} requested but the file has {count} columns")
+    _check_distinct(path, header, dict(zip(columns, indices)))
+    return indices
+
+
+def _named_columns(path: Path, header: Optional[list], sample_rate_hz: Optional[float]) -> tuple:
+    """Input, output and time columns from a header that names ``t, u, d`` or ``t, ux, uy, x, y``
+    (time from the column ``t`` unless a sample rate is given).
+
+    Raises:
+        ValueError: the header names neither.
+    """
+    names = set(header or [])
+    time_column = "t" if sample_rate_hz is None else None
+    if {"t", "u", "d"} <= names:
+        return ["u"], ["d"], time_column
+    if {"t", "ux", "uy", "x", "y"} <= names:
+        return ["ux", "uy"], ["x", "y"], time_column
+    raise ValueError(
+        f"{path}: no column mapping given and the header {header} does not name "
+        "'t, u, d' or 't, ux, uy, x, y'; set input_columns, output_columns and "
+        "time_column or sample_rate_hz"
+    )
+
+
+def _check_units(path: Path, outputs: bool, input_unit: str, output_unit: Optional[str]) -> None:
+    """The input unit is a voltage's and, with ``outputs``, the output unit a length's.
+
+    Raises:
+        ValueError: naming the file, the key and what is allowed.
+    """
+    if outputs and output_unit is None:
         raise ValueError(f"{path}: output_unit is missing; one of {sorted(LENGTH_TO_NM)}")
-    if output_columns and output_unit not in LENGTH_TO_NM:
+    if outputs and output_unit not in LENGTH_TO_NM:
         raise ValueError(f"{path}: output_unit={output_unit!r} is not one of {sorted(LENGTH_TO_NM)}")
     if input_unit not in VOLTAGE_TO_V:
         raise ValueError(f"{path}: input_unit={input_unit!r} is not one of {sorted(VOLTAGE_TO_V)}")
-    if (time_column is None) == (sample_rate_hz is None):
-        raise ValueError(f"{path}: give exactly one of time_column and sample_rate_hz")
 
+
+def _rows(path: Path, delimiter: Optional[str], header: Optional[list]) -> np.ndarray:
+    """The numeric rows (rows, columns) below the header; an empty field (a column a spreadsheet
+    left blank) reads as NaN, and the columns used are checked later.
+
+    Raises:
+        ValueError: rows that are not numbers (with a hint to set the delimiter of a CSV
+            file), or none at all.
+    """
     try:
-        # an empty field (a column a spreadsheet left blank) reads as NaN; the columns used are checked below
         blank = lambda s: float(s) if s.strip() else np.nan
         data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2, converters=blank)
     except ValueError as e:
@@ -159,21 +226,16 @@ def read_record(
         raise ValueError(f"{path}: not a numeric delimited record{hint} ({e})") from None
     if data.size == 0:
         raise ValueError(f"{path}: no data rows")
-    cols = lambda specs, key: [_column(c, header, path, key) for c in specs]
-    i_in, i_out = cols(input_columns, "input_columns"), cols(output_columns, "output_columns")
-    i_t = [] if time_column is None else [_column(time_column, header, path, "time_column")]
-    for i in i_in + i_out + i_t:
-        if i >= data.shape[1]:
-            raise ValueError(f"{path}: column {i + 1} requested but the file has {data.shape[1]} columns")
-    _check_distinct(path, header, {"input_columns": i_in, "output_columns": i_out, "time_column": i_t})
-    u = data[:, i_in] * VOLTAGE_TO_V[input_unit]
-    d = data[:, i_out] * LENGTH_TO_NM.get(output_unit, 1.0)
-    if sample_rate_hz is not None:
-        if not 0 < sample_rate_hz < np.inf:
-            raise ValueError(f"{path}: sample_rate_hz must be a finite rate > 0 Hz, got {sample_rate_hz}")
-        t = np.arange(len(data)) / sample_rate_hz
-    else:
-        t = data[:, i_t[0]]
+    return data
+
+
+def _check_values(path: Path, header, t: np.ndarray, u: np.ndarray, d: np.ndarray, i_in: list, i_out: list):
+    """Every value used is finite, time increases strictly, and no input or output column is
+    constant.
+
+    Raises:
+        ValueError: naming the file, the column and the data row.
+    """
     for name, a in (("input", u), ("output", d), ("time", t)):
         if not np.isfinite(a).all():
             row = int(np.argwhere(~np.isfinite(a))[0][0])
@@ -187,15 +249,6 @@ def read_record(
                     f"{path}: {key}: column {_name(i, header)} is constant ({column[0]:g} {unit} in all "
                     f"{len(column)} rows); a record must drive and measure a moving axis"
                 )
-    meta = {
-        "source": str(path),
-        "samples": len(t),
-        "converted": f"input {input_unit} -> V (x{VOLTAGE_TO_V[input_unit]:g})"
-        + (f", output {output_unit} -> nm (x{LENGTH_TO_NM[output_unit]:g})" if i_out else ", no output"),
-        "time": f"sample rate {sample_rate_hz} Hz" if sample_rate_hz else f"column {time_column}",
-    }
-    squeeze = (lambda a: a[:, 0]) if len(i_in) == 1 else (lambda a: a)
-    return Record(t, squeeze(u), None if not i_out else d[:, 0] if len(i_out) == 1 else d, meta)
 
 
 def write_columns(path: Union[str, Path], columns: dict) -> None:

@@ -15,7 +15,7 @@ all of it runs under ``jit`` and ``vmap``.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import equinox as eqx
 import jax
@@ -23,7 +23,6 @@ import jax.numpy as jnp
 from jax import lax
 
 from .. import checks
-from ..config import LocalScanSpec, PushSpec
 from ..identify.inverse import inverse_and_state
 from ..instrument.afm import AFM, AFMState, Raster, raster_images, raster_times
 from ..instrument.samples import Particles, Tip, surface
@@ -169,19 +168,6 @@ class LocalScan(eqx.Module):
     centre_tolerance: float = eqx.field(static=True, default=0.1)
     centre_floor: float = eqx.field(static=True, default=1.0)
 
-    @classmethod
-    def from_config(cls, spec: LocalScanSpec) -> LocalScan:
-        """The settings a config's ``local_scan`` gives (``move_time`` keeps its default)."""
-        return cls(
-            spec.points,
-            spec.line_time_s,
-            margin=spec.margin_nm,
-            max_lines=spec.max_lines,
-            width_tolerance=spec.width_tolerance,
-            centre_tolerance=spec.centre_tolerance,
-            centre_floor=spec.centre_floor_nm,
-        )
-
     def half_length(self, radius: Array, tip: Tip, search: bool = True) -> Array:
         """Half the length of a line, nm: the imaged particle's reach plus the search margin
         (``search``), or plus ``line_margin`` (a line through the estimate)."""
@@ -248,6 +234,10 @@ def _offset(k: Array) -> Array:
     return jnp.where(k % 2 == 1, m, -m)
 
 
+#: samples of the move to each line's start
+LINE_MOVE_SAMPLES = 16
+
+
 def local_scan(
     pos: Positioner,
     sample,
@@ -276,37 +266,87 @@ def local_scan(
     radius = jnp.asarray(radius, dtype=float)
     if checks.is_concrete(radius):
         checks.positive("particle radius R (nm)", radius)
-    tip = pos.afm.tip
-    width0 = centred_width(radius, tip)
-    P = spec.points
-    unit = jnp.linspace(-1.0, 1.0, P)
-    dt_line = spec.line_time / (P - 1)
-    spacing = search_spacing(radius, tip)
-    n_search = 2 * jnp.ceil(spec.margin / spacing) + 1
-    ex, ey = jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])
-    n_move = 16
-    frac_move = jnp.arange(1, n_move + 1) / n_move
+    line = _Line(
+        pos, sample, spec, radius, centred_width(radius, pos.afm.tip), search_spacing(radius, pos.afm.tip)
+    )
+    guess = jnp.asarray(guess, dtype=float)
+    t0 = stand.afm.scanner.t
+    empty = jnp.zeros((spec.max_lines, 2))
+    start = _Search(
+        stand, key, 0, 0, guess, guess, 0, False, False, False, empty, empty, jnp.full(spec.max_lines, -1)
+    )
+    end = lax.while_loop(lambda c: ~c.done, line.next, start)
+    result = ScanResult(
+        end.estimate, end.verified, end.lines, end.starts, end.ends, end.phases, end.stand.afm.scanner.t - t0
+    )
+    return result, end.stand
 
-    def scan_line(stand, centre, along, L, k):
-        """Move to the line's start, scan ``L`` nm either side of ``centre`` and back: heights
-        (2, P), new stand."""
-        start, end = centre - L * along, centre + L * along
+
+class _Search(NamedTuple):
+    """The local scan's state from line to line: where things stand, the key, the ``phase`` (0
+    search, 1 along y, 2 along x through the estimate), the search line ``k`` from ``origin``,
+    the ``estimate``, the ``lines`` scanned, whether it is ``done`` (and ``verified``), whether
+    the last line was centred (``confirmed``), and each line's ``starts``, ``ends``, ``phases``."""
+
+    stand: Stand
+    key: Array
+    phase: Array
+    k: Array
+    origin: Array
+    estimate: Array
+    lines: Array
+    done: Array
+    verified: Array
+    confirmed: Array
+    starts: Array
+    ends: Array
+    phases: Array
+
+
+class _Line(NamedTuple):
+    """One local scan's lines: the positioner, the sample, the settings, the particle's
+    ``radius``, a centred line's pulse ``width0`` and the search's line ``spacing`` (nm)."""
+
+    pos: Positioner
+    sample: object
+    spec: LocalScan
+    radius: Array
+    width0: Array
+    spacing: Array
+
+    def scan(self, stand: Stand, centre: Array, along: Array, half: Array, key: Array) -> tuple:
+        """Move to the start of the line ``half`` nm either side of ``centre`` along ``along``,
+        scan it there and back: heights (2, points), the line's start and end, the next stand."""
+        spec = self.spec
+        P = spec.points
+        unit = jnp.linspace(-1.0, 1.0, P)
+        frac_move = jnp.arange(1, LINE_MOVE_SAMPLES + 1) / LINE_MOVE_SAMPLES
+        start, end = centre - half * along, centre + half * along
         there = start + (unit[:, None] + 1) / 2 * (end - start)
         wanted = jnp.concatenate(
             [stand.wanted + frac_move[:, None] * (start - stand.wanted), there, there[::-1]]
         )
-        dt = jnp.concatenate([jnp.full(n_move, spec.move_time / n_move), jnp.full(2 * P, dt_line)])
+        dt = jnp.concatenate(
+            [
+                jnp.full(LINE_MOVE_SAMPLES, spec.move_time / LINE_MOVE_SAMPLES),
+                jnp.full(2 * P, spec.line_time / (P - 1)),
+            ]
+        )
         t = stand.afm.scanner.t + jnp.cumsum(dt)
-        _, h, stand = pos.drive(sample, stand, wanted, t, k)
-        return jnp.stack([h[n_move : n_move + P], h[n_move + P :][::-1]]), start, end, stand
+        _, h, stand = self.pos.drive(self.sample, stand, wanted, t, key)
+        n = LINE_MOVE_SAMPLES
+        return jnp.stack([h[n : n + P], h[n + P :][::-1]]), start, end, stand
 
-    def body(c):
-        stand, key, phase, k, origin, est, n, _, _, confirmed, starts, ends, phases = c
-        key, sub = jax.random.split(key)
-        centre = jnp.where(phase == 0, origin + _offset(k) * spacing * ey, est)
-        along = jnp.where(phase == 1, ey, ex)
-        L = spec.half_length(radius, tip, search=phase == 0)
-        h, start, end, stand = scan_line(stand, centre, along, L, sub)
+    def next(self, c: _Search) -> _Search:
+        """The next line: scanned where the phase puts it, its pulse judged, the estimate moved."""
+        spec, radius, width0 = self.spec, self.radius, self.width0
+        ex, ey = jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0])
+        key, sub = jax.random.split(c.key)
+        centre = jnp.where(c.phase == 0, c.origin + _offset(c.k) * self.spacing * ey, c.estimate)
+        along = jnp.where(c.phase == 1, ey, ex)
+        L = spec.half_length(radius, self.pos.afm.tip, search=c.phase == 0)
+        h, start, end, stand = self.scan(c.stand, centre, along, L, sub)
+        unit = jnp.linspace(-1.0, 1.0, spec.points)
         f1, mid1, w1 = pulse(h[0], unit * L, radius)
         f2, mid2, w2 = pulse(h[1], unit * L, radius)
         seen, mid, width = f1 & f2, (mid1 + mid2) / 2, (w1 + w2) / 2
@@ -315,54 +355,26 @@ def local_scan(
             & (jnp.abs(mid) <= jnp.maximum(spec.centre_tolerance * radius, spec.centre_floor))
             & (jnp.abs(width - width0) <= spec.width_tolerance * width0)
         )
-        verified = centred & confirmed & (phase > 0)
-        next_est = jnp.where(seen, centre + mid * along, est)
+        verified = centred & c.confirmed & (c.phase > 0)
         # seen: on to a line along the other axis (after the search: along y); lost: search from the estimate
-        next_phase = jnp.where(seen, jnp.where(phase == 1, 2, 1), 0)
-        next_k = jnp.where(seen | (phase > 0), 0, k + 1)
-        next_origin = jnp.where(seen | (phase == 0), origin, est)
-        exhausted = (phase == 0) & ~seen & (k + 1 >= n_search)
-        starts, ends, phases = starts.at[n].set(start), ends.at[n].set(end), phases.at[n].set(phase)
-        n = n + 1
-        done = verified | exhausted | (n >= spec.max_lines)
-        return (
+        n_search = 2 * jnp.ceil(spec.margin / self.spacing) + 1
+        exhausted = (c.phase == 0) & ~seen & (c.k + 1 >= n_search)
+        n = c.lines + 1
+        return _Search(
             stand,
             key,
-            next_phase,
-            next_k,
-            next_origin,
-            next_est,
+            jnp.where(seen, jnp.where(c.phase == 1, 2, 1), 0),
+            jnp.where(seen | (c.phase > 0), 0, c.k + 1),
+            jnp.where(seen | (c.phase == 0), c.origin, c.estimate),
+            jnp.where(seen, centre + mid * along, c.estimate),
             n,
-            done,
+            verified | exhausted | (n >= spec.max_lines),
             verified,
             centred,
-            starts,
-            ends,
-            phases,
+            c.starts.at[c.lines].set(start),
+            c.ends.at[c.lines].set(end),
+            c.phases.at[c.lines].set(c.phase),
         )
-
-    guess = jnp.asarray(guess, dtype=float)
-    t0 = stand.afm.scanner.t
-    empty = jnp.zeros((spec.max_lines, 2))
-    init = (
-        stand,
-        key,
-        0,
-        0,
-        guess,
-        guess,
-        0,
-        False,
-        False,
-        False,
-        empty,
-        empty,
-        jnp.full(spec.max_lines, -1),
-    )
-    out = lax.while_loop(lambda c: ~c[7], body, init)
-    stand, est, n, ok = out[0], out[5], out[6], out[8]
-    result = ScanResult(est, ok, n, out[10], out[11], out[12], stand.afm.scanner.t - t0)
-    return result, stand
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,11 +395,14 @@ class Push(eqx.Module):
     corrections: int = eqx.field(static=True, default=1)
     correct_beyond: float = eqx.field(static=True, default=0.25)
 
-    @classmethod
-    def from_config(cls, spec: PushSpec) -> Push:
-        """The settings a config's ``push`` gives (``gap``, ``samples`` and ``correct_beyond``
-        keep their defaults)."""
-        return cls(speed=spec.speed_nm_per_s, corrections=spec.corrections)
+
+class PushResult(eqx.Module):
+    """What a push did (:func:`push`): the particle's true final centre ``final`` (2,) nm,
+    whether the tip touched it (``contact``), and the tip's true ``path`` (samples, 2) nm."""
+
+    final: Array
+    contact: Array
+    path: Array
 
 
 def push(
@@ -406,8 +421,7 @@ def push(
     ``particle``) by ``distance`` nm along the unit ``direction`` (2,): approach behind it
     (lifted), lower, push so that it ends at ``centre + distance * direction``, retract.
 
-    Returns the particle's true final centre (2,) nm, whether the tip touched it, the
-    tip's true path during the push (samples, 2) nm and the next stand.
+    Returns ``(PushResult, stand)``: what the push did, and the next stand.
     """
     rho = radius + pos.afm.tip.radius
     direction = direction / jnp.linalg.norm(direction)
@@ -424,13 +438,23 @@ def push(
     contact = jnp.argmax(touching)
     moved = touching.any()
     final = jnp.where(moved, particle + path[-1] - path[contact], particle)
-    return final, moved, path, stand
+    return PushResult(final, moved, path), stand
 
 
 def moved(sample: Particles, particle: Array, final: Array) -> Particles:
     """``sample`` with the particle truly at ``particle`` (2,) nm (the nearest there) moved to ``final``."""
     i = jnp.argmin(jnp.sum((sample.centres - particle) ** 2, axis=-1))
     return Particles(sample.centres.at[i].set(final), sample.radii, sample.substrate)
+
+
+class PushCheck(eqx.Module):
+    """What the push and its checks did (:func:`push_and_check`): the ``first`` push, the
+    particle's true centre after the corrective pushes ``final`` (2,) nm, and the number of
+    corrective pushes made (``corrections``)."""
+
+    first: PushResult
+    final: Array
+    corrections: Array
 
 
 def push_and_check(
@@ -456,17 +480,14 @@ def push_and_check(
     tip first goes back to ``home`` (2,) nm, where it came to the particle from (default: where
     the push started from). Straight after the push the frame carries the push's own travel
     error, and a scan there finds the particle at the goal however short it fell; arriving
-    alike gives the check the frame the particle was seen in. Returns the true final centre
-    (2,) nm, whether the first push touched it, the first push's true path, the true centre
-    after the first push, the corrective pushes made, and the next stand."""
+    alike gives the check the frame the particle was seen in. Returns ``(PushCheck, stand)``:
+    what the pushes did, and the next stand."""
     direction = direction / jnp.linalg.norm(direction)
     goal = centre + distance * direction
     home = stand.wanted if home is None else home
     keys = jax.random.split(key, 1 + 3 * spec.corrections)
-    final, touched, path, stand = push(
-        pos, sample, stand, centre, particle, radius, direction, distance, keys[0], spec
-    )
-    first, made = final, jnp.asarray(0)
+    first, stand = push(pos, sample, stand, centre, particle, radius, direction, distance, keys[0], spec)
+    final, made = first.final, jnp.asarray(0)
     for i in range(spec.corrections):
         sample = moved(sample, particle, final)
         particle = final
@@ -478,7 +499,7 @@ def push_and_check(
         far = jnp.linalg.norm(rest)
         again = seen.found & (far > spec.correct_beyond * radius)
         unit = jnp.where(again, rest / jnp.where(far > 0, far, 1.0), direction)
-        pushed, _, _, after = push(
+        pushed, after = push(
             pos,
             sample,
             stand,
@@ -490,7 +511,7 @@ def push_and_check(
             keys[3 + 3 * i],
             spec,
         )
-        final = jnp.where(again, pushed, final)
+        final = jnp.where(again, pushed.final, final)
         stand = jax.tree_util.tree_map(lambda a, b: jnp.where(again, a, b), after, stand)
         made = made + again
-    return final, touched, path, first, made, stand
+    return PushCheck(first, final, made), stand

@@ -1,4 +1,5 @@
-"""Monte-Carlo positioning studies (``monte_carlo``: the ``jaxafm study`` job).
+"""Monte-Carlo positioning studies: the trials of many drawn scanners in sharded batches
+(``monte_carlo``) over every device of every JAX process (``processes``), and their summaries.
 
 Imports positioning and everything below it; importing it switches JAX to float64
 (``jaxafm._precision``).

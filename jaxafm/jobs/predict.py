@@ -11,30 +11,17 @@ record's output range, overall and per branch (input rising or falling), exactly
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .. import plots
-from ..config import PredictConfig, resolve_data_path
-from ..instrument.records import Record, read_record, write_columns
+from ..config import PredictConfig
+from ..identify.fit import error_metrics
+from ..instrument.records import Record, write_columns
 from ..model.apply import axes_of, input_history, predict
-from ..model.io import read_model_file
-from .fit import error_metrics
-
-
-def load(model_spec: str, config_path: Path) -> tuple:
-    """The model file named by a config's ``model`` key: ``(model, about, path)``.
-
-    Raises:
-        ValueError: naming the key and the file.
-    """
-    path = resolve_data_path(model_spec, config_path)
-    try:
-        return (*read_model_file(path), path)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"model: {e}") from None
+from .folder import Output
+from .inputs import read_model, read_record_file
 
 
 def outside_range(u: np.ndarray, about: dict) -> tuple:
@@ -59,14 +46,10 @@ def branch_metrics(pred: np.ndarray, d: np.ndarray, u: np.ndarray, d_range: floa
     return out
 
 
-def run(cfg: PredictConfig, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
+def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
     """Predict the record's output with the model, score it, and write the results into ``out``."""
-    model, about, model_path = load(cfg.model, config_path)
-    record = read_record(
-        resolve_data_path(cfg.data.path, config_path),
-        **cfg.data.model_dump(exclude={"path"}),
-        require_output=False,
-    )
+    model, about, model_path = read_model(cfg.model, config_path)
+    record = read_record_file(cfg.data, config_path, require_output=False)
     axes = axes_of(model)
     if record.u.ndim != axes:
         raise ValueError(
@@ -76,7 +59,7 @@ def run(cfg: PredictConfig, config_path: Path, out: Path, prepare=lambda: None, 
     start = record.split(cfg.evaluate_from) if cfg.evaluate_from > 0 else 0
     history = input_history(about, cfg.history_v)
     share, fitted = outside_range(record.u, about)
-    prepare()
+    out.prepare()
     if share > 0:
         log(
             f"WARNING: {100 * share:.1f} % of the record's input samples lie outside the range the "
@@ -85,7 +68,7 @@ def run(cfg: PredictConfig, config_path: Path, out: Path, prepare=lambda: None, 
     pred = predict(model, record.u, record.t, history).reshape(record.u.shape)
     if record.d is None:
         log(f"the record has no output columns: the prediction only ({len(record)} samples)")
-        _write_csv(out / "prediction.csv", record, pred)
+        _write_csv(out.file("prediction.csv"), record, pred)
         return {"samples": len(record), "outside_fitted_range_pct": 100 * share}
     metrics = {
         "samples": len(record),
@@ -99,32 +82,33 @@ def run(cfg: PredictConfig, config_path: Path, out: Path, prepare=lambda: None, 
         metrics["offset_nm"] = np.atleast_1d(offset).tolist()
         where = "the part before evaluate_from" if start else "the whole record"
         log(f"sensor offset re-estimated on {where}: {np.round(offset, 1)} nm")
-    per_axis = (
-        [(record.u, record.d, pred)]
-        if axes == 1
-        else [(record.u[:, k], record.d[:, k], pred[:, k]) for k in range(2)]
+    for k in range(axes):
+        metrics |= _score_axis(record, pred, k if axes == 2 else None, start, model_path, out, log)
+    _write_csv(out.file("prediction.csv"), record, pred)
+    return out.write_metrics(metrics)
+
+
+def _score_axis(record: Record, pred: np.ndarray, k, start: int, model_path: Path, out: Output, log) -> dict:
+    """One axis's scores from sample ``start`` on (``k``: the axis of a scanner; ``None``: the
+    record's one axis), logged, and its figure ``predict.png`` (``predict_x.png``, ...)."""
+    u, d, p = (record.u, record.d, pred) if k is None else (record.u[:, k], record.d[:, k], pred[:, k])
+    tag = "" if k is None else "xy"[k] + "_"
+    d_range = float(d.max() - d.min())
+    scores = error_metrics(p[start:], d[start:], d_range) | branch_metrics(
+        p[start:], d[start:], u[start:], d_range
     )
-    for k, (u, d, p) in enumerate(per_axis):
-        tag = "" if axes == 1 else "xy"[k] + "_"
-        d_range = float(d.max() - d.min())
-        scores = error_metrics(p[start:], d[start:], d_range) | branch_metrics(
-            p[start:], d[start:], u[start:], d_range
-        )
-        metrics |= {f"{tag}output_range_nm": d_range} | {f"{tag}{key}": v for key, v in scores.items()}
-        log(
-            f"{tag or ''}rms {scores['rms_error_nm']:.1f} nm ({scores['rms_error_pct']:.3f} % of range), "
-            f"max {scores['max_error_nm']:.1f} nm ({scores['max_error_pct']:.3f} %) over samples {start}..{len(record)}"
-        )
-        plots.actuator_fit(
-            dataclasses.replace(record, u=u, d=d) if axes == 2 else record,
-            {model_path.stem: p},
-            start,
-            out / f"predict{'_' + tag[0] if tag else ''}.png",
-            title=f"{model_path.name} on {Path(record.meta['source']).name}",
-        )
-    _write_csv(out / "prediction.csv", record, pred)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    return metrics
+    log(
+        f"{tag}rms {scores['rms_error_nm']:.1f} nm ({scores['rms_error_pct']:.3f} % of range), "
+        f"max {scores['max_error_nm']:.1f} nm ({scores['max_error_pct']:.3f} %) over samples {start}..{len(record)}"
+    )
+    plots.actuator_fit(
+        record if k is None else dataclasses.replace(record, u=u, d=d),
+        {model_path.stem: p},
+        start,
+        out.file(f"predict{'_' + tag[0] if tag else ''}.png"),
+        title=f"{model_path.name} on {Path(record.meta['source']).name}",
+    )
+    return {f"{tag}output_range_nm": d_range} | {f"{tag}{key}": v for key, v in scores.items()}
 
 
 def _write_csv(path: Path, record: Record, pred: np.ndarray) -> None:

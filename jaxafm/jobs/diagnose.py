@@ -1,9 +1,10 @@
-"""The ``jaxafm diagnose`` job: read the configured data, diagnose it, write the report.
+"""``jaxafm diagnose CONFIG``: read the configured data, diagnose it, write the report.
 
 One of four sources (``jaxafm.config.DiagnoseConfig``): a measured actuator record
 (``data``), a simulated one (``simulate``), one grating image (``image``) or trace/retrace
 scan pairs (``scans``, from files or simulated). Everything is read and checked before the
-output folder is prepared; the report is :func:`jaxafm.diagnose.report.write`'s.
+output folder is prepared; the report, ``metrics.json`` included, is
+:func:`jaxafm.diagnose.report.write`'s.
 """
 
 from __future__ import annotations
@@ -13,24 +14,26 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import resolve_data_path
-from . import withheld
-from .core import Diagnosis, Rules
-from .image import diagnose_image
-from .record import ActuatorRecord, auto_settle, diagnose_record
-from .report import write
-from .scans import ScanPair, diagnose_scans
+from ..config import DiagnoseConfig, DiagnoseScans, ImageFile, resolve_data_path
+from ..diagnose import withheld
+from ..diagnose.core import Diagnosis, Rules
+from ..diagnose.image import diagnose_image
+from ..diagnose.record import ActuatorRecord, auto_settle, diagnose_record
+from ..diagnose.report import write
+from ..diagnose.scans import ScanPair, diagnose_scans
+from ..instrument.records import read_record
+from .folder import Output
+from .inputs import read_image_file
 
 
-def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> dict:
+def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
     """Diagnose the configured record, image or scan set into ``out``.
 
     Arguments:
         cfg: a validated ``DiagnoseConfig``.
         config_path: the config file (data paths are relative to it; errors name it).
         out: the output folder: ``diagnosis.json``, ``metrics.json``, ``residuals.png``,
-            ``report.md``.
-        prepare: called once the data are read and diagnosed, before anything is written.
+            ``report.md``; prepared once the data are read and diagnosed, before anything is written.
         log: called with each line of the human summary.
 
     Returns:
@@ -47,11 +50,11 @@ def run(cfg, config_path: Path, out: Path, prepare=lambda: None, log=print) -> d
         diagnosis = _scans(cfg, config_path, rules, log)
     else:
         diagnosis = _record(cfg, config_path, rules, log)
-    prepare()
-    return write(diagnosis, Path(out), log)
+    out.prepare()
+    return write(diagnosis, out.path, log)  # the report writes its four files, metrics.json among them
 
 
-def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+def _record(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnosis:
     record = _load(cfg, config_path)
     blocks = cfg.blocks if cfg.split == "blocked" else 0
     try:
@@ -84,10 +87,8 @@ def _record(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     )
 
 
-def _load(cfg, config_path: Path):
+def _load(cfg: DiagnoseConfig, config_path: Path):
     """The configured record: simulated, or read (the output unit must be named)."""
-    from ..instrument.records import read_record
-
     if cfg.data is None:
         s = cfg.simulate
         return withheld.simulate_record(
@@ -104,10 +105,7 @@ def _load(cfg, config_path: Path):
     return dataclasses.replace(record, meta=record.meta | {"source": cfg.data.path})  # as the config gives it
 
 
-def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
-    from ..config.common import ImageFile
-    from ..instrument.images import read_image_file
-
+def _image(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnosis:
     im = cfg.image
     spec = ImageFile.model_validate(im.model_dump(exclude={"kind", "pitch_nm"}, exclude_unset=True))
     image = read_image_file(spec, config_path, "image")
@@ -120,7 +118,7 @@ def _image(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     return diagnose_image(image, cfg.candidates, cfg.train_fraction, rules, log, im.kind, pitch)
 
 
-def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
+def _scans(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnosis:
     sc = cfg.scans
     sim = {"lines": withheld.SIM_GRATING, "lattice": withheld.SIM_LATTICE}
     grating = sim[sc.simulate.sample] if sc.grating is None else sc.grating
@@ -128,10 +126,8 @@ def _scans(cfg, config_path: Path, rules: Rules, log) -> Diagnosis:
     return diagnose_scans(pairs, grating, cfg.candidates, cfg.train_fraction, rules, log)
 
 
-def _scan_pairs(sc, config_path: Path, log) -> list:
+def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
     """The configured trace/retrace pairs: simulated, or read from files."""
-    from ..instrument.images import read_image_file
-
     if sc.simulate is not None:
         s = sc.simulate
         what = (

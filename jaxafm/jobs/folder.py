@@ -1,4 +1,6 @@
-"""Output folders that lose nothing: what each command writes, and the run manifest that records it.
+"""Output folders that lose nothing: the run manifest that records what a run wrote, and the
+folder as a job writes into it (:class:`Output`, whose :meth:`~Output.write_metrics` writes every
+job's ``metrics.json``). What each command writes is the command table's (:data:`~jaxafm.jobs.JOBS`).
 
 Every run writes ``jaxafm-run.json`` into its output folder before its first result: the command,
 the config (as validated), the jaxafm version, the files that were in the folder before
@@ -22,50 +24,60 @@ import os
 import shlex
 import socket
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
+from .table import JOBS
+
 MANIFEST = "jaxafm-run.json"
 FORMAT = "jaxafm-run"
 
-FIXED_OUTPUTS = {
-    "fit": ("metrics.json", "fit.png"),
-    "calibrate": ("metrics.json", "compensation.png"),
-    "run": (
-        "metrics.json",
-        "trials.npz",
-        "landmarks.png",
-        "local_scan.png",
-        "push.png",
-        "errors.png",
-        "model_scanner.json",
-    ),
-    "study": (
-        "metrics.json",
-        "trials.npz",
-        "trials.csv",
-        "errors.png",
-        "scanners.json",
-        "chunks/*",
-        "scanners/*",
-    ),
-    "diagnose": ("metrics.json", "diagnosis.json", "residuals.png", "report.md"),
-    "predict": ("metrics.json", "prediction.csv", "predict*.png"),
-    "compensate": ("metrics.json", "drive.csv", "tracking.csv", "compensate*.png"),
-}  # what each command writes (glob patterns relative to its folder), besides its models
-RESUMABLE = ("study",)
+METRICS = "metrics.json"
+#: the commands whose unfinished run goes on where it stopped (any other's is replaced)
+RESUMABLE = tuple(name for name, job in JOBS.items() if job.resumable)
 
 
-def planned_outputs(command: str, config) -> tuple:
-    """The files (glob patterns) ``command`` writes with ``config``: its fixed outputs and, for
-    ``fit`` and ``calibrate``, ``model_<name>.json`` per configured model."""
-    models = (
-        tuple(f"model_{m.name}.json" for m in getattr(config, "models", ()))
-        if command in ("fit", "calibrate")
-        else ()
-    )
-    return FIXED_OUTPUTS[command] + models
+class Output:
+    """The output folder as a job writes into it: :meth:`prepare` readies it once the job has
+    checked its inputs, :meth:`file` names each file the job writes (and records it in
+    :attr:`written`), and :meth:`write_metrics` writes ``metrics.json``, every job's
+    machine-readable results.
+
+    Arguments:
+        path: the folder.
+        prepare: readies the folder (a :class:`RunFolder`'s ``prepare``, which records the run
+            in its manifest); ``None``: create the folder.
+    """
+
+    def __init__(self, path, prepare: Optional[Callable[[], None]] = None):
+        self.path = Path(path)
+        self._prepare = prepare
+        #: the files the job wrote (or is writing), relative to :attr:`path`, in order
+        self.written: list = []
+
+    def prepare(self) -> None:
+        """Ready the folder: called once, after the job's inputs are checked, before its first file."""
+        if self._prepare is None:
+            self.path.mkdir(parents=True, exist_ok=True)
+        else:
+            self._prepare()
+
+    def file(self, name: str) -> Path:
+        """The path of the file ``name`` (relative to the folder) that the job writes."""
+        if name not in self.written:
+            self.written.append(name)
+        return self.path / name
+
+    def write_metrics(self, metrics: dict) -> dict:
+        """Write ``metrics`` (flat keys, units in the names) as ``metrics.json``, whole or not at
+        all (a temporary file renamed onto it); returns them."""
+        path = self.file(METRICS)
+        tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
+        tmp.write_text(json.dumps(metrics, indent=1))
+        os.replace(tmp, path)
+        return metrics
 
 
 def _files(folder: Path) -> dict:
@@ -141,7 +153,7 @@ class RunFolder:
         self.path, self.command, self.log = Path(path), command, log
         self.config_file = Path(config_file)
         self.config = config.model_dump(mode="json")
-        self.outputs = planned_outputs(command, config)
+        self.outputs = JOBS[command].planned_outputs(config)
         self.before = read_manifest(self.path) if self.path.is_dir() else None
         self.mode = self._mode(overwrite, resume)
         self.prepared = False

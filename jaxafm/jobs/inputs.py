@@ -1,0 +1,57 @@
+"""The files a config names, read as the library's types: records, images and model files.
+A relative path is relative to the config file (``builtin:NAME``: a shipped file); errors name
+the config key as the user wrote it and the file."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from ..config import ImageFile, RecordData, resolve_data_path
+from ..instrument.images import AFMImage, read_image
+from ..instrument.records import Record, read_record
+from ..model.io import read_model_file
+
+
+def read_record_file(data: RecordData, config_path: Path, require_output: bool = True) -> Record:
+    """The record a config's ``data`` key names, converted to s, V and nm
+    (:func:`~jaxafm.instrument.records.read_record`; ``require_output=False``: inputs alone may do)."""
+    spec = data.model_dump(exclude={"path"})
+    return read_record(resolve_data_path(data.path, config_path), **spec, require_output=require_output)
+
+
+def read_image_file(spec, config_path, key: str) -> AFMImage:
+    """The image a config key names, with the key's metadata (:func:`~jaxafm.instrument.images.read_image`).
+
+    Arguments:
+        spec: the key's ``ImageFile``, or its path alone.
+        config_path: the config file; a relative path is relative to it.
+        key: the key as the user wrote it (``data.trace``), named in errors.
+
+    Returns:
+        The image; ``meta["source"]`` is the path as the config gives it.
+
+    Raises:
+        FileNotFoundError, ValueError: naming the config, the key, the file and the value.
+    """
+    spec = ImageFile.model_validate(spec)
+    given = spec.model_dump(exclude={"path"}, exclude_none=True, exclude_unset=True)
+    try:
+        image = read_image(resolve_data_path(spec.path, config_path), **given)
+    except (ValueError, FileNotFoundError) as e:
+        raise type(e)(f"{config_path}: {key}: {e}") from None
+    return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
+
+
+def read_model(spec: str, config_path: Path, key: str = "model") -> tuple:
+    """The model file a config key names: ``(model, about, path)``
+    (:func:`~jaxafm.model.io.read_model_file`).
+
+    Raises:
+        ValueError: naming the key and the file.
+    """
+    path = resolve_data_path(spec, config_path)
+    try:
+        return (*read_model_file(path), path)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{key}: {e}") from None

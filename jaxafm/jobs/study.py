@@ -1,0 +1,430 @@
+"""``jaxafm study CONFIG``: a Monte-Carlo positioning study.
+
+Every trial is one particle of a drawn radius at a random place inside a landmark
+cell (in its middle half, so the nearest indent is over a third of a cell away),
+on a scanner drawn from the config's distributions. Consecutive trials share a
+scanner (``trials_per_scanner``): its calibration scan, step A's identification
+and one survey per stage (press the landmarks for B, image the workspace) run
+once for them all (:func:`prepare_scanner`); the trials run as
+:mod:`jaxafm.study.monte_carlo` says.
+
+Trials run in batches of ``chunk`` trials. Every trial's draws are fixed before any runs, so
+the results do not depend on the chunk size or the device count. Each chunk's results are
+written atomically to ``chunks/``; a resumed study reuses them and the identified models in
+``scanners/``. At the end: ``trials.csv``, ``trials.npz``, ``metrics.json``, ``errors.png``.
+
+In several JAX processes (``jax.distributed``; ``jaxafm study --coordinator``), the mesh spans
+every process's devices and each chunk's trials are split over them all. Every process computes
+each scanner's calibration scan, step A and surveys itself (deterministic: the same on the same
+kind of CPU; :func:`~jaxafm.study.processes.check_same` checks that they agree, and that all run
+the same config), and takes the decisions that depend on the output folder (which chunks are
+done, which models are saved) from process 0
+(:func:`~jaxafm.study.processes.from_process_0`), so all of them make the same collective calls
+in the same order. Process 0 alone logs and writes: chunks, models, ``scanners.json`` and the
+summary.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from jax.sharding import Mesh
+
+from .. import plots
+from ..config import STUDY_PARAMETERS, StudyConfig
+from ..identify.step_a import twin_state
+from ..instrument.afm import default_afm, run_cycle
+from ..instrument.records import write_columns
+from ..instrument.samples import Indented, Plane
+from ..model.io import load_model, save_model
+from ..position import survey
+from ..position.positioning import Positioner
+from ..position.survey import STAGES, stage_key
+from ..study.monte_carlo import (
+    StageSurvey,
+    TrialSettings,
+    Unsurveyed,
+    failure_modes,
+    run_chunk,
+    stage_summary,
+)
+from ..study.processes import check_same, from_process_0
+from .calibrate import calibration_scans
+from .folder import Output
+from .run import (
+    ImplausibleModel,
+    identify_scanner,
+    local_scan_settings,
+    push_settings,
+    read_scanner_model,
+    workspace_layout,
+)
+
+
+def scanner_draws(cfg: StudyConfig) -> list:
+    """``default_afm`` arguments for each of the study's scanners (drawn before any trial)."""
+    rng = np.random.default_rng([cfg.seed, 1])
+    columns = {}
+    for effect, params in STUDY_PARAMETERS.items():
+        for name, (arg, _, default) in params.items():
+            dist = cfg.scanner.get(effect, {}).get(name)
+            columns[arg] = (
+                dist.draw(rng, cfg.scanners) if dist is not None else np.full(cfg.scanners, default)
+            )
+    draws = []
+    for s in range(cfg.scanners):
+        d = {k: float(v[s]) for k, v in columns.items()}
+        d["drift_nm_per_min"] = (d.pop("drift_x"), d.pop("drift_y"))
+        draws.append(d)
+    return draws
+
+
+def trial_draws(cfg: StudyConfig, D: np.ndarray) -> dict:
+    """Every trial's particle (centre (T, 2) nm, radius (T,) nm) and push (unit direction (T, 2),
+    distance (T,) nm); directions whose goal would leave the landmark grid are reversed."""
+    rng = np.random.default_rng([cfg.seed, 2])
+    n, T = cfg.landmarks.n, cfg.trials
+    lo, hi = D.min(0), D.max(0)
+    cell = (hi - lo) / (n - 1)
+    corner = lo + rng.integers(0, n - 1, (T, 2)) * cell
+    centre = corner + rng.uniform(0.25, 0.75, (T, 2)) * cell
+    radius = cfg.particle_radius_nm.draw(rng, T)
+    angle = rng.uniform(0, 2 * np.pi, T)
+    distance = rng.uniform(*cfg.push.distance_nm, T)
+    direction = np.stack([np.cos(angle), np.sin(angle)], -1)
+    goal = centre + distance[:, None] * direction
+    direction[np.any((goal < lo) | (goal > hi), axis=1)] *= -1
+    return {
+        "trial": np.arange(T),
+        "scanner": np.arange(T) // cfg.trials_per_scanner,
+        "x_nm": centre[:, 0],
+        "y_nm": centre[:, 1],
+        "radius_nm": radius,
+        "push_dx": direction[:, 0],
+        "push_dy": direction[:, 1],
+        "push_distance_nm": distance,
+    }
+
+
+def trial_settings(cfg: StudyConfig) -> TrialSettings:
+    """What every trial of the study shares, as ``cfg`` sets it (step C with A+B+C, the push
+    with push)."""
+    return TrialSettings(
+        cfg.seed,
+        workspace_layout(cfg)[0],
+        cfg.landmarks.approach_nm,
+        local_scan_settings(cfg.local_scan) if "A+B+C" in cfg.stages else None,
+        push_settings(cfg.push) if "push" in cfg.stages else None,
+    )
+
+
+def prepare_scanner(cfg: StudyConfig, config_path: Path, s: int, params: dict, out: Output, log) -> tuple:
+    """Scanner ``s`` (``default_afm(**params)``): its calibration scan, step A's model (identified,
+    or read from ``scanners/`` in ``out`` when a resumed study saved it, or from
+    ``calibration.model_file``) and one survey per stage. Returns ``({stage: StageSurvey or
+    Unsurveyed}, what is worth keeping about the scanner)``."""
+    work, grid, D = workspace_layout(cfg)
+    afm = default_afm(**params)
+    scans, sim = calibration_scans(cfg.calibration.simulate, cfg.calibration.grating, afm)
+    start = run_cycle(afm, sim.lattice, sim.measured.state, sim.cycle, sim.key)
+    stages = [st for st in STAGES if st.name in cfg.stages or (st.name == "A+B" and "A+B+C" in cfg.stages)]
+    info = {"scanner": s, **params, "step_a_fit_s": 0.0}
+    model = twin = None
+    if any(st.with_a for st in stages):
+        model = _step_a_model(cfg, config_path, s, scans, out, info, log)
+        twin = None if model is None else twin_state(model, scans, sim.cycle).scanner
+    surveys = {}
+    for i, st in enumerate(stages):
+        if st.with_a and model is None:
+            surveys[st.name] = Unsurveyed.REFUSED
+            continue
+        pos = Positioner(afm, model if st.with_a else None)
+        seen = survey.survey(
+            pos,
+            pos.start(start, twin if st.with_a else None),
+            Indented.empty(Plane(), afm.tip, grid.n**2),
+            work,
+            jax.random.fold_in(jax.random.fold_in(jax.random.key(cfg.seed), 1 + s), i),
+            D if st.with_b else None,
+            cfg.landmarks.depth_nm,
+            cfg.landmarks.approach_nm,
+        )
+        info[f"{st.key}_survey_s"] = seen.seconds
+        if st.with_b:
+            lm = cfg.landmarks
+            M, D_found = survey.find_landmarks(seen.images, work, grid, D, lm.depth_nm)
+            info[f"{st.key}_landmarks_found"] = len(M)
+            maps = survey.landmark_maps(M, D_found, lm.interpolation, lm.m, lm.degree)
+            if not maps:
+                log(
+                    f"scanner {s}, {st.name}: {len(M)} of the {grid.n**2} landmarks found, too few to map: "
+                    "its trials fail"
+                )
+                surveys[st.name] = Unsurveyed.TOO_FEW
+                continue
+            pos = Positioner(afm, pos.model, maps[lm.interpolation[0]])
+        mean_path = (seen.images.path_trace + seen.images.path_retrace) / 2
+        surveys[st.name] = StageSurvey(pos, seen.stand, mean_path)
+    return surveys, info
+
+
+def _step_a_model(cfg: StudyConfig, config_path: Path, s: int, scans: tuple, out: Output, info: dict, log):
+    """Scanner ``s``'s step A model: the one a resumed study saved in ``scanners/``, else
+    identified from ``scans`` (or read from ``calibration.model_file``) and saved there;
+    ``None`` where step A refused its model (the reason and the seconds go into ``info``)."""
+    name = f"scanners/model_{s:05d}.json"
+    if from_process_0((out.path / name).is_file()):
+        return _load_saved(out.path / name)
+    began = time.perf_counter()
+    try:
+        model, info["step_a_fit_s"] = identify_scanner(cfg, scans, config_path, lambda m: None)
+    except ImplausibleModel as e:
+        info |= {"step_a_fit_s": time.perf_counter() - began, "step_a_refused": str(e)}
+        log(f"scanner {s}: {e}: its trials through step A fail")
+        return None
+    _atomic(out.file(name), lambda f: save_model(model, f))
+    return model
+
+
+def _load_saved(path: Path):
+    """A scanner model that process 0 saw in ``scanners/`` (the other processes read it there).
+
+    Raises:
+        OSError: another process cannot read it: the output folder is not on a shared filesystem.
+    """
+    try:
+        return load_model(path)
+    except FileNotFoundError:
+        raise OSError(
+            f"process {jax.process_index()}: {path} (saved by process 0) is missing here: the output "
+            "folder must be on a filesystem that every process sees"
+        ) from None
+
+
+def _atomic(path: Path, write) -> None:
+    """``write(tmp)`` then rename onto ``path``: a reader sees the old file or the whole new one."""
+    if jax.process_index() != 0:  # pragma: no cover - several hosts: one writer
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")  # same suffix: np.savez adds none
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def _chunks(cfg: StudyConfig) -> list:
+    """``(scanner, first trial, end)`` of every chunk: a chunk never spans two scanners."""
+    out = []
+    for s in range(cfg.scanners):
+        a, b = s * cfg.trials_per_scanner, min((s + 1) * cfg.trials_per_scanner, cfg.trials)
+        out += [(s, i, min(i + cfg.chunk, b)) for i in range(a, b, cfg.chunk)]
+    return out
+
+
+def chunk_file(a: int, b: int) -> str:
+    """The file of the chunk of trials ``a`` to ``b`` (end excluded), relative to the output folder."""
+    return f"chunks/trials_{a:08d}_{b:08d}.npz"
+
+
+def run(
+    cfg: StudyConfig,
+    config_path: Path,
+    out: Output,
+    log=print,
+    resume: bool = False,
+    devices=None,
+) -> dict:
+    """The whole study into ``out``; returns the metrics (see the module docstring).
+
+    ``resume``: keep the chunks and scanner models already in ``out`` (the caller has checked
+    that they come from the same config: ``jaxafm study`` does, through the run manifest).
+
+    In several JAX processes, every process calls it alike; only process 0 logs, writes and
+    returns the metrics (the others return ``{}`` once it has written them).
+    """
+    from tqdm.auto import tqdm
+
+    writer = jax.process_index() == 0
+    log = log if writer else lambda message: None
+    draws, scanners, mesh = _start(cfg, config_path, devices)
+    out.prepare()
+    chunks = _chunks(cfg)
+    finished = from_process_0(np.array([(out.path / chunk_file(a, b)).is_file() for _, a, b in chunks]))
+    todo = [c for c, f in zip(chunks, finished) if not f]
+    done = cfg.trials - sum(b - a for _, a, b in todo)
+    info = _read_json(out.path / "scanners.json") if writer else {}
+    processes = f" in {jax.process_count()} processes" if jax.process_count() > 1 else ""
+    log(
+        f"{cfg.trials} trials on {cfg.scanners} scanner(s), {mesh.size} device(s){processes}, chunks of {cfg.chunk}"
+        + (f"; resuming: {done} done" if done else "")
+    )
+    settings = trial_settings(cfg)
+    start = time.perf_counter()
+    with tqdm(
+        total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1, disable=not writer
+    ) as bar:
+        for s in sorted({c[0] for c in todo}):
+            bar.set_postfix_str(f"scanner {s}: step A and surveys")
+            surveys, now = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
+            kept = info.get(str(s), {})
+            # a resumed scanner keeps its identification time
+            info[str(s)] = (
+                kept | now | {"step_a_fit_s": max(now["step_a_fit_s"], kept.get("step_a_fit_s", 0.0))}
+            )
+            _atomic(out.file("scanners.json"), lambda f: f.write_text(json.dumps(info, indent=1)))
+            bar.set_postfix_str(f"scanner {s}: trials")
+            for _, a, b in (c for c in todo if c[0] == s):
+                r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings)
+                _atomic(out.file(chunk_file(a, b)), lambda f: np.savez(f, **r))
+                bar.update(b - a)
+    return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
+
+
+def _start(cfg: StudyConfig, config_path: Path, devices) -> tuple:
+    """Every check that can fail, before the output folder is touched, and what the study is
+    made of: every trial's draws, every scanner's, and the mesh of ``devices`` (default: every
+    device of every process)."""
+    work, _, D = workspace_layout(cfg)
+    default_afm().check_range(default_afm().nominal_volts(np.asarray(work.wanted()).reshape(-1, 2)))
+    draws = trial_draws(cfg, D)
+    scanners = scanner_draws(cfg)
+    mesh = Mesh(np.array(jax.devices() if devices is None else devices), ("trials",))
+    read_scanner_model(cfg, config_path)
+    if jax.process_count() > 1:
+        from .._version import __version__
+
+        text = json.dumps([cfg.model_dump(mode="json"), __version__], sort_keys=True)
+        check_same(
+            np.frombuffer(text.encode(), np.uint8),
+            "run another config or jaxafm version than process 0: give them all the same",
+        )
+    return draws, scanners, mesh
+
+
+def _summarise_on_process_0(
+    cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: float, log
+) -> dict:
+    """:func:`summarise` on process 0 (``{}`` on the others), which then tells the others whether
+    it succeeded, so that every process ends together (or fails, naming process 0)."""
+    if jax.process_count() == 1:
+        return summarise(cfg, out, draws, info, seconds, log)
+    metrics = {}
+    try:
+        if jax.process_index() == 0:
+            metrics = summarise(cfg, out, draws, info, seconds, log)
+    except BaseException:
+        from_process_0(np.int32(0))
+        raise
+    if not from_process_0(np.int32(1)):
+        raise RuntimeError("process 0 failed to summarise the study: its message says why")
+    return metrics
+
+
+def _read_json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def load_results(cfg: StudyConfig, out: Output, draws: dict) -> dict:
+    """Every trial's draws and results, columns (trials,), from the chunk files."""
+    parts = [dict(np.load(out.path / chunk_file(a, b))) for _, a, b in _chunks(cfg)]
+    return draws | {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC": "A+B+C", "push": "push"}
+
+
+def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: float, log) -> dict:
+    """``trials.csv``, ``trials.npz``, ``metrics.json``, the table and the figures."""
+    r = load_results(cfg, out, draws)
+    calib_s = cfg.calibration.simulate.pixels / cfg.calibration.simulate.line_rate_hz
+    tol = cfg.push.tolerance_radii
+    rows = {}
+    for key, label in STAGE_LABELS.items():
+        if f"{key}_error_nm" not in r:
+            continue
+        e = r[f"{key}_error_nm"]
+        base = "AB" if key in ("ABC", "push") else key  # the stage whose survey it goes on from
+        with_a = key in ("A", "AB", "ABC", "push")
+        # over the scanners that scanned (a refused scanner surveys nothing)
+        surveyed = [v[f"{base}_survey_s"] for v in info.values() if f"{base}_survey_s" in v]
+        scan_s = (np.mean(surveyed) if surveyed else np.nan) + (calib_s if with_a else 0)
+        if key in ("ABC", "push"):
+            scan_s += float(np.nanmean(r["ABC_local_scan_s"]))
+        success = (
+            (r["push_contact"] & (e <= tol * r["radius_nm"])) if key == "push" else e <= 0.1 * r["radius_nm"]
+        )
+        rows[label] = stage_summary(e, success, scan_s)
+    metrics = {
+        "trials": cfg.trials,
+        "scanners": cfg.scanners,
+        "trials_per_scanner": cfg.trials_per_scanner,
+        "wall_s": seconds,
+        "push_tolerance_radii": tol,
+    }
+    for label, s in rows.items():
+        metrics |= {f"{stage_key(label.replace('open loop', 'open_loop'))}_{k}": v for k, v in s.items()}
+    if "push_first_error_nm" in r:
+        first = r["push_contact"] & (r["push_first_error_nm"] <= tol * r["radius_nm"])
+        metrics |= {
+            "push_first_success_pct": 100 * float(np.mean(first)),
+            "push_corrections_mean": float(np.mean(r["push_corrections"])),
+        }
+    if "ABC_found" in r:
+        metrics |= {
+            "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
+            "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
+        }
+    modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
+    metrics["failure_modes"] = modes
+    _atomic(out.file("trials.npz"), lambda f: np.savez_compressed(f, **r))
+    _atomic(out.file("trials.csv"), lambda f: write_columns(f, r))
+    out.write_metrics(metrics)
+    errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
+    plots.study_errors(errors, r["radius_nm"], out.file("errors.png"))
+    log(table(rows, tol))
+    if "push_first_success_pct" in metrics:
+        log(
+            f"push: {metrics['push_first_success_pct']:.1f} % within {tol:g} R after the first push, "
+            f"{metrics['push_success_pct']:.1f} % after the checks ({metrics['push_corrections_mean']:.2f} "
+            "corrective pushes per trial)"
+        )
+    if modes:
+        log(failure_table(modes, cfg.trials))
+    return metrics
+
+
+def failure_table(modes: dict, trials: int) -> str:
+    """The failure modes as a table: stage, reason, trials, share of all trials."""
+    lines = [f"{'stage':7s} {'why a trial failed':42s} {'trials':>7s} {'share':>7s}"]
+    lines.append("-" * len(lines[0]))
+    for stage, reasons in modes.items():
+        for why, n in reasons.items():
+            lines.append(f"{stage:7s} {why:42s} {n:7d} {100 * n / trials:6.1f}%")
+    return "\n".join(lines)
+
+
+def table(rows: dict, tolerance_radii: float) -> str:
+    head = (
+        f"{'stage':10s} {'trials':>7s} {'ran':>6s} {'median':>9s} {'p95':>9s} {'p99':>9s} {'worst':>9s} "
+        f"{'success':>8s} {'scanning':>9s}"
+    )
+    lines = [head, "-" * len(head)]
+    for label, s in rows.items():
+        lines.append(
+            f"{label:10s} {s['trials']:7d} {s['ran_pct']:5.1f}% {s['error_median_nm']:7.1f}nm "
+            f"{s['error_p95_nm']:7.1f}nm "
+            f"{s['error_p99_nm']:7.1f}nm {s['error_max_nm']:7.1f}nm {s['success_pct']:7.1f}% "
+            f"{s['scan_time_s']:8.0f}s"
+        )
+    lines.append(
+        f"ran: trials with a model, a landmark map (B) and their particle in the survey image; error (over those): "
+        f"true tip to true particle centre after a 0.2 s dwell (push: the particle's final "
+        f"centre to its goal); success (over all): error <= 0.1 R (push: within {tolerance_radii:g} R); scanning: "
+        "mean time spent scanning and pressing per scanner (A: calibration image; B: landmarks + "
+        "workspace image; A+B+C: plus the mean local scan)"
+    )
+    return "\n".join(lines)
