@@ -112,7 +112,7 @@ def main():
             return identify_scanner(
                 scan,
                 ScanModelSpec(spec.kind, tuple(spec.effects), spec.operators),
-                FitPlan(solver, blur, "auto", limit, hold_out=False),
+                FitPlan(solver, blur, "auto", limit, hold_out=False, select=False),
                 log=log,
             )
 

@@ -368,36 +368,110 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def step_a_validation(
-    measured, model, extent, sites, raw, corrected, path, title: str = "", held_out: bool = True
-) -> None:
-    """Step A checked on its own data: the measured trace image and the fitted model's, their
-    difference (nm), and the held-out features' distance from their lattice sites (nm) at
-    their nominal positions (raw) and where the model puts the tip (corrected), as arrows
-    from each site, each set magnified to be seen (the factor in the legend). ``extent``: the
-    images' nominal [x0, x1, y0, y1] nm in the scan frame; ``sites``, ``raw``, ``corrected``:
-    (n, 2) nm; ``held_out``: whether those sites were held out of the fit (else they were fitted).
+def step_a_validation(view, path, title: str = "") -> None:
+    """Step A checked on its own data, as a microscopist reads it (``view``: a
+    :class:`~jaxafm.jobs.calibrate.ValidationView`, nm and the scan's nominal frame throughout):
+
+    - the trace with its background removed, and the chords the fit saw (blue) and held out
+      (orange); the background removed (a plane, a bow and each line's offset);
+    - the trace placed where the fitted scanner says the tip was, with the lattice's sites:
+      straight rows and columns where the model is right;
+    - each chord's midpoint offset from its feature's line through the site (the fit's
+      residual, nm);
+    - each feature's trace-to-retrace shift along the fast axis, as the images show it (the loop
+      and the lag) and after correction (0 where the model explains them);
+    - the held-out features' errors from their sites, raw and corrected, as arrows magnified to
+      be seen (the factors in the legend).
     """
-    fig, axes = subplots(1, 4, figsize=(17, 4.4), constrained_layout=True)
-    ext = np.asarray(extent) / 1e3
-    lo, hi = np.percentile(measured, [1, 99])
-    for ax, z, name in ((axes[0], measured, "measured trace"), (axes[1], model, "model trace")):
-        im = ax.imshow(z, origin="lower", extent=ext, cmap="afmhot", vmin=lo, vmax=hi)
-        ax.set(title=name, xlabel="fast axis, nominal (µm)", ylabel="slow axis, nominal (µm)")
-    fig.colorbar(im, ax=axes[:2], label="height (nm)", shrink=0.8)
-    d = np.asarray(measured) - np.asarray(model)
-    lim = float(np.percentile(np.abs(d), 99)) or 1.0
-    im = axes[2].imshow(d, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim)
-    axes[2].set(
-        title=f"measured - model (rms {np.sqrt(np.mean(d**2)):.3g} nm)",
+    fig, axes = subplots(2, 3, figsize=(17, 10.5), constrained_layout=True)
+    ext = np.asarray(view.extent) / 1e3
+    ax = axes[0, 0]
+    lo, hi = np.percentile(view.levelled, [1, 99])
+    im = ax.imshow(view.levelled, origin="lower", extent=ext, cmap="afmhot", vmin=lo, vmax=hi)
+    for ends, c, label in ((view.chords_fitted, "C0", "fitted"), (view.chords_held, "C1", "held out")):
+        if len(ends):
+            ax.plot(
+                ends[..., 0].ravel() / 1e3,
+                ends[..., 1].ravel() / 1e3,
+                ".",
+                ms=1.2,
+                color=c,
+                label=f"chord ends, {label}",
+            )
+    ax.legend(fontsize=8, loc="upper right", markerscale=6)
+    ax.set(
+        title="trace, background removed", xlabel="fast axis, nominal (µm)", ylabel="slow axis, nominal (µm)"
+    )
+    fig.colorbar(im, ax=ax, label="height (nm)", shrink=0.8)
+    ax = axes[0, 1]
+    im = ax.imshow(view.background, origin="lower", extent=ext, cmap="viridis")
+    ax.set(
+        title=f"background removed (plane, bow, line offsets: {np.ptp(view.background):.3g} nm)",
         xlabel="fast axis, nominal (µm)",
     )
-    fig.colorbar(im, ax=axes[2], label="nm", shrink=0.8)
-    ax = axes[3]
-    sites, raw, corrected = (np.asarray(a, dtype=float).reshape(-1, 2) for a in (sites, raw, corrected))
+    fig.colorbar(im, ax=ax, label="nm", shrink=0.8)
+    ax = axes[0, 2]
+    im = ax.imshow(
+        view.placed,
+        origin="lower",
+        extent=np.asarray(view.placed_extent) / 1e3,
+        cmap="afmhot",
+        vmin=lo,
+        vmax=hi,
+    )
+    ax.plot(view.sites[:, 0] / 1e3, view.sites[:, 1] / 1e3, "+", color="C2", ms=6, label="lattice sites")
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set(
+        title="trace where the fitted scanner put the tip", xlabel="x (µm)", ylabel="y (µm)", aspect="equal"
+    )
+    ax = axes[1, 0]
+    lim = float(np.percentile(np.abs(view.chord_offsets), 98)) or 1.0
+    sc = ax.scatter(
+        view.chord_mid[:, 0] / 1e3,
+        view.chord_mid[:, 1] / 1e3,
+        c=view.chord_offsets,
+        s=3,
+        cmap="RdBu_r",
+        vmin=-lim,
+        vmax=lim,
+    )
+    ax.set(
+        title=f"chord midpoints off their features' lines (rms {np.sqrt(np.mean(view.chord_offsets**2)):.3g} nm)",
+        xlabel="fast axis, nominal (µm)",
+        ylabel="slow axis, nominal (µm)",
+        xlim=ext[:2],
+        ylim=ext[2:],
+        aspect="equal",
+    )
+    fig.colorbar(sc, ax=ax, label="nm", shrink=0.8)
+    ax = axes[1, 1]
+    for shift, c, label in (
+        (view.shift_raw, "C3", "raw (as imaged)"),
+        (view.shift_corrected, "C0", "corrected (model)"),
+    ):
+        ax.plot(
+            view.shift_at / 1e3,
+            shift,
+            "o",
+            ms=4,
+            color=c,
+            label=f"{label}: rms {np.sqrt(np.mean(shift**2)):.3g} nm",
+        )
+    ax.axhline(0, color="k", lw=0.5)
+    ax.legend(fontsize=8)
+    ax.set(
+        title="each feature's retrace less trace position, along the fast axis",
+        xlabel="fast axis, nominal (µm)",
+        ylabel="nm",
+    )
+    ax = axes[1, 2]
+    sites = view.held_sites
     if len(sites):
         spacing = np.median(np.linalg.norm(np.diff(sites, axis=0), axis=1))
-        for e, c, label in ((raw, "C3", "raw (nominal)"), (corrected, "C0", "corrected (model)")):
+        for e, c, label in (
+            (view.held_raw, "C3", "raw (nominal)"),
+            (view.held_corrected, "C0", "corrected (model)"),
+        ):
             rms = np.sqrt(np.mean(np.sum(e**2, axis=1)))
             scale = 0.4 * spacing / max(float(np.abs(e).max()), 1e-9)
             ax.quiver(
@@ -414,9 +488,8 @@ def step_a_validation(
             )
         ax.plot(sites[:, 0] / 1e3, sites[:, 1] / 1e3, "k.", ms=2)
         ax.legend(fontsize=8, loc="upper right")
-        what = "held-out features" if held_out else "every other site (fitted: no hold-out)"
-        ax.set_title(f"{what}:\nerror from their sites", fontsize=10)
-    ax.set(xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
+    what = "held-out features" if view.held_out else "every other site (fitted: no hold-out)"
+    ax.set(title=f"{what}: error from their sites", xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)

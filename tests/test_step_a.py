@@ -171,7 +171,7 @@ def _simulated_scan(depth_nm=100.0, phase_nm=(130.0, 70.0)):
 
 
 def test_identification_recovers_coupling_and_the_tip_path():
-    """From a coarse start (the feature points on every two pixels of a line averaged; the
+    """From a coarse start (the chords on every two pixels of a line averaged; the
     full-resolution start runs in every other identification of the suite) the last stage, on
     the whole scan, recovers the simulator's coupling and tip path."""
     scan, (truth, out) = _simulated_scan()
@@ -179,10 +179,10 @@ def test_identification_recovers_coupling_and_the_tip_path():
     ident = identify(
         scan,
         ScanModelSpec(effects=("coupling",), operators=16),
-        FitPlan(max_steps=12, blur_px=(1.5,), coarsen=2),
+        FitPlan(max_steps=12, blur_px=(1.5,), coarsen=2, select=False),
         log=said.append,
     )
-    assert any("feature points, 36 px a line" in s for s in said)
+    assert any("chords, 36 px a line" in s for s in said)
     assert not any("images, blur 1.5 px, 36 px" in s for s in said)  # the last stage is whole
     model = ident.model
     assert abs(float(model.scanner.coupling.xy) - 0.02) < 0.002
@@ -214,7 +214,7 @@ def test_a_second_scan_reuses_the_compiled_solves(caplog):
             identify(
                 scan,
                 ScanModelSpec(effects=("coupling",)),
-                FitPlan(max_steps=2, blur_px=()),
+                FitPlan(max_steps=2, blur_px=(), select=False),
                 log=lambda m: None,
             )
         programs = ("jit(linearised)", "jit(flat)")  # the geodesic solver's Jacobian and residuals
@@ -223,19 +223,28 @@ def test_a_second_scan_reuses_the_compiled_solves(caplog):
     assert not traced[1], traced[1]
 
 
-def test_padded_features_leave_the_feature_loss_unchanged():
-    """The feature fit pads each image's features to a power of two with weight 0: its loss is
-    half the mean square of the unpadded features' site errors (computed here without padding)."""
+def test_padded_chords_leave_the_chord_loss_unchanged():
+    """The chord fit pads each image's chords to the most its raster can hold, with weight 0: its
+    loss is half the mean square of the unpadded chords' midpoint offsets (in pitches), computed
+    here from the model's tip path directly."""
     scan = _simulated_scan()[0]
     trace, retrace = scan.features()
     model = nominal_scan_model(scan, ScanModelSpec(operators=16))
     raw = model.free_parameters(scan)[0]
-    unpadded = [(f.rc, f.ij) for f in (trace, retrace)]
-    padded = tuple(stages.pad_features(rc, ij) for rc, ij in unpadded)
-    assert [len(p[0]) for p in padded] == [1 << (len(rc) - 1).bit_length() for rc, _ in unpadded]
-    errors = np.concatenate([np.ravel(e) for e in model.site_errors(scan, unpadded)])
-    loss = stages.point_loss(raw, (model, (scan,), (padded,)))
-    np.testing.assert_allclose(float(loss), 0.5 * np.mean(errors**2), rtol=1e-12)
+    chords = [(f.chords.ends, f.chord_indices(), f.chords.along_lines) for f in (trace, retrace)]
+    size = stages.chord_capacity(scan)
+    padded = tuple(stages.pad_chords(*c, size) for c in chords)
+    assert [len(p[0]) for p in padded] == [size, size] and size > max(len(c[0]) for c in chords)
+    delay = float(model.edge_delay) / scan.raster.sample_time
+    offsets = [
+        model.chord_offsets(
+            model.chord_ends(path, jnp.asarray(ends), sign * delay), jnp.asarray(ij, dtype=float), along
+        )
+        for path, (ends, ij, along), sign in zip(model.paths(scan), chords, (1.0, -1.0))
+    ]
+    offsets = np.concatenate([np.asarray(o) for o in offsets]) / 1000.0  # pitches
+    loss = stages.chord_loss(raw, (model, (scan,), (padded,)))
+    np.testing.assert_allclose(float(loss), 0.5 * np.mean(offsets**2), rtol=1e-12)
 
 
 def test_held_out_image_residual_is_the_rms_over_the_held_out_pixels():

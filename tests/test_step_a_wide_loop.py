@@ -12,7 +12,7 @@ from jaxafm.jobs import calibrate
 
 
 def _true_model(sim):
-    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, True)
+    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
 
 
 def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_feature():
@@ -36,7 +36,9 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     agree = [len(set(shifts(r))) == 1 for r in retraces]
     assert agree[0] is False and True in agree  # the nearest match is wrong; another is right
     ident = identify(
-        scan, plan=FitPlan(max_steps=30, blur_px=(), coarsen="auto", hold_out=False), log=lambda m: None
+        scan,
+        plan=FitPlan(max_steps=30, blur_px=(), coarsen="auto", hold_out=False, select=False),
+        log=lambda m: None,
     )
     assert "matched the other way" in ident.stages[0].message
     e = np.stack(

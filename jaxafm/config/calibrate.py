@@ -44,13 +44,23 @@ class CalibrationLattice(Strict):
         return None if self.rotation_deg == "fit" else math.radians(self.rotation_deg)
 
 
+LineRate = Annotated[float, Field(gt=0, le=50.0)]
+#: the most scans one calibration may hold
+MAX_SCANS = 8
+
+
 class SimulatedCalibration(Strict):
-    """A trace/retrace image pair of the grating from the built-in simulated AFM
-    (``default_afm()``), taken after the initialisation cycle ``+-u_max``."""
+    """Trace/retrace image pairs of the grating from the built-in simulated AFM
+    (``default_afm()``), each taken after the initialisation cycle ``+-u_max``: one per scan angle
+    and line rate."""
 
     pixels: int = Field(128, ge=32, le=1024, description="pixels per line = lines")
     size_nm: float = Field(8000.0, gt=0, le=9000.0, description="scan width = height, nm")
-    line_rate_hz: float = Field(1.0, gt=0, le=50.0)
+    line_rate_hz: Union[LineRate, list[LineRate]] = Field(
+        1.0,
+        description="lines per second, or several (a speed series: one image pair at each rate and "
+        "angle, which separates the scanner's rate dependence from its loop)",
+    )
     angles_deg: list[Annotated[float, Field(ge=-360, le=360)]] = Field(
         [0.0],
         min_length=1,
@@ -69,7 +79,25 @@ class SimulatedCalibration(Strict):
         check_effect_names(self.withheld, "withheld")
         if len(set(self.angles_deg)) != len(self.angles_deg):
             raise ValueError(f"angles_deg: each scan angle once, got {self.angles_deg}")
+        if len(set(self.line_rates_hz)) != len(self.line_rates_hz):
+            raise ValueError(f"line_rate_hz: each line rate once, got {self.line_rate_hz}")
+        if len(self.line_rates_hz) * len(self.angles_deg) > MAX_SCANS:
+            raise ValueError(
+                f"angles_deg x line_rate_hz: {len(self.angles_deg)} x {len(self.line_rates_hz)} scans, at most "
+                f"{MAX_SCANS}"
+            )
         return self
+
+    @property
+    def line_rates_hz(self) -> list:
+        """The line rates (Hz), one or several."""
+        return self.line_rate_hz if isinstance(self.line_rate_hz, list) else [self.line_rate_hz]
+
+    @property
+    def scans(self) -> list:
+        """``(angle_deg, line_rate_hz)`` of each simulated scan, in the order taken: each angle at
+        every rate."""
+        return [(a, r) for a in self.angles_deg for r in self.line_rates_hz]
 
 
 class CalibrationPair(ImagePair):
@@ -99,7 +127,11 @@ class CalibrationImages(Strict):
     overscan: float = Field(0.1, ge=0, le=1, description="a single scan's over-scan, fraction of the width")
     lines: Literal["up", "down"] = Field("up", description="a single scan's line order")
     scans: Optional[list[CalibrationPair]] = Field(
-        None, min_length=1, max_length=4, description="several scans, one per scan angle"
+        None,
+        min_length=1,
+        max_length=8,
+        description="several scans: at other angles (0 and 90 degrees make both axes reverse) and "
+        "other line rates (a speed series), each pair of angle and rate once",
     )
     sensitivity_nm_per_v: Optional[list[Annotated[float, Field(gt=0)]]] = Field(
         None, min_length=2, max_length=2, description="nominal x, y calibration; default from the range"
@@ -127,9 +159,15 @@ class CalibrationImages(Strict):
                 raise ValueError(
                     f"give one scan as trace/retrace/line_rate_hz or several as scans, not both ({given[0]})"
                 )
-            angles = [s.angle_deg for s in self.scans]
-            if len(set(angles)) != len(angles):
-                raise ValueError(f"scans: each scan angle once, got angle_deg {angles}")
+            seen = [(s.angle_deg, s.line_rate_hz) for s in self.scans]
+            twice = sorted({k for k in seen if seen.count(k) > 1})
+            if twice:
+                a, r = twice[0]
+                raise ValueError(
+                    f"scans: the scan at angle_deg {a:g} and line_rate_hz {r:g} is given "
+                    f"{seen.count(twice[0])} times: each pair of angle and line rate once (a speed "
+                    "series scans one angle at several rates)"
+                )
         elif len(given) < 3:
             missing = [k for k in single if k not in given]
             raise ValueError(
@@ -181,14 +219,14 @@ class CalibrationSolver(Strict):
     max_steps: Union[StepLimit, list[StepLimit]] = Field(
         100,
         description="per stage: one number for every stage, or a list, one per stage in order (the "
-        "feature-point stages, then each blur)",
+        "chord stages, then each blur)",
     )
     blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
         [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
     )
     coarsen: Union[Annotated[int, Field(ge=1, le=64)], Literal["auto"]] = Field(
         1,
-        description="the feature-point stages fit the scans with this many pixels of a line "
+        description="the chord stages fit the scans with this many pixels of a line "
         "averaged into one, a power of two (a cheaper start); the image stages fit them whole; 1: "
         "none; auto: the largest leaving 8 px per pitch",
     )
@@ -196,6 +234,11 @@ class CalibrationSolver(Strict):
         True,
         description="hold out half the lattice sites (a checkerboard) to validate the fit and to "
         "refuse an image stage that worsens them",
+    )
+    select: bool = Field(
+        True,
+        description="climb a ladder of models from straight axes towards the configured model and "
+        "keep the one the data support (docs/step_a.md); false: fit the configured model as it is",
     )
 
 
@@ -231,7 +274,7 @@ def check_stage_steps(solver: CalibrationSolver, scans: int) -> None:
     on ``scans`` scans: one feature stage (two for several scans), then one per blur."""
     if isinstance(solver.max_steps, int):
         return
-    stages = ["feature points"] + (["feature points, all scans"] if scans > 1 else [])
+    stages = ["chords"] + (["chords, all scans"] if scans > 1 else [])
     stages += [f"images, blur {b:g} px" for b in solver.blur_px]
     if len(solver.max_steps) != len(stages):
         raise ValueError(

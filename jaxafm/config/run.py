@@ -36,7 +36,7 @@ class StepA(Strict):
         if self.simulate.withheld:
             raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
         check_coarsen(self.solver, self.simulate, self.grating)
-        check_stage_steps(self.solver, len(self.simulate.angles_deg))
+        check_stage_steps(self.solver, len(self.simulate.scans))
         return self
 
 

@@ -20,7 +20,8 @@ import numpy as np
 
 from .. import checks
 from ..instrument.afm import Raster
-from .features import LatticeFeatures, feature_centres, index_lattice
+from .chords import find_chords
+from .features import LatticeFeatures, index_lattice
 
 Array = jax.Array
 
@@ -112,7 +113,7 @@ class CalibrationScan(eqx.Module):
 
     @property
     def name(self) -> str:
-        return f"the {self.raster.angle_deg:g} degree scan"
+        return f"the {self.raster.angle_deg:g} degree scan at {self.raster.line_rate:g} Hz"
 
     def features(self) -> tuple:
         """Pillar (or pit) centres of trace and retrace, indexed in one lattice frame: the
@@ -123,16 +124,34 @@ class CalibrationScan(eqx.Module):
         return trace, retraces[0]
 
     def feature_matches(self) -> tuple:
-        """The trace's features and the retrace's, the latter indexed in each way the line
-        reversal allows (:func:`_retrace_matches`): ``(trace, [retrace, ...])``."""
-        sign = -1.0 if self.pits else 1.0
+        """The trace's features and the retrace's (with their chords,
+        :func:`~jaxafm.identify.chords.find_chords`), the latter indexed in each way the line
+        reversal allows (:func:`_retrace_matches`): ``(trace, [retrace, ...])``.
+
+        Raises:
+            ValueError: naming the image, when it shows fewer than 3 x 3 complete features or
+                does not fill the image with them.
+        """
         found = []
         for k in ("trace", "retrace"):
             name = f"{self.name}'s {k} image"
-            rc = feature_centres(sign * np.asarray(getattr(self, k)), name)
+            chords = find_chords(np.asarray(getattr(self, k)), self.pits, name)
+            rc = chords.centres
+            if len(rc) < 9 and chords.spanning >= 3:
+                raise ValueError(
+                    f"{name}: {chords.spanning} features run right across the image: it shows the lines of "
+                    "a 1-D grating (or pits/pillars joined into lines), not a lattice of separate pits or "
+                    "pillars. Step A identifies both axes from a 2-D lattice; a 1-D grating shows only the "
+                    "axis across its lines (jaxafm.identify.line_grating.fit_line_grating fits that)"
+                )
+            if len(rc) < 9:
+                raise ValueError(
+                    f"{name}: found {len(rc)} complete {'pits' if self.pits else 'pillars'}; the lattice "
+                    "must fill the scan with at least 3 x 3 of them"
+                )
             _check_coverage(rc, self.pitch_px, (self.raster.lines, self.raster.pixels), name)
             ij, angle = index_lattice(self.raster.nominal(rc), self.pitch, name, "nm")
-            found.append(LatticeFeatures(rc, ij, angle))
+            found.append(LatticeFeatures(rc, ij, angle, chords))
         return found[0], _retrace_matches(*found, self.pitch_px)
 
 
@@ -143,12 +162,18 @@ def coarse_pixels(rc: np.ndarray, factor: int) -> np.ndarray:
     return np.c_[rc[:, 0], (rc[:, 1] + 0.5) / factor - 0.5]
 
 
+def drive_range(scans: tuple) -> np.ndarray:
+    """The drive (2, 2) V [min, max] per axis that the calibration scans covered, over-scan included."""
+    u = np.concatenate([s.raster.wanted().reshape(-1, 2) / np.asarray(s.sensitivity) for s in scans])
+    return np.stack([u.min(axis=0), u.max(axis=0)], axis=-1)
+
+
 def check_scan_set(scans: Sequence[CalibrationScan]) -> None:
-    """Refuse a set of scans that are not of one lattice on one instrument, or repeat an angle.
+    """Refuse a set of scans that are not of one lattice on one instrument, or repeat a scan.
 
     Raises:
         ValueError: for no scan, scans that differ in pitch, pits, sensitivity or ``u_max``
-            (naming both scans and values), or a scan angle given twice.
+            (naming both scans and values), or a scan angle given twice at one line rate.
     """
     if not scans:
         raise ValueError("step A needs at least one calibration scan")
@@ -160,9 +185,11 @@ def check_scan_set(scans: Sequence[CalibrationScan]) -> None:
                     f"{s.name} has {what} {getattr(s, what)}, {first.name} {getattr(first, what)}: "
                     "the scans of one calibration must share the lattice and the instrument"
                 )
-    angles = [s.raster.angle_deg for s in scans]
-    if len(set(angles)) != len(angles):
-        raise ValueError(f"scan angles {angles} repeat: give each scan angle once")
+    seen = [(s.raster.angle_deg, s.raster.line_rate) for s in scans]
+    if len(set(seen)) != len(seen):
+        raise ValueError(
+            f"scans (angle deg, line rate Hz) {seen} repeat: give each angle once at each line rate"
+        )
 
 
 def _check_coverage(rc: np.ndarray, pitch_px: tuple, shape: tuple, name: str) -> None:
@@ -203,4 +230,4 @@ def _retrace_matches(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: tuple) 
             shifts, counts = np.unique(ft.ij[turn][paired] - fr.ij[nearest], axis=0, return_counts=True)
             sides.append((float(np.median(dist[paired].min(axis=1))), tuple(shifts[np.argmax(counts)])))
     shifts = list(dict.fromkeys(shift for _, shift in sorted(sides)))
-    return [LatticeFeatures(fr.rc, fr.ij + np.asarray(shift), fr.angle) for shift in shifts]
+    return [dataclasses.replace(fr, ij=fr.ij + np.asarray(shift)) for shift in shifts]

@@ -30,6 +30,7 @@ import dataclasses
 
 import numpy as np
 from scipy import ndimage
+from skimage import filters
 
 #: a feature at most this fraction of the median feature's area is a spike or a fragment
 MIN_FEATURE_AREA = 0.3
@@ -72,6 +73,7 @@ class Chords:
         along_lines: whether a chord runs along a scan line (else along a pixel column) (n,).
         centres: each feature's centroid (features, 2) fractional pixels (row, col).
         image: the levelled image the chords were found in.
+        spanning: how many regions run right across the image (a 1-D grating's lines do).
     """
 
     ends: np.ndarray
@@ -79,6 +81,7 @@ class Chords:
     along_lines: np.ndarray
     centres: np.ndarray
     image: LevelledImage
+    spanning: int = 0
 
 
 def background_design(shape: tuple, order: int = BACKGROUND_ORDER) -> np.ndarray:
@@ -126,6 +129,13 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
             break
         surface = new
     if not height > 10 * sd:
+        if (lines := _spanning(r)) >= 3:
+            raise ValueError(
+                f"{name}: {lines} features run right across the image: it shows the lines of a 1-D "
+                "grating, not a lattice of separate pits or pillars. Step A identifies both axes from a "
+                "2-D lattice; a 1-D grating shows only the axis across its lines "
+                "(jaxafm.identify.line_grating.fit_line_grating fits that)"
+            )
         raise ValueError(
             f"{name}: no feature level stands out of the surface after levelling (features "
             f"{height:.3g} nm, surface noise {sd:.3g} nm): is it a lattice of "
@@ -134,6 +144,14 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
     spikes = _spikes(r, max(8 * sd, 0.25 * height))
     background = (s - r) * (-1.0 if pits else 1.0)
     return LevelledImage(r / height, background, height, surface, spikes | clipped, sd)
+
+
+def _spanning(r: np.ndarray) -> int:
+    """How many regions above the image's Otsu level run right across it, top to bottom or side
+    to side (the lines of a 1-D grating do)."""
+    labels, _ = ndimage.label(r > filters.threshold_otsu(r))
+    across = np.union1d(np.intersect1d(labels[0], labels[-1]), np.intersect1d(labels[:, 0], labels[:, -1]))
+    return len(np.setdiff1d(across, [0]))
 
 
 def _spikes(r: np.ndarray, step: float) -> np.ndarray:
@@ -156,10 +174,11 @@ def _clipped(s: np.ndarray) -> np.ndarray:
 
 
 def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
-    """The features and chords of the lattice image ``z`` (lines, pixels) nm (the module's rules).
+    """The features and chords of the lattice image ``z`` (lines, pixels) nm (the module's rules);
+    an image of no complete feature gives none.
 
     Raises:
-        ValueError: naming the image, when it shows no complete feature.
+        ValueError: naming the image, when no feature level stands out of it (:func:`level`).
     """
     image = level(z, pits, name)
     n = image.levelled
@@ -167,10 +186,10 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     ids = np.arange(1, count + 1)
     area = ndimage.sum_labels(np.ones_like(n), labels, ids)
     edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    spanning = _spanning(n)
     inside = ~np.isin(ids, edge)
-    if not inside.any():
-        raise ValueError(f"{name}: no complete feature (all touch the image's edges): scan a larger area")
-    keep = ids[inside & (area > MIN_FEATURE_AREA * np.median(area[inside]))]
+    typical = np.median(area[inside]) if inside.any() else 0.0
+    keep = ids[inside & (area > MIN_FEATURE_AREA * typical)]
     centres = np.array(ndimage.center_of_mass(n > 0.5, labels, keep)).reshape(-1, 2)
     index = np.full(count + 1, -1)
     index[keep] = np.arange(len(keep))
@@ -178,7 +197,7 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     ends = np.concatenate([r[0] for r in runs])
     feature = np.concatenate([r[1] for r in runs])
     along = np.concatenate([np.full(len(r[1]), k == 0) for k, r in enumerate(runs)])
-    return Chords(ends, feature, along, centres, image)
+    return Chords(ends, feature, along, centres, image, spanning)
 
 
 def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:

@@ -20,11 +20,18 @@ from skimage import filters, measure
 class LatticeFeatures:
     """Pillar centres of one image: ``rc`` (n, 2) fractional (row, col) pixels, their lattice
     indices ``ij`` (n, 2) (along the lattice's first and second axis) and the lattice's angle
-    ``angle`` (rad, anticlockwise) in the frame it was indexed in."""
+    ``angle`` (rad, anticlockwise) in the frame it was indexed in; ``chords``: the
+    :class:`~jaxafm.identify.chords.Chords` the centres are the features of (their
+    ``feature`` numbers index ``rc``), where they came from them."""
 
     rc: np.ndarray
     ij: np.ndarray
     angle: float = 0.0
+    chords: object = None
+
+    def chord_indices(self) -> np.ndarray:
+        """The lattice indices (n, 2) of each chord's feature."""
+        return self.ij[self.chords.feature]
 
 
 def check_image(z: np.ndarray, name: str) -> np.ndarray:

@@ -341,6 +341,15 @@ def residual_values(residuals: Callable, raw, args) -> np.ndarray:
     return np.asarray(geodesic.compiled(_flat(residuals))[0](np.asarray(flat, dtype=np.float64), packed))
 
 
+def linearisation(residuals: Callable, raw, args) -> tuple:
+    """``(r, J)``: ``residuals(raw, args)`` (n,) and their Jacobian (n, k) with respect to the flat
+    parameters (``raw`` raveled, :func:`jax.flatten_util.ravel_pytree`'s order), through the
+    jitted functions the geodesic solver uses: after such a fit nothing is compiled again."""
+    flat, _, packed = _packed(raw, args)
+    r, J = geodesic.compiled(_flat(residuals))[1](np.asarray(flat, dtype=np.float64), packed)
+    return np.asarray(r), np.asarray(J)
+
+
 @functools.lru_cache(maxsize=64)
 def _jitted(residuals: Callable) -> tuple:
     """``residuals`` (:func:`_flat`) and its forward-mode Jacobian, jitted once."""

@@ -1,6 +1,12 @@
-"""Step A's plausibility checks: what makes a fitted scanner unusable, in words
-(:func:`implausible`): a tip that travels far more or less than the image, a falling
-hysteresis branch, creep against the move, a loop wider than its travel."""
+"""Step A's plausibility checks: what makes a fitted scanner unusable, in words.
+
+:func:`implausible`: a tip that travels far more or less than the image, a falling hysteresis
+branch, creep against the move, a loop wider than its travel. :func:`unvalidated`: held-out
+features misplaced by more than :data:`MAX_HELD_OUT_PITCH` of the pitch, or placed worse by the
+correction than by the raw image (their rms residual or the spread of their local pitch).
+:func:`undetermined`: an axis's loop the data leave open
+(:class:`~jaxafm.identify.identifiability.Quantity`).
+"""
 
 from __future__ import annotations
 
@@ -52,6 +58,49 @@ def implausible(model: ScanModel, scans: tuple) -> list:
             )
     failures += _loop_widths(model.scanner, scans)
     return failures
+
+
+#: the largest held-out feature residual (rms, a fraction of the pitch) a usable model may leave:
+#: beyond it a model cannot even tell the lattice's sites apart reliably
+MAX_HELD_OUT_PITCH = 0.05
+
+
+def unvalidated(validation: dict, pitch: float) -> list:
+    """What the held-out features say against a fitted model, in words (empty: nothing):
+    ``validation`` as :func:`~jaxafm.identify.held_out.validate` gives it, ``pitch`` nm."""
+    if not validation.get("held_out_features"):
+        return []
+    out = []
+    rms, raw = validation["held_out_rms_nm"], validation["held_out_raw_rms_nm"]
+    if rms > MAX_HELD_OUT_PITCH * pitch:
+        out.append(
+            f"the held-out features are misplaced by {rms:.4g} nm rms, more than "
+            f"{100 * MAX_HELD_OUT_PITCH:g} % of the {pitch:.4g} nm pitch"
+        )
+    if rms >= raw:
+        out.append(
+            f"the correction misplaces the held-out features more than the raw image ({rms:.4g} nm rms "
+            f"against {raw:.4g} nm)"
+        )
+    spread = validation["held_out_pitch_std_corrected_pct"], validation["held_out_pitch_std_raw_pct"]
+    if spread[0] > spread[1]:
+        out.append(
+            f"the correction makes the held-out features' local pitch less uniform ({spread[0]:.3g} % "
+            f"spread against {spread[1]:.3g} % raw)"
+        )
+    return out
+
+
+def undetermined(quantities: list) -> list:
+    """A scan's loop that the scans leave open, in words
+    (:attr:`~jaxafm.identify.identifiability.Quantity.determined`): a model whose loop is a guess
+    where it was measured cannot compensate it."""
+    return [
+        f"the scans do not determine the {q.name} ({q.value:.3g} +- {q.sd:.3g} {q.unit}): scan at more "
+        "line rates or angles, or a lattice with more features along each line"
+        for q in quantities
+        if q.key.startswith("loop_scan") and not q.determined
+    ]
 
 
 def creep_fall(creep) -> float:

@@ -45,6 +45,7 @@ BOW_SCALE_PER_NM = 1e-6
 DRIFT_SCALE_NM_S = 0.05
 LAG_SCALE_S = 1e-3
 CREEP_SCALE = 0.01
+SLOPE_SCALE = 0.01
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,12 +76,46 @@ class ScanModelSpec:
 class ScanModel(eqx.Module):
     """What step A fits: the scanner, the z-feedback lag, and the lattice's unknowns
     (phase, radius, depth, edge width; the pitch is known). ``rotation_free``: the lattice's
-    angle on the stage is fitted too (:meth:`free_parameters` says how that fixes a gauge)."""
+    angle on the stage is fitted too (:meth:`free_parameters` says how that fixes a gauge).
+
+    ``chord_slope`` (2,): how the midpoints of a feature's chords lie, for chords along the
+    scan lines and along the pixel columns (:meth:`chord_offsets`). The chords of a centrally
+    symmetric feature that run one way have their midpoints on a line through its centre: for
+    a round feature the line across the chords (slope 0), for a square one the line along the
+    sides they cross (the slope the tangent of the sides' tilt from that perpendicular).
+
+    ``edge_delay`` (s): how late an edge the tip crosses shows in the image, at half its height:
+    the z signal's lag and latency (a first-order feedback lag of time constant tau delays a
+    sharp edge's half-height crossing by tau ln 2, a latency by itself). The chords see it; the
+    image stages render the lag itself (``feedback``). Fitted with the effect ``feedback_lag``."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
     lattice: Lattice
+    chord_slope: Array = eqx.field(default_factory=lambda: jnp.zeros(2))
+    edge_delay: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     rotation_free: bool = eqx.field(static=True, default=False)
+
+    def chord_ends(self, path: Array, ends: Array, shift) -> Array:
+        """Where the tip was (n, 2, 2) nm when it crossed the chords' ``ends`` (n, 2, 2)
+        fractional pixels (row, col) of an image whose tip positions are ``path`` (lines,
+        pixels, 2): ``shift`` columns earlier in time than where the image shows them (the edge
+        delay; columns run backwards in time in a retrace)."""
+        rc = ends.reshape(-1, 2) - jnp.asarray([0.0, 1.0]) * shift
+        return interpolate(path, rc).reshape(-1, 2, 2)
+
+    def chord_offsets(self, tips: Array, ij: Array, along_lines: Array) -> Array:
+        """How far (n,) nm each chord's midpoint lies off the line its feature's midpoints
+        should lie on (class docstring): with ``d`` the chord's direction and ``p`` its
+        perpendicular, ``d . (m - c) - s p . (m - c)``, ``m`` its midpoint (of the tip positions
+        ``tips`` (n, 2, 2) nm at its ends), ``c`` the lattice site ``ij`` (n, 2), ``s`` the
+        ``chord_slope`` of its direction. 0 on a perfect model."""
+        m = tips.mean(axis=1) - self.lattice.sites(ij)
+        d = tips[:, 1] - tips[:, 0]
+        d = d / jnp.linalg.norm(d, axis=1, keepdims=True)
+        p = jnp.stack([-d[:, 1], d[:, 0]], axis=-1)
+        s = jnp.where(along_lines, self.chord_slope[0], self.chord_slope[1])
+        return jnp.sum(d * m, axis=1) - s * jnp.sum(p * m, axis=1)
 
     def afm(self, scan: CalibrationScan) -> AFM:
         """The simulated AFM with this model as its scanner (tip dilation off)."""
@@ -142,7 +177,10 @@ class ScanModel(eqx.Module):
         s = self.scanner
         angle = ANGLE_SCALE_RAD if self.rotation_free else None
         lattice = self.lattice.free_parameters(min(scan.pitch), scan.depth_scale, EDGE_SCALE_NM, angle)
-        parts = [(lambda m: m.lattice, lattice)]
+        parts = [
+            (lambda m: m.lattice, lattice),
+            (lambda m: m.chord_slope, _scaled(self.chord_slope, SLOPE_SCALE)),
+        ]
         if s.coupling is not None:
             coupling = s.coupling.free_parameters(COUPLING_SCALE, hold_yx=self.rotation_free)
             parts.append((lambda m: m.scanner.coupling, coupling))
@@ -152,6 +190,7 @@ class ScanModel(eqx.Module):
             parts.append((lambda m: m.scanner.drift, s.drift.free_parameters(DRIFT_SCALE_NM_S)))
         if self.feedback is not None:
             parts.append((lambda m: m.feedback, self.feedback.free_parameters(LAG_SCALE_S)))
+            parts.append((lambda m: m.edge_delay, _scaled(self.edge_delay, LAG_SCALE_S)))
         for a in ("x", "y"):
             axis = getattr(s, a)
             if axis.creep is not None:  # one rate per axis, its lags as configured, >= 0
@@ -174,6 +213,11 @@ class ScanModel(eqx.Module):
             return eqx.tree_at(lambda m: (m.scanner.x.hysteresis, m.scanner.y.hysteresis), m, tuple(h))
 
         return raw, rebuild
+
+
+def _scaled(value: Array, scale: float) -> tuple:
+    """A free array at order one: ``(value / scale, raw -> raw * scale)``."""
+    return value / scale, lambda raw: raw * scale
 
 
 def _zero_offset(h: AbstractHysteresis, start: AbstractHysteresis) -> AbstractHysteresis:
@@ -216,7 +260,7 @@ def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpe
         jnp.zeros(2),
     )
     feedback = has("feedback_lag", FeedbackLag(jnp.asarray(5e-4)))
-    return ScanModel(scanner, feedback, lattice, spec.rotation is None)
+    return ScanModel(scanner, feedback, lattice, rotation_free=spec.rotation is None)
 
 
 def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
@@ -238,6 +282,55 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
         RateDependence(jnp.asarray(5e-3)) if "rate_dependence" in spec.effects else None,
         Creep.logarithmic(CREEP_START, per_decade=1) if "creep" in spec.effects else None,
     )
+
+
+def transplant(fitted: ScanModel, into: ScanModel) -> ScanModel:
+    """``into`` (a richer model's start) with what ``fitted`` already knows: the lattice, the
+    chord slopes, every effect both have, and the hysteresis where ``into``'s is of the same
+    shape, or a PI operator on a grid that holds ``fitted``'s thresholds (the plays doubled:
+    the new plays start at ``into``'s small weight), or a generalised PI around ``fitted``'s PI
+    operator (its dead zones at identity)."""
+    out = eqx.tree_at(lambda m: (m.lattice, m.chord_slope), into, (fitted.lattice, fitted.chord_slope))
+    for name in ("coupling", "bow", "drift"):
+        if getattr(fitted.scanner, name) is not None and getattr(into.scanner, name) is not None:
+            out = eqx.tree_at(lambda m: getattr(m.scanner, name), out, getattr(fitted.scanner, name))
+    if fitted.feedback is not None and into.feedback is not None:
+        out = eqx.tree_at(lambda m: (m.feedback, m.edge_delay), out, (fitted.feedback, fitted.edge_delay))
+    for a in ("x", "y"):
+        old, new = getattr(fitted.scanner, a), getattr(into.scanner, a)
+        for name in ("creep", "rate_dependence"):
+            if getattr(old, name) is not None and getattr(new, name) is not None:
+                out = eqx.tree_at(lambda m: getattr(getattr(m.scanner, a), name), out, getattr(old, name))
+        h = _grown(old.hysteresis, new.hysteresis)
+        out = eqx.tree_at(lambda m: getattr(m.scanner, a).hysteresis, out, h)
+    return out
+
+
+def _grown(old: AbstractHysteresis, new: AbstractHysteresis) -> AbstractHysteresis:
+    """``new``'s operator carrying ``old``'s fitted weights where their shapes allow
+    (:func:`transplant`), else ``new`` as it is."""
+    if isinstance(new, GeneralizedPI):
+        pi = _grown(old.pi if isinstance(old, GeneralizedPI) else old, new.pi)
+        dz = (
+            old.deadzone
+            if isinstance(old, GeneralizedPI)
+            and old.deadzone.upper_weights.shape == new.deadzone.upper_weights.shape
+            else new.deadzone
+        )
+        return GeneralizedPI(pi, dz)
+    if type(old) is not type(new):
+        return new
+    if jax.tree.structure(old) == jax.tree.structure(new) and all(
+        np.shape(a) == np.shape(b) for a, b in zip(jax.tree.leaves(old), jax.tree.leaves(new))
+    ):
+        return old
+    if isinstance(new, PrandtlIshlinskii):
+        r_old, r_new = np.asarray(old.thresholds), np.asarray(new.thresholds)
+        at = np.searchsorted(r_new, r_old)
+        if np.all(at < len(r_new)) and np.allclose(r_new[np.minimum(at, len(r_new) - 1)], r_old):
+            weights = jnp.asarray(new.weights).at[at].set(old.weights)
+            return PrandtlIshlinskii(new.thresholds, weights, old.offset)
+    return new
 
 
 def start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> ScanModel:

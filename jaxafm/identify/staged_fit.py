@@ -27,18 +27,30 @@ from typing import Optional
 import jax.numpy as jnp
 import numpy as np
 
-from .calibration_scan import CalibrationScan, check_scan_set
+from .calibration_scan import CalibrationScan, check_scan_set, drive_range
 from .fit import FitResult
-from .held_out import held_out_image, held_out_rms, judge_stage, split_features, split_masks, validate
-from .plausibility import implausible
-from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
+from .held_out import (
+    fitted_parameters,
+    held_out_errors,
+    held_out_image,
+    held_out_rms,
+    judge_stage,
+    split_chords,
+    split_masks,
+    validate,
+)
+from .identifiability import identifiability
+from .plausibility import implausible, undetermined, unvalidated
+from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, transplant
+from .selection import RungFit, aicc, select
 from .stages import (
     FitPlan,
     Stage,
     StageKind,
     check_plan,
+    chord_data,
+    coarse_ends,
     coarse_factor,
-    feature_data,
     fit_stage,
     plan_stages,
 )
@@ -61,6 +73,10 @@ class Identification:
         validation: the held-out features' summary (:func:`~jaxafm.identify.held_out.validate`).
         failures: what failed the plausibility checks
             (:func:`~jaxafm.identify.plausibility.implausible`); empty if none.
+        spec: the model fitted (the ladder's choice, or the configured one).
+        rungs: the model ladder's rungs (:class:`~jaxafm.identify.selection.Rung`), if climbed.
+        quantities: the fitted model's physical quantities with their standard deviations
+            (:func:`~jaxafm.identify.identifiability.identifiability`).
     """
 
     model: ScanModel
@@ -70,6 +86,9 @@ class Identification:
     held_out_nm: tuple = ()
     validation: dict = dataclasses.field(default_factory=dict)
     failures: tuple = ()
+    spec: ScanModelSpec = ScanModelSpec()
+    rungs: tuple = ()
+    quantities: tuple = ()
 
     @property
     def converged(self) -> bool:
@@ -129,20 +148,26 @@ def identify(
     found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
     model = nominal_scan_model(scans[0], spec) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
-    train, test = split_features(found, plan.hold_out)  # the first stage may change the first retrace
-    fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test)
+    train, test = split_chords(found, plan.hold_out)  # the first stage may change the first retrace
+    fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test, spec)
     for i, (stage, limit) in enumerate(zip(stages, limits)):
         if i == 1 and len(scans) > 1:
             fit.train, fit.test = _align(fit.model, scans, fit.found, fit.train, fit.test)
         fit.run(stage, limit, i, len(stages))
+    validation = validate(fit.model, scans, fit.train, fit.test)
+    quantities = identifiability(fit.model, scans, chord_data(fit.train, scans, 1), drive_range(scans))
+    failures = implausible(fit.model, scans) + unvalidated(validation, min(scans[0].pitch))
     return Identification(
         fit.model,
         tuple(fit.results),
         time.perf_counter() - began,
         tuple(fit.accepted),
         tuple(fit.held_nm),
-        validate(fit.model, scans, fit.test),
-        tuple(implausible(fit.model, scans)),
+        validation,
+        tuple(failures + undetermined(quantities)),
+        fit.spec,
+        tuple(fit.rungs),
+        tuple(quantities),
     )
 
 
@@ -162,7 +187,9 @@ class _StagedFit:
     found: list
     train: list
     test: list
+    spec: ScanModelSpec
     masks: Optional[tuple] = None
+    rungs: list = dataclasses.field(default_factory=list)
     results: list = dataclasses.field(default_factory=list)
     accepted: list = dataclasses.field(default_factory=list)
     held_nm: list = dataclasses.field(default_factory=list)
@@ -172,12 +199,17 @@ class _StagedFit:
         """Stage ``i`` of ``total``: fit it from the model so far, judge it, log and record it."""
         images = stage.kind is StageKind.IMAGES
         fitted = stage.scans(self.scans)
-        k = 1 if images else self.factor  # the feature points on the coarse scans, the images whole
+        k = 1 if images else self.factor  # the chords on the coarse scans, the images whole
         level = tuple(scan.coarse(k) for scan in fitted)
         name = stage.label + (f", {level[0].raster.pixels} px a line" if k > 1 else "")
         self.log(f"  stage {i + 1}/{total} {name} ...")
         began = time.perf_counter()
-        fit, kernel, matched = self._fit(stage, level, limit, first=i == 0)
+        last = stage.kind is StageKind.CHORDS and not stage.first_scan_only
+        fit, kernel, matched = self._fit(stage, level, limit, first=i == 0, ladder=last and self.plan.select)
+        if last and k > 1 and not self.plan.blur_px:  # no image stage will fit the whole scans
+            level = fitted
+            fit = fit_stage(stage, fit.model, level, chord_data(self.train, self.scans, 1), self.plan, limit)
+            matched += ", then on the whole scans"
         solver = self.plan.solver
         message = (
             f"{solver}: converged in {fit.steps} steps, loss {fit.loss:.3e}"
@@ -202,18 +234,44 @@ class _StagedFit:
             self.comparable.append(error)
         self.log(f"  stage {i + 1}/{total} {name}: {message}, {seconds:.1f} s")
 
-    def _fit(self, stage: Stage, level: tuple, limit: int, first: bool) -> tuple:
+    def _fit(self, stage: Stage, level: tuple, limit: int, first: bool, ladder: bool) -> tuple:
         """``(fit, kernel, note)``: the stage fitted on the scans ``level`` (an image stage's
-        blur kernel, else ``None``; a note for its message)."""
+        blur kernel, else ``None``; a note for its message); with ``ladder``, the model ladder
+        climbed from there (:meth:`_ladder`)."""
         if stage.kind is StageKind.IMAGES:
             self.masks = self.masks or split_masks(self.model, level, self.plan.hold_out)
             kernel = jnp.asarray(stage.kernel())
             return fit_stage(stage, self.model, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
+        note = ""
         if first:
             fit, note = self._first_features(stage, level, limit)
-            return fit, None, note
-        data = feature_data(self.train, self.factor)
+            if not ladder:
+                return fit, None, note
+            self.model = fit.model
+        data = chord_data(self.train, self.scans, self.factor)
+        if ladder:
+            return self._ladder(stage, level, data, limit), None, note
         return fit_stage(stage, self.model, level, data, self.plan, limit), None, ""
+
+    def _ladder(self, stage: Stage, level: tuple, data: tuple, limit: int):
+        """The model ladder (:func:`~jaxafm.identify.selection.select`) on the chord stage: each
+        rung's nominal model, started from the best so far
+        (:func:`~jaxafm.identify.scan_model.transplant`), fitted, and scored by the information
+        criterion of its training features (:func:`~jaxafm.identify.selection.aicc`, the parameters
+        :func:`~jaxafm.identify.held_out.fitted_parameters`). Returns the chosen rung's fit; the
+        chosen spec and the rungs are kept."""
+
+        def fit_rung(spec: ScanModelSpec, start) -> RungFit:
+            model = nominal_scan_model(self.scans[0], spec).as_float64()
+            model = transplant(self.model if start is None else start.model, model)
+            fit = fit_stage(stage, model, level, data, self.plan, limit)
+            train = [[(coarse_ends(e, self.factor), ij, a) for e, ij, a in images] for images in self.train]
+            residuals = held_out_errors(fit.model, level, train)  # the training features', on ``level``
+            return RungFit(fit, *aicc(residuals, fitted_parameters(fit.model, level, data)))
+
+        rates = [scan.raster.line_rate for scan in self.scans]
+        fit, self.spec, self.rungs = select(self.spec, fit_rung, rates, self.log)
+        return fit
 
     def _first_features(self, stage: Stage, level: tuple, limit: int) -> tuple:
         """The first scan's feature stage, fitted once for each way of matching its retrace's
@@ -226,8 +284,8 @@ class _StagedFit:
         tried = []
         for retrace in self.retraces:
             features = [(self.found[0][0], retrace)] + list(self.found[1:])
-            split = split_features(features, self.plan.hold_out)
-            data = feature_data(split[0][:1], self.factor)
+            split = split_chords(features, self.plan.hold_out)
+            data = chord_data(split[0][:1], self.scans, self.factor)
             tried.append((fit_stage(stage, self.model, level, data, self.plan, limit), features, split))
         losses = [fit.loss for fit, _, _ in tried]
         best = int(np.argmin(losses))
@@ -265,7 +323,7 @@ def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list)
             )
 
         def move(part):
-            return [(rc, ij + shift.astype(int)) for rc, ij in part]
+            return [(ends, ij + shift.astype(int), along) for ends, ij, along in part]
 
         train[k], test[k] = move(train[k]), move(test[k])
     return train, test

@@ -49,6 +49,8 @@ class FitPlan:
         rtol: each stage's relative tolerance.
         atol: each stage's absolute tolerance.
         hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
+        select: climb the model ladder (:func:`~jaxafm.identify.selection.select`) in the last
+            chord stage, to the model the data support; else fit the configured model as it is.
     """
 
     solver: str = "jaxafm.geodesic_levenberg_marquardt"
@@ -58,12 +60,13 @@ class FitPlan:
     rtol: float = 1e-5
     atol: float = 1e-8
     hold_out: bool = True
+    select: bool = True
 
 
 class StageKind(enum.Enum):
-    """What a stage fits: the feature points, or the blurred images."""
+    """What a stage fits: the features' chords, or the blurred images."""
 
-    FEATURES = "feature points"
+    CHORDS = "chords"
     IMAGES = "images"
 
 
@@ -106,9 +109,9 @@ def plan_stages(scans: int, blur_px: Sequence[float]) -> tuple:
         if not 0 <= b <= 64:
             raise ValueError(f"blur_px: each blur is a Gaussian sigma of 0 to 64 px, got {b}")
     several = scans > 1
-    plan = [Stage(StageKind.FEATURES, "feature points" + (", first scan" if several else ""), several)]
+    plan = [Stage(StageKind.CHORDS, "chords" + (", first scan" if several else ""), several)]
     if several:
-        plan.append(Stage(StageKind.FEATURES, "feature points, all scans"))
+        plan.append(Stage(StageKind.CHORDS, "chords, all scans"))
     radius = int(np.ceil(3 * max(blur_px, default=0)))
     plan += [Stage(StageKind.IMAGES, f"images, blur {b:g} px", blur_px=b, radius_px=radius) for b in blur_px]
     return tuple(plan)
@@ -162,51 +165,98 @@ def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "
 # What the stages minimise
 
 
-def point_residuals(raw, args) -> Array:
-    """At each training feature point, where the model puts the tip less that feature's lattice
-    site, in pitches along the lattice's axes (every scan, trace and retrace), times its weight
-    (0 for the padding of :func:`pad_features`). Needs only the tip's path.
-    ``args = (start model, scans, points)``, ``points`` as :func:`feature_data` gives them."""
-    start, scans, points = args
+def chord_residuals(raw, args) -> Array:
+    """Per training chord, how far (in pitches) its midpoint lies off its feature's line of
+    midpoints through the lattice site
+    (:meth:`~jaxafm.identify.scan_model.ScanModel.chord_offsets`), the chord's ends placed where
+    the model's tip was when it crossed them (the edge delay earlier), times its weight (0 for
+    the padding of :func:`pad_chords`). Needs only the tip's path. ``args = (start model,
+    scans, chords)``, ``chords`` as :func:`chord_data` gives them."""
+    start, scans, chords = args
     model = start.free_parameters(scans[0])[1](raw)
-    return jnp.concatenate(
-        [
-            (e * w[:, None]).ravel()
-            for scan, images in zip(scans, points)
-            for e, (_, _, w) in zip(model.site_errors(scan, [(rc, ij) for rc, ij, _ in images]), images)
-        ]
-    )
+    out = []
+    for scan, images in zip(scans, chords):
+        shift = model.edge_delay / scan.raster.sample_time  # columns of this scan
+        for path, (ends, ij, along, w), forward in zip(model.paths(scan), images, (1.0, -1.0)):
+            tips = model.chord_ends(path, ends, forward * shift)
+            out.append(w * model.chord_offsets(tips, ij, along) / min(scan.pitch))
+    return jnp.concatenate(out)
 
 
-def count_features(points) -> Array:
-    """How many features (not padding) the feature stage's data ``points`` hold."""
-    return sum(jnp.sum(w) for images in points for _, _, w in images)
+def count_chords(chords) -> Array:
+    """How many chords (not padding) a chord stage's data hold."""
+    return sum(jnp.sum(w) for images in chords for *_, w in images)
 
 
-def point_loss(raw, args) -> Array:
-    """Half the mean square of :func:`point_residuals` over the features (not the padding)."""
-    return jnp.sum(point_residuals(raw, args) ** 2) / (4 * count_features(args[2]))
+def chord_loss(raw, args) -> Array:
+    """Half the mean square of :func:`chord_residuals` over the chords (not the padding)."""
+    return 0.5 * jnp.sum(chord_residuals(raw, args) ** 2) / count_chords(args[2])
 
 
-def pad_features(rc: np.ndarray, ij: np.ndarray) -> tuple:
-    """Features ``(rc, ij)`` (n, 2) padded to the next power of two with weight 0, and their
-    weights (1 for a feature): every scanner's feature fit then has one of a few shapes, and its
-    compiled solve is reused, although the features found differ from scan to scan."""
-    n = len(rc)
-    pad = (1 << max(n - 1, 0).bit_length()) - n
-    zeros = np.zeros((pad, 2))
+def pad_chords(ends: np.ndarray, ij: np.ndarray, along: np.ndarray, size: int) -> tuple:
+    """Chords ``(ends, ij, along)`` ((n, 2, 2), (n, 2), (n,)) padded to ``size`` (or the next
+    power of two above n, if more) with weight 0 (a dummy chord across the first pixel), and
+    their weights (1 for a chord): the chord fits of every scan of one raster then have one
+    shape (:func:`chord_capacity`), and their compiled solves are reused."""
+    n = len(ends)
+    pad = (size if n <= size else 1 << (n - 1).bit_length()) - n
+    dummy = np.broadcast_to(np.array([[0.0, 0.0], [0.0, 1.0]]), (pad, 2, 2))
     return (
-        jnp.asarray(np.concatenate([rc, zeros])),
-        jnp.asarray(np.concatenate([ij, zeros.astype(np.asarray(ij).dtype)])),
+        jnp.asarray(np.concatenate([np.asarray(ends, float).reshape(-1, 2, 2), dummy])),
+        jnp.asarray(np.concatenate([np.asarray(ij, float).reshape(-1, 2), np.zeros((pad, 2))])),
+        jnp.asarray(np.concatenate([np.asarray(along, bool), np.ones(pad, bool)])),
         jnp.asarray(np.r_[np.ones(n), np.zeros(pad)]),
     )
 
 
-def feature_data(train: list, factor: int) -> tuple:
-    """A feature stage's data: per scan, per image, the fitted features ``(rc, ij)`` on the
-    scans coarsened by ``factor`` (:func:`~jaxafm.identify.calibration_scan.coarse_pixels`),
-    padded (:func:`pad_features`)."""
-    return tuple(tuple(pad_features(coarse_pixels(rc, factor), ij) for rc, ij in images) for images in train)
+def chord_capacity(scan: CalibrationScan) -> int:
+    """The most chords an image of ``scan`` can hold: each line crosses at most one feature per
+    pitch of its width and one more, each pixel column one per pitch of the height and one more."""
+    r = scan.raster
+    per_line = int(np.ceil(r.size[0] / min(scan.pitch))) + 1
+    per_column = int(np.ceil(r.size[1] / min(scan.pitch))) + 1
+    return r.lines * per_line + r.pixels * per_column
+
+
+def feature_keys(chords: tuple) -> np.ndarray:
+    """Per row of :func:`chord_residuals` over the data ``chords``, its feature's lattice indices
+    (n, 2); NaN for the padding."""
+    return np.concatenate(
+        [
+            np.where(np.asarray(w)[:, None] > 0, np.asarray(ij), np.nan)
+            for images in chords
+            for _, ij, _, w in images
+        ]
+    )
+
+
+def feature_groups(chords: tuple) -> np.ndarray:
+    """Per row of :func:`chord_residuals` over the data ``chords``, its feature's number: one
+    number per lattice site, whichever image or scan shows it; -1 for the padding."""
+    keys = feature_keys(chords)
+    real = ~np.isnan(keys[:, 0])
+    out = np.full(len(keys), -1)
+    out[real] = np.unique(keys[real], axis=0, return_inverse=True)[1].ravel()
+    return out
+
+
+def coarse_ends(ends: np.ndarray, factor: int) -> np.ndarray:
+    """Chord ends (n, 2, 2) in the pixels of the scan coarsened by ``factor``."""
+    return coarse_pixels(np.asarray(ends).reshape(-1, 2), factor).reshape(-1, 2, 2)
+
+
+def chord_data(part: list, scans: tuple, factor: int) -> tuple:
+    """A chord stage's data: per scan, per image, the chords ``(ends, ij, along)`` of ``part``
+    (:func:`~jaxafm.identify.held_out.split_chords`) on the ``scans`` coarsened by ``factor``
+    (:func:`~jaxafm.identify.calibration_scan.coarse_pixels`), padded to the scan's
+    :func:`chord_capacity` (:func:`pad_chords`)."""
+    return tuple(
+        tuple(
+            pad_chords(coarse_ends(ends, factor), ij, along, chord_capacity(scan))
+            for ends, ij, along in images
+        )
+        for images, scan in zip(part, scans)
+    )
 
 
 def image_residuals(raw, args) -> Array:
@@ -253,7 +303,7 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
         RuntimeError: when the loss is not finite, naming the stage and the solver.
     """
     images = stage.kind is StageKind.IMAGES
-    residuals, loss_fn = (image_residuals, image_loss) if images else (point_residuals, point_loss)
+    residuals, loss_fn = (image_residuals, image_loss) if images else (chord_residuals, chord_loss)
     model = model.as_float64()
     args = (model, tuple(scans), data)
     raw0, rebuild = model.free_parameters(scans[0])
@@ -265,7 +315,7 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
         plan.solver, residuals, loss_fn, raw0, max_steps, plan.rtol, plan.atol, args, curvature
     )
     r = residual_values(residuals, raw, args)
-    loss = float(np.mean(r**2) if images else np.sum(r**2) / (2 * count_features(data)))
+    loss = float(np.mean(r**2) if images else np.sum(r**2) / float(count_chords(data)))
     if not np.isfinite(loss):
         raise RuntimeError(
             f"step A stage '{stage.label}' diverged with {plan.solver} (loss {loss}); try another solver "

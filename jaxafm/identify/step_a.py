@@ -21,7 +21,7 @@ from ..instrument.samples import Lattice, Plane, Tip
 from ..model.io import describe
 from ..model.scanner import Scanner
 from . import features
-from .calibration_scan import CalibrationScan
+from .calibration_scan import CalibrationScan, drive_range
 from .inverse import Compensator, train_neural_inverse
 from .polynomial_baseline import BranchPolynomials
 from .scan_model import KEY, ScanModel
@@ -95,12 +95,6 @@ def calibration_about(model, scans: tuple, source: str) -> dict:
     wanted = np.concatenate([s.raster.wanted().reshape(-1, 2) for s in scans])
     sens = np.asarray(scans[0].sensitivity)
     return describe(model, wanted / sens, wanted, history=scans[0].history, source=source)
-
-
-def drive_range(scans: tuple) -> np.ndarray:
-    """The drive (2, 2) V [min, max] per axis that the calibration scans covered, over-scan included."""
-    u = np.concatenate([s.raster.wanted().reshape(-1, 2) / np.asarray(s.sensitivity) for s in scans])
-    return np.stack([u.min(axis=0), u.max(axis=0)], axis=-1)
 
 
 def paper_inverse(poly: BranchPolynomials, sensitivity, samples: int = 400) -> Callable:

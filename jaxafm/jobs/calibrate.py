@@ -15,11 +15,13 @@ step A of ``jaxafm run`` and ``jaxafm study``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .. import plots
@@ -32,7 +34,7 @@ from ..config import (
     SimulatedCalibration,
 )
 from ..identify.calibration_scan import CalibrationScan
-from ..identify.image_ops import sample_at
+from ..identify.held_out import model_centres, nominal_centres, raw_errors
 from ..identify.polynomial_baseline import fit_polynomials
 from ..identify.scan_model import ScanModel, ScanModelSpec
 from ..identify.staged_fit import Identification, identify
@@ -65,8 +67,8 @@ def calibration_scans(
     if spec.withheld:
         afm = afm.without(*spec.withheld)
     rasters = [
-        Raster(spec.size_nm, spec.pixels, spec.pixels, line_rate=spec.line_rate_hz, angle_deg=angle)
-        for angle in spec.angles_deg
+        Raster(spec.size_nm, spec.pixels, spec.pixels, line_rate=rate, angle_deg=angle)
+        for angle, rate in spec.scans
     ]
     lattice = calibration_lattice(grating.pitch_nm, grating.pits, spec.lattice_rotation_deg)
     return simulate_calibration(afm, lattice, rasters, jax.random.key(spec.seed))
@@ -169,7 +171,14 @@ def identify_model(
         model.kind, tuple(model.effects), model.operators, model.deadzones, model.levels, grating.rotation_rad
     )
     max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
-    plan = FitPlan(solver.name, tuple(solver.blur_px), solver.coarsen, max_steps, hold_out=solver.hold_out)
+    plan = FitPlan(
+        solver.name,
+        tuple(solver.blur_px),
+        solver.coarsen,
+        max_steps,
+        hold_out=solver.hold_out,
+        select=solver.select,
+    )
     return identify(scans, spec, plan, log=log)
 
 
@@ -192,6 +201,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
         "calibration_size_nm": first.raster.size[0],
         "pitch_nm": cfg.grating.pitch_nm,
         "scan_angles_deg": [s.raster.angle_deg for s in scans],
+        "scan_line_rates_hz": [s.raster.line_rate for s in scans],
         "sensitivity_nm_per_v": list(first.sensitivity),
     }
     comp = cfg.compensate if sim is not None else None
@@ -299,6 +309,9 @@ def _identify(
     metrics |= {f"{spec.name}_{k}": v for k, v in identification_metrics(ident).items()}
     if sim is not None:
         metrics |= {f"{spec.name}_{k}": v for k, v in parameters_vs_truth(sim, ident.model).items()}
+    log(f"  {spec.name}: what the scans determine (value +- standard deviation):")
+    for q in ident.quantities:
+        log(f"    {q.line()}")
     log(_validation_line(spec.name, ident))
     _validation_figure(
         scans[0], ident.model, out.file(f"validation_{spec.name}.png"), spec.name, source, cfg.solver.hold_out
@@ -314,19 +327,26 @@ def identification_metrics(ident: Identification) -> dict:
     """What ``metrics.json`` keeps of one identification: time, convergence, each stage's
     message, acceptance and held-out residual (nm), the held-out validation, the fitted lattice
     rotation, and the plausibility checks."""
-    kept = [s for s, ok in zip(ident.stages, ident.accepted) if ok]
-    lattice = ident.model.lattice
+    lattice, spec = ident.model.lattice, ident.spec
     out = {
         "fit_s": ident.seconds,
         "converged": ident.converged,
         "stages": [s.message for s in ident.stages],
         "stages_accepted": list(ident.accepted),
         "held_out_nm_by_stage": [None if not np.isfinite(v) else v for v in ident.held_out_nm],
-        "image_rms_pct": 100 * float(np.sqrt(kept[-1].loss)),
         "lattice_rotation_deg": float(np.rad2deg(lattice.angle)),
+        "model_kind": spec.kind,
+        "model_operators": spec.levels if spec.kind == "preisach" else spec.operators,
+        "model_effects": list(spec.effects),
+        "model_ladder": [f"{r.label}: {r.reason}" for r in ident.rungs],
         "plausible": ident.plausible,
         "failures": list(ident.failures),
     }
+    kept = [s for s, ok in zip(ident.stages, ident.accepted) if ok]
+    if any(s.message.startswith("images") for s in kept):
+        out["image_rms_pct"] = 100 * float(np.sqrt(kept[-1].loss))
+    for q in ident.quantities:
+        out |= {q.key: q.value, f"{q.key}_sd": q.sd if np.isfinite(q.sd) else None}
     return out | ident.validation
 
 
@@ -335,36 +355,118 @@ def _validation_line(name: str, ident: Identification) -> str:
     if not v.get("held_out_features"):
         return f"  {name}: no features held out"
     return (
-        f"  {name}: {v['held_out_features']} held-out features, residual {v['held_out_rms_nm']:.2f} nm rms; "
-        f"their local pitch spread {v.get('held_out_pitch_std_raw_pct', float('nan')):.2f} % raw -> "
-        f"{v.get('held_out_pitch_std_corrected_pct', float('nan')):.2f} % corrected; lattice rotation "
+        f"  {name}: {v['held_out_features']} held-out features, residual {v['held_out_raw_rms_nm']:.1f} nm raw -> "
+        f"{v['held_out_rms_nm']:.1f} nm rms corrected; their local pitch spread "
+        f"{v['held_out_pitch_std_raw_pct']:.2f} % raw -> {v['held_out_pitch_std_corrected_pct']:.2f} % corrected; "
+        f"distances between them {v['held_out_distance_error_max_raw_pct']:.2f} % raw -> "
+        f"{v['held_out_distance_error_max_corrected_pct']:.2f} % corrected at most; lattice rotation "
         f"{float(np.rad2deg(ident.model.lattice.angle)):.3f} deg"
     )
 
 
-def _validation_figure(scan: CalibrationScan, model: ScanModel, path, name, source, held_out: bool):
-    """:func:`~jaxafm.plots.step_a_validation` for the first scan: measured against model
-    trace, and its held-out features (the odd sites of a checkerboard) raw and corrected."""
-    ft, _ = scan.features()
-    held = ft.ij.sum(axis=1) % 2 == 1
-    rc, ij = ft.rc[held], ft.ij[held]
-    sites = np.asarray(model.lattice.sites(ij))
-    corrected = sample_at(model.paths(scan)[0], rc) - sites
-    raw = scan.raster.nominal(rc) - sites
+@dataclasses.dataclass(frozen=True)
+class ValidationView:
+    """What step A's validation figure shows (:func:`~jaxafm.plots.step_a_validation`) of the
+    first scan's trace: nm throughout; the images and chords in the scan's nominal frame
+    (``extent`` [x0, x1, y0, y1]), the placed image, sites and errors in the stage frame."""
+
+    levelled: np.ndarray
+    background: np.ndarray
+    extent: tuple
+    chords_fitted: np.ndarray
+    chords_held: np.ndarray
+    placed: np.ndarray
+    placed_extent: tuple
+    sites: np.ndarray
+    chord_mid: np.ndarray
+    chord_offsets: np.ndarray
+    shift_at: np.ndarray
+    shift_raw: np.ndarray
+    shift_corrected: np.ndarray
+    held_sites: np.ndarray
+    held_raw: np.ndarray
+    held_corrected: np.ndarray
+    held_out: bool
+
+
+def validation_view(scan: CalibrationScan, model: ScanModel, held_out: bool) -> ValidationView:
+    """The first scan's :class:`ValidationView` through the fitted ``model``."""
+    ft, fr = scan.features()
+    image = ft.chords.image
     r = scan.raster
-    extent = [r.origin[0] - r.pixel_size[0] / 2, r.origin[0] + r.size[0] - r.pixel_size[0] / 2]
-    extent += [r.origin[1] - r.pixel_size[1] / 2, r.origin[1] + r.size[1] - r.pixel_size[1] / 2]
-    plots.step_a_validation(
-        np.asarray(scan.trace),
-        np.asarray(model.image(scan).trace),
+    in_scan = lambda rc: np.asarray(r.origin) + np.asarray(rc)[..., ::-1] * np.asarray(r.pixel_size)
+    extent = (r.origin[0] - r.pixel_size[0] / 2, r.origin[0] + r.size[0] - r.pixel_size[0] / 2)
+    extent += (r.origin[1] - r.pixel_size[1] / 2, r.origin[1] + r.size[1] - r.pixel_size[1] / 2)
+    ij = ft.chord_indices()
+    held = (ij.sum(axis=1) % 2 == 1) & held_out
+    path, path_retrace = (np.asarray(p) for p in model.paths(scan))
+    shift = float(model.edge_delay) / r.sample_time
+    tips = np.asarray(model.chord_ends(jnp.asarray(path), jnp.asarray(ft.chords.ends), shift))
+    offsets = np.asarray(
+        model.chord_offsets(
+            jnp.asarray(tips), jnp.asarray(ij, dtype=float), jnp.asarray(ft.chords.along_lines)
+        )
+    )
+    placed, placed_extent = _placed(path, image.levelled * image.height)
+    keys = np.unique(ft.ij, axis=0)
+    slope = np.asarray(model.chord_slope)
+    parts = [[(f.chords.ends, f.chord_indices(), f.chords.along_lines) for f in (ft, fr)]]
+    (raw_t, raw_r), (cor_t, cor_r) = (
+        nominal_centres((scan,), parts, slope)[0],
+        model_centres(model, (scan,), parts)[0],
+    )
+    fast = r.rotation[:, 0]
+    both = [(k, i, j) for i, k in enumerate(raw_t[0]) for j in np.flatnonzero(np.all(raw_r[0] == k, axis=1))]
+    at = np.array([raw_t[1][i] @ fast for _, i, _ in both])
+    shift_raw = np.array([(raw_r[1][j] - raw_t[1][i]) @ fast for _, i, j in both])
+    shift_cor = np.array([(cor_r[1][j] - cor_t[1][i]) @ fast for _, i, j in both])
+    test = [[(ft.chords.ends[held], ij[held], ft.chords.along_lines[held])]]
+    train = [[(ft.chords.ends[~held], ij[~held], ft.chords.along_lines[~held])]]
+    if held.any():
+        hk, hc = model_centres(model, (scan,), test)[0][0]
+        sites_h = np.asarray(model.lattice.sites(jnp.asarray(hk, dtype=float)))
+        raw_e = raw_errors((scan,), train, test, slope)
+        cor_e = hc - sites_h
+    else:
+        sites_h = raw_e = cor_e = np.zeros((0, 2))
+    return ValidationView(
+        image.levelled * image.height,
+        image.background,
         extent,
-        sites,
-        raw - raw.mean(axis=0),
-        corrected - corrected.mean(axis=0),
-        path,
-        f"Step A, {name}, on {source} ({scan.name}): the image fit and its "
-        + ("held-out features" if held_out else "features"),
+        in_scan(ft.chords.ends[~held]),
+        in_scan(ft.chords.ends[held]),
+        placed,
+        placed_extent,
+        np.asarray(model.lattice.sites(jnp.asarray(keys, dtype=float))),
+        in_scan(ft.chords.ends.mean(axis=1)),
+        offsets,
+        at,
+        shift_raw,
+        shift_cor,
+        sites_h,
+        raw_e,
+        cor_e,
         held_out,
+    )
+
+
+def _placed(path: np.ndarray, z: np.ndarray) -> tuple:
+    """The image ``z`` (lines, pixels) resampled onto a regular grid of the stage positions
+    ``path`` (lines, pixels, 2) nm where its pixels were taken, and the grid's extent."""
+    from scipy.interpolate import griddata
+
+    xy = path.reshape(-1, 2)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], z.shape[1]), np.linspace(lo[1], hi[1], z.shape[0]))
+    return griddata(xy, z.ravel(), (gx, gy), method="linear"), (lo[0], hi[0], lo[1], hi[1])
+
+
+def _validation_figure(scan: CalibrationScan, model: ScanModel, path, name, source, held_out: bool):
+    """:func:`~jaxafm.plots.step_a_validation` of the first scan (:func:`validation_view`)."""
+    plots.step_a_validation(
+        validation_view(scan, model, held_out),
+        path,
+        f"Step A, {name}, on {source} ({scan.name})",
     )
 
 

@@ -340,7 +340,7 @@ STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC"
 def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: float, log) -> dict:
     """``trials.csv``, ``trials.npz``, ``metrics.json``, the table and the figures."""
     r = load_results(cfg, out, draws)
-    calib_s = cfg.calibration.simulate.pixels / cfg.calibration.simulate.line_rate_hz
+    calib_s = sum(cfg.calibration.simulate.pixels / rate for _, rate in cfg.calibration.simulate.scans)
     tol = cfg.push.tolerance_radii
     rows = {}
     for key, label in STAGE_LABELS.items():

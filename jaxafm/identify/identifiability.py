@@ -1,0 +1,180 @@
+"""What the calibration scans determine of a fitted scanner: its physical quantities with their
+standard deviations, and those the data leave open.
+
+At the fitted model the chord stage's residuals ``r`` and their Jacobian ``J`` give the
+parameters' covariance ``C`` (:func:`~jaxafm.identify.uncertainty.covariance`, cluster-robust
+with each feature's chords one cluster: they share the feature's shape irregularity). A quantity
+``q(theta)`` of the model -- an axis's gain and loop, a creep rate, the coupling -- has the
+standard deviation ``sqrt(g^T C g)``, ``g`` its gradient (the delta method). A direction of the
+parameters along which ``J^T J`` is singular (no chord moves when the parameters move that way)
+is not determined at all; a quantity that changes along it is reported as undetermined rather
+than given the pseudo-inverse's zero variance there.
+
+A quantity is *determined* when its standard deviation is at most a third of its size or its
+resolution (:data:`RESOLUTION`, what is physically negligible: a loop of 0.2 % of the travel,
+a coupling of 1e-3), whichever is larger: a loop of 0 +- 0.1 % is determined (there is none),
+one of 50 +- 40 nm is not.
+
+The loops are given twice: as each scan shows it (the model's retrace less its trace along the
+fast axis, mid-line: what the data measure) and per axis over the whole drive range the scans
+reach (a major loop the scans may never have traced: a scan turned against the piezo axes, or
+a small one, drives each piezo over part of its range in each line, so the full loop is
+extrapolated and may well be undetermined).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .fit import linearisation
+from .scan_model import ScanModel
+from .stages import chord_residuals, feature_groups
+from .uncertainty import covariance
+
+#: what is physically negligible, per unit of a quantity (its own units; % of travel for loops)
+RESOLUTION = {
+    "nm/V": 0.1,
+    "% of travel": 0.2,
+    "nm": 1.0,
+    "per decade": 0.002,
+    "s": 1e-4,
+    "": 1e-3,
+    "1/nm": 1e-8,
+    "nm/s": 0.01,
+    "deg": 0.01,
+}
+#: a direction whose curvature is below this fraction of the largest counts as singular
+SINGULAR = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class Quantity:
+    """One physical quantity of the fitted model: ``value`` and ``sd`` in ``unit`` (``sd``
+    infinite when the data leave it open); ``key``: its name in ``metrics.json``, units included."""
+
+    key: str
+    name: str
+    value: float
+    sd: float
+    unit: str
+
+    @property
+    def determined(self) -> bool:
+        return bool(self.sd <= max(abs(self.value), 3 * RESOLUTION.get(self.unit, 0.0)) / 3)
+
+    def line(self) -> str:
+        state = "determined" if self.determined else "NOT determined"
+        sd = "undetermined" if not np.isfinite(self.sd) else f"{self.sd:.3g}"
+        return f"{self.name:34s} {self.value:12.4g} +- {sd:>12s} {self.unit:12s} {state}"
+
+
+def quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
+    """The model's physical quantities as a function of its raw parameters: ``(keys, names, units,
+    q(raw) -> (m,))``. ``drive`` (2, 2) V is the drive range [min, max] per axis that the scans
+    covered: an axis's gain is its branches' mean slope, and its loop their separation (descending
+    less ascending branch), at the middle of that range, after a sweep over it."""
+    rebuild = model.free_parameters(scans[0])[1]
+    travel = np.ptp(drive, axis=1) * np.asarray(scans[0].sensitivity)
+    keys, names, units, parts = [], [], [], []
+
+    def add(key, name, unit, fn):
+        keys.append(key)
+        names.append(name)
+        units.append(unit)
+        parts.append(fn)
+
+    for k, a in enumerate("xy"):
+        lo, hi = drive[k]
+        mid = 0.5 * (lo + hi)
+        u = jnp.concatenate([jnp.linspace(lo, hi, 101), jnp.linspace(hi, lo, 101)])
+        branch = lambda m, a=a, u=u, lo=lo, hi=hi: getattr(m.scanner, a).hysteresis(u, jnp.asarray([hi, lo]))
+        grid = jnp.linspace(lo, hi, 101)
+        loop = lambda y, mid=mid, grid=grid: (
+            jnp.interp(mid, grid, y[101:][::-1]) - jnp.interp(mid, grid, y[:101])
+        )
+        add(
+            f"{a}_gain_nm_per_v",
+            f"{a} gain",
+            "nm/V",
+            lambda m, b=branch, span=hi - lo: (b(m)[100] - b(m)[0]) / span,
+        )
+        add(
+            f"{a}_loop_pct_of_travel",
+            f"{a} loop at mid-drive",
+            "% of travel",
+            lambda m, b=branch, t=travel[k]: 100 * loop(b(m)) / t,
+        )
+        axis = getattr(model.scanner, a)
+        if axis.creep is not None:
+            per = 1 / np.diff(np.log10(np.asarray(axis.creep.taus)))[0]
+            add(
+                f"{a}_creep_per_decade",
+                f"{a} creep",
+                "per decade",
+                lambda m, a=a, per=per: jnp.mean(getattr(m.scanner, a).creep.weights) * per,
+            )
+        if axis.rate_dependence is not None:
+            add(
+                f"{a}_rate_lag_s",
+                f"{a} rate-dependence lag",
+                "s",
+                lambda m, a=a: getattr(m.scanner, a).rate_dependence.tau,
+            )
+    for k, scan in enumerate(scans):
+        add(f"loop_scan{k}_nm", f"loop in {scan.name}", "nm", lambda m, scan=scan: _scan_loop(m, scan))
+    s = model.scanner
+    if s.coupling is not None:
+        add("coupling_xy", "coupling x from y", "", lambda m: m.scanner.coupling.xy)
+        if not model.rotation_free:
+            add("coupling_yx", "coupling y from x", "", lambda m: m.scanner.coupling.yx)
+    if s.bow is not None:
+        add("bow_x_per_nm", "bow x from y^2", "1/nm", lambda m: m.scanner.bow.bx)
+        add("bow_y_per_nm", "bow y from x^2", "1/nm", lambda m: m.scanner.bow.by)
+    if s.drift is not None:
+        add("drift_x_nm_per_s", "drift x", "nm/s", lambda m: m.scanner.drift.velocity[0])
+        add("drift_y_nm_per_s", "drift y", "nm/s", lambda m: m.scanner.drift.velocity[1])
+    if model.feedback is not None:
+        add("edge_delay_s", "edge delay (z signal)", "s", lambda m: m.edge_delay)
+    if model.rotation_free:
+        add("lattice_angle_deg", "lattice angle", "deg", lambda m: jnp.rad2deg(m.lattice.angle))
+    return (
+        keys,
+        names,
+        units,
+        lambda raw: jnp.stack([jnp.asarray(f(rebuild(raw)), dtype=float) for f in parts]),
+    )
+
+
+def _scan_loop(model: ScanModel, scan) -> jnp.ndarray:
+    """How far (nm) the model's retrace lies behind its trace along the scan's fast axis in the
+    middle column, on average over the lines: the loop (and the lag) the scan itself shows."""
+    trace, retrace = model.paths(scan)
+    mid = scan.raster.pixels // 2
+    fast = jnp.asarray(scan.raster.rotation[:, 0])
+    return jnp.mean((retrace[:, mid] - trace[:, mid]) @ fast)
+
+
+def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.ndarray) -> list:
+    """The model's :class:`Quantity` list, each with its standard deviation from the chord
+    stage's data ``chords`` on ``scans`` (module docstring)."""
+    model = model.as_float64()
+    raw = model.free_parameters(scans[0])[0]
+    r, J = linearisation(chord_residuals, raw, (model, scans, chords))
+    groups = feature_groups(chords)
+    real = groups >= 0
+    C = covariance(J[real], r[real], groups[real])
+    keys, names, units, q = quantities(model, scans, drive)
+    flat, unravel = jax.flatten_util.ravel_pytree(raw)
+    value = np.asarray(q(unravel(flat)))
+    G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
+    H = J[real].T @ J[real]
+    w, V = np.linalg.eigh(H)
+    open_ = V[:, w < SINGULAR * w.max()]
+    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
+    leak = np.linalg.norm(G @ open_, axis=1) > 1e-6 * np.maximum(np.linalg.norm(G, axis=1), 1e-300)
+    sd = np.where(leak, np.inf, sd)
+    return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]
