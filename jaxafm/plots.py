@@ -388,7 +388,7 @@ def step_a_validation(view, path, title: str = "") -> None:
     ax = axes[0, 0]
     lo, hi = np.percentile(view.levelled, [1, 99])
     im = ax.imshow(view.levelled, origin="lower", extent=ext, cmap="afmhot", vmin=lo, vmax=hi)
-    for ends, c, label in ((view.chords_fitted, "C0", "fitted"), (view.chords_held, "C1", "held out")):
+    for ends, c, label in ((view.chords_fitted, "cyan", "fitted"), (view.chords_held, "magenta", "held out")):
         if len(ends):
             ax.plot(
                 ends[..., 0].ravel() / 1e3,

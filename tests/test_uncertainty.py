@@ -53,7 +53,8 @@ def test_cluster_covariance_covers_shared_errors_where_the_plain_one_does_not():
 def test_the_ladder_climbs_while_the_score_falls_and_stops_where_it_rises():
     """A scored stand-in for the fits: each play doubling and each effect lowers or raises a
     score by a known amount. The ladder takes the best next rung while it lowers the score,
-    and tries rate dependence only with two line rates."""
+    and tries rate dependence only with two line rates, and without the z signal's edge delay
+    (which it cannot be told from)."""
     gains = {"bow": -5.0, "creep": +2.0, "asymmetry": +1.0, "drift": -1.0, "rate_dependence": -3.0}
 
     def score(spec):
@@ -63,21 +64,41 @@ def test_the_ladder_climbs_while_the_score_falls_and_stops_where_it_rises():
     def fit(spec, start):
         return selection.RungFit(spec, score(spec), "")
 
-    configured = ScanModelSpec(
-        kind="gpi", effects=("coupling", "feedback_lag", *gains), operators=16, deadzones=3
-    )
-    for rates, with_rate in (([1.0], False), ([0.5, 2.0], True)):
+    for lag, rates, why in (
+        ("feedback_lag", [1.0], "one line rate"),
+        ("feedback_lag", [0.5, 2.0], "shift every edge alike"),
+        (None, [1.0], "one line rate"),
+        (None, [0.5, 2.0], None),
+    ):
+        effects = ("coupling",) + ((lag,) if lag else ()) + tuple(gains)
+        configured = ScanModelSpec(kind="gpi", effects=effects, operators=16, deadzones=3)
         model, chosen, rungs = selection.select(configured, fit, rates, log=lambda *_: None)
         assert chosen.operators == 4 and model is chosen
-        expected = {"coupling", "feedback_lag", "bow", "drift"} | (
-            {"rate_dependence"} if with_rate else set()
-        )
-        assert set(chosen.effects) == expected
-        skipped = [r for r in rungs if r.label == "+ rate_dependence" and "one line rate" in r.reason]
-        assert bool(skipped) != with_rate
+        base = {"coupling", "bow", "drift"} | ({lag} if lag else set())
+        assert set(chosen.effects) == base | (set() if why else {"rate_dependence"})
+        skipped = [
+            r for r in rungs if r.label == "+ rate_dependence" and not r.kept and "not tried" in r.reason
+        ]
+        assert (skipped[0].reason if skipped else None) == (None if why is None else skipped[0].reason)
+        assert why is None or why in skipped[0].reason
 
 
 def test_aicc_charges_parameters_more_as_they_near_the_data():
     e = np.random.default_rng(0).normal(0, 10.0, (20, 2))
     few, many = selection.aicc(e, 3)[0], selection.aicc(e, 30)[0]
     assert few < many and np.isinf(selection.aicc(e, 39)[0])
+
+
+def test_a_direction_the_data_do_not_fix_keeps_the_priors_width():
+    """Closed form: a parameter no row depends on has the prior's variance (s^2 / p), one the
+    rows fix far more tightly has about its sandwich variance."""
+    J, y, g = _regression()
+    J = np.c_[J, np.zeros(len(J))]  # a third parameter nothing depends on
+    theta = np.linalg.lstsq(J[:, :2], y, rcond=None)[0]
+    r = J[:, :2] @ theta - y
+    sigma_p = 3.0
+    prior = np.mean(r**2) / sigma_p**2 * np.eye(3)
+    c = uncertainty.covariance(J, r, g, prior)
+    assert c[2, 2] == pytest.approx(sigma_p**2, rel=1e-9)
+    plain = uncertainty.covariance(J[:, :2], r, g)
+    np.testing.assert_allclose(c[:2, :2], plain, rtol=0.02)

@@ -80,14 +80,15 @@ class CalibrationScan(eqx.Module):
     def coarse(self, factor: int) -> CalibrationScan:
         """This scan with ``factor`` pixels of each line averaged into one: the same lines and
         line rate, ``pixels / factor`` pixels a line, each at the mean of its fine pixels' centres,
-        and the over-scan margin whose reversals come nearest the fine scan's (within
-        ``factor / 2`` fine pixels). The drive then turns a little off the fine one's, so a fit
-        to a coarse scan is a start for the fine scan, not its fit."""
+        and the widest over-scan margin whose reversals do not go beyond the fine scan's (they
+        come within ``factor`` fine pixels of them; beyond, the drive could leave the range the
+        fine scan fits in). The drive then turns a little off the fine one's, so a fit to a
+        coarse scan is a start for the fine scan, not its fit."""
         if factor == 1:
             return self
         r = self.raster
         pixels = r.pixels // factor
-        margin = round((r.margin + (factor - 1) / 2) / factor)
+        margin = int((r.margin + (factor - 1) / 2) // factor)
         raster = dataclasses.replace(r, pixels=pixels, overscan=margin / pixels)
         down = lambda z: np.asarray(z).reshape(r.lines, raster.pixels, factor).mean(axis=-1)
         return CalibrationScan(

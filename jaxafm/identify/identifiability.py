@@ -3,12 +3,12 @@ standard deviations, and those the data leave open.
 
 At the fitted model the chord stage's residuals ``r`` and their Jacobian ``J`` give the
 parameters' covariance ``C`` (:func:`~jaxafm.identify.uncertainty.covariance`, cluster-robust
-with each feature's chords one cluster: they share the feature's shape irregularity). A quantity
-``q(theta)`` of the model -- an axis's gain and loop, a creep rate, the coupling -- has the
-standard deviation ``sqrt(g^T C g)``, ``g`` its gradient (the delta method). A direction of the
-parameters along which ``J^T J`` is singular (no chord moves when the parameters move that way)
-is not determined at all; a quantity that changes along it is reported as undetermined rather
-than given the pseudo-inverse's zero variance there.
+with each feature's chords one cluster: they share the feature's shape irregularity), with a
+weak prior of one order-one unit of each raw parameter (its natural scale,
+:meth:`~jaxafm.identify.scan_model.ScanModel.free_parameters`): a direction the data do not fix
+keeps that width instead of the pseudo-inverse's zero. A quantity ``q(theta)`` of the model --
+an axis's gain and loop, a creep rate, the coupling -- has the standard deviation
+``sqrt(g^T C g)``, ``g`` its gradient (the delta method).
 
 A quantity is *determined* when its standard deviation is at most a third of its size or its
 resolution (:data:`RESOLUTION`, what is physically negligible: a loop of 0.2 % of the travel,
@@ -47,14 +47,12 @@ RESOLUTION = {
     "nm/s": 0.01,
     "deg": 0.01,
 }
-#: a direction whose curvature is below this fraction of the largest counts as singular
-SINGULAR = 1e-9
 
 
 @dataclasses.dataclass(frozen=True)
 class Quantity:
-    """One physical quantity of the fitted model: ``value`` and ``sd`` in ``unit`` (``sd``
-    infinite when the data leave it open); ``key``: its name in ``metrics.json``, units included."""
+    """One physical quantity of the fitted model: ``value`` and ``sd`` in ``unit``; ``key``: its
+    name in ``metrics.json``, units included."""
 
     key: str
     name: str
@@ -68,8 +66,7 @@ class Quantity:
 
     def line(self) -> str:
         state = "determined" if self.determined else "NOT determined"
-        sd = "undetermined" if not np.isfinite(self.sd) else f"{self.sd:.3g}"
-        return f"{self.name:34s} {self.value:12.4g} +- {sd:>12s} {self.unit:12s} {state}"
+        return f"{self.name:42s} {self.value:12.4g} +- {self.sd:10.3g} {self.unit:12s} {state}"
 
 
 def quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
@@ -166,15 +163,11 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     r, J = linearisation(chord_residuals, raw, (model, scans, chords))
     groups = feature_groups(chords)
     real = groups >= 0
-    C = covariance(J[real], r[real], groups[real])
+    prior = np.mean(r[real] ** 2) * np.eye(J.shape[1])  # one order-one unit of each raw parameter
+    C = covariance(J[real], r[real], groups[real], prior)
     keys, names, units, q = quantities(model, scans, drive)
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
     value = np.asarray(q(unravel(flat)))
     G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
-    H = J[real].T @ J[real]
-    w, V = np.linalg.eigh(H)
-    open_ = V[:, w < SINGULAR * w.max()]
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-    leak = np.linalg.norm(G @ open_, axis=1) > 1e-6 * np.maximum(np.linalg.norm(G, axis=1), 1e-300)
-    sd = np.where(leak, np.inf, sd)
     return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]

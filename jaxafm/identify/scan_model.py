@@ -263,6 +263,22 @@ def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpe
     return ScanModel(scanner, feedback, lattice, rotation_free=spec.rotation is None)
 
 
+#: the widest play, as a fraction of the drive a line sweeps on its axis
+PLAY_SPAN = 0.45
+
+
+def play_span(scan: CalibrationScan, k: int) -> float:
+    """The thresholds' span (V) of step A's plays on axis ``k``: :data:`PLAY_SPAN` of the drive
+    one line of ``scan`` sweeps on that axis, so that every play turns inside a line, the widest
+    near its far end, and none only in the over-scan, where no feature shows what it does (a
+    play that barely turns there sets the loop by where the line reverses, which no image
+    pins); ``u_max`` for an axis the lines do not sweep (the slow axis of a scan at 0 or 90
+    degrees), whose drive turns only between scans."""
+    wanted = scan.raster.wanted()[:, 0, :, k] / scan.sensitivity[k]  # (lines, samples) V, the traces
+    sweep = float(np.min(np.ptp(wanted, axis=1)))
+    return PLAY_SPAN * sweep if sweep > 0.1 * scan.u_max else scan.u_max
+
+
 def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
     """Axis ``k`` of :func:`nominal_scan_model`: the nominal line through ``spec.kind``'s operator."""
     kind = "pi" if spec.kind == "gpi" and "asymmetry" not in spec.effects else spec.kind
@@ -270,7 +286,7 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
     if kind == "preisach":
         h = Preisach.uniform(spec.levels, -scan.u_max, scan.u_max, total=gain * scan.u_max)
     else:
-        h = PrandtlIshlinskii.uniform(spec.operators, scan.u_max, gain, others=1e-3)
+        h = PrandtlIshlinskii.uniform(spec.operators, play_span(scan, k), gain, others=1e-3)
         if kind == "gpi":
             imaged = scan.raster.size[k] / 2  # dead zones where the image constrains them
             steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1) * imaged

@@ -6,7 +6,7 @@ fits the features it sees and swings between them, so a model that fits better i
 predicts better. Step A therefore climbs a ladder of models (:func:`select`) from the plainest
 the configuration allows -- straight axes (a one-play PI operator), with the configured coupling
 and feedback lag -- towards the configured one. At each step it tries every next rung: the plays
-doubled (up to the configured number; Preisach levels likewise), or one more configured effect
+doubled or quadrupled (up to the configured number; Preisach levels likewise), or one more configured effect
 (:data:`EFFECT_ORDER`), each started from the best model so far, and moves to the one with the
 lowest score if that is lower than the best so far (forward stepwise selection); it stops when
 no next rung lowers it.
@@ -18,7 +18,10 @@ parameter the data fix (its effective number, the trace of the fit's hat matrix)
 they approach the number of data.
 
 Rate dependence needs scans at two line rates or more: one speed cannot tell a lag of the
-scanner from a branch of its loop, and the rung is not tried (the reason is kept).
+scanner from a branch of its loop. Nor can any image tell a lag of the scanner from a delay of
+the z signal (``feedback_lag``'s edge delay): both shift each edge by the tip's speed times the
+delay. So the rate-dependence rung is tried only with several line rates and without
+``feedback_lag``; otherwise it is not tried, and the reason is kept.
 """
 
 from __future__ import annotations
@@ -84,6 +87,18 @@ def base_spec(spec: ScanModelSpec) -> ScanModelSpec:
     return dataclasses.replace(spec, kind="pi", effects=effects, operators=1)
 
 
+#: the plays of the model that matches the retrace's lattice indices and aligns the scans
+MATCHING_PLAYS = 4
+
+
+def matching_spec(spec: ScanModelSpec) -> ScanModelSpec:
+    """The model of step A's first chord stage when the ladder chooses the final one: the base
+    rung with :data:`MATCHING_PLAYS` plays, loop enough to tell a retrace indexed a pitch off
+    (whose loop would have to be a pitch wide near the reversals) from the right one, too little
+    to fit such a loop as well (a model of many plays can)."""
+    return dataclasses.replace(base_spec(spec), operators=min(MATCHING_PLAYS, max(spec.operators, 1)))
+
+
 def _sizes(spec: ScanModelSpec) -> list:
     """The play counts (PI, generalised PI) or Preisach levels the ladder doubles through."""
     top = spec.levels if spec.kind == "preisach" else spec.operators
@@ -119,13 +134,11 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
     best = fit(current, None)
     rungs = [Rung("straight axes" + _with(current), current, best.score, best.note, True, "the first rung")]
     log(f"  model ladder: {rungs[0].label}: score {best.score:.1f} ({best.note})")
-    skipped = [
-        e for e in EFFECT_ORDER if e == "rate_dependence" and e in spec.effects and len(set(line_rates)) < 2
-    ]
-    for effect in skipped:
-        reason = "not tried: one line rate cannot tell the scanner's lag from its loop; scan at two or more"
-        rungs.append(Rung(f"+ {effect}", spec, float("nan"), "", False, reason))
-        log(f"  model ladder: + {effect}: {reason}")
+    reason = _rate_dependence(spec, line_rates)
+    skipped = ["rate_dependence"] if reason else []
+    if reason:
+        rungs.append(Rung("+ rate_dependence", spec, float("nan"), "", False, reason))
+        log(f"  model ladder: + rate_dependence: {reason}")
     while True:
         tried = [(label, cand, fit(cand, best.model)) for label, cand in _next(spec, current, skipped)]
         if not tried:
@@ -149,20 +162,27 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
     return best.model, current, rungs
 
 
+def _rate_dependence(spec: ScanModelSpec, line_rates: Sequence[float]) -> str:
+    """Why the ladder does not try rate dependence (empty: it does)."""
+    if "rate_dependence" not in spec.effects:
+        return ""
+    if len(set(line_rates)) < 2:
+        return "not tried: one line rate cannot tell the scanner's lag from its loop; scan at two or more"
+    if "feedback_lag" in spec.effects:
+        return (
+            "not tried: a lag of the scanner and the z signal's edge delay (feedback_lag) shift every edge "
+            "alike, so the scans fix only their sum, the edge delay; leave feedback_lag out to give the lag "
+            "to the scanner"
+        )
+    return ""
+
+
 def _next(spec: ScanModelSpec, current: ScanModelSpec, skipped: list) -> list:
     """The rungs one step above ``current`` towards ``spec``: ``(label, spec)`` each."""
-    out = []
-    sizes = [
-        n for n in _sizes(spec) if n > (current.levels if current.kind == "preisach" else current.operators)
-    ]
-    if sizes:
-        n = sizes[0]
-        out.append(
-            (
-                f"{n} {'Preisach levels' if spec.kind == 'preisach' else 'plays'} per axis",
-                _hysteresis(spec, current, n),
-            )
-        )
+    now = current.levels if current.kind == "preisach" else current.operators
+    what = "Preisach levels" if spec.kind == "preisach" else "plays"
+    sizes = [n for n in _sizes(spec) if n > now][:2]  # two doublings ahead: one may not help where two do
+    out = [(f"{n} {what} per axis", _hysteresis(spec, current, n)) for n in sizes]
     for effect in EFFECT_ORDER:
         if effect in spec.effects and effect not in current.effects and effect not in skipped:
             cand = dataclasses.replace(current, effects=current.effects + (effect,))

@@ -42,7 +42,7 @@ from .held_out import (
 from .identifiability import identifiability
 from .plausibility import implausible, undetermined, unvalidated
 from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, transplant
-from .selection import RungFit, aicc, select
+from .selection import RungFit, aicc, matching_spec, select
 from .stages import (
     FitPlan,
     Stage,
@@ -146,7 +146,8 @@ def identify(
     began = time.perf_counter()
     trace, retraces = scans[0].feature_matches()
     found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
-    model = nominal_scan_model(scans[0], spec) if start is None else start
+    first = matching_spec(spec) if plan.select else spec
+    model = nominal_scan_model(scans[0], first) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
     train, test = split_chords(found, plan.hold_out)  # the first stage may change the first retrace
     fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test, spec)
@@ -239,7 +240,7 @@ class _StagedFit:
         blur kernel, else ``None``; a note for its message); with ``ladder``, the model ladder
         climbed from there (:meth:`_ladder`)."""
         if stage.kind is StageKind.IMAGES:
-            self.masks = self.masks or split_masks(self.model, level, self.plan.hold_out)
+            self.masks = self.masks or self._masks(level)
             kernel = jnp.asarray(stage.kernel())
             return fit_stage(stage, self.model, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
         note = ""
@@ -253,17 +254,30 @@ class _StagedFit:
             return self._ladder(stage, level, data, limit), None, note
         return fit_stage(stage, self.model, level, data, self.plan, limit), None, ""
 
+    def _masks(self, level: tuple) -> tuple:
+        """The image stages' training and held-out masks (:func:`~jaxafm.identify.held_out.split_masks`)
+        without the images' outliers (spikes, clipped pixels: :mod:`~jaxafm.identify.chords`)."""
+        train, held = split_masks(self.model, level, self.plan.hold_out)
+        keep = [jnp.asarray([~f.chords.image.outliers for f in images], dtype=float) for images in self.found]
+        train = tuple(m * k for m, k in zip(train, keep))
+        return train, (None if held is None else tuple(m * k for m, k in zip(held, keep)))
+
     def _ladder(self, stage: Stage, level: tuple, data: tuple, limit: int):
         """The model ladder (:func:`~jaxafm.identify.selection.select`) on the chord stage: each
         rung's nominal model, started from the best so far
-        (:func:`~jaxafm.identify.scan_model.transplant`), fitted, and scored by the information
+        (:func:`~jaxafm.identify.scan_model.transplant`; the first rung from its nominal lattice on
+        the features, as the first stage's fit of the configured model may hold its lattice where
+        a straight scanner cannot follow), fitted, and scored by the information
         criterion of its training features (:func:`~jaxafm.identify.selection.aicc`, the parameters
         :func:`~jaxafm.identify.held_out.fitted_parameters`). Returns the chosen rung's fit; the
         chosen spec and the rungs are kept."""
 
         def fit_rung(spec: ScanModelSpec, start) -> RungFit:
             model = nominal_scan_model(self.scans[0], spec).as_float64()
-            model = transplant(self.model if start is None else start.model, model)
+            if start is None:  # the first rung from the nominal lattice: a richer fit's may not suit it
+                model = start_lattice(model, self.scans[0], self.found[0])
+            else:
+                model = transplant(start.model, model)
             fit = fit_stage(stage, model, level, data, self.plan, limit)
             train = [[(coarse_ends(e, self.factor), ij, a) for e, ij, a in images] for images in self.train]
             residuals = held_out_errors(fit.model, level, train)  # the training features', on ``level``
@@ -289,6 +303,8 @@ class _StagedFit:
             tried.append((fit_stage(stage, self.model, level, data, self.plan, limit), features, split))
         losses = [fit.loss for fit, _, _ in tried]
         best = int(np.argmin(losses))
+        if losses[best] * MATCH_RATIO > losses[0]:  # the nearer matching unless another fits far better
+            best = 0
         others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
         note = (
             f"; retrace indices matched the {'nearer' if best == 0 else 'other'} way at the line reversal "
@@ -298,6 +314,10 @@ class _StagedFit:
         )
         fit, self.found, (self.train, self.test) = tried[best]
         return fit, note
+
+
+#: how many times better another retrace matching must fit than the nearer one to be taken
+MATCH_RATIO = 2.0
 
 
 def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list) -> tuple:

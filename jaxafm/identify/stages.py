@@ -25,6 +25,7 @@ import numpy as np
 
 from ..config.calibrate import coarsen_fits
 from .calibration_scan import CalibrationScan, coarse_pixels
+from .chords import background_design
 from .fit import check_solver, residual_values, solve
 from .image_ops import blur, gaussian_kernel
 from .scan_model import ScanModel
@@ -260,17 +261,36 @@ def chord_data(part: list, scans: tuple, factor: int) -> tuple:
 
 
 def image_residuals(raw, args) -> Array:
-    """The model's image less the measured one, both blurred by ``kernel``, weighted by the
-    training ``masks`` (scan, 2, lines, pixels), trace and retrace, in fractions of the
-    measured depth. ``args = (start model, scans, (kernel, masks))``."""
+    """The model's image less the measured one, both blurred by ``kernel``, its height
+    background projected out (:func:`level_out`: the model images the lattice alone, the
+    measured image carries a plane, a bow and line offsets, which no scanner parameter may be
+    bent to explain), weighted by the training ``masks`` (scan, 2, lines, pixels), trace and
+    retrace, in fractions of the measured depth. ``args = (start model, scans, (kernel, masks))``."""
     start, scans, (kernel, masks) = args
     model = start.free_parameters(scans[0])[1](raw)
     out = []
     for scan, mask in zip(scans, masks):
         image = model.image(scan)
         for w, m, z in zip(mask, (image.trace, image.retrace), (scan.trace, scan.retrace)):
-            out.append((w * (blur(m, kernel) - blur(z, kernel)) / scan.depth_scale).ravel())
+            d = level_out(blur(m, kernel) - blur(z, kernel), w)
+            out.append((w * d / scan.depth_scale).ravel())
     return jnp.concatenate(out)
+
+
+def level_out(d: Array, w: Array) -> Array:
+    """``d`` (lines, pixels) less its weighted least-squares fit by a height background: an
+    offset per line and the Legendre polynomials of :func:`~jaxafm.identify.chords.background_design`
+    (a plane and a bow), weights ``w`` (Frisch-Waugh-Lovell: the line offsets first, then the
+    polynomials on what they leave). A line without weight keeps its values."""
+    per_line = jnp.maximum(jnp.sum(w, axis=1, keepdims=True), 1e-12)
+    centre = lambda a: a - jnp.sum(w[..., None] * a, axis=1, keepdims=True) / per_line[..., None]
+    p = centre(jnp.asarray(background_design(d.shape)).reshape(*d.shape, -1))
+    r = centre(d[..., None])[..., 0]
+    a = jnp.einsum("lpk,lp,lpj->kj", p, w, p)
+    coef = jnp.linalg.solve(
+        a + 1e-12 * jnp.trace(a) * jnp.eye(a.shape[0]), jnp.einsum("lpk,lp,lp->k", p, w, r)
+    )
+    return r - p @ coef
 
 
 def image_loss(raw, args) -> Array:

@@ -1,0 +1,204 @@
+"""Step A on lattice images jaxafm did not make: the independent generator (tests/independent_lattice.py).
+
+Each case draws a scanner (a Preisach loop, drive lag, log creep, coupling, drift) and a lattice
+(rounded square or round pits or pillars, sloped walls, tip broadening) and images it at 0 and 90
+degrees (and, for a speed series, at several line rates), with a plane and a bow, line offsets,
+spikes, clipped pixels and noise. The images go through ``jaxafm calibrate``'s own reading
+(files written as a user would give them) and step A; the result is scored against the
+generator's truth:
+
+- the tip path: the fitted model's tip at every pixel of every scan against the true one, after
+  the one rigid motion (a turn and a shift) that no image can see, rms in pixels;
+- the held-out features' residual (pixels) and the relative errors of the distances between them
+  (%), as ``jaxafm calibrate`` reports them;
+- with a speed series, the fitted rate-dependence lag against the generator's drive lag;
+- the deliberately unidentifiable cases (one scan at one speed; a 3 x 3 lattice): refused, or
+  reduced with the reason.
+
+    python experiments/step_a_independent.py [--cases 20] [--speeds 4] [--shard 1/2]
+
+writes experiments/results/step_a_independent/ (cases-K-of-N.json per shard, then --summarise:
+summary.json and step_a_independent.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import benchutil  # noqa: F401  (puts tests/ on sys.path)
+import independent_lattice as G
+import numpy as np
+
+from jaxafm.config import CalibrateConfig
+from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
+
+OUT = Path(__file__).parent / "results" / "step_a_independent"
+MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
+#: the effects step A may fit: the generator has no z lag, so the drive's lag is the scanner's own
+EFFECTS = ["asymmetry", "creep", "coupling", "bow", "drift"]
+
+
+def plan(cases: int, speeds: int) -> list:
+    """The cases: ``cases`` drawn ones at 0 and 90 degrees and one line rate (every third a speed
+    series of ``speeds`` rates at 0 degrees), then the two unidentifiable kinds."""
+    out = []
+    for k in range(cases):
+        series = k % 3 == 2
+        rates = tuple(G.LINE_RATES_HZ[:speeds]) if series else (1.0,)
+        angles = (0.0,) if series else (0.0, 90.0)
+        out.append({"seed": 100 + k, "rates": rates, "angles": angles, "unidentifiable": None})
+    for k, why in enumerate(G.UNIDENTIFIABLE):
+        out.append({"seed": 900 + k, "rates": (1.0,), "angles": (0.0,), "unidentifiable": why})
+    return out
+
+
+def run_case(spec: dict, pixels: int, kind: str) -> dict:
+    """Draw, write, read and identify one case; score it against the truth."""
+    case = G.draw_case(
+        spec["seed"],
+        kind,
+        line_rates_hz=spec["rates"],
+        angles_deg=spec["angles"],
+        pixels=pixels,
+        unidentifiable=spec["unidentifiable"],
+    )
+    series = len(spec["rates"]) > 1
+    with tempfile.TemporaryDirectory() as folder:
+        files = G.write_case(case, folder)
+        given = json.loads(Path(files["data"]).read_text())
+        effects = EFFECTS + (["rate_dependence"] if series else ["feedback_lag"])
+        cfg = CalibrateConfig(
+            data=given["data"],
+            grating=given["grating"],
+            models=[MODEL | {"effects": effects}],
+            solver={"blur_px": [], "coarsen": "auto", "max_steps": 200},
+            compensate=None,
+        )
+        scans = read_calibration(cfg.data, cfg.grating, Path(folder) / "c.yaml", log=lambda *_: None)
+        began = time.perf_counter()
+        said = []
+        try:
+            ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)
+        except ValueError as e:
+            return _row(spec, case, {"refused": str(e)}, time.perf_counter() - began, said)
+    m = {f"gpi_{k}": v for k, v in identification_metrics(ident).items()}
+    m["tip_path_rms_px"] = _path_error(ident.model, scans, case)
+    truth = case["truth"]["scanner"]
+    m["true_rate_lag_s"] = truth["rate_tau_s"]
+    m["true_loop_pct"] = [a["loop_pct"] for a in truth["axes"]]
+    return _row(spec, case, m, time.perf_counter() - began, said)
+
+
+def _row(spec, case, m, seconds, said) -> dict:
+    pixel = case["scans"][0].meta["size_nm"][0] / case["scans"][0].meta["pixels"]
+    return {
+        "seed": spec["seed"],
+        "rates_hz": list(spec["rates"]),
+        "angles_deg": list(spec["angles"]),
+        "unidentifiable": case["truth"]["unidentifiable"],
+        "feature": case["meta"]["feature"],
+        "pixel_nm": pixel,
+        "seconds": seconds,
+        "log": said,
+        **m,
+    }
+
+
+def _path_error(model, scans, case) -> float:
+    """rms (px) of the fitted tip path against the true one over every pixel of every scan, after
+    the best rigid motion of the fitted frame onto the true one."""
+    fitted, true = [], []
+    for scan, s in zip(scans, case["scans"]):
+        for k, p in zip(("trace", "retrace"), model.paths(scan)):
+            fitted.append(np.asarray(p).reshape(-1, 2))
+            true.append(np.asarray(s.truth[f"tip_{k}_nm"]).reshape(-1, 2))
+    a, b = np.concatenate(fitted), np.concatenate(true)
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ma).T @ (b - mb))
+    r = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    e = (a - ma) @ r + mb - b
+    pixel = scans[0].raster.pixel_size[0]
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) / pixel
+
+
+def _stat(rows: list, value, how) -> float | None:
+    """``how`` (np.median, np.max) of ``value(row)`` over ``rows``; None for none."""
+    return float(how([value(r) for r in rows])) if rows else None
+
+
+def summarise() -> dict:
+    """The shards' cases in one summary: the drawn cases' scores (median and worst), the speed
+    series' fitted lags against the truth, and what became of the unidentifiable cases."""
+    rows = [r for p in sorted(OUT.glob("cases-*.json")) for r in json.loads(p.read_text())]
+    drawn = [r for r in rows if r["unidentifiable"] is None]
+    saved = [r for r in drawn if "refused" not in r and r.get("gpi_plausible")]
+    s = {"cases": len(drawn), "saved": len(saved)}
+    scores = {
+        "tip_path_rms_px": lambda r: r["tip_path_rms_px"],
+        "held_out_rms_px": lambda r: r["gpi_held_out_rms_nm"] / r["pixel_nm"],
+        "held_out_raw_rms_px": lambda r: r["gpi_held_out_raw_rms_nm"] / r["pixel_nm"],
+        "held_out_distance_error_rms_pct": lambda r: r["gpi_held_out_distance_error_rms_corrected_pct"],
+        "held_out_distance_error_max_pct": lambda r: r["gpi_held_out_distance_error_max_corrected_pct"],
+        "held_out_distance_error_max_raw_pct": lambda r: r["gpi_held_out_distance_error_max_raw_pct"],
+    }
+    for key, value in scores.items():
+        s |= {f"{key}_median": _stat(saved, value, np.median), f"{key}_max": _stat(saved, value, np.max)}
+    series = [r for r in drawn if len(r["rates_hz"]) > 1]
+    s["speed_series"] = len(series)
+    s["rate_lag_relative_error_pct"] = [
+        100 * (r["gpi_x_rate_lag_s"] / r["true_rate_lag_s"] - 1) if r.get("gpi_x_rate_lag_s") else None
+        for r in series
+    ]
+    s["unidentifiable"] = [
+        {
+            "case": r["unidentifiable"],
+            "outcome": r.get("refused") or "; ".join(r.get("gpi_failures", [])) or "saved",
+            "ladder": r.get("gpi_model_ladder"),
+        }
+        for r in rows
+        if r["unidentifiable"] is not None
+    ]
+    (OUT / "summary.json").write_text(json.dumps(s, indent=1))
+    return s
+
+
+def _line(r: dict) -> str:
+    """One case's result in a line."""
+    head = f"seed {r['seed']} {r['feature']} {r['angles_deg']} deg {r['rates_hz']} Hz: "
+    if "refused" in r:
+        return head + f"refused: {r['refused']}"
+    return head + (
+        f"model {r['gpi_model_kind']} {r['gpi_model_operators']} {r['gpi_model_effects']}; "
+        f"tip path {r['tip_path_rms_px']:.3f} px, held-out {r['gpi_held_out_rms_nm'] / r['pixel_nm']:.3f} px, "
+        f"distances {r['gpi_held_out_distance_error_max_corrected_pct']:.3f} % max; "
+        f"failures {r['gpi_failures']}; {r['seconds']:.0f} s"
+    )
+
+
+def main() -> None:
+    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--cases", type=int, default=20)
+    a.add_argument("--speeds", type=int, default=3)
+    a.add_argument("--pixels", type=int, default=128)
+    a.add_argument("--kind", default="fine", choices=list(G.KINDS))
+    a.add_argument("--shard", default="1/1")
+    a.add_argument("--summarise", action="store_true")
+    args = a.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    if not args.summarise:
+        k, n = (int(v) for v in args.shard.split("/"))
+        todo = plan(args.cases, args.speeds)[k - 1 :: n]
+        rows = []
+        for spec in todo:
+            rows.append(run_case(spec, args.pixels, args.kind))
+            print(_line(rows[-1]), flush=True)
+            (OUT / f"cases-{k}-of-{n}.json").write_text(json.dumps(rows, indent=1, default=float))
+    print(json.dumps(summarise(), indent=1))
+
+
+if __name__ == "__main__":
+    main()
