@@ -144,17 +144,13 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
         metrics |= _tracking(label, y, x, y_range, tags, log)
     y = outputs[""]
     for k, tag in enumerate(tags):
-        plots.compensated_drive(
-            times,
-            u[:, k],
-            n,
-            x[:, k],
-            y[:, k],
-            out.file(f"compensate{'_' + tag[0] if tag else ''}.png"),
-            title=f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else ""),
+        title = f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else "")
+        out.write(
+            f"compensate{'_' + tag[0] if tag else ''}.png",
+            lambda path: plots.compensated_drive(times, u[:, k], n, x[:, k], y[:, k], path, title=title),
         )
     volts = {"u_v": u[:, 0]} if len(tags) == 1 else {f"u{a}_v": u[:, k] for k, a in enumerate(AXES)}
-    write_columns(out.file("drive.csv"), {"t_s": times} | volts)
+    out.write("drive.csv", lambda path: write_columns(path, {"t_s": times} | volts))
     tracked = {}
     for k, tag in enumerate(tags):
         tracked |= {
@@ -162,7 +158,7 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
             f"model_{tag}nm": y[:, k],
             f"error_{tag}nm": y[:, k] - x[:, k],
         }
-    write_columns(out.file("tracking.csv"), {"t_s": times[n:]} | tracked)
+    out.write("tracking.csv", lambda path: write_columns(path, {"t_s": times[n:]} | tracked))
     return out.write_metrics(metrics)
 
 

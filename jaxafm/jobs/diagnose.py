@@ -3,8 +3,8 @@
 One of four sources (``jaxafm.config.DiagnoseConfig``): a measured actuator record
 (``data``), a simulated one (``simulate``), one grating image (``image``) or trace/retrace
 scan pairs (``scans``, from files or simulated). Everything is read and checked before the
-output folder is prepared; the report, ``metrics.json`` included, is
-:func:`jaxafm.diagnose.report.write`'s.
+output folder is prepared; the report is :func:`jaxafm.diagnose.report.write`'s, and
+``metrics.json`` holds the metrics it returns.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
     else:
         diagnosis = _record(cfg, config_path, rules, log)
     out.prepare()
-    return write(diagnosis, out.path, log)  # the report writes its four files, metrics.json among them
+    return out.write_metrics(write(diagnosis, out.write, log))
 
 
 def _record(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnosis:

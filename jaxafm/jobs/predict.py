@@ -68,8 +68,8 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
     pred = predict(model, record.u, record.t, history).reshape(record.u.shape)
     if record.d is None:
         log(f"the record has no output columns: the prediction only ({len(record)} samples)")
-        _write_csv(out.file("prediction.csv"), record, pred)
-        return {"samples": len(record), "outside_fitted_range_pct": 100 * share}
+        out.write("prediction.csv", lambda path: _write_csv(path, record, pred))
+        return out.write_metrics({"samples": len(record), "outside_fitted_range_pct": 100 * share})
     metrics = {
         "samples": len(record),
         "evaluated_samples": len(record) - start,
@@ -84,7 +84,7 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
         log(f"sensor offset re-estimated on {where}: {np.round(offset, 1)} nm")
     for k in range(axes):
         metrics |= _score_axis(record, pred, k if axes == 2 else None, start, model_path, out, log)
-    _write_csv(out.file("prediction.csv"), record, pred)
+    out.write("prediction.csv", lambda path: _write_csv(path, record, pred))
     return out.write_metrics(metrics)
 
 
@@ -101,12 +101,11 @@ def _score_axis(record: Record, pred: np.ndarray, k, start: int, model_path: Pat
         f"{tag}rms {scores['rms_error_nm']:.1f} nm ({scores['rms_error_pct']:.3f} % of range), "
         f"max {scores['max_error_nm']:.1f} nm ({scores['max_error_pct']:.3f} %) over samples {start}..{len(record)}"
     )
-    plots.actuator_fit(
-        record if k is None else dataclasses.replace(record, u=u, d=d),
-        {model_path.stem: p},
-        start,
-        out.file(f"predict{'_' + tag[0] if tag else ''}.png"),
-        title=f"{model_path.name} on {Path(record.meta['source']).name}",
+    axis = record if k is None else dataclasses.replace(record, u=u, d=d)
+    title = f"{model_path.name} on {Path(record.meta['source']).name}"
+    out.write(
+        f"predict{'_' + tag[0] if tag else ''}.png",
+        lambda path: plots.actuator_fit(axis, {model_path.stem: p}, start, path, title=title),
     )
     return {f"{tag}output_range_nm": d_range} | {f"{tag}{key}": v for key, v in scores.items()}
 

@@ -193,8 +193,8 @@ def run(cfg: RunConfig, config_path: Path, out: Output, log=print) -> dict:
     log(_table(done.rows, done.metrics))
     _figures(done.figures, layout.work, out)
     if done.errors:  # else no stage ran: the table says why
-        plots.stage_errors(done.errors, out.file("errors.png"))
-    np.savez_compressed(out.file("trials.npz"), **done.arrays)
+        out.write("errors.png", lambda path: plots.stage_errors(done.errors, path))
+    out.write("trials.npz", lambda path: np.savez_compressed(path, **done.arrays))
     return out.write_metrics(done.metrics)
 
 
@@ -221,7 +221,7 @@ def _step_a(cfg: RunConfig, afm: AFM, config_path: Path, out: Output, log) -> _S
     scans, sim = calibration_scans(sim_spec, cfg.calibration.grating, afm)
     model, fit_s = identify_scanner(cfg, scans, config_path, log)
     about = calibration_about(model, scans, "simulated calibration scan")
-    save_model(model, out.file("model_scanner.json"), about)
+    out.write("model_scanner.json", lambda path: save_model(model, path, about))
     return _Start(
         afm,
         model,
@@ -450,14 +450,11 @@ def _table(rows, metrics) -> str:
 
 def _figures(figures: dict, work: Raster, out: Output) -> None:
     if "landmarks_A" in figures:
-        plots.landmarks(
-            {
-                "B (nominal drive)": figures.get("landmarks"),
-                "A+B (compensated drive)": figures["landmarks_A"],
-            },
-            work,
-            out.file("landmarks.png"),
-        )
+        maps = {
+            "B (nominal drive)": figures.get("landmarks"),
+            "A+B (compensated drive)": figures["landmarks_A"],
+        }
+        out.write("landmarks.png", lambda path: plots.landmarks(maps, work, path))
     if "trials" in figures:
-        plots.local_scans(*figures["trials"], out.file("local_scan.png"))
-        plots.pushes(*figures["trials"], out.file("push.png"))
+        out.write("local_scan.png", lambda path: plots.local_scans(*figures["trials"], path))
+        out.write("push.png", lambda path: plots.pushes(*figures["trials"], path))
