@@ -86,8 +86,14 @@ class ImplausibleModel(ValueError):
 def read_scanner_model(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
     """The scanner in ``calibration.model_file`` (None without one), checked.
 
+    Steps B and C drive the model as a twin of the instrument, whose state after each drive they
+    carry on from (:func:`~jaxafm.identify.inverse.inverse_and_state`): a drift's wander and
+    position noise are random, so a twin has neither. A model file with them is refused here,
+    before any work, rather than run without them: the file would not be the model that runs.
+
     Raises:
-        ValueError: naming the key and the file: missing, not a saved model, or not a scanner.
+        ValueError: naming the key and the file: missing, not a saved model, not a scanner, or a
+            scanner with drift or noise.
     """
     if cfg.calibration.model_file is None:
         return None
@@ -100,6 +106,14 @@ def read_scanner_model(cfg: Positioning, config_path: Path) -> Optional[Scanner]
         raise ValueError(
             f"calibration.model_file: {path} holds a {type(model).__name__}, not a two-axis scanner "
             "(a model_*.json written by `jaxafm calibrate` or `jaxafm run`)"
+        )
+    random = [e for e in ("drift", "noise") if getattr(model, e) is not None]
+    if random:
+        raise ValueError(
+            f"calibration.model_file: {path} holds a scanner with {' and '.join(random)}: steps B and C "
+            "drive the model as a twin of the instrument, carrying on from its state after each drive, "
+            "and the state after random effects is unknown; save the scanner without them (e.g. "
+            f"model.without({', '.join(repr(e) for e in random)}))"
         )
     return model
 
