@@ -10,8 +10,8 @@
   files a run wrote (which makes them the user's).
 
 After every run every file of the user's holds the bytes the user last wrote. The points are the
-runs' own steps (each file hashed, each manifest entry recorded), counted by wrapping
-:func:`jaxafm.jobs.folder.file_hash` and :meth:`jaxafm.jobs.folder.Output._record`, so that each
+runs' own steps (each file hashed, each manifest record of the running run), counted by wrapping
+:func:`jaxafm.jobs.folder.file_hash` and :meth:`jaxafm.jobs.folder.RunFolder.record`, so that each
 iteration does the same thing at every run of the test; the user's thread writes while the run
 waits for it.
 """
@@ -66,7 +66,7 @@ def counted(real):
         return real(*args, **kwargs)
     return step
 folder.file_hash = counted(folder.file_hash)
-folder.Output._record = counted(folder.Output._record)
+folder.RunFolder.record = counted(folder.RunFolder.record)
 main()
 """
 
@@ -168,6 +168,8 @@ def in_process(cfg: Path, out: Path, flags: list, stop_at: int, user: User, user
 
     def counted(real):
         def step(*args, **kwargs):
+            if real is folder_module.RunFolder.record and (args[1:] or kwargs):
+                return real(*args, **kwargs)  # the run's end: its process would be gone after a Ctrl-C there
             steps[0] += 1
             if steps[0] == user_at:
                 user.during(cfg.stem)
@@ -179,7 +181,7 @@ def in_process(cfg: Path, out: Path, flags: list, stop_at: int, user: User, user
 
     with monkeypatch.context() as m:
         m.setattr(folder_module, "file_hash", counted(folder_module.file_hash))
-        m.setattr(folder_module.Output, "_record", counted(folder_module.Output._record))
+        m.setattr(folder_module.RunFolder, "record", counted(folder_module.RunFolder.record))
         result = CliRunner().invoke(app, [cfg.stem, str(cfg), "--out", str(out), *flags])
     assert result.exit_code in (0, 2, 130), result.output  # 3: a bug; 1: an exception escaped
     assert "Traceback" not in result.output, result.output
