@@ -27,8 +27,8 @@ from jaxafm import plots
 from jaxafm.config import ActuatorFitConfig
 from jaxafm.identify.fit import error_metrics
 from jaxafm.instrument.records import read_record
-from jaxafm.jobs import Output, run_folder
 from jaxafm.jobs import fit as fit_job
+from jaxafm.jobs import run_folder
 from jaxafm.model.apply import predict
 from jaxafm.model.io import read_model_file
 
@@ -60,7 +60,7 @@ def fit(name: str) -> Path:
     cfg = ActuatorFitConfig.model_validate(raw | {"train_fraction": 0.6, "models": MODELS})
     out = OUT / f"fit_{name}"
     with run_folder(out, "fit", Path(__file__), cfg, overwrite=True) as folder:
-        fit_job.run(cfg, Path(__file__), Output(out, folder.prepare))
+        fit_job.run(cfg, Path(__file__), folder.output)
     return out
 
 

@@ -15,8 +15,8 @@ import yaml
 
 import jaxafm
 from jaxafm.config import RunConfig
-from jaxafm.jobs import Output, run_folder
 from jaxafm.jobs import run as run_job
+from jaxafm.jobs import run_folder
 from jaxafm.model.io import save_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,8 +31,9 @@ def main() -> None:
     cfg = RunConfig.model_validate(raw)
     with run_folder(out, "run", config, cfg, overwrite=True) as folder:
         folder.prepare()  # the true model is one of the run's files
-        save_model(jaxafm.default_scanner().without("drift", "noise"), model)
-        run_job.run(cfg, config, Output(out, lambda: None))  # prepared above
+        truth = jaxafm.default_scanner().without("drift", "noise")
+        folder.output.write(model.name, lambda path: save_model(truth, path))
+        run_job.run(cfg, config, folder.output)
 
 
 if __name__ == "__main__":

@@ -18,8 +18,8 @@ from pathlib import Path
 import yaml
 
 from jaxafm.config import RunConfig
-from jaxafm.jobs import Output, run_folder
 from jaxafm.jobs import run as run_job
+from jaxafm.jobs import run_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def main() -> None:
         out = args.out / f"field_{field}"
         print(f"--- field {field} (particle seed {cfg.particles.seed})")
         with run_folder(out, "run", args.config, cfg, overwrite=args.overwrite) as folder:
-            m = run_job.run(cfg, args.config, Output(out, folder.prepare))
+            m = run_job.run(cfg, args.config, folder.output)
         results.append(m)
     n = sum(m["push_trials"] for m in results)
     success = sum(round(m["push_success_pct"] * m["push_trials"] / 100) for m in results)

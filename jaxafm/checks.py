@@ -33,6 +33,13 @@ def finite(name: str, x) -> None:
         )
 
 
+def some_samples(name: str, x) -> None:
+    """Raise if ``x`` holds no samples (its first axis is empty)."""
+    shape = np.shape(x)
+    if shape and shape[0] == 0:
+        raise ValueError(f"{name} holds no samples (shape {shape}): give one or more")
+
+
 def nonnegative(name: str, x) -> None:
     """Raise if ``x`` holds NaN, inf or a negative value."""
     finite(name, x)

@@ -260,6 +260,36 @@ def nan_weight(doc: dict) -> dict:
     return doc
 
 
+def axis_model(path: Path) -> Path:
+    """A one-axis model file: a straight-line PI of 100 nm/V fitted (as its file says) on 1-9 V
+    and 100-900 nm."""
+    from jaxafm import PrandtlIshlinskii
+    from jaxafm.model.io import describe, save_model
+
+    u = 5.0 + 4.0 * np.sin(np.linspace(0, 4 * np.pi, 200))
+    model = PrandtlIshlinskii.uniform(4, 4.0, 100.0)
+    save_model(model, path, describe(model, u, 100.0 * u, source="a test"))
+    return path
+
+
+def saved_image(path: Path, z: np.ndarray, pixel_size: tuple, bad_pixel: bool = False) -> Path:
+    """A jaxafm image file (``save_image``'s format) written as is: a NaN pixel or a pixel size
+    ``save_image`` would refuse, with the source it was made from in its metadata."""
+    z = np.array(z, dtype=float)
+    if bad_pixel:
+        z[2, 3] = NAN
+    doc = {
+        "format": "jaxafm-image",
+        "version": 1,
+        "pixel_size_nm": list(pixel_size),
+        "origin_nm": [0.0, 0.0],
+        "meta": {"source": "simulated: a lattice of pillars"},
+    }
+    with open(path, "wb") as f:
+        np.savez_compressed(f, z=z, meta_json=np.asarray(json.dumps(doc)))
+    return path
+
+
 @pytest.fixture
 def data(tmp_path, model_doc) -> Path:
     """Every data file a case may point to, under ``tmp_path/data``."""
@@ -299,6 +329,19 @@ def data(tmp_path, model_doc) -> Path:
     (d / "binary.json").write_bytes(bytes(range(256)))
     (d / "folder").mkdir()
     (d / "folder" / "keep.txt").write_text("a file in a folder\n")
+    axis_model(d / "axis.json")
+    tt = np.arange(60) / 50.0
+    x = 500.0 + 200.0 * np.sin(2 * np.pi * tt)
+    write_csv(d / "trajectory.csv", {"t_s": tt, "x_nm": x})
+    write_csv(d / "trajectory_xy.csv", {"t_s": tt, "x_nm": x, "y_nm": x})
+    write_csv(d / "trajectory_nan.csv", {"t_s": tt, "x_nm": np.where(np.arange(60) == 6, NAN, x)})
+    write_csv(d / "trajectory_backwards.csv", {"t_s": np.where(np.arange(60) == 9, tt[7], tt), "x_nm": x})
+    u150 = 150.0 * np.sin(2 * np.pi * tt)
+    write_csv(
+        d / "record_150v.csv", {"time_s": tt, "drive_v": u150, "sensor_um": 0.5 * np.sin(2 * np.pi * tt)}
+    )
+    saved_image(d / "nan_pixel.npz", lattice(16, 4), (250.0, 250.0), bad_pixel=True)
+    saved_image(d / "zero_pixel.npz", lattice(16, 4), (0.0, 250.0))
     (d / "results.txt").write_text("my earlier results: do not delete\n")
     return d
 
@@ -430,6 +473,22 @@ BASES = {
         "candidates": ["tip"],
         "max_steps": 5,
     },
+    "compensate": lambda: {
+        "model": "data/axis.json",
+        "trajectory": {"path": "data/trajectory.csv"},
+        "cycle_s": 0.5,
+    },
+    "predict": lambda: {
+        "model": "data/axis.json",
+        "data": {
+            "path": "data/record.csv",
+            "delimiter": ",",
+            "input_columns": ["drive_v"],
+            "output_columns": ["sensor_um"],
+            "time_column": "time_s",
+            "output_unit": "um",
+        },
+    },
     "diagnose-scans": lambda: {
         "scans": {
             "grating": {"pitch_nm": 500.0, "edge_width_nm": 20.0},
@@ -448,6 +507,8 @@ SCHEMAS = {
     "run": "RunConfig",
     "study": "StudyConfig",
     "diagnose": "DiagnoseConfig",
+    "compensate": "CompensateConfig",
+    "predict": "PredictConfig",
 }
 
 
@@ -747,6 +808,12 @@ RUN = [
         {"calibration.model_file": "data/nowhere.json"},
         (key("model_file"), file("nowhere.json")),
     ),
+    case(  # issue 41, item 9
+        "run-model_file-with-drift-and-noise",
+        "run",
+        {"calibration.model_file": "data/scanner.json"},
+        (key("calibration.model_file"), file("scanner.json"), "drift", "noise"),
+    ),
     case(
         "run-model_file-not-a-model",
         "run",
@@ -852,6 +919,12 @@ STUDY = [
         {"calibration.model_file": "data/nowhere.json", "stages": ["open_loop", "A"]},
         (key("model_file"), file("nowhere.json")),
     ),
+    case(  # issue 41, item 9
+        "study-model_file-with-drift-and-noise",
+        "study",
+        {"calibration.model_file": "data/scanner.json", "stages": ["open_loop", "A"]},
+        (key("calibration.model_file"), file("scanner.json"), "drift", "noise"),
+    ),
     case(
         "study-model_file-truncated",
         "study",
@@ -890,7 +963,24 @@ STUDY = [
     ),
 ]
 
+LATTICE = "builtin:lattice_square_pits_nanosurf.nid"  # pits 10 um apart, scanned Up
+
 DIAGNOSE = [
+    *(  # issue 41, item 6: the pitch checked as calibrate checks it
+        case(
+            f"diagnose-image-lattice-pitch-{pitch}",
+            "diagnose-image",
+            {"image": {"path": LATTICE, "kind": "lattice", "pitch_nm": pitch}},
+            (key("image.pitch_nm"), value(pitch), r"lie 99\d\d nm apart"),
+        )
+        for pitch in (5000, 7000, 20000)
+    ),
+    case(  # issue 41, item 7
+        "diagnose-image-first_row-against-the-file",
+        "diagnose-image",
+        {"image": {"path": LATTICE, "kind": "lattice", "pitch_nm": 10000, "first_row": "top"}},
+        (key("first_row"), "top", r"Scan direction.{0,5}Up"),
+    ),
     nan_case("diagnose-simulate.magnitude-.nan", "diagnose", "simulate.magnitude", NAN),
     case(
         "diagnose-simulate.magnitude-.nan-overwrite",
@@ -1027,6 +1117,36 @@ DIAGNOSE = [
     ),
 ]
 
+COMPENSATE = [  # issue 41, items 5 and 12
+    case(
+        "compensate-one-axis-model-two-axis-trajectory",
+        "compensate",
+        {"trajectory.path": "data/trajectory_xy.csv"},
+        (file("trajectory_xy.csv"), "y_nm", "one axis"),
+    ),
+    case(
+        "compensate-trajectory-nan-row",
+        "compensate",
+        {"trajectory.path": "data/trajectory_nan.csv"},
+        (file("trajectory_nan.csv"), "x_nm", r"data row 7\b", NAN_RE),
+    ),
+    case(
+        "compensate-trajectory-times-not-increasing",
+        "compensate",
+        {"trajectory.path": "data/trajectory_backwards.csv"},
+        (file("trajectory_backwards.csv"), "t_s", r"data row 10\b", r"data row 9\b"),
+    ),
+]
+
+PREDICT = [  # issue 41, item 8
+    case(
+        "predict-far-outside-the-fitted-range",
+        "predict",
+        {"data.path": "data/record_150v.csv"},
+        (file("axis.json"), r"\d+ % of the record's input samples", r"rms error", r"limit"),
+    ),
+]
+
 BINARY = bytes(range(256)) * 4
 GENERIC = [
     g
@@ -1135,6 +1255,16 @@ def test_study(tmp_path, data, c):
 
 @pytest.mark.parametrize("c", DIAGNOSE)
 def test_diagnose(tmp_path, data, c):
+    _invoke_case(tmp_path, c)
+
+
+@pytest.mark.parametrize("c", COMPENSATE)
+def test_compensate(tmp_path, data, c):
+    _invoke_case(tmp_path, c)
+
+
+@pytest.mark.parametrize("c", PREDICT)
+def test_predict(tmp_path, data, c):
     _invoke_case(tmp_path, c)
 
 
@@ -1325,6 +1455,19 @@ FILES = [
     ("read_image-binary-npz", lambda d: _read_image("binary.csv")(d), file("binary.csv"), ()),
     ("read_image-nan-pixel", lambda d: _read_image("nan_image.txt")(d), file("nan_image.txt"), ()),
     ("read_image-wrong-z-unit", lambda d: _read_image("volts.txt")(d), file("volts.txt"), ()),
+    # issue 41, item 10: a jaxafm image file's own errors name the file, not the source it was made from
+    (
+        "read_image-npz-nan-pixel",
+        lambda d: _read_image("nan_pixel.npz")(d),
+        r"^\S*" + file("nan_pixel.npz"),
+        (),
+    ),
+    (
+        "read_image-npz-zero-pixel-size",
+        lambda d: _read_image("zero_pixel.npz")(d),
+        r"^\S*" + file("zero_pixel.npz"),
+        (),
+    ),
     ("load_model-truncated", lambda d: _load_model("truncated.json")(d), file("truncated.json"), ()),
     ("load_model-not-json", lambda d: _load_model("not_json.json")(d), file("not_json.json"), ()),
     ("load_model-binary", lambda d: _load_model("binary.json")(d), file("binary.json"), ()),
@@ -1555,3 +1698,119 @@ PYTHON = [
 @pytest.mark.parametrize("factory, match", [pytest.param(*p[1:], id=p[0]) for p in PYTHON])
 def test_python(factory, match):
     expect_value_error(factory(), match)
+
+
+# ---------------------------------------------------------------- issue 41: the last silent answers
+
+
+def test_first_row_against_the_files_scan_direction():
+    """Item 7: a .nid file whose header says the scan went Up has its row 0 at the bottom;
+    ``first_row="top"`` contradicts it and is refused, as a contradicting size or height unit is."""
+    from jaxafm.config import resolve_data_path
+    from jaxafm.instrument.images import read_image
+
+    path = resolve_data_path(LATTICE, Path("."))
+    expect_value_error(lambda: read_image(path, first_row="top"), r"first_row[\s\S]*top[\s\S]*Up")
+    assert read_image(path, first_row="bottom").shape == read_image(path).shape  # agreeing: fine
+
+
+def _drive_of(volts: float, n: int = 200):
+    t = np.arange(n) * 1e-3
+    return volts * np.stack([np.sin(2 * np.pi * 5 * t), np.cos(2 * np.pi * 5 * t)], -1), t
+
+
+@pytest.mark.parametrize("call", ["scanner", "predict"])
+def test_a_drive_far_beyond_the_scanners_range_warns(call):
+    """Item 8: a +-10 V scanner driven over +-100 V answers with a warning that names the drive's
+    range and the span the scanner's hysteresis covers; within its range, no warning."""
+    import warnings
+
+    import jax
+
+    from jaxafm import default_scanner, predict
+
+    scanner = default_scanner(u_range=10.0)
+    apply = {
+        "scanner": lambda u, t: scanner(u, t, key=jax.random.key(0)),
+        "predict": lambda u, t: predict(scanner, u, t),
+    }[call]
+    with pytest.warns(UserWarning, match=r"-100(\.0)? to 100(\.0)? V[\s\S]*20(\.0)? V"):
+        apply(*_drive_of(100.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apply(*_drive_of(10.0))
+
+
+def test_a_model_files_non_finite_parameter_is_named_as_one():
+    """Item 15 (last part): a NaN weight in a model file is a broken file (edited by hand?), not
+    a record's bad samples: the message names the file and the parameter, and gives no advice
+    about samples."""
+    from jaxafm.model.io import load_model
+
+    with tempfile.TemporaryDirectory() as d:
+        from jaxafm import default_scanner
+        from jaxafm.model.io import save_model
+
+        save_model(default_scanner(), Path(d) / "m.json")
+        doc = nan_weight(json.loads((Path(d) / "m.json").read_text()))
+        (Path(d) / "nan.json").write_text(json.dumps(doc))
+        message = expect_value_error(
+            lambda: load_model(Path(d) / "nan.json"), file("nan.json") + r"[\s\S]*weights"
+        )
+    assert "samples" not in message, message
+
+
+def _afm_call(name: str, **wrong):
+    import jax
+
+    from jaxafm import Plane, Raster, default_afm, line_scan, move, raster_scan
+
+    def go():
+        afm = default_afm()
+        given = {"sample": Plane(), "state": afm.initial_state()} | wrong
+        if name == "raster_scan":
+            raster = Raster(size=(1000.0, 1000.0), pixels=8, lines=4, line_rate=10.0)
+            return raster_scan(afm, given["sample"], given["state"], raster, key=jax.random.key(0))
+        if name == "move":
+            return move(afm, given["sample"], given["state"], np.zeros(2), key=jax.random.key(0))
+        return line_scan(
+            afm, given["sample"], given["state"], [0.0, 0.0], [100.0, 0.0], 8, 100.0, key=jax.random.key(0)
+        )
+
+    return go
+
+
+def _empty(call: str):
+    import jax
+
+    from jaxafm import default_scanner, predict
+
+    s = default_scanner()
+    return {
+        "scanner": lambda: s(np.zeros((0, 2)), np.zeros(0), key=jax.random.key(0)),
+        "scanner.run": lambda: s.run(
+            np.zeros((0, 2)), np.zeros(0), s.initial_state(np.zeros(2)), jax.random.key(0)
+        ),
+        "axis": lambda: s.x(np.zeros(0), np.zeros(0)),
+        "operator": lambda: s.x.hysteresis(np.zeros(0)),
+        "predict": lambda: predict(s, np.zeros((0, 2)), np.zeros(0)),
+    }[call]
+
+
+@pytest.mark.parametrize("call", ["scanner", "scanner.run", "axis", "operator", "predict"])
+def test_an_empty_drive_is_named(call):
+    """Item 11: a scanner, an axis or an operator called with no samples names the input."""
+    expect_value_error(_empty(call), r"\bu\b[\s\S]*no samples|no samples[\s\S]*\bu\b")
+
+
+@pytest.mark.parametrize("name", ["raster_scan", "move", "line_scan"])
+@pytest.mark.parametrize(
+    "wrong", [{"state": None}, {"state": "state"}, {"sample": None}, {"sample": "plane"}]
+)
+def test_a_scan_with_no_sample_or_state_names_it(name, wrong):
+    """Item 11: ``None`` or a string where the sample or the state belongs names the argument
+    and what it must be (a TypeError: the wrong kind of object)."""
+    (argument,) = wrong
+    expect_value_error(
+        _afm_call(name, **wrong), rf"\b{argument}\b[\s\S]*{type(wrong[argument]).__name__}", (TypeError,)
+    )

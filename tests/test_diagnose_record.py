@@ -131,7 +131,7 @@ def test_a_fit_that_stops_at_its_step_limit_says_so(tmp_path):
     (its output stops changing within some 10 steps, docs/diagnosis.md): its row says so in
     diagnosis.json and in the report; every other row says it stopped before."""
     res, _ = _diagnosed(*END_CROPPED)
-    write(res, tmp_path, log=lambda s: None)
+    write(res, lambda name, writer: writer(tmp_path / name), log=lambda s: None)
     doc = json.loads((tmp_path / "diagnosis.json").read_text())
     rows = doc["candidates"] + doc["hysteresis_shapes"]
     stopped = [r["effect"] for r in rows if r["stopped_at_step_limit"]]

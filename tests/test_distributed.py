@@ -103,7 +103,7 @@ def test_two_processes_give_the_results_of_one(tmp_path):
     assert metrics(two) == metrics(one)
     manifest = read_manifest(two)
     assert manifest["status"] == "complete" and "metrics.json" in manifest["files"]
-    assert not list(two.rglob(".tmp*"))  # no half-written file of another process
+    assert not list(two.rglob(".jaxafm-*"))  # no half-written file of another process
 
 
 @pytest.mark.parametrize(

@@ -340,7 +340,7 @@ def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
     image = {"path": "g.tif", "size_nm": [4096, 1024], "z_unit": "um", "fast_axis": fast_axis}
     cfg, path = _config(tmp_path, {"image": image, "candidates": ["bow"], "max_steps": 5}, DiagnoseConfig)
     out = tmp_path / "out"
-    run(cfg, path, Output(out, prepare=out.mkdir), log=lambda line: None)
+    run(cfg, path, Output(out), log=lambda line: None)
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["data"]["pixels"] == [32, 128] and doc["data"]["pixel_size_nm"] == [32.0, 32.0]
     assert doc["nominal"]["fitted"]["pitch"] == pytest.approx(512.0, abs=0.1)

@@ -13,7 +13,7 @@ from typing import Optional
 
 import typer
 
-from ..jobs import JOBS, Output, run_folder, shared_run_folder
+from ..jobs import JOBS, run_folder, shared_run_folder
 
 app = typer.Typer(
     add_completion=False,
@@ -55,7 +55,7 @@ def _launch(config: Path, out: Optional[Path], flags: dict, command: str, cluste
         ) as folder:
             if folder.resuming:
                 options["resume"] = True
-            job.run(cfg, config, Output(path, folder.prepare), log=typer.echo, **options)
+            job.run(cfg, config, folder.output, log=typer.echo, **options)
     except KeyboardInterrupt:
         _interrupted(folder)
     except Exception as e:

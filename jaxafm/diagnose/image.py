@@ -32,7 +32,7 @@ import dataclasses
 
 import numpy as np
 
-from ..identify.features import lattice_features
+from ..identify.features import feature_centres, index_lattice
 from ..identify.line_grating import GratingEdges, edge_design
 from ..identify.projection import project_out
 from .core import DataKind, Diagnosis, Findings, Fit, Rules, diagnose
@@ -314,21 +314,33 @@ def lattice_vectors(image, pitch_nm) -> tuple | None:
     """``(origin, a1, a2)`` nm of a lattice image (a site at ``origin + i a1 + j a2``; ``a1``
     along its rows, ``a1[1] / a1[0]`` their tilt dy/dx), fitted by least squares to the centres
     of its complete pillars, or pits, whichever are more
-    (:func:`~jaxafm.identify.features.lattice_features`, ``pitch_nm`` one number or (x, y));
-    ``None`` with fewer than 6 of them."""
+    (:func:`~jaxafm.identify.features.feature_centres`), indexed at the pitch ``pitch_nm`` (one
+    number or (x, y)) as step A's calibration indexes them
+    (:func:`~jaxafm.identify.features.index_lattice`); ``None`` with fewer than 6 of them.
+
+    Raises:
+        ValueError: the image shows complete features, but they do not repeat at ``pitch_nm``
+            (the message says how far apart they lie).
+    """
     pixel = np.asarray(image.pixel_size, dtype=float)
-    pitch_px = tuple(np.broadcast_to(np.asarray(pitch_nm, dtype=float), (2,)) / pixel)
-    found = []
+    pitch = np.broadcast_to(np.asarray(pitch_nm, dtype=float), (2,))
+    name = str(image.meta.get("source", "image"))
+    found, off_pitch = [], None
     for z in (image.z, -image.z):
         try:
-            found.append(lattice_features(z, pitch_px, str(image.meta.get("source", "image"))))
-        except ValueError:  # no features of this sign, or none at the pitch
+            xy = feature_centres(z, name)[:, ::-1] * pixel
+        except ValueError:  # no complete features of this sign
             continue
-    best = max(found, key=lambda f: len(f.rc), default=None)
-    if best is None or len(best.rc) < 6:
+        try:
+            found.append((xy, index_lattice(xy, pitch, name, "nm")[0]))
+        except ValueError as e:  # features, but not at the stated pitch
+            off_pitch = off_pitch or e
+    if not found and off_pitch is not None:
+        raise ValueError(f"pitch_nm = {' x '.join(f'{p:g}' for p in pitch)} nm: {off_pitch}") from None
+    xy, ij = max(found, key=lambda f: len(f[0]), default=(np.zeros((0, 2)), None))
+    if len(xy) < 6:
         return None
-    xy = best.rc[:, ::-1] * pixel
-    return tuple(np.linalg.lstsq(np.column_stack([np.ones(len(xy)), best.ij]), xy, rcond=None)[0])
+    return tuple(np.linalg.lstsq(np.column_stack([np.ones(len(xy)), ij]), xy, rcond=None)[0])
 
 
 def _chords(e: GratingEdges) -> tuple:

@@ -1,5 +1,5 @@
-"""The report of a diagnosis: residual statistics, the figure, ``diagnosis.json``,
-``metrics.json`` and ``report.md``.
+"""The report of a diagnosis: residual statistics, the figure, ``diagnosis.json``, the
+metrics and ``report.md``.
 
 Residuals are ``r = measured - model`` in nm. Statistics, for ``N`` residual samples:
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -208,13 +209,14 @@ def markdown(doc: dict, notes: list) -> str:
     return "\n".join(lines + list(notes) + ["", "![residuals](residuals.png)", ""])
 
 
-def write(diagnosis: Diagnosis, out: Path, log=print) -> dict:
-    """Write ``diagnosis.json``, ``metrics.json``, ``residuals.png`` and ``report.md`` into the
-    folder ``out`` and log the verdict.
+def write(diagnosis: Diagnosis, save: Callable, log=print) -> dict:
+    """Write ``residuals.png``, ``diagnosis.json`` and ``report.md``, and log the verdict;
+    ``metrics.json`` is the caller's to write from what this returns.
 
     Arguments:
         diagnosis: any kind's :class:`~jaxafm.diagnose.core.Diagnosis`.
-        out: an existing folder.
+        save: ``save(name, writer)`` writes the file ``name``, ``writer(path)`` writing its
+            bytes to ``path`` (:meth:`jaxafm.jobs.Output.write`: into an output folder, recorded).
         log: called with the verdict line.
 
     Returns:
@@ -236,11 +238,9 @@ def write(diagnosis: Diagnosis, out: Path, log=print) -> dict:
     }
     if found.decomposition is not None:
         doc["decomposition"] = found.decomposition
-    out = Path(out)
-    figure(diagnosis, found, out / "residuals.png")
-    (out / "diagnosis.json").write_text(json.dumps(doc, indent=1))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    (out / "report.md").write_text(markdown(doc, found.notes))
+    save("residuals.png", lambda path: figure(diagnosis, found, path))
+    save("diagnosis.json", lambda path: path.write_text(json.dumps(doc, indent=1)))
+    save("report.md", lambda path: path.write_text(markdown(doc, found.notes)))
     v = doc["verdict"]
     log(
         f"verdict: {v['text']}"

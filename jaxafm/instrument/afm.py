@@ -33,7 +33,7 @@ from .. import checks
 from ..config.names import check_effect_names
 from ..model.effects import FeedbackAsymmetry, FeedbackLag
 from ..model.scanner import Scanner, ScannerState, default_scanner
-from .samples import Indented, Tip, surface
+from .samples import AbstractSample, Indented, Tip, surface
 
 Array = jax.Array
 
@@ -191,6 +191,23 @@ def default_afm(
     )
 
 
+def _check_action(afm, sample, state) -> None:
+    """Refuse an action's arguments that are not an instrument, a sample and a state, naming the
+    argument and what it must be.
+
+    Raises:
+        TypeError: ``afm`` not an :class:`AFM`, ``sample`` not a sample
+            (:class:`~jaxafm.instrument.samples.AbstractSample`), ``state`` not an :class:`AFMState`.
+    """
+    for name, value, kind, what in (
+        ("afm", afm, AFM, "an AFM (e.g. default_afm())"),
+        ("sample", sample, AbstractSample, "a sample (e.g. Plane(), Lattice(...), Indented.empty(...))"),
+        ("state", state, AFMState, "an AFMState (afm.initial_state(), or the state an action returned)"),
+    ):
+        if not isinstance(value, kind):
+            raise TypeError(f"{name} must be {what}, got {type(value).__name__} {value!r:.60}")
+
+
 def _times(state: AFMState, n: int, dt: float) -> Array:
     return state.scanner.t + dt * jnp.arange(1, n + 1)
 
@@ -205,6 +222,7 @@ def move(
     key: Optional[Array] = None,
 ) -> tuple:
     """Ramp the drive straight to ``u_target`` (2,) V over ``duration`` s; returns ``(path, state)``."""
+    _check_action(afm, sample, state)
     checks.finite("move: u_target (V)", u_target)
     if not duration > 0 or samples < 1:
         raise ValueError(f"a move needs duration > 0 s and samples >= 1, got {duration} s, {samples}")
@@ -267,6 +285,7 @@ def line_scan(
     The tip first moves to the start over ``move_time`` s. Returns the recorded
     heights (points,) nm, the true path (points, 2) nm and the next state.
     """
+    _check_action(afm, sample, state)
     if points < 2:
         raise ValueError(f"a line scan needs points >= 2, got {points}")
     checks.positive("line scan speed (nm/s)", speed)
@@ -441,6 +460,7 @@ def raster_scan(
         A :class:`RasterScan`: the images, the tip's true path and times per pixel, and the
         instrument's state after the scan.
     """
+    _check_action(afm, sample, state)
     volts = afm.nominal_volts if volts is None else volts
     wanted = raster.wanted().reshape(-1, 2)
     t = raster_times(raster, state.scanner.t + move_time)

@@ -136,8 +136,9 @@ def from_scan(scan: RasterScan, raster, direction: str = "trace", meta: Optional
 class _Stored:
     """An image file as its reader found it: values ``z`` (rows, cols) in ``z_unit``, the size
     (width, height) nm of the stored columns and rows, the side ``first_row`` of the stored
-    row 0 ("top" or "bottom"), the origin (x, y) nm, and the reader's ``meta``; None where the
-    file does not say."""
+    row 0 ("top" or "bottom"; ``first_row_said``: the header entry that records it, where the
+    instrument wrote it rather than the format fixing it), the origin (x, y) nm, and the
+    reader's ``meta``; None where the file does not say."""
 
     z: np.ndarray
     z_unit: Optional[str]
@@ -145,6 +146,7 @@ class _Stored:
     meta: dict
     first_row: Optional[str] = None
     origin: tuple = (0.0, 0.0)
+    first_row_said: Optional[str] = None
 
 
 def read_image(
@@ -161,7 +163,8 @@ def read_image(
 
     The arguments after ``channel`` say what the file lacks, and win over what it says (noted in
     ``meta["given"]``, with the file's replaced values in ``meta["file"]``), except that a
-    file's own size must agree within :data:`SIZE_TOLERANCE` and its own height unit exactly.
+    file's own size must agree within :data:`SIZE_TOLERANCE`, its own height unit exactly, and
+    ``first_row`` with the scan direction its instrument recorded (a .nid file's ``Up``).
 
     Arguments:
         path: the file.
@@ -185,8 +188,8 @@ def read_image(
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming the file and the value: not an image, a unit that is not a length, no
-            size for a TIFF, a size that disagrees with the file's or gives a square scan
-            non-square pixels.
+            size for a TIFF, a size or row order that disagrees with the file's, or a size that
+            gives a square scan non-square pixels.
     """
     path = Path(path)
     names = ("size_nm", "z_unit", "line_rate_hz", "fast_axis", "first_row", "direction")
@@ -251,6 +254,7 @@ def _as_given(stored: _Stored, path: Path, given: dict) -> AFMImage:
         z, origin = z.T, origin[::-1]
         size = None if size is None else size[::-1]
         meta["fast_axis"] = "y: transposed, the scan lines are the rows"
+    _check_first_row(stored, path, given)
     if given.get("first_row", stored.first_row) == "top":
         z = z[::-1]
         meta["row_order"] = "flipped: row 0 is the bottom line"
@@ -260,6 +264,19 @@ def _as_given(stored: _Stored, path: Path, given: dict) -> AFMImage:
     wanted = given | ({"size_nm": list(_size(given["size_nm"]))} if "size_nm" in given else {})
     file = {k: v for k, v in said.items() if k in given and v is not None and v != wanted[k]}
     return AFMImage(z, pixel, origin, meta | ({"file": file} if file else {}))
+
+
+def _check_first_row(stored: _Stored, path: Path, given: dict) -> None:
+    """Refuse a given ``first_row`` that contradicts the row order the instrument recorded in the
+    file's header (a scan direction), as a contradicting height unit or size is refused."""
+    if "first_row" not in given or stored.first_row_said is None or given.get("fast_axis") == "y":
+        return
+    if given["first_row"] != stored.first_row:
+        raise ValueError(
+            f"{path}: first_row = {given['first_row']!r} disagrees with the file's own header "
+            f"({stored.first_row_said}: row 0 is the {stored.first_row} line, scanned first): remove "
+            "first_row or correct it"
+        )
 
 
 def _z_unit(stored: _Stored, path: Path, given: Optional[str], meta: dict) -> str:
@@ -462,7 +479,8 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     }
     size = tuple(float(h[f"Dim{k}Range"]) * LENGTH_TO_NM[units["xy"]] for k in (0, 1))
     first_row = {"Up": "bottom"}.get(up)  # Down: the file does not say where its row 0 lies
-    return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row)
+    said = None if first_row is None else f"Scan direction={up}"
+    return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row, first_row_said=said)
 
 
 def _nid_channels(path: Path, head: dict) -> list:
@@ -599,6 +617,9 @@ def load_image(path) -> AFMImage:
     if version != VERSION:
         raise ValueError(f"{path}: image format version {version} is not supported ({VERSION} is)")
     try:
-        return AFMImage(z, tuple(doc["pixel_size_nm"]), tuple(doc["origin_nm"]), doc["meta"])
+        pixel_size, origin, meta = tuple(doc["pixel_size_nm"]), tuple(doc["origin_nm"]), doc["meta"]
     except KeyError as e:
         raise ValueError(f"{path}: the image's meta_json lacks the key {e}") from None
+    image = AFMImage(z, pixel_size, origin, {"source": str(path)})  # a bad pixel or size: this file named
+    image.meta = meta  # the saved metadata, with the source the image was made from
+    return image

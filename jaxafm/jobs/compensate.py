@@ -50,8 +50,9 @@ def read_trajectory(path: Path, axes: int) -> tuple:
     ``y_nm``.
 
     Raises:
-        ValueError: naming the file: no header with units, non-numeric or non-finite rows, or
-            times that do not increase.
+        ValueError: naming the file: no header with units, a column for an axis the model does
+            not drive, non-numeric rows, a non-finite value or times that do not increase (with
+            the column and the data row, counted from 1 below the header).
     """
     if not path.is_file():
         raise FileNotFoundError(f"trajectory.path: {path} does not exist")
@@ -65,15 +66,47 @@ def read_trajectory(path: Path, axes: int) -> tuple:
             f"t_s and {' and '.join(f'{a}_<unit>' for a in AXES[:axes])} (unit one of "
             f"{', '.join(LENGTH_TO_NM)}), e.g. '{columns}'"
         )
+    extra = [n for n in names if "_" in n and n.split("_", 1)[0] in tuple(AXES[axes:])]
+    if extra:
+        raise ValueError(
+            f"trajectory.path: {path}: the column {extra[0]} wants a {extra[0][0]} axis, but the model "
+            f"drives one axis (x alone): remove the column, or give a two-axis scanner model"
+        )
     try:
         data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as e:
         raise ValueError(f"trajectory.path: {path}: not numeric CSV rows ({e})") from None
-    t = data[:, names.index("t_s")]
-    x = np.stack([data[:, names.index(f"{a}_{units[a]}")] * LENGTH_TO_NM[units[a]] for a in AXES[:axes]], -1)
-    if len(t) < 2 or not (np.isfinite(t).all() and np.isfinite(x).all()) or np.any(np.diff(t) <= 0):
-        raise ValueError(f"trajectory.path: {path}: needs 2 or more finite rows with increasing t_s")
+    columns = ["t_s"] + [f"{a}_{units[a]}" for a in AXES[:axes]]
+    used = {c: data[:, names.index(c)] for c in columns}
+    _check_rows(path, used)
+    t = used["t_s"]
+    x = np.stack([used[c] * LENGTH_TO_NM[c.split("_", 1)[1]] for c in columns[1:]], -1)
     return t - t[0], x
+
+
+def _check_rows(path: Path, columns: dict) -> None:
+    """Two rows or more, every value finite, ``t_s`` increasing from row to row.
+
+    Raises:
+        ValueError: naming the file, the column and the data row (1: the first below the header).
+    """
+    if len(columns["t_s"]) < 2:
+        raise ValueError(f"trajectory.path: {path}: needs 2 or more data rows, has {len(columns['t_s'])}")
+    for name, values in columns.items():
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise ValueError(
+                f"trajectory.path: {path}: column {name}, data row {bad[0] + 1}: {values[bad[0]]} is not a "
+                f"finite number ({bad.size} such row(s))"
+            )
+    t = columns["t_s"]
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = back[0] + 1
+        raise ValueError(
+            f"trajectory.path: {path}: needs increasing t_s, but data row {i + 1} ({t[i]:g} s) is not "
+            f"after data row {i} ({t[i - 1]:g} s)"
+        )
 
 
 def wanted_trajectory(spec: Trajectory, config_path: Path, fitted_nm: np.ndarray) -> tuple:
@@ -144,17 +177,13 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
         metrics |= _tracking(label, y, x, y_range, tags, log)
     y = outputs[""]
     for k, tag in enumerate(tags):
-        plots.compensated_drive(
-            times,
-            u[:, k],
-            n,
-            x[:, k],
-            y[:, k],
-            out.file(f"compensate{'_' + tag[0] if tag else ''}.png"),
-            title=f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else ""),
+        title = f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else "")
+        out.write(
+            f"compensate{'_' + tag[0] if tag else ''}.png",
+            lambda path: plots.compensated_drive(times, u[:, k], n, x[:, k], y[:, k], path, title=title),
         )
     volts = {"u_v": u[:, 0]} if len(tags) == 1 else {f"u{a}_v": u[:, k] for k, a in enumerate(AXES)}
-    write_columns(out.file("drive.csv"), {"t_s": times} | volts)
+    out.write("drive.csv", lambda path: write_columns(path, {"t_s": times} | volts))
     tracked = {}
     for k, tag in enumerate(tags):
         tracked |= {
@@ -162,7 +191,7 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
             f"model_{tag}nm": y[:, k],
             f"error_{tag}nm": y[:, k] - x[:, k],
         }
-    write_columns(out.file("tracking.csv"), {"t_s": times[n:]} | tracked)
+    out.write("tracking.csv", lambda path: write_columns(path, {"t_s": times[n:]} | tracked))
     return out.write_metrics(metrics)
 
 

@@ -3,8 +3,8 @@
 One of four sources (``jaxafm.config.DiagnoseConfig``): a measured actuator record
 (``data``), a simulated one (``simulate``), one grating image (``image``) or trace/retrace
 scan pairs (``scans``, from files or simulated). Everything is read and checked before the
-output folder is prepared; the report, ``metrics.json`` included, is
-:func:`jaxafm.diagnose.report.write`'s.
+output folder is prepared; the report is :func:`jaxafm.diagnose.report.write`'s, and
+``metrics.json`` holds the metrics it returns.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from ..config import DiagnoseConfig, DiagnoseScans, ImageFile, resolve_data_path
 from ..diagnose import withheld
 from ..diagnose.core import Diagnosis, Rules
-from ..diagnose.image import diagnose_image
+from ..diagnose.image import diagnose_image, lattice_vectors
 from ..diagnose.record import ActuatorRecord, auto_settle, diagnose_record
 from ..diagnose.report import write
 from ..diagnose.scans import ScanPair, diagnose_scans
@@ -51,7 +51,7 @@ def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
     else:
         diagnosis = _record(cfg, config_path, rules, log)
     out.prepare()
-    return write(diagnosis, out.path, log)  # the report writes its four files, metrics.json among them
+    return out.write_metrics(write(diagnosis, out.write, log))
 
 
 def _record(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnosis:
@@ -109,12 +109,17 @@ def _image(cfg: DiagnoseConfig, config_path: Path, rules: Rules, log) -> Diagnos
     im = cfg.image
     spec = ImageFile.model_validate(im.model_dump(exclude={"kind", "pitch_nm"}, exclude_unset=True))
     image = read_image_file(spec, config_path, "image")
+    pitch = None if im.pitch_nm is None else im.pitch_nm[0]
+    if im.kind == "lattice" and pitch is not None:
+        try:  # the features repeat at the stated pitch, as step A's calibration checks
+            lattice_vectors(image, pitch)
+        except ValueError as e:
+            raise ValueError(f"{config_path}: image: {e}") from None
     log(
         f"image: {image.meta.get('source')} - {image.shape[0]} x {image.shape[1]} px"
         f"{' of a 2-D lattice' if im.kind == 'lattice' else ''}; nominal: hysteresis-only scanner "
         "(fast-axis nonlinearity)"
     )
-    pitch = None if im.pitch_nm is None else im.pitch_nm[0]
     return diagnose_image(image, cfg.candidates, cfg.train_fraction, rules, log, im.kind, pitch)
 
 

@@ -102,7 +102,7 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
             source=record.meta["source"],
             train_fraction=cfg.train_fraction,
         )
-        save_model(res.model, out.file(f"model_{spec.name}.json"), about)
+        out.write(f"model_{spec.name}.json", lambda path: save_model(res.model, path, about))
         scores = _scores(spec.name, pred, record, split, settle)
         metrics |= scores | {
             f"{spec.name}_fit_s": res.seconds,
@@ -115,9 +115,8 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
                 pred[split:], clean[split:], metrics["output_range_nm"]
             )["rms_error_pct"]
         rows.append((spec.name, spec.solver_name, scores, res.seconds, res.converged))
-    plots.actuator_fit(
-        record, predictions, split, out.file("fit.png"), title=Path(record.meta["source"]).name
-    )
+    title = Path(record.meta["source"]).name
+    out.write("fit.png", lambda path: plots.actuator_fit(record, predictions, split, path, title=title))
     out.write_metrics(metrics)
     log(_table(rows))
     return metrics

@@ -1,92 +1,247 @@
 """Output folders that lose nothing: the run manifest that records what a run wrote, and the
-folder as a job writes into it (:class:`Output`, whose :meth:`~Output.write_metrics` writes every
-job's ``metrics.json``). What each command writes is the command table's (:data:`~jaxafm.jobs.JOBS`).
+folder as a job writes into it (:class:`Output`, through which every file of a job goes, and
+whose :meth:`~Output.write_metrics` writes every job's ``metrics.json``). What each command
+writes is the command table's (:data:`~jaxafm.jobs.JOBS`).
 
-Every run writes ``jaxafm-run.json`` into its output folder before its first result: the command,
-the config (as validated), the jaxafm version, the files that were in the folder before
-(``foreign``: never removed or replaced) and its status, ``running`` until it ends
-``complete``, ``failed`` or ``interrupted`` with the list of files it wrote. From it:
+**Who owns a file.** A run owns exactly the files it wrote: each one is recorded in the run's
+manifest, ``jaxafm-run.json``, by its path relative to the output folder and the sha256 of its
+bytes, before it is put in place under its name (:meth:`Output.write`), so that a run killed at
+any point has already recorded everything it wrote. Anything else in the folder is the user's,
+and is never removed or replaced, with or without ``--overwrite``, whatever command runs next,
+after a crash, a Ctrl-C or a finished run. A file a run wrote whose bytes have changed since
+(the user edited or replaced it) is the user's too; the next run keeps it and says so. Besides
+its files, a run removes only its own unfinished temporary files, whose names carry the run's
+random token (``.jaxafm-TOKEN.NAME``, the token in its manifest), and the folders it created
+once they are empty.
 
-- ``--overwrite`` removes only the files an earlier run recorded as its own;
-- a run never replaces a file it did not write: a foreign file with an output's name is an error;
+Every run writes its manifest into the output folder before its first result: the command, the
+config (as validated), the jaxafm version, its token, the files that were in the folder before
+and are not jaxafm's (``foreign``), the files it wrote (``files``: path -> the sha256 of the
+bytes it put there; a file written again keeps the hash of its earlier bytes too, so that a kill
+between the two steps of a rewrite loses nothing), the folders it created, and its status,
+``running`` until it ends ``complete``, ``failed`` or ``interrupted``. From it:
+
+- ``--overwrite`` removes only the files an earlier run owns (recorded, bytes unchanged);
+- a file that is not the run's own and has the name of one of the command's outputs stops the
+  run before any work, with or without ``--overwrite``; one that appears while the run goes on
+  is never replaced (the run stops there);
 - an incomplete folder is replaced by the next run of any command without a flag, except a
-  study with the same config, which resumes; a study with another config needs ``--overwrite``;
+  study with the same config (``output`` aside), which resumes; a study with another config
+  needs ``--overwrite``;
 - a run killed outright (its manifest says ``running``, its process is gone) counts as
-  incomplete; its files are those not foreign and written after it started;
+  incomplete: its files are those its manifest records;
 - a run in several JAX processes (``jax.distributed``; :func:`shared_run_folder`): process 0 alone
   checks, prepares and records the folder and writes the results; the others never write into it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import secrets
 import shlex
 import socket
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Optional
 
 from .table import JOBS
 
 MANIFEST = "jaxafm-run.json"
-FORMAT = "jaxafm-run"
+FORMAT, VERSION = "jaxafm-run", 2
 
 METRICS = "metrics.json"
 #: the commands whose unfinished run goes on where it stopped (any other's is replaced)
 RESUMABLE = tuple(name for name, job in JOBS.items() if job.resumable)
+#: config keys that say where the results go, not what they are: a change in them alone does
+#: not stop a resume
+PLACE_KEYS = ("output",)
+
+
+def file_hash(path: Path) -> str:
+    """The sha256 of the file's bytes, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def temporary(token: str, name: str) -> str:
+    """The name of the temporary file a run with ``token`` writes ``name`` into first. It ends as
+    ``name`` does, so that a writer that picks the format by the suffix (a figure, ``np.savez``)
+    writes the same file."""
+    return f".jaxafm-{token}.{name}"
 
 
 class Output:
     """The output folder as a job writes into it: :meth:`prepare` readies it once the job has
-    checked its inputs, :meth:`file` names each file the job writes (and records it in
-    :attr:`written`), and :meth:`write_metrics` writes ``metrics.json``, every job's
-    machine-readable results.
+    checked its inputs, :meth:`write` writes each file (recorded in the run's manifest with its
+    hash before it is put in place), and :meth:`write_metrics` writes ``metrics.json``, every
+    job's machine-readable results. A file that is not this run's is never replaced.
 
     Arguments:
         path: the folder.
-        prepare: readies the folder (a :class:`RunFolder`'s ``prepare``, which records the run
-            in its manifest); ``None``: create the folder.
+        folder: the :class:`RunFolder` that records the run in its manifest (it makes its own
+            Output, :attr:`RunFolder.output`); ``None``: nothing is recorded on disk (a job run
+            from Python into a folder of the caller's).
     """
 
-    def __init__(self, path, prepare: Optional[Callable[[], None]] = None):
+    def __init__(self, path, folder=None):
         self.path = Path(path)
-        self._prepare = prepare
-        #: the files the job wrote (or is writing), relative to :attr:`path`, in order
+        self._folder = folder
+        self.token = folder.token if folder is not None else secrets.token_hex(8)
+        #: whether this process writes (not a process other than 0 of a run in several)
+        self.writes = folder is None or folder.writes
+        #: every file the run owns, relative path -> [sha256 of the bytes it wrote there]; while
+        #: a file of the run's is being replaced, the hashes of its old and its new bytes
+        self.files: dict = {}
+        #: the folders (relative) the run created
+        self.dirs: list = []
+        #: the files this job wrote, in order
         self.written: list = []
+        self._pending: list = []
 
     def prepare(self) -> None:
         """Ready the folder: called once, after the job's inputs are checked, before its first file."""
-        if self._prepare is None:
+        if self._folder is None:
             self.path.mkdir(parents=True, exist_ok=True)
         else:
-            self._prepare()
+            self._folder.prepare()
+
+    def write(self, name: str, writer: Callable[[Path], object]) -> Path:
+        """Write the file ``name`` (relative to the folder, ``/`` between names): ``writer(path)``
+        writes it to a temporary path beside it; then its hash is recorded and it is put in place
+        (whole or not at all). Returns its path.
+
+        Raises:
+            ValueError: a file that is not this run's lies where it belongs (the user's: kept).
+        """
+        self._place_pending()
+        rel, dest = self._destination(name)
+        if not self.writes:
+            return dest
+        tmp = dest.with_name(temporary(self.token, dest.name))
+        try:
+            writer(tmp)
+            self._place(rel, tmp, dest)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return dest
 
     def file(self, name: str) -> Path:
-        """The path of the file ``name`` (relative to the folder) that the job writes."""
-        if name not in self.written:
-            self.written.append(name)
-        return self.path / name
+        """The temporary path a job that writes the file ``name`` itself writes it to; the file is
+        put in place as :meth:`write` puts it at this Output's next call, or when the run ends
+        ``complete``. :meth:`write` is the one to use: this serves jobs that hand a path on."""
+        self._place_pending()
+        rel, dest = self._destination(name)
+        tmp = dest.with_name(temporary(self.token, dest.name))
+        if self.writes:
+            self._pending.append((rel, tmp, dest))
+        return tmp
 
     def write_metrics(self, metrics: dict) -> dict:
-        """Write ``metrics`` (flat keys, units in the names) as ``metrics.json``, whole or not at
-        all (a temporary file renamed onto it); returns them."""
-        path = self.file(METRICS)
-        tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
-        tmp.write_text(json.dumps(metrics, indent=1))
-        os.replace(tmp, path)
+        """Write ``metrics`` (flat keys, units in the names) as ``metrics.json``; returns them."""
+        self.write(METRICS, lambda p: p.write_text(json.dumps(metrics, indent=1)))
         return metrics
 
+    def settle(self, keep: bool) -> None:
+        """Put the files :meth:`file` handed out in place (``keep``), or remove them (the run did
+        not finish: they may be partly written)."""
+        if keep:
+            self._place_pending()
+        for _, tmp, _ in self._pending:
+            tmp.unlink(missing_ok=True)
+        self._pending = []
 
-def _files(folder: Path) -> dict:
-    """Every file under ``folder`` but the manifest: relative path -> modification time (ns)."""
-    return {
-        p.relative_to(folder).as_posix(): p.stat().st_mtime_ns
-        for p in sorted(folder.rglob("*"))
-        if p.is_file() and p.name != MANIFEST
-    }
+    def _place_pending(self) -> None:
+        """Put in place the files :meth:`file` handed out that the job has written."""
+        pending, self._pending = self._pending, []
+        for rel, tmp, dest in pending:
+            if tmp.is_file():
+                try:
+                    self._place(rel, tmp, dest)
+                finally:
+                    tmp.unlink(missing_ok=True)
+
+    def _destination(self, name: str) -> tuple:
+        """``name`` as a path relative to the folder, checked, and its path; its folders made."""
+        rel = PurePosixPath(name)
+        if rel.is_absolute() or ".." in rel.parts or not rel.parts:
+            raise ValueError(f"{name!r}: an output is a path inside the output folder")
+        dest = self.path.joinpath(*rel.parts)
+        if self.writes:
+            self._make_folders(rel.parent)
+        return rel.as_posix(), dest
+
+    def _make_folders(self, rel: PurePosixPath) -> None:
+        """Create the folder ``rel`` and those above it in the output folder, recording those created."""
+        for part in reversed([rel, *rel.parents][:-1]):  # outermost first; "." (the folder) left out
+            folder = self.path / part
+            try:
+                folder.mkdir()
+            except FileExistsError:
+                if not folder.is_dir():  # a file of the user's: kept, and the run stops
+                    raise ValueError(
+                        f"{folder} is a file of yours where the run writes a folder of results: move it, "
+                        "or choose another --out"
+                    ) from None
+            else:
+                self.dirs.append(part.as_posix())
+
+    def _place(self, rel: str, tmp: Path, dest: Path) -> None:
+        """Record ``tmp``'s hash as ``rel``'s and put it in place: a new file by a hard link, which
+        fails if a file of that name appeared meanwhile; a file this run wrote by a rename over it."""
+        digest = file_hash(tmp)
+        earlier = self.files.get(rel, [])
+        if os.path.lexists(dest):
+            if not earlier or file_hash(dest) not in earlier:
+                raise ValueError(self._not_ours(dest))
+            self._record(rel, [earlier[-1], digest])
+            os.replace(tmp, dest)
+        else:
+            self._record(rel, [digest])
+            try:
+                os.link(tmp, dest)
+            except FileExistsError:
+                self._record(rel, earlier)
+                raise ValueError(self._not_ours(dest)) from None
+            except OSError:  # a filesystem without hard links
+                if os.path.lexists(dest):
+                    self._record(rel, earlier)
+                    raise ValueError(self._not_ours(dest)) from None
+                os.replace(tmp, dest)
+        self.files[rel] = [digest]
+        if rel not in self.written:
+            self.written.append(rel)
+
+    def _record(self, rel: str, hashes: list) -> None:
+        """``rel``'s hashes, recorded in the manifest (an empty list: not the run's)."""
+        if hashes:
+            self.files[rel] = hashes
+        else:
+            self.files.pop(rel, None)
+        if self._folder is not None:
+            self._folder.record()
+
+    def _not_ours(self, dest: Path) -> str:
+        return (
+            f"{dest} is not a file this run wrote (it appeared while the run went on, or it changed "
+            "since the run wrote it): jaxafm never replaces a file of yours; it is kept as it is. Move "
+            "it, or choose another --out"
+        )
+
+
+def _files(folder: Path) -> list:
+    """Every file under ``folder`` but its manifest, relative, ``/`` between names."""
+    names = (p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() or p.is_symlink())
+    return sorted(n for n in names if n not in (MANIFEST, _MANIFEST_TMP))
+
+
+_MANIFEST_TMP = f".{MANIFEST}.tmp"
 
 
 def _alive(pid: int) -> bool:
@@ -130,8 +285,40 @@ def read_manifest(folder: Path) -> Optional[dict]:
     return doc
 
 
+class EarlierRun:
+    """What an earlier run (its manifest ``doc``, or None) owns in ``folder``: the files whose
+    bytes are those it recorded (``owned``: relative path -> sha256), its unfinished
+    ``temporaries``, and ``changed``: the files it recorded that hold other bytes now (or that a
+    manifest of format version 1, which records no hashes, lists), which are the user's."""
+
+    def __init__(self, folder: Path, doc: Optional[dict]):
+        self.doc = doc or {}
+        self.owned, self.changed, self.temporaries = {}, [], []
+        recorded = self.doc.get("files", {})
+        if isinstance(recorded, list):  # format version 1: no hashes, nothing can be told apart
+            recorded = {f: [] for f in recorded}
+        for rel, hashes in recorded.items():
+            path = folder / rel
+            if not path.is_file():
+                continue
+            digest = file_hash(path)
+            if digest in hashes:
+                self.owned[rel] = digest
+            else:
+                self.changed.append(rel)
+        token = self.doc.get("token")
+        if token and folder.is_dir():
+            mark = f".jaxafm-{token}."
+            self.temporaries = [f for f in _files(folder) if PurePosixPath(f).name.startswith(mark)]
+
+    @property
+    def what(self) -> str:
+        return f"`jaxafm {self.doc.get('command')}` started {self.doc.get('started', '?')}"
+
+
 class RunFolder:
-    """An output folder checked for a run of ``command`` before any work starts.
+    """An output folder checked for a run of ``command`` before any work starts. The job writes
+    into it through :attr:`output`.
 
     Arguments:
         path: the output folder.
@@ -152,16 +339,23 @@ class RunFolder:
     def __init__(self, path, command, config_file, config, overwrite=False, resume=False, log=print):
         self.path, self.command, self.log = Path(path), command, log
         self.config_file = Path(config_file)
+        self.job, self.validated = JOBS[command], config
         self.config = config.model_dump(mode="json")
-        self.outputs = JOBS[command].planned_outputs(config)
-        self.before = read_manifest(self.path) if self.path.is_dir() else None
+        self.token = secrets.token_hex(8)
+        self.before = EarlierRun(self.path, read_manifest(self.path) if self.path.is_dir() else None)
         self.mode = self._mode(overwrite, resume)
-        self.prepared = False
-        present = _files(self.path) if self.path.is_dir() else {}
-        self.owned = self._owned(present)
-        self.foreign = sorted(set(present) - set(self.owned))
+        self.prepared, self.saved = False, []
+        present = _files(self.path) if self.path.is_dir() else []
+        ours = set(self.before.owned) | set(self.before.temporaries)
+        self.foreign = [f for f in present if f not in ours]
+        for f in self.before.changed:
+            log(
+                f"keeping {self.path / f}: {self.before.what} wrote it, but its bytes have changed since "
+                "(or its manifest records no hash): it is yours now"
+            )
         self._check_writable()
         self._check_collisions()
+        self.output = Output(self.path, self)
 
     @property
     def resuming(self) -> bool:
@@ -170,7 +364,7 @@ class RunFolder:
 
     def _mode(self, overwrite: bool, resume: bool) -> str:
         """``new``, ``replace`` (an earlier run's files go), ``resume`` or ``beside`` (foreign files stay)."""
-        p, before = self.path, self.before
+        p, before = self.path, self.before.doc
         if p.exists() and not p.is_dir():
             raise ValueError(f"output {p} exists and is not a folder: choose another with --out")
         if resume and self.command not in RESUMABLE:
@@ -181,7 +375,7 @@ class RunFolder:
             if resume:
                 raise ValueError(f"--resume: {p} holds no run to resume; start it without --resume")
             return "new"
-        if before is None:
+        if not before:
             if resume:
                 raise ValueError(f"--resume: {p} holds no jaxafm run ({MANIFEST} is missing)")
             if not overwrite:
@@ -190,8 +384,7 @@ class RunFolder:
                     "pass --overwrite to write beside its files (none of them is removed or changed)"
                 )
             return "beside"
-        what = f"`jaxafm {before.get('command')}` started {before.get('started', '?')}"
-        status = before.get("status")
+        what, status = self.before.what, before.get("status")
         if (
             status == "running"
             and before.get("host") == socket.gethostname()
@@ -199,7 +392,7 @@ class RunFolder:
         ):
             raise ValueError(f"output folder {p} is in use: {what} (pid {before['pid']}) is writing into it")
         same = before.get("command") == self.command
-        changed = _changed_keys(before.get("config"), self.config) if same else ["(another command)"]
+        changed = self._changed() if same else ["(another command)"]
         if overwrite and not resume:
             return "replace"
         if status == "complete":
@@ -207,7 +400,7 @@ class RunFolder:
                 return "resume"
             raise ValueError(
                 f"output folder {p} holds the results of {what}: pass --overwrite to replace them (only "
-                f"the {len(before.get('files', []))} files that run wrote are removed), or choose another --out"
+                f"the {len(self.before.owned)} files that run wrote are removed), or choose another --out"
             )
         if self.command in RESUMABLE and same:
             if changed:
@@ -223,61 +416,83 @@ class RunFolder:
         self.log(f"replacing the unfinished results ({status}) of {what} in {p}")
         return "replace"
 
-    def _owned(self, present: dict) -> list:
-        """The files in the folder that an earlier run wrote (its manifest says so)."""
-        if self.before is None:
-            return []
-        if self.before.get("status") != "running":
-            return [f for f in self.before.get("files", []) if f in present]
-        foreign = set(self.before.get("foreign", []))
-        start = self.before.get("started_ns", 0)
-        return [f for f, t in present.items() if f not in foreign and t >= start]  # killed outright
+    def _changed(self) -> list:
+        """The config keys that differ from the earlier run's, but those that only place the results."""
+        earlier = {k: v for k, v in (self.before.doc.get("config") or {}).items() if k not in PLACE_KEYS}
+        now = {k: v for k, v in self.config.items() if k not in PLACE_KEYS}
+        return _changed_keys(earlier, now)
 
     def _check_writable(self) -> None:
-        folder = self.path
-        while not folder.exists():
-            folder = folder.parent
-        if not os.access(folder, os.W_OK | os.X_OK):
-            raise ValueError(f"cannot write into {folder}: permission denied; choose another --out")
+        """The folder and every folder inside it that the run writes into take files (or can be
+        made where they are missing)."""
+        folders = {PurePosixPath(p).parent for p in self.job.planned_outputs(self.validated)}
+        for rel in sorted(folders, key=lambda f: len(f.parts)):
+            folder = self.path.joinpath(*rel.parts)
+            if os.path.lexists(folder) and not folder.is_dir():
+                raise ValueError(
+                    f"{folder} is a file of yours where `jaxafm {self.command}` writes a folder of results: "
+                    "move it, or choose another --out"
+                )
+            while not folder.exists():
+                folder = folder.parent
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise ValueError(
+                    f"cannot write into {folder}: permission denied; make it writable or choose another --out"
+                )
 
     def _check_collisions(self) -> None:
+        """No file of the user's has the name of one of the command's outputs."""
         for f in self.foreign:
-            if any(Path(f).match(pattern) for pattern in self.outputs):
-                raise ValueError(
-                    f"{self.path / f} was not written by jaxafm (no run manifest lists it), and "
-                    f"`jaxafm {self.command}` writes a file of that name: move it, or choose another --out"
-                )
+            pattern = self.job.planned(self.validated, f)
+            if pattern is None:
+                continue
+            why = (
+                f"{self.before.what} wrote it, but its bytes have changed since: it is yours now"
+                if f in self.before.changed
+                else "no run manifest records it: it is yours"
+            )
+            writes = "that very file" if pattern == f else f"files named {pattern}"
+            raise ValueError(
+                f"{self.path / f}: {why}, and `jaxafm {self.command}` writes {writes}; jaxafm never "
+                "replaces a file of yours: move it, or choose another --out"
+            )
 
     def prepare(self) -> None:
         """Make the folder ready once the job's inputs are checked: remove the replaced run's
-        files (only those), and record this run as ``running``."""
+        files (only those) or take over the resumed run's, remove its unfinished temporary
+        files, and record this run as ``running``. Once: a second call does nothing."""
+        if self.prepared:
+            return
+        for f in self.before.temporaries:
+            (self.path / f).unlink(missing_ok=True)
         if self.mode == "replace":
-            for f in self.owned:
+            for f in self.before.owned:
                 (self.path / f).unlink(missing_ok=True)
-            for d in sorted({(self.path / f).parent for f in self.owned}, key=lambda d: -len(d.parts)):
-                if d != self.path and d.is_dir() and not any(d.iterdir()):
-                    d.rmdir()
-            self.owned = []
+            for d in sorted(self.before.doc.get("dirs", []), key=lambda d: -len(PurePosixPath(d).parts)):
+                folder = self.path / d
+                if folder.is_dir() and not any(folder.iterdir()):
+                    folder.rmdir()
+        elif self.mode == "resume":
+            self.output.files = {f: [h] for f, h in self.before.owned.items()}
+            self.output.dirs = list(self.before.doc.get("dirs", []))
         self.path.mkdir(parents=True, exist_ok=True)
         self.started_ns = time.time_ns()
-        self._write("running")
         self.prepared = True
+        self.record()
 
-    def end(self, status: str, error: str = "") -> list:
-        """Record the run as ``complete``, ``failed`` or ``interrupted`` with the files it wrote
-        (and those of the run it resumed); returns them."""
-        self.saved = []
-        if self.prepared:  # else the job stopped before prepare(), and the folder is as it was
-            self.saved = sorted(set(_files(self.path)) - set(self.foreign))
-            self._write(status, self.saved, error)
-        return self.saved
+    def record(self, status: str = "running", error: str = "") -> None:
+        """Write the manifest: this run as ``status``, with the files it owns (whole or not at all).
 
-    def _write(self, status: str, files=(), error: str = "") -> None:
+        Raises:
+            RuntimeError: the folder is not prepared (a job wrote before :meth:`prepare`).
+        """
         from .._version import __version__
 
+        if not self.prepared:
+            raise RuntimeError(f"a file was written into {self.path} before the run prepared it")
         doc = {
             "format": FORMAT,
-            "version": 1,
+            "version": VERSION,
             "command": self.command,
             "status": status,
             "config_file": str(self.config_file.resolve()),
@@ -287,12 +502,23 @@ class RunFolder:
             "started_ns": self.started_ns,
             "host": socket.gethostname(),
             "pid": os.getpid(),
+            "token": self.token,
             "foreign": self.foreign,
-            "files": list(files),
+            "files": self.output.files,
+            "dirs": self.output.dirs,
         } | ({"error": error} if error else {})
-        tmp = self.path / f".{MANIFEST}.tmp"
+        tmp = self.path / _MANIFEST_TMP
         tmp.write_text(json.dumps(doc, indent=1))
         tmp.replace(self.path / MANIFEST)
+
+    def end(self, status: str, error: str = "") -> list:
+        """Record the run as ``complete``, ``failed`` or ``interrupted``; returns the files it owns
+        (with those of the run it resumed)."""
+        if self.prepared:  # else the job stopped before prepare(), and the folder is as it was
+            self.output.settle(keep=status == "complete")
+            self.saved = sorted(self.output.files)
+            self.record(status, error)
+        return self.saved
 
     def again(self) -> str:
         """The command that resumes (a study) or replaces (any other) this run's results."""
@@ -304,12 +530,17 @@ class Follower:
     sees it: it neither checks, prepares nor records it (process 0 does), and writes nothing."""
 
     writes, prepared, resuming, saved = False, False, False, []
+    token = "follower"
 
     def __init__(self, path, command, config_file):
         self.path, self.command, self.config_file = Path(path), command, Path(config_file)
+        self.output = Output(self.path, self)
 
     def prepare(self) -> None:
         """Nothing: process 0 prepares the folder."""
+
+    def record(self) -> None:
+        """Nothing: process 0 records the run."""
 
     def end(self, status: str, error: str = "") -> list:
         """Nothing: process 0 records the run."""

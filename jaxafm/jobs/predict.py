@@ -46,8 +46,27 @@ def branch_metrics(pred: np.ndarray, d: np.ndarray, u: np.ndarray, d_range: floa
     return out
 
 
+#: the limit (% of the record's output range) of a prediction's rms error on a record most of
+#: whose input samples lie outside the range the model was fitted on: past it ``jaxafm predict``
+#: refuses (:func:`run`)
+EXTRAPOLATION_LIMIT_PCT = 50.0
+
+
 def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
-    """Predict the record's output with the model, score it, and write the results into ``out``."""
+    """Predict the record's output with the model, score it, and write the results into ``out``.
+
+    Refused: a record most of whose input samples lie outside the range the model file says the
+    model was fitted on, where the rms error on an axis exceeds :data:`EXTRAPOLATION_LIMIT_PCT` %
+    of the output range. That is no prediction of the model's but its extrapolation, and its
+    numbers, once in a results table, would be quoted as the model's accuracy: a warning in a log
+    or in ``metrics.json`` is lost on the way. The error names the share outside, the fitted
+    range and the error, before anything but the run's manifest is written; a model fitted on
+    the record's range predicts it.
+
+    Raises:
+        ValueError: naming the key, the file and the value: a record the model cannot take, or
+            the extrapolation above.
+    """
     model, about, model_path = read_model(cfg.model, config_path)
     record = read_record_file(cfg.data, config_path, require_output=False)
     axes = axes_of(model)
@@ -57,58 +76,101 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
             f"{1 if record.u.ndim == 1 else record.u.shape[1]} input column(s)"
         )
     start = record.split(cfg.evaluate_from) if cfg.evaluate_from > 0 else 0
-    history = input_history(about, cfg.history_v)
     share, fitted = outside_range(record.u, about)
+    pred = predict(model, record.u, record.t, input_history(about, cfg.history_v)).reshape(record.u.shape)
+    metrics = {"samples": len(record)} | (
+        {} if record.d is None else {"evaluated_samples": len(record) - start}
+    )
+    metrics["outside_fitted_range_pct"] = 100 * share
+    offset = None
+    if record.d is not None and cfg.estimate_offset:
+        fit_part = slice(0, start) if start else slice(None)
+        offset = np.mean(record.d[fit_part] - pred[fit_part], axis=0)
+        pred = pred + offset
+        metrics["offset_nm"] = np.atleast_1d(offset).tolist()
+    tags = [None] if axes == 1 else [0, 1]
+    scores = [] if record.d is None else [_scores(record, pred, k, start) for k in tags]
+    _check_extrapolation(dict(zip(tags, scores)), share, fitted, model_path)
     out.prepare()
     if share > 0:
         log(
             f"WARNING: {100 * share:.1f} % of the record's input samples lie outside the range the "
             f"model was fitted on ({fitted.tolist()} V): expect larger errors there"
         )
-    pred = predict(model, record.u, record.t, history).reshape(record.u.shape)
     if record.d is None:
         log(f"the record has no output columns: the prediction only ({len(record)} samples)")
-        _write_csv(out.file("prediction.csv"), record, pred)
-        return {"samples": len(record), "outside_fitted_range_pct": 100 * share}
-    metrics = {
-        "samples": len(record),
-        "evaluated_samples": len(record) - start,
-        "outside_fitted_range_pct": 100 * share,
-    }
-    if cfg.estimate_offset:
-        fit_part = slice(0, start) if start else slice(None)
-        offset = np.mean(record.d[fit_part] - pred[fit_part], axis=0)
-        pred = pred + offset
-        metrics["offset_nm"] = np.atleast_1d(offset).tolist()
+    if offset is not None:
         where = "the part before evaluate_from" if start else "the whole record"
         log(f"sensor offset re-estimated on {where}: {np.round(offset, 1)} nm")
-    for k in range(axes):
-        metrics |= _score_axis(record, pred, k if axes == 2 else None, start, model_path, out, log)
-    _write_csv(out.file("prediction.csv"), record, pred)
+    for k, axis_scores in zip(tags, scores):
+        metrics |= axis_scores
+        _log_and_plot(record, pred, k, start, axis_scores, model_path, out, log)
+    out.write("prediction.csv", lambda path: _write_csv(path, record, pred))
     return out.write_metrics(metrics)
 
 
-def _score_axis(record: Record, pred: np.ndarray, k, start: int, model_path: Path, out: Output, log) -> dict:
+def _scores(record: Record, pred: np.ndarray, k, start: int) -> dict:
     """One axis's scores from sample ``start`` on (``k``: the axis of a scanner; ``None``: the
-    record's one axis), logged, and its figure ``predict.png`` (``predict_x.png``, ...)."""
-    u, d, p = (record.u, record.d, pred) if k is None else (record.u[:, k], record.d[:, k], pred[:, k])
-    tag = "" if k is None else "xy"[k] + "_"
+    record's one axis), keys as in ``metrics.json`` (``x_``, ``y_`` before a scanner's)."""
+    u, d, p = _axis(record, pred, k)
+    tag = _tag(k)
     d_range = float(d.max() - d.min())
     scores = error_metrics(p[start:], d[start:], d_range) | branch_metrics(
         p[start:], d[start:], u[start:], d_range
     )
-    log(
-        f"{tag}rms {scores['rms_error_nm']:.1f} nm ({scores['rms_error_pct']:.3f} % of range), "
-        f"max {scores['max_error_nm']:.1f} nm ({scores['max_error_pct']:.3f} %) over samples {start}..{len(record)}"
-    )
-    plots.actuator_fit(
-        record if k is None else dataclasses.replace(record, u=u, d=d),
-        {model_path.stem: p},
-        start,
-        out.file(f"predict{'_' + tag[0] if tag else ''}.png"),
-        title=f"{model_path.name} on {Path(record.meta['source']).name}",
-    )
     return {f"{tag}output_range_nm": d_range} | {f"{tag}{key}": v for key, v in scores.items()}
+
+
+def _tag(k) -> str:
+    """What the metrics keys of axis ``k`` start with: ``x_``, ``y_``; nothing for the one axis (None)."""
+    return "" if k is None else "xy"[k] + "_"
+
+
+def _axis(record: Record, pred: np.ndarray, k) -> tuple:
+    """The input, the measured and the predicted output of axis ``k`` (None: the one axis)."""
+    return (record.u, record.d, pred) if k is None else (record.u[:, k], record.d[:, k], pred[:, k])
+
+
+def _check_extrapolation(scores: dict, share: float, fitted, model_path: Path) -> None:
+    """Refuse a prediction that is the model's extrapolation (:func:`run`); ``scores``: axis ->
+    its scores (:func:`_scores`).
+
+    Raises:
+        ValueError: most input samples outside the fitted range and an rms error above
+            :data:`EXTRAPOLATION_LIMIT_PCT` % of the output range.
+    """
+    if share <= 0.5:
+        return
+    for k, axis_scores in scores.items():
+        key = f"{_tag(k)}rms_error_pct"
+        rms = axis_scores[key]
+        if rms > EXTRAPOLATION_LIMIT_PCT:
+            raise ValueError(
+                f"model: {model_path}: {100 * share:.1f} % of the record's input samples lie outside the "
+                f"range the model was fitted on ({fitted.tolist()} V), and its rms error there is "
+                f"{rms:.4g} % of the record's output range ({key}), past the limit of "
+                f"{EXTRAPOLATION_LIMIT_PCT:g} %: that is an extrapolation, not a prediction of this model. "
+                "Fit a model on data that cover the record's input range"
+            )
+
+
+def _log_and_plot(
+    record: Record, pred: np.ndarray, k, start: int, scores: dict, model_path: Path, out: Output, log
+) -> None:
+    """Log one axis's scores and write its figure ``predict.png`` (``predict_x.png``, ...)."""
+    tag = _tag(k)
+    log(
+        f"{tag}rms {scores[f'{tag}rms_error_nm']:.1f} nm ({scores[f'{tag}rms_error_pct']:.3f} % of range), "
+        f"max {scores[f'{tag}max_error_nm']:.1f} nm ({scores[f'{tag}max_error_pct']:.3f} %) over samples "
+        f"{start}..{len(record)}"
+    )
+    u, d, p = _axis(record, pred, k)
+    axis = record if k is None else dataclasses.replace(record, u=u, d=d)
+    title = f"{model_path.name} on {Path(record.meta['source']).name}"
+    out.write(
+        f"predict{'_' + tag[0] if tag else ''}.png",
+        lambda path: plots.actuator_fit(axis, {model_path.stem: p}, start, path, title=title),
+    )
 
 
 def _write_csv(path: Path, record: Record, pred: np.ndarray) -> None:

@@ -86,8 +86,14 @@ class ImplausibleModel(ValueError):
 def read_scanner_model(cfg: Positioning, config_path: Path) -> Optional[Scanner]:
     """The scanner in ``calibration.model_file`` (None without one), checked.
 
+    Steps B and C drive the model as a twin of the instrument, whose state after each drive they
+    carry on from (:func:`~jaxafm.identify.inverse.inverse_and_state`): a drift's wander and
+    position noise are random, so a twin has neither. A model file with them is refused here,
+    before any work, rather than run without them: the file would not be the model that runs.
+
     Raises:
-        ValueError: naming the key and the file: missing, not a saved model, or not a scanner.
+        ValueError: naming the key and the file: missing, not a saved model, not a scanner, or a
+            scanner with drift or noise.
     """
     if cfg.calibration.model_file is None:
         return None
@@ -100,6 +106,14 @@ def read_scanner_model(cfg: Positioning, config_path: Path) -> Optional[Scanner]
         raise ValueError(
             f"calibration.model_file: {path} holds a {type(model).__name__}, not a two-axis scanner "
             "(a model_*.json written by `jaxafm calibrate` or `jaxafm run`)"
+        )
+    random = [e for e in ("drift", "noise") if getattr(model, e) is not None]
+    if random:
+        raise ValueError(
+            f"calibration.model_file: {path} holds a scanner with {' and '.join(random)}: steps B and C "
+            "drive the model as a twin of the instrument, carrying on from its state after each drive, "
+            "and the state after random effects is unknown; save the scanner without them (e.g. "
+            f"model.without({', '.join(repr(e) for e in random)}))"
         )
     return model
 
@@ -193,8 +207,8 @@ def run(cfg: RunConfig, config_path: Path, out: Output, log=print) -> dict:
     log(_table(done.rows, done.metrics))
     _figures(done.figures, layout.work, out)
     if done.errors:  # else no stage ran: the table says why
-        plots.stage_errors(done.errors, out.file("errors.png"))
-    np.savez_compressed(out.file("trials.npz"), **done.arrays)
+        out.write("errors.png", lambda path: plots.stage_errors(done.errors, path))
+    out.write("trials.npz", lambda path: np.savez_compressed(path, **done.arrays))
     return out.write_metrics(done.metrics)
 
 
@@ -221,7 +235,7 @@ def _step_a(cfg: RunConfig, afm: AFM, config_path: Path, out: Output, log) -> _S
     scans, sim = calibration_scans(sim_spec, cfg.calibration.grating, afm)
     model, fit_s = identify_scanner(cfg, scans, config_path, log)
     about = calibration_about(model, scans, "simulated calibration scan")
-    save_model(model, out.file("model_scanner.json"), about)
+    out.write("model_scanner.json", lambda path: save_model(model, path, about))
     return _Start(
         afm,
         model,
@@ -450,14 +464,11 @@ def _table(rows, metrics) -> str:
 
 def _figures(figures: dict, work: Raster, out: Output) -> None:
     if "landmarks_A" in figures:
-        plots.landmarks(
-            {
-                "B (nominal drive)": figures.get("landmarks"),
-                "A+B (compensated drive)": figures["landmarks_A"],
-            },
-            work,
-            out.file("landmarks.png"),
-        )
+        maps = {
+            "B (nominal drive)": figures.get("landmarks"),
+            "A+B (compensated drive)": figures["landmarks_A"],
+        }
+        out.write("landmarks.png", lambda path: plots.landmarks(maps, work, path))
     if "trials" in figures:
-        plots.local_scans(*figures["trials"], out.file("local_scan.png"))
-        plots.pushes(*figures["trials"], out.file("push.png"))
+        out.write("local_scan.png", lambda path: plots.local_scans(*figures["trials"], path))
+        out.write("push.png", lambda path: plots.pushes(*figures["trials"], path))

@@ -10,7 +10,8 @@ once for them all (:func:`prepare_scanner`); the trials run as
 
 Trials run in batches of ``chunk`` trials. Every trial's draws are fixed before any runs, so
 the results do not depend on the chunk size or the device count. Each chunk's results are
-written atomically to ``chunks/``; a resumed study reuses them and the identified models in
+written to ``chunks/`` whole, and recorded in the run's manifest as they are
+(:meth:`~jaxafm.jobs.folder.Output.write`); a resumed study reuses them and the identified models in
 ``scanners/``. At the end: ``trials.csv``, ``trials.npz``, ``metrics.json``, ``errors.png``.
 
 In several JAX processes (``jax.distributed``; ``jaxafm study --coordinator``), the mesh spans
@@ -27,7 +28,6 @@ summary.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
@@ -187,7 +187,7 @@ def _step_a_model(cfg: StudyConfig, config_path: Path, s: int, scans: tuple, out
         info |= {"step_a_fit_s": time.perf_counter() - began, "step_a_refused": str(e)}
         log(f"scanner {s}: {e}: its trials through step A fail")
         return None
-    _atomic(out.file(name), lambda f: save_model(model, f))
+    _save(out, name, lambda f: save_model(model, f))
     return model
 
 
@@ -206,14 +206,11 @@ def _load_saved(path: Path):
         ) from None
 
 
-def _atomic(path: Path, write) -> None:
-    """``write(tmp)`` then rename onto ``path``: a reader sees the old file or the whole new one."""
-    if jax.process_index() != 0:  # pragma: no cover - several hosts: one writer
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")  # same suffix: np.savez adds none
-    write(tmp)
-    os.replace(tmp, path)
+def _save(out: Output, name: str, write) -> None:
+    """``out.write(name, write)`` (recorded in the run's manifest, put in place whole) on process
+    0 alone: one writer for a run in several processes."""
+    if jax.process_index() == 0:
+        out.write(name, write)
 
 
 def _chunks(cfg: StudyConfig) -> list:
@@ -275,11 +272,11 @@ def run(
             info[str(s)] = (
                 kept | now | {"step_a_fit_s": max(now["step_a_fit_s"], kept.get("step_a_fit_s", 0.0))}
             )
-            _atomic(out.file("scanners.json"), lambda f: f.write_text(json.dumps(info, indent=1)))
+            _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             for _, a, b in (c for c in todo if c[0] == s):
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings)
-                _atomic(out.file(chunk_file(a, b)), lambda f: np.savez(f, **r))
+                _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
 
@@ -380,11 +377,11 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         }
     modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
-    _atomic(out.file("trials.npz"), lambda f: np.savez_compressed(f, **r))
-    _atomic(out.file("trials.csv"), lambda f: write_columns(f, r))
+    out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
+    out.write("trials.csv", lambda f: write_columns(f, r))
     out.write_metrics(metrics)
     errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
-    plots.study_errors(errors, r["radius_nm"], out.file("errors.png"))
+    out.write("errors.png", lambda f: plots.study_errors(errors, r["radius_nm"], f))
     log(table(rows, tol))
     if "push_first_success_pct" in metrics:
         log(

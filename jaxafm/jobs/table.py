@@ -8,6 +8,8 @@ from __future__ import annotations
 import dataclasses
 import importlib
 from collections.abc import Callable
+from fnmatch import fnmatchcase
+from typing import Optional
 
 from .. import config
 
@@ -19,9 +21,10 @@ class Job:
     Attributes:
         name: the ``jaxafm`` sub-command, and the module of :mod:`jaxafm.jobs` that holds its ``run``.
         schema: its config schema (:mod:`jaxafm.config`).
-        outputs: the files it writes, glob patterns relative to its output folder.
-        writes_models: whether it also writes ``model_<name>.json`` per configured model
-            (its config's ``models``).
+        outputs: every file it may write, as paths relative to its output folder; a ``*`` stands
+            for any characters within one name (``chunks/trials_*_*.npz``), never for a folder.
+        per_model: the files it writes per configured model (its config's ``models``), with
+            ``{name}`` for the model's name.
         resumable: whether an unfinished run goes on where it stopped (else the next run
             replaces it).
     """
@@ -29,7 +32,7 @@ class Job:
     name: str
     schema: type
     outputs: tuple
-    writes_models: bool = False
+    per_model: tuple = ()
     resumable: bool = False
 
     @property
@@ -40,17 +43,34 @@ class Job:
         return importlib.import_module(f"{__package__}.{self.name}").run
 
     def planned_outputs(self, cfg) -> tuple:
-        """The files (glob patterns) the job writes with the config ``cfg``."""
-        models = tuple(f"model_{m.name}.json" for m in cfg.models) if self.writes_models else ()
+        """Every file (a path relative to the output folder, ``*`` within a name) the job may
+        write with the config ``cfg``."""
+        models = tuple(p.format(name=m.name) for m in getattr(cfg, "models", ()) for p in self.per_model)
         return self.outputs + models
+
+    def planned(self, cfg, path: str) -> Optional[str]:
+        """The planned output (:meth:`planned_outputs`) that ``path`` (relative to the output
+        folder, ``/`` between names) is, or None: compared name by name, so that
+        ``my_analysis/metrics.json`` is not ``metrics.json``."""
+        parts = path.split("/")
+        for pattern in self.planned_outputs(cfg):
+            names = pattern.split("/")
+            if len(names) == len(parts) and all(fnmatchcase(p, n) for p, n in zip(parts, names)):
+                return pattern
+        return None
 
 
 #: command -> its :class:`Job`
 JOBS = {
     job.name: job
     for job in (
-        Job("fit", config.ActuatorFitConfig, ("metrics.json", "fit.png"), writes_models=True),
-        Job("calibrate", config.CalibrateConfig, ("metrics.json", "compensation.png"), writes_models=True),
+        Job("fit", config.ActuatorFitConfig, ("metrics.json", "fit.png"), per_model=("model_{name}.json",)),
+        Job(
+            "calibrate",
+            config.CalibrateConfig,
+            ("metrics.json", "compensation.png"),
+            per_model=("model_{name}.json", "validation_{name}.png"),
+        ),
         Job(
             "run",
             config.RunConfig,
@@ -73,8 +93,8 @@ JOBS = {
                 "trials.csv",
                 "errors.png",
                 "scanners.json",
-                "chunks/*",
-                "scanners/*",
+                "chunks/trials_*_*.npz",
+                "scanners/model_*.json",
             ),
             resumable=True,
         ),
@@ -83,11 +103,22 @@ JOBS = {
             config.DiagnoseConfig,
             ("metrics.json", "diagnosis.json", "residuals.png", "report.md"),
         ),
-        Job("predict", config.PredictConfig, ("metrics.json", "prediction.csv", "predict*.png")),
+        Job(
+            "predict",
+            config.PredictConfig,
+            ("metrics.json", "prediction.csv", "predict.png", "predict_x.png", "predict_y.png"),
+        ),
         Job(
             "compensate",
             config.CompensateConfig,
-            ("metrics.json", "drive.csv", "tracking.csv", "compensate*.png"),
+            (
+                "metrics.json",
+                "drive.csv",
+                "tracking.csv",
+                "compensate.png",
+                "compensate_x.png",
+                "compensate_y.png",
+            ),
         ),
     )
 }

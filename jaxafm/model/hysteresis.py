@@ -32,8 +32,9 @@ type, so a new operator is one class in this file.
 # no `from __future__ import annotations` here: equinox reads the AbstractVar annotation
 # of AbstractHysteresis when the class is made, and cannot read it from a string
 import abc
+import warnings
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import equinox as eqx
 import jax
@@ -45,6 +46,37 @@ from jax import lax
 from .. import checks
 
 Array = jax.Array
+
+#: how many times the span its plays cover (:meth:`AbstractHysteresis.drive_span`) a drive may
+#: span before :func:`warn_beyond_span` warns
+SPAN_TOLERANCE = 1.5
+
+
+def warn_beyond_span(operators: dict, u) -> None:
+    """Warn (``UserWarning``) where the input ``u`` (T,) or (T, A) V spans, on an axis, more than
+    :data:`SPAN_TOLERANCE` times the span its operator covers (``operators``: axis name ->
+    operator, in the columns' order; :meth:`AbstractHysteresis.drive_span`). Beyond that span every
+    play saturates and the model extrapolates a straight line from data it was never built or
+    fitted for. Inside ``jit`` (a traced input) nothing is checked."""
+    if not checks.is_concrete(u) or np.size(u) == 0:
+        return
+    u = np.asarray(u, dtype=float).reshape(np.shape(u)[0], -1)
+    beyond = []
+    for (name, op), column in zip(operators.items(), u.T):
+        span = op.drive_span()
+        lo, hi = float(column.min()), float(column.max())
+        if span is not None and hi - lo > SPAN_TOLERANCE * span:
+            beyond.append(
+                f"{name} from {lo:g} to {hi:g} V ({(hi - lo) / span:.1f} times the {span:g} V its hysteresis covers)"
+            )
+    if beyond:
+        warnings.warn(
+            f"a drive far beyond the model's range: {'; '.join(beyond)}. Its play thresholds span the "
+            "drive it was built or fitted for; beyond that every play saturates and the model "
+            "extrapolates a straight line: expect large errors",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def play_state(radii: Array, history) -> Array:
@@ -69,6 +101,7 @@ def _checked_input(u) -> Array:
     checks.finite("input u", u)
     if u.ndim != 1:
         raise ValueError(f"input u must be 1-D (T,), got shape {u.shape}; use jax.vmap for batches")
+    checks.some_samples("input u", u)
     return u
 
 
@@ -207,9 +240,16 @@ class AbstractHysteresis(eqx.Module):
         """``run`` for one sample ``u`` () V, without a scan: the output () nm and the next state."""
 
     def __call__(self, u: Array, history=None) -> Array:
-        """The output (T,) nm for the input ``u`` (T,) V, from the state ``initial_state(u[0], history)``."""
+        """The output (T,) nm for the input ``u`` (T,) V, from the state ``initial_state(u[0], history)``;
+        an input far beyond :meth:`drive_span` warns (:func:`warn_beyond_span`)."""
         u = _checked_input(u)
+        warn_beyond_span({"u": self}, u)
         return self.run(u, self.initial_state(u[0], history))[0]
+
+    def drive_span(self) -> Optional[float]:
+        """The span of inputs (V) the operator covers, the drive it was built or fitted for (a
+        wider one saturates every play); None for an operator without plays."""
+        return None
 
     def predict(self, u: Array, t: Array, history=None) -> Array:
         """The output (T,) nm for a record's inputs ``u`` (T,) V at times ``t`` (T,) s.
@@ -399,6 +439,18 @@ class PlayOperator(AbstractHysteresis):
     def evaluator(self, u: Array, history=None) -> Callable:
         """``f(m) = m(u, history)`` with the plays run once: fits keep the radii fixed."""
         return jax.tree_util.Partial(_from_plays, play(u, self.radii(), history))
+
+    def drive_span(self) -> Optional[float]:
+        """``2 (r_n + (r_n - r_{n-1}))`` V for the sorted radii ``r`` (n >= 2): the radii are spaced
+        over half the input span a model is built or fitted for (``PrandtlIshlinskii.uniform``,
+        ``with_loop_width``, a Preisach plane's ``u_max - u_min``), so this is that span. None
+        with fewer than two plays, or traced radii."""
+        r = self.radii()
+        if not checks.is_concrete(r) or np.size(r) < 2:
+            return None
+        r = np.sort(np.asarray(r, dtype=float))
+        span = 2 * (r[-1] + (r[-1] - r[-2]))
+        return float(span) if span > 0 else None
 
 
 class Anhysteretic(AbstractHysteresis):

@@ -47,13 +47,25 @@ def _encode(obj):
     return {"array": arr.tolist(), "dtype": str(arr.dtype)}
 
 
-def _decode(obj):
+def _decode(obj, where: str = "model"):
+    """The module or array ``obj`` encodes; ``where``: its place in the file, for errors.
+
+    Raises:
+        ValueError: an unknown type, or a number that is not finite (naming its place).
+    """
     if isinstance(obj, dict) and "type" in obj:
         if obj["type"] not in _TYPES:
             raise ValueError(f"unknown model type {obj['type']!r} in saved model")
-        return _TYPES[obj["type"]](**{k: _decode(v) for k, v in obj["fields"].items()})
+        return _TYPES[obj["type"]](**{k: _decode(v, f"{where}.{k}") for k, v in obj["fields"].items()})
     if isinstance(obj, dict) and "array" in obj:
-        return jnp.asarray(np.asarray(obj["array"], dtype=obj["dtype"]))
+        a = np.asarray(obj["array"], dtype=obj["dtype"])
+        bad = np.flatnonzero(~np.isfinite(a)) if a.dtype.kind == "f" else ()
+        if len(bad):
+            raise ValueError(
+                f"{where}: element {int(bad[0])} is {a.ravel()[bad[0]]}, but a saved model holds finite "
+                "numbers only; was the file edited by hand?"
+            )
+        return jnp.asarray(a)
     return obj
 
 

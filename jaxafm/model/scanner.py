@@ -26,7 +26,7 @@ from .effects import (
     RateDependence,
     Vibration,
 )
-from .hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii
+from .hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii, warn_beyond_span
 
 Array = jax.Array
 
@@ -145,6 +145,7 @@ class Axis(eqx.Module):
 
     def __call__(self, u: Array, t: Array, history=None) -> Array:
         t = jnp.asarray(t, dtype=float)
+        checks.some_samples("input u", u)
         checks.increasing("times t", t)
         if np.shape(t) != np.shape(u):
             raise ValueError(f"times t {np.shape(t)} and input u {np.shape(u)} must have the same shape")
@@ -221,10 +222,8 @@ class Scanner(eqx.Module):
     def run(self, u: Array, t: Array, state: ScannerState, key: Optional[Array] = None) -> tuple:
         """Tip positions (T, 2) nm for drive ``u`` (T, 2) V at times ``t`` (T,) s after
         ``state``, and the state after the last sample."""
-        u = jnp.asarray(u, dtype=float)
+        u = _drive(u)
         t = jnp.asarray(t, dtype=float)
-        if u.ndim != 2 or u.shape[1] != 2:
-            raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
         if t.shape != u.shape[:1]:
             raise ValueError(f"times t {t.shape} must have one entry per drive sample {u.shape[:1]}")
         checks.increasing("times t", t)
@@ -263,10 +262,11 @@ class Scanner(eqx.Module):
         return p, wander
 
     def __call__(self, u: Array, t: Array, key: Optional[Array] = None, history=None) -> Array:
-        """Tip positions (T, 2) nm from rest at ``u[0]``; ``history``: per-axis pre-history (H, 2) V."""
-        u = jnp.asarray(u, dtype=float)
-        if u.ndim != 2 or u.shape[1] != 2:
-            raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
+        """Tip positions (T, 2) nm from rest at ``u[0]``; ``history``: per-axis pre-history (H, 2) V.
+        A drive far beyond the span the scanner's hysteresis covers warns
+        (:func:`~jaxafm.model.hysteresis.warn_beyond_span`)."""
+        u = _drive(u)
+        warn_beyond_span({"x": self.x.hysteresis, "y": self.y.hysteresis}, u)
         t = jnp.asarray(t, dtype=float)
         return self.run(
             u, t, self.initial_state(u[0], t[0] if t.ndim == 1 and t.size else 0.0, history), key
@@ -287,6 +287,15 @@ class Scanner(eqx.Module):
                 s = eqx.tree_at(lambda m: getattr(m, n), s, None, is_leaf=lambda v: v is None)
             s = eqx.tree_at(lambda m: (m.x, m.y), s, (s.x.without(n), s.y.without(n)))
         return s
+
+
+def _drive(u) -> Array:
+    """A scanner's drive ``u`` as an array, checked: (T, 2) V, one sample or more."""
+    u = jnp.asarray(u, dtype=float)
+    if u.ndim != 2 or u.shape[1] != 2:
+        raise ValueError(f"drive voltages u must have shape (T, 2), got {u.shape}")
+    checks.some_samples("drive voltages u", u)
+    return u
 
 
 def mean_scanner(model: Scanner) -> Scanner:
