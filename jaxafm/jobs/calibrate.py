@@ -218,7 +218,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
             failed[spec.name] = ident.failures
             continue
         about = calibration_about(ident.model.scanner, scans, source)
-        save_model(ident.model.scanner, out.file(f"model_{spec.name}.json"), about)
+        out.write(f"model_{spec.name}.json", lambda path: save_model(ident.model.scanner, path, about))
         for method in comp.inverses if comp is not None else ():
             volts = model_compensator(ident.model, scans, sim, method)
             image = _measure(sim, work, volts, f"{spec.name}_{method}", ident.seconds, metrics, rows)
@@ -227,8 +227,9 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
     if rows:
         log(_table(rows, work))
         title = f"Step A on the simulated AFM: lattice of pitch {cfg.grating.pitch_nm:g} nm without (paper Fig. 6) "
-        plots.compensation(
-            images, work, out.file("compensation.png"), title + "and with compensation (Fig. 7)"
+        out.write(
+            "compensation.png",
+            lambda path: plots.compensation(images, work, path, title + "and with compensation (Fig. 7)"),
         )
     out.write_metrics(metrics)
     if failed:  # the metrics and figures are written: they say why
@@ -313,9 +314,9 @@ def _identify(
     for q in ident.quantities:
         log(f"    {q.line()}")
     log(_validation_line(spec.name, ident))
-    _validation_figure(
-        scans[0], ident.model, out.file(f"validation_{spec.name}.png"), spec.name, source, cfg.solver.hold_out
-    )
+    view = validation_view(scans[0], ident.model, cfg.solver.hold_out)
+    title = f"Step A, {spec.name}, on {source} ({scans[0].name})"
+    out.write(f"validation_{spec.name}.png", lambda path: plots.step_a_validation(view, path, title))
     if not ident.plausible:
         log(f"  FAILED: {spec.name} is not a usable scanner, not saved:")
         for f in ident.failures:
@@ -459,15 +460,6 @@ def _placed(path: np.ndarray, z: np.ndarray) -> tuple:
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], z.shape[1]), np.linspace(lo[1], hi[1], z.shape[0]))
     return griddata(xy, z.ravel(), (gx, gy), method="linear"), (lo[0], hi[0], lo[1], hi[1])
-
-
-def _validation_figure(scan: CalibrationScan, model: ScanModel, path, name, source, held_out: bool):
-    """:func:`~jaxafm.plots.step_a_validation` of the first scan (:func:`validation_view`)."""
-    plots.step_a_validation(
-        validation_view(scan, model, held_out),
-        path,
-        f"Step A, {name}, on {source} ({scan.name})",
-    )
 
 
 def _measure(sim, work, volts, name, fit_s, metrics, rows) -> dict:

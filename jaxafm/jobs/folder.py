@@ -103,7 +103,6 @@ class Output:
         self.dirs: list = []
         #: the files this job wrote, in order
         self.written: list = []
-        self._pending: list = []
 
     def prepare(self) -> None:
         """Ready the folder: called once, after the job's inputs are checked, before its first file."""
@@ -120,7 +119,6 @@ class Output:
         Raises:
             ValueError: a file that is not this run's lies where it belongs (the user's: kept).
         """
-        self._place_pending()
         rel, dest = self._destination(name)
         if not self.writes:
             return dest
@@ -132,40 +130,10 @@ class Output:
             tmp.unlink(missing_ok=True)
         return dest
 
-    def file(self, name: str) -> Path:
-        """The temporary path a job that writes the file ``name`` itself writes it to; the file is
-        put in place as :meth:`write` puts it at this Output's next call, or when the run ends
-        ``complete``. :meth:`write` is the one to use: this serves jobs that hand a path on."""
-        self._place_pending()
-        rel, dest = self._destination(name)
-        tmp = dest.with_name(temporary(self.token, dest.name))
-        if self.writes:
-            self._pending.append((rel, tmp, dest))
-        return tmp
-
     def write_metrics(self, metrics: dict) -> dict:
         """Write ``metrics`` (flat keys, units in the names) as ``metrics.json``; returns them."""
         self.write(METRICS, lambda p: p.write_text(json.dumps(metrics, indent=1)))
         return metrics
-
-    def settle(self, keep: bool) -> None:
-        """Put the files :meth:`file` handed out in place (``keep``), or remove them (the run did
-        not finish: they may be partly written)."""
-        if keep:
-            self._place_pending()
-        for _, tmp, _ in self._pending:
-            tmp.unlink(missing_ok=True)
-        self._pending = []
-
-    def _place_pending(self) -> None:
-        """Put in place the files :meth:`file` handed out that the job has written."""
-        pending, self._pending = self._pending, []
-        for rel, tmp, dest in pending:
-            if tmp.is_file():
-                try:
-                    self._place(rel, tmp, dest)
-                finally:
-                    tmp.unlink(missing_ok=True)
 
     def _destination(self, name: str) -> tuple:
         """``name`` as a path relative to the folder, checked, and its path; its folders made."""
@@ -515,7 +483,6 @@ class RunFolder:
         """Record the run as ``complete``, ``failed`` or ``interrupted``; returns the files it owns
         (with those of the run it resumed)."""
         if self.prepared:  # else the job stopped before prepare(), and the folder is as it was
-            self.output.settle(keep=status == "complete")
             self.saved = sorted(self.output.files)
             self.record(status, error)
         return self.saved
