@@ -372,20 +372,32 @@ def step_a_validation(view, path, title: str = "") -> None:
     """Step A checked on its own data, as a microscopist reads it (``view``: a
     :class:`~jaxafm.jobs.calibrate.ValidationView`, nm and the scan's nominal frame throughout):
 
-    - the trace with its background removed, and the chords the fit saw (blue) and held out
-      (orange); the background removed (a plane, a bow and each line's offset);
+    - the trace with its background removed, and the chords the fit saw (cyan) and held out
+      (magenta); the background removed (a plane, a bow and each line's offset);
     - the trace placed where the fitted scanner says the tip was, with the lattice's sites:
       straight rows and columns where the model is right;
     - each chord's midpoint offset from its feature's line through the site (the fit's
       residual, nm);
-    - each feature's trace-to-retrace shift along the fast axis, as the images show it (the loop
-      and the lag) and after correction (0 where the model explains them);
+    - each feature's retrace-to-trace shift along the fast axis, as the images show it (the loop
+      and the delays) and after correction (0 where the model explains them);
     - the held-out features' errors from their sites, raw and corrected, as arrows magnified to
       be seen (the factors in the legend).
     """
     fig, axes = subplots(2, 3, figsize=(17, 10.5), constrained_layout=True)
     ext = np.asarray(view.extent) / 1e3
-    ax = axes[0, 0]
+    lo, hi = _validation_images(fig, axes[0, 0], axes[0, 1], view, ext)
+    _validation_placed(axes[0, 2], view, lo, hi)
+    _validation_chords(fig, axes[1, 0], view, ext)
+    _validation_shifts(axes[1, 1], view)
+    _validation_held_out(axes[1, 2], view)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=100)
+
+
+def _validation_images(fig, ax, ax_background, view, ext) -> tuple:
+    """The levelled trace with its chord ends, and the background removed; returns the height
+    range (nm) the trace is shown over."""
     lo, hi = np.percentile(view.levelled, [1, 99])
     im = ax.imshow(view.levelled, origin="lower", extent=ext, cmap="afmhot", vmin=lo, vmax=hi)
     for ends, c, label in ((view.chords_fitted, "cyan", "fitted"), (view.chords_held, "magenta", "held out")):
@@ -403,15 +415,19 @@ def step_a_validation(view, path, title: str = "") -> None:
         title="trace, background removed", xlabel="fast axis, nominal (µm)", ylabel="slow axis, nominal (µm)"
     )
     fig.colorbar(im, ax=ax, label="height (nm)", shrink=0.8)
-    ax = axes[0, 1]
+    ax = ax_background
     im = ax.imshow(view.background, origin="lower", extent=ext, cmap="viridis")
     ax.set(
         title=f"background removed (plane, bow, line offsets: {np.ptp(view.background):.3g} nm)",
         xlabel="fast axis, nominal (µm)",
     )
     fig.colorbar(im, ax=ax, label="nm", shrink=0.8)
-    ax = axes[0, 2]
-    im = ax.imshow(
+    return lo, hi
+
+
+def _validation_placed(ax, view, lo, hi) -> None:
+    """The trace placed where the fitted scanner put the tip, over the lattice's sites."""
+    ax.imshow(
         view.placed,
         origin="lower",
         extent=np.asarray(view.placed_extent) / 1e3,
@@ -424,7 +440,10 @@ def step_a_validation(view, path, title: str = "") -> None:
     ax.set(
         title="trace where the fitted scanner put the tip", xlabel="x (µm)", ylabel="y (µm)", aspect="equal"
     )
-    ax = axes[1, 0]
+
+
+def _validation_chords(fig, ax, view, ext) -> None:
+    """Each chord's midpoint off its feature's line (the chord fit's residual, nm)."""
     lim = float(np.percentile(np.abs(view.chord_offsets), 98)) or 1.0
     sc = ax.scatter(
         view.chord_mid[:, 0] / 1e3,
@@ -444,7 +463,10 @@ def step_a_validation(view, path, title: str = "") -> None:
         aspect="equal",
     )
     fig.colorbar(sc, ax=ax, label="nm", shrink=0.8)
-    ax = axes[1, 1]
+
+
+def _validation_shifts(ax, view) -> None:
+    """Each feature's retrace less trace position along the fast axis, raw and corrected."""
     for shift, c, label in (
         (view.shift_raw, "C3", "raw (as imaged)"),
         (view.shift_corrected, "C0", "corrected (model)"),
@@ -464,7 +486,10 @@ def step_a_validation(view, path, title: str = "") -> None:
         xlabel="fast axis, nominal (µm)",
         ylabel="nm",
     )
-    ax = axes[1, 2]
+
+
+def _validation_held_out(ax, view) -> None:
+    """The held-out features' errors from their sites, raw and corrected, as magnified arrows."""
     sites = view.held_sites
     if len(sites):
         spacing = np.median(np.linalg.norm(np.diff(sites, axis=0), axis=1))
@@ -489,7 +514,9 @@ def step_a_validation(view, path, title: str = "") -> None:
         ax.plot(sites[:, 0] / 1e3, sites[:, 1] / 1e3, "k.", ms=2)
         ax.legend(fontsize=8, loc="upper right")
     what = "held-out features" if view.held_out else "every other site (fitted: no hold-out)"
-    ax.set(title=f"{what}: error from their sites", xlabel="x (µm)", ylabel="y (µm)", aspect="equal")
-    if title:
-        fig.suptitle(title)
-    fig.savefig(path, dpi=100)
+    ax.set(
+        title=f"{what} in this trace: error from their sites",
+        xlabel="x (µm)",
+        ylabel="y (µm)",
+        aspect="equal",
+    )

@@ -20,16 +20,21 @@ def _discs(shape, centres, radius, height, wall=1.5):
 CENTRES = [(r, c) for r in (20.3, 52.6, 84.1) for c in (19.7, 51.2, 83.9)]
 
 
-def test_chord_ends_lie_on_the_drawn_circles_through_a_tilt_a_bow_and_line_offsets():
+@pytest.mark.parametrize("scale", [1.0, 20.0])
+def test_chord_ends_lie_on_the_drawn_circles_through_a_tilt_a_bow_and_line_offsets(scale):
+    """A background 1.5 and 30 times the features' height (a tilt, a bow, line offsets): the
+    polynomial is fitted exactly, so the chords do not move with it."""
     shape, radius = (104, 104), 9.0
     z = _discs(shape, CENTRES, radius, 200.0)
     rng = np.random.default_rng(0)
     rows, cols = np.mgrid[: shape[0], : shape[1]] / 100.0
-    background = 300 * cols - 120 * rows + 150 * (cols - 0.5) ** 2 + rng.normal(0, 5, shape[0])[:, None]
+    background = (
+        scale * (300 * cols - 120 * rows + 150 * (cols - 0.5) ** 2) + rng.normal(0, 5, shape[0])[:, None]
+    )
     chords = find_chords(z + background, pits=False)
     assert len(chords.centres) == 9
     fitted = chords.image.background
-    assert np.std((fitted - background) - np.mean(fitted - background)) < 1.0  # nm, of 300 nm
+    assert np.std((fitted - background) - np.mean(fitted - background)) < 1.0  # nm, of 300 scale nm
     for ends, f in zip(chords.ends, chords.feature):
         centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
         # linear interpolation of a linear wall is exact away from the wall's kinks

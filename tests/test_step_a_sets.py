@@ -241,6 +241,22 @@ def test_a_set_of_measured_scans_of_different_sizes_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_set_whose_scans_show_different_pitches_names_the_scan(tmp_path):
+    """Two scans of one size said to show one lattice, the second of a lattice of half the
+    pitch: the run names that scan and the spacing it shows before it writes anything."""
+    z = np.asarray(_scans(angles=(0.0,), rotation=0.0)[0][0].trace)
+    spec = SimulatedCalibration(pixels=64, size_nm=6000, angles_deg=[0.0], lattice_rotation_deg=0.0)
+    fine, _ = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=500, rotation_deg="fit"))
+    _write_pair(tmp_path, "a", z, 6000.0)
+    _write_pair(tmp_path, "b", np.asarray(fine[0].trace), 6000.0)
+    pair = "{{trace: {n}_trace.npz, retrace: {n}_retrace.npz, line_rate_hz: {r}, angle_deg: 0}}"
+    data = f"{{scans: [{pair.format(n='a', r=1)}, {pair.format(n='b', r=2)}]}}"
+    proc = _calibrate(tmp_path, data)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "2 Hz" in proc.stderr and "stated pitch is 1000" in proc.stderr, proc.stderr[-2000:]
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_real_1d_grating_is_refused_with_the_reason(tmp_path):
     """The shipped Nanosurf image (lines, retrace only) cannot identify a 2-D scanner: step A
     says why before it touches the output folder."""

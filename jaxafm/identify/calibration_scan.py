@@ -217,7 +217,7 @@ def _retrace_matches(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: tuple) 
     earlier along the line than the trace (0.6-0.95 pitch for 12-18 % loops at 10 % overscan).
     So each trace feature of the last half pitch is paired with its nearest retrace feature of
     the same line on either side; each side gives the shift most of its pairs agree on, the
-    nearer side's first. Step A's feature stage keeps the one whose fit is best
+    nearer side's first. Step A's chord stage keeps the one whose fit is best
     (:func:`~jaxafm.identify.staged_fit.identify`)."""
     turn = ft.rc[:, 1] > ft.rc[:, 1].max() - 0.5 * pitch_px[0]
     d = fr.rc[None, :, :] - ft.rc[turn, None, :]  # (turn features, retrace features, (row, col))

@@ -1,7 +1,7 @@
 """Chords of a calibration lattice's features: the image levelled, the features found, and where
 every scan line (and every pixel column) enters and leaves each feature, to a fraction of a pixel.
 
-Step A's feature stage fits these crossings instead of whole images or feature centroids: they do
+Step A's chord stage fits these crossings instead of whole images or feature centroids: they do
 not depend on the height background a real image carries (a plane tilt, a bow, the z feedback's
 line-to-line offsets), and a lattice of a few features gives hundreds of them.
 

@@ -76,7 +76,7 @@ def judge_stage(before: list, after: float, test: list) -> tuple:
     """``(keep, words)``: an image stage is kept unless it raises the held-out feature residual
     (nm) beyond the best so far over all scans (``before``) by more than that residual's own
     uncertainty, 3 / sqrt(2 n) of it for n held-out features (the standard error of an rms is
-    about rms / sqrt(2 n)): a stage that left the feature fit's valley misplaces the features
+    about rms / sqrt(2 n)): a stage that left the chord fit's valley misplaces the features
     by a large part of a pitch, far beyond that."""
     n = sum(len(np.unique(ij, axis=0)) for images in test for _, ij, _ in images)
     best = min(before, default=np.inf)

@@ -25,6 +25,7 @@ extrapolated and may well be undetermined).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -69,11 +70,13 @@ class Quantity:
         return f"{self.name:42s} {self.value:12.4g} +- {self.sd:10.3g} {self.unit:12s} {state}"
 
 
-def quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
+def _quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
     """The model's physical quantities as a function of its raw parameters: ``(keys, names, units,
     q(raw) -> (m,))``. ``drive`` (2, 2) V is the drive range [min, max] per axis that the scans
     covered: an axis's gain is its branches' mean slope, and its loop their separation (descending
-    less ascending branch), at the middle of that range, after a sweep over it."""
+    less ascending branch), at the middle of that range, after a sweep over it. (One function of
+    about 70 lines: one small closure per quantity, each a line or two, which read best side by
+    side.)"""
     rebuild = model.free_parameters(scans[0])[1]
     travel = np.ptp(drive, axis=1) * np.asarray(scans[0].sensitivity)
     keys, names, units, parts = [], [], [], []
@@ -165,9 +168,13 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     real = groups >= 0
     prior = np.mean(r[real] ** 2) * np.eye(J.shape[1])  # one order-one unit of each raw parameter
     C = covariance(J[real], r[real], groups[real], prior)
-    keys, names, units, q = quantities(model, scans, drive)
+    keys, names, units, q = _quantities(model, scans, drive)
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
-    value = np.asarray(q(unravel(flat)))
+    with (
+        warnings.catch_warnings()
+    ):  # an axis's loop over the whole drive may extrapolate: its sd says how far
+        warnings.filterwarnings("ignore", message="a drive far beyond the model's range")
+        value = np.asarray(q(unravel(flat)))
     G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
     return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]

@@ -87,7 +87,10 @@ class ScanModel(eqx.Module):
     ``edge_delay`` (s): how late an edge the tip crosses shows in the image, at half its height:
     the z signal's lag and latency (a first-order feedback lag of time constant tau delays a
     sharp edge's half-height crossing by tau ln 2, a latency by itself). The chords see it; the
-    image stages render the lag itself (``feedback``). Fitted with the effect ``feedback_lag``."""
+    image stages render the lag itself (``feedback``). Fitted with the effect ``feedback_lag``.
+    At one line rate it trades against the loop's width: both set trace and retrace edges apart
+    by a constant where the tip's speed is, so a fit may settle on a wider loop and a negative
+    delay (docs/step_a.md)."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
@@ -225,11 +228,15 @@ def _zero_offset(h: AbstractHysteresis, start: AbstractHysteresis) -> AbstractHy
     return eqx.tree_at(lambda g: g.offset, h, start.offset)
 
 
-def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpec()) -> ScanModel:
+def nominal_scan_model(
+    scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpec(), scans: Optional[tuple] = None
+) -> ScanModel:
     """The nominal model a fit starts from: the straight calibration line, no other effect yet
     (each effect of ``spec`` present where it changes nothing, or nearly: creep at
     :data:`CREEP_START`, lags of 5 ms and 0.5 ms); the lattice's depth from the image, its radius
-    a quarter pitch, its angle ``spec.rotation`` (0 when fitted).
+    a quarter pitch, its angle ``spec.rotation`` (0 when fitted). The plays are laid out over
+    the drive the lines of ``scans`` (the whole set; default ``scan`` alone) sweep
+    (:func:`play_span`).
 
     Raises:
         ValueError: for an effect that cannot be fitted from images or an unknown kind.
@@ -243,8 +250,8 @@ def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpe
         )
     has = lambda e, module: module if e in effects else None
     scanner = Scanner(
-        _nominal_axis(scan, spec, 0),
-        _nominal_axis(scan, spec, 1),
+        _nominal_axis(scan, spec, 0, scans or (scan,)),
+        _nominal_axis(scan, spec, 1, scans or (scan,)),
         has("coupling", Coupling(jnp.zeros(()), jnp.zeros(()))),
         has("bow", Bow(jnp.zeros(()), jnp.zeros(()))),
         has("drift", Drift(jnp.zeros(2), jnp.zeros(2), jnp.asarray(1e-3))),
@@ -267,26 +274,36 @@ def nominal_scan_model(scan: CalibrationScan, spec: ScanModelSpec = ScanModelSpe
 PLAY_SPAN = 0.45
 
 
-def play_span(scan: CalibrationScan, k: int) -> float:
-    """The thresholds' span (V) of step A's plays on axis ``k``: :data:`PLAY_SPAN` of the drive
-    one line of ``scan`` sweeps on that axis, so that every play turns inside a line, the widest
-    near its far end, and none only in the over-scan, where no feature shows what it does (a
-    play that barely turns there sets the loop by where the line reverses, which no image
-    pins); ``u_max`` for an axis the lines do not sweep (the slow axis of a scan at 0 or 90
-    degrees), whose drive turns only between scans."""
-    wanted = scan.raster.wanted()[:, 0, :, k] / scan.sensitivity[k]  # (lines, samples) V, the traces
-    sweep = float(np.min(np.ptp(wanted, axis=1)))
-    return PLAY_SPAN * sweep if sweep > 0.1 * scan.u_max else scan.u_max
+def play_span(scans: tuple, k: int) -> float:
+    """The thresholds' span (V) of step A's plays on axis ``k``, from the set's ``scans``.
+
+    ``u_max`` when the drive's ``history`` before the images is known (the initialisation cycle
+    of a simulated calibration): the cycle turns every play out to ``u_max``, and what the wide
+    plays remember of it shapes every later move. Otherwise (measured images, whose history is
+    unknown) :data:`PLAY_SPAN` of the least drive a line sweeps on that axis in the scans whose
+    lines sweep it (their fast axis is ``k`` or turned towards it), so that every play turns
+    inside a line, the widest near its far end, and none only in the over-scan, where no feature
+    shows what it does (a play that barely turns there sets the loop by where the line reverses,
+    which no image pins); ``u_max`` when no scan's lines sweep the axis, whose drive then turns
+    only between scans."""
+    if scans[0].history is not None:
+        return scans[0].u_max
+    sweeps = [
+        float(np.min(np.ptp(scan.raster.wanted()[:, 0, :, k] / scan.sensitivity[k], axis=1)))
+        for scan in scans
+    ]
+    swept = [v for v, scan in zip(sweeps, scans) if v > 0.1 * scan.u_max]
+    return PLAY_SPAN * min(swept) if swept else scans[0].u_max
 
 
-def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int) -> Axis:
+def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tuple) -> Axis:
     """Axis ``k`` of :func:`nominal_scan_model`: the nominal line through ``spec.kind``'s operator."""
     kind = "pi" if spec.kind == "gpi" and "asymmetry" not in spec.effects else spec.kind
     gain = scan.sensitivity[k]
     if kind == "preisach":
         h = Preisach.uniform(spec.levels, -scan.u_max, scan.u_max, total=gain * scan.u_max)
     else:
-        h = PrandtlIshlinskii.uniform(spec.operators, play_span(scan, k), gain, others=1e-3)
+        h = PrandtlIshlinskii.uniform(spec.operators, play_span(scans, k), gain, others=1e-3)
         if kind == "gpi":
             imaged = scan.raster.size[k] / 2  # dead zones where the image constrains them
             steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1) * imaged

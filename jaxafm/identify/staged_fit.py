@@ -7,10 +7,11 @@ simulated AFM images the known lattice through the candidate model along the sam
 solver matches the two images, trace and retrace together (:func:`identify`).
 
 A periodic lattice makes the image loss many-valleyed. The fit stays in the right valley in three
-ways: (1) the feature points carry lattice indices, and trace and retrace columns are matched at
+ways: (1) the features carry lattice indices, and trace and retrace columns are matched at
 the line reversal, where the tip is continuous, so they cannot slip by a pitch
-(:mod:`~jaxafm.identify.calibration_scan`); (2) the model is first fitted to those points, a
-smooth problem with one valley; (3) the image fit then starts from there on Gaussian-blurred
+(:mod:`~jaxafm.identify.calibration_scan`); (2) the model is first fitted to the features'
+chords (:mod:`~jaxafm.identify.chords`), a smooth problem with one valley, on the model the data
+support (:mod:`~jaxafm.identify.selection`); (3) the image fit then starts from there on Gaussian-blurred
 images (both blurred alike), whose basin is as wide as the blur, and sharpens in stages
 (:mod:`~jaxafm.identify.stages`). Held-out features judge every stage
 (:mod:`~jaxafm.identify.held_out`) and the result is checked for plausibility
@@ -53,6 +54,7 @@ from .stages import (
     coarse_factor,
     fit_stage,
     plan_stages,
+    refit_edges,
 )
 
 
@@ -63,7 +65,7 @@ class Identification:
     Attributes:
         model: the fitted :class:`~jaxafm.identify.scan_model.ScanModel` (the last accepted
             stage's).
-        stages: one :class:`~jaxafm.identify.fit.FitResult` per stage (feature points, then
+        stages: one :class:`~jaxafm.identify.fit.FitResult` per stage (chords, then
             each blur), in order.
         seconds: the whole identification's wall time (s).
         accepted: per stage, whether its result was kept (an image stage that worsens the
@@ -77,6 +79,7 @@ class Identification:
         rungs: the model ladder's rungs (:class:`~jaxafm.identify.selection.Rung`), if climbed.
         quantities: the fitted model's physical quantities with their standard deviations
             (:func:`~jaxafm.identify.identifiability.identifiability`).
+        kinds: per stage, its :class:`~jaxafm.identify.stages.StageKind`.
     """
 
     model: ScanModel
@@ -89,6 +92,13 @@ class Identification:
     spec: ScanModelSpec = ScanModelSpec()
     rungs: tuple = ()
     quantities: tuple = ()
+    kinds: tuple = ()
+
+    @property
+    def image_rms_pct(self) -> Optional[float]:
+        """The last kept image stage's rms image residual, % of the depth; None without one."""
+        kept = [s for s, k, ok in zip(self.stages, self.kinds, self.accepted) if ok and k is StageKind.IMAGES]
+        return 100 * float(np.sqrt(kept[-1].loss)) if kept else None
 
     @property
     def converged(self) -> bool:
@@ -108,14 +118,15 @@ def identify(
     start: Optional[ScanModel] = None,
     log: Callable = print,
 ) -> Identification:
-    """Fit the scanner end to end: to the feature points, then to the images at each blur.
+    """Fit the scanner end to end: to the features' chords (with ``plan.select``, the model the
+    data support, :mod:`~jaxafm.identify.selection`), then to the images at each blur.
 
-    Several scans (e.g. at scan angles 0 and 90 degrees, so that both axes reverse in the
-    data) are fitted together; the first one's feature fit fixes how the others' lattice
-    indices line up with its own (:func:`_align`). Half the lattice's sites are held out
+    Several scans (e.g. at scan angles 0 and 90 degrees, or one angle at several line rates)
+    are fitted together; the first one's chord fit fixes how the others' lattice indices line
+    up with its own (:func:`_align`). Half the lattice's sites are held out
     (``plan.hold_out``, :mod:`~jaxafm.identify.held_out`), and an image stage is kept only if it
     does not worsen the held-out features' residual beyond its uncertainty: a slip by a pitch
-    shows there first. The feature stages fit scans with up to ``plan.coarsen`` pixels of a line
+    shows there first. The chord stages fit scans with up to ``plan.coarsen`` pixels of a line
     averaged into one (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.coarse`), the
     image stages the whole scans. Never returns a silently bad fit: each stage's convergence,
     acceptance and loss are in the result, a stage whose loss is not finite raises, and the
@@ -147,7 +158,7 @@ def identify(
     trace, retraces = scans[0].feature_matches()
     found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
     first = matching_spec(spec) if plan.select else spec
-    model = nominal_scan_model(scans[0], first) if start is None else start
+    model = nominal_scan_model(scans[0], first, scans) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
     train, test = split_chords(found, plan.hold_out)  # the first stage may change the first retrace
     fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test, spec)
@@ -169,6 +180,7 @@ def identify(
         fit.spec,
         tuple(fit.rungs),
         tuple(quantities),
+        tuple(fit.kinds),
     )
 
 
@@ -192,6 +204,7 @@ class _StagedFit:
     masks: Optional[tuple] = None
     rungs: list = dataclasses.field(default_factory=list)
     results: list = dataclasses.field(default_factory=list)
+    kinds: list = dataclasses.field(default_factory=list)
     accepted: list = dataclasses.field(default_factory=list)
     held_nm: list = dataclasses.field(default_factory=list)
     comparable: list = dataclasses.field(default_factory=list)  # held_nm of stages on every scan
@@ -211,6 +224,9 @@ class _StagedFit:
             level = fitted
             fit = fit_stage(stage, fit.model, level, chord_data(self.train, self.scans, 1), self.plan, limit)
             matched += ", then on the whole scans"
+        if images:  # the edges the image stage's scanner and feedback lag imply
+            train = chord_data(self.train[: len(fitted)], fitted, 1)
+            fit = dataclasses.replace(fit, model=refit_edges(fit.model, fitted, train))
         solver = self.plan.solver
         message = (
             f"{solver}: converged in {fit.steps} steps, loss {fit.loss:.3e}"
@@ -230,6 +246,7 @@ class _StagedFit:
             FitResult(fit.model, solver, fit.converged, fit.steps, fit.loss, seconds, message)
         )
         self.accepted.append(keep)
+        self.kinds.append(stage.kind)
         self.held_nm.append(error)
         if len(fitted) == len(self.scans):
             self.comparable.append(error)
@@ -273,7 +290,7 @@ class _StagedFit:
         chosen spec and the rungs are kept."""
 
         def fit_rung(spec: ScanModelSpec, start) -> RungFit:
-            model = nominal_scan_model(self.scans[0], spec).as_float64()
+            model = nominal_scan_model(self.scans[0], spec, self.scans).as_float64()
             if start is None:  # the first rung from the nominal lattice: a richer fit's may not suit it
                 model = start_lattice(model, self.scans[0], self.found[0])
             else:
@@ -288,7 +305,7 @@ class _StagedFit:
         return fit
 
     def _first_features(self, stage: Stage, level: tuple, limit: int) -> tuple:
-        """The first scan's feature stage, fitted once for each way of matching its retrace's
+        """The first scan's chord stage, fitted once for each way of matching its retrace's
         indices to its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`); the
         best fit (lowest loss) says which is right, and its features and their split are kept:
         a retrace indexed a pitch off asks the hysteresis loop for a branch separation a pitch

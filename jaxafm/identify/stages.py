@@ -1,11 +1,11 @@
 """The stages of step A's fit and what each minimises.
 
 A periodic lattice makes the image loss many-valleyed. The fit stays in the right valley by
-fitting the model first to the feature points, each with its lattice indices (a smooth problem
-with one valley: :func:`point_residuals`), and then to the images, both Gaussian-blurred alike
+fitting the model first to the features' chords, each with its feature's lattice indices (a
+smooth problem with one valley: :func:`chord_residuals`), and then to the images, both Gaussian-blurred alike
 (:func:`image_residuals`), whose basin is as wide as the blur, sharpening in stages. The stages
 are :class:`Stage` records (:func:`plan_stages`) and the solver's settings a :class:`FitPlan`;
-:func:`fit_stage` runs one. The feature stages may climb a pyramid of coarsened scans
+:func:`fit_stage` runs one. The chord stages may climb a pyramid of coarsened scans
 (:func:`coarse_factor`).
 
 Every residual function takes ``(raw, args)`` with the data in ``args``, so that a compiled
@@ -17,8 +17,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Sequence
-from typing import Union
+from typing import NamedTuple, Union
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,10 +44,10 @@ class FitPlan:
     Attributes:
         solver: one of :data:`~jaxafm.config.names.SOLVERS`.
         blur_px: the image stages' Gaussian blurs (pixels of the stage's scans), widest first.
-        coarsen: the most pixels of a line a feature stage averages into one (a power of two),
+        coarsen: the most pixels of a line a chord stage averages into one (a power of two),
             1 for none, ``"auto"`` for :func:`coarse_factor`'s choice.
         max_steps: the stages' step limit: one for every stage, or one per stage in order (the
-            feature stages, then each blur).
+            chord stages, then each blur).
         rtol: each stage's relative tolerance.
         atol: each stage's absolute tolerance.
         hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
@@ -78,7 +79,7 @@ class Stage:
     Attributes:
         kind: what it fits.
         label: its name in the log and the metrics (display only).
-        first_scan_only: it fits the first scan alone (the first feature stage of several scans).
+        first_scan_only: it fits the first scan alone (the first chord stage of several scans).
         blur_px: an image stage's Gaussian sigma (px).
         radius_px: the blur kernel's half width (px), one for every image stage so that their
             compiled solves are one.
@@ -100,7 +101,7 @@ class Stage:
 
 
 def plan_stages(scans: int, blur_px: Sequence[float]) -> tuple:
-    """Step A's stages for ``scans`` scans: the feature points (of the first scan, then of all
+    """Step A's stages for ``scans`` scans: the chords (of the first scan, then of all
     when there are several), then the images at each blur of ``blur_px``, widest first.
 
     Raises:
@@ -137,7 +138,7 @@ def stage_steps(max_steps: Union[int, Sequence[int]], stages: Sequence[Stage]) -
 
 
 def coarse_factor(scans: Sequence[CalibrationScan], coarsen: Union[int, str] = "auto") -> int:
-    """The most pixels of a line step A's feature stages average into one (its pyramid's top).
+    """The most pixels of a line step A's chord stages average into one (its pyramid's top).
 
     ``"auto"``: the largest power of two that divides every scan's pixels per line and leaves
     :data:`COARSE_PX_PER_PITCH` pixels per pitch; a given number must fit the scans
@@ -184,6 +185,38 @@ def chord_residuals(raw, args) -> Array:
     return jnp.concatenate(out)
 
 
+def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -> ScanModel:
+    """``model`` with its chord nuisances (``edge_delay`` when it has a feedback lag, and
+    ``chord_slope``) refitted to the training ``chords`` (:func:`chord_data`), the scanner held:
+    an image stage moves the scanner and the feedback lag but cannot see these two (the model
+    images the lattice itself), so its held-out features are placed with the edges it implies.
+    Gauss-Newton on :func:`chord_residuals`' terms; ``steps`` iterations of a problem linear in
+    the slopes and nearly linear in the delay."""
+    free_delay = model.feedback is not None
+    paths = [model.paths(scan) for scan in scans]
+
+    def residuals(p):
+        m = eqx.tree_at(lambda m: (m.edge_delay, m.chord_slope), model, (p[0], p[1:]))
+        out = []
+        for scan, images, path in zip(scans, chords, paths):
+            shift = m.edge_delay / scan.raster.sample_time
+            for trace, (ends, ij, along, w), forward in zip(path, images, (1.0, -1.0)):
+                tips = m.chord_ends(trace, ends, forward * shift)
+                out.append(w * m.chord_offsets(tips, ij, along) / min(scan.pitch))
+        return jnp.concatenate(out)
+
+    p = jnp.concatenate([jnp.reshape(model.edge_delay, 1), model.chord_slope])
+    keep = jnp.asarray([1.0 if free_delay else 0.0, 1.0, 1.0])
+    jac = jax.jit(jax.jacfwd(residuals))
+    res = jax.jit(residuals)
+    for _ in range(steps):
+        J = jac(p) * keep
+        r = res(p)
+        H = J.T @ J + 1e-12 * jnp.trace(J.T @ J) * jnp.eye(3) + jnp.diag(1.0 - keep)
+        p = p - jnp.linalg.solve(H, J.T @ r)
+    return eqx.tree_at(lambda m: (m.edge_delay, m.chord_slope), model, (p[0], p[1:]))
+
+
 def count_chords(chords) -> Array:
     """How many chords (not padding) a chord stage's data hold."""
     return sum(jnp.sum(w) for images in chords for *_, w in images)
@@ -194,15 +227,26 @@ def chord_loss(raw, args) -> Array:
     return 0.5 * jnp.sum(chord_residuals(raw, args) ** 2) / count_chords(args[2])
 
 
-def pad_chords(ends: np.ndarray, ij: np.ndarray, along: np.ndarray, size: int) -> tuple:
+class PaddedChords(NamedTuple):
+    """One image's chords as a chord stage takes them (:func:`pad_chords`): their ends (m, 2, 2)
+    px (row, column), their features' lattice indices (m, 2), whether each runs along the lines
+    (m,), and each one's weight (m,): 1 for a chord, 0 for the padding."""
+
+    ends: Array
+    ij: Array
+    along: Array
+    weight: Array
+
+
+def pad_chords(ends: np.ndarray, ij: np.ndarray, along: np.ndarray, size: int) -> PaddedChords:
     """Chords ``(ends, ij, along)`` ((n, 2, 2), (n, 2), (n,)) padded to ``size`` (or the next
-    power of two above n, if more) with weight 0 (a dummy chord across the first pixel), and
-    their weights (1 for a chord): the chord fits of every scan of one raster then have one
-    shape (:func:`chord_capacity`), and their compiled solves are reused."""
+    power of two above n, if more) with weight 0 (a dummy chord across the first pixel): the
+    chord fits of every scan of one raster then have one shape (:func:`chord_capacity`), and
+    their compiled solves are reused."""
     n = len(ends)
     pad = (size if n <= size else 1 << (n - 1).bit_length()) - n
     dummy = np.broadcast_to(np.array([[0.0, 0.0], [0.0, 1.0]]), (pad, 2, 2))
-    return (
+    return PaddedChords(
         jnp.asarray(np.concatenate([np.asarray(ends, float).reshape(-1, 2, 2), dummy])),
         jnp.asarray(np.concatenate([np.asarray(ij, float).reshape(-1, 2), np.zeros((pad, 2))])),
         jnp.asarray(np.concatenate([np.asarray(along, bool), np.ones(pad, bool)])),
@@ -263,8 +307,8 @@ def chord_data(part: list, scans: tuple, factor: int) -> tuple:
 def image_residuals(raw, args) -> Array:
     """The model's image less the measured one, both blurred by ``kernel``, its height
     background projected out (:func:`level_out`: the model images the lattice alone, the
-    measured image carries a plane, a bow and line offsets, which no scanner parameter may be
-    bent to explain), weighted by the training ``masks`` (scan, 2, lines, pixels), trace and
+    measured image carries a plane and a bow, which no scanner parameter may be bent to
+    explain), weighted by the training ``masks`` (scan, 2, lines, pixels), trace and
     retrace, in fractions of the measured depth. ``args = (start model, scans, (kernel, masks))``."""
     start, scans, (kernel, masks) = args
     model = start.free_parameters(scans[0])[1](raw)
@@ -278,19 +322,19 @@ def image_residuals(raw, args) -> Array:
 
 
 def level_out(d: Array, w: Array) -> Array:
-    """``d`` (lines, pixels) less its weighted least-squares fit by a height background: an
-    offset per line and the Legendre polynomials of :func:`~jaxafm.identify.chords.background_design`
-    (a plane and a bow), weights ``w`` (Frisch-Waugh-Lovell: the line offsets first, then the
-    polynomials on what they leave). A line without weight keeps its values."""
-    per_line = jnp.maximum(jnp.sum(w, axis=1, keepdims=True), 1e-12)
-    centre = lambda a: a - jnp.sum(w[..., None] * a, axis=1, keepdims=True) / per_line[..., None]
-    p = centre(jnp.asarray(background_design(d.shape)).reshape(*d.shape, -1))
-    r = centre(d[..., None])[..., 0]
+    """``d`` (lines, pixels) less its weighted least-squares fit by the Legendre polynomials of
+    :func:`~jaxafm.identify.chords.background_design` (a plane and a bow), weights ``w``.
+
+    No offset per line: a line's mean height carries where it crosses the features (a line
+    over a row of pits sits lower than one between rows), which is the position information the
+    fit is after. :func:`~jaxafm.identify.projection.project_out` for one group, in JAX, so that
+    the image residuals stay differentiable."""
+    p = jnp.asarray(background_design(d.shape)).reshape(*d.shape, -1)
     a = jnp.einsum("lpk,lp,lpj->kj", p, w, p)
     coef = jnp.linalg.solve(
-        a + 1e-12 * jnp.trace(a) * jnp.eye(a.shape[0]), jnp.einsum("lpk,lp,lp->k", p, w, r)
+        a + 1e-12 * jnp.trace(a) * jnp.eye(a.shape[0]), jnp.einsum("lpk,lp,lp->k", p, w, d)
     )
-    return r - p @ coef
+    return d - p @ coef
 
 
 def image_loss(raw, args) -> Array:
@@ -315,8 +359,8 @@ class StageFit:
 
 
 def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan, max_steps: int) -> StageFit:
-    """One stage fitted from ``model`` with ``plan``'s solver: the feature points (``data``:
-    per scan, per image ``(rc, ij, weight)``, :func:`feature_data`) or the images (``data``:
+    """One stage fitted from ``model`` with ``plan``'s solver: the chords (``data``: per scan,
+    per image ``(ends, ij, along, weight)``, :func:`chord_data`) or the images (``data``:
     ``(kernel, masks)``) of ``scans``.
 
     Raises:

@@ -316,6 +316,12 @@ def _identify(
     log(_validation_line(spec.name, ident))
     view = validation_view(scans[0], ident.model, cfg.solver.hold_out)
     title = f"Step A, {spec.name}, on {source} ({scans[0].name})"
+    v = ident.validation
+    if v.get("held_out_features"):
+        title += (
+            f"\nheld-out features in every image of every scan: {v['held_out_raw_rms_nm']:.4g} nm rms raw"
+            f" -> {v['held_out_rms_nm']:.4g} nm corrected"
+        )
     out.write(f"validation_{spec.name}.png", lambda path: plots.step_a_validation(view, path, title))
     if not ident.plausible:
         log(f"  FAILED: {spec.name} is not a usable scanner, not saved:")
@@ -343,9 +349,8 @@ def identification_metrics(ident: Identification) -> dict:
         "plausible": ident.plausible,
         "failures": list(ident.failures),
     }
-    kept = [s for s, ok in zip(ident.stages, ident.accepted) if ok]
-    if any(s.message.startswith("images") for s in kept):
-        out["image_rms_pct"] = 100 * float(np.sqrt(kept[-1].loss))
+    if ident.image_rms_pct is not None:
+        out["image_rms_pct"] = ident.image_rms_pct
     for q in ident.quantities:
         out |= {q.key: q.value, f"{q.key}_sd": q.sd if np.isfinite(q.sd) else None}
     return out | ident.validation

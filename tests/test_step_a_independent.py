@@ -1,0 +1,91 @@
+"""Step A on lattice images made by the independent generator (tests/independent_lattice.py,
+which shares no code with jaxafm's simulator): the files a user would give, read and identified
+as ``jaxafm calibrate`` does, scored against the generator's truth.
+
+The full study (twenty and more cases, speed series) is ``experiments/step_a_independent.py``;
+these are two of its cases at a small size."""
+
+import json
+from pathlib import Path
+
+import independent_lattice as G
+import numpy as np
+
+from jaxafm.config import CalibrateConfig
+from jaxafm.identify.scan_model import nominal_scan_model
+from jaxafm.jobs.calibrate import identify_model, read_calibration
+
+MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
+
+
+def _identify(case: dict, folder: Path, effects: list, select: bool = True, operators: int = 16):
+    files = G.write_case(case, folder)
+    given = json.loads(Path(files["data"]).read_text())
+    cfg = CalibrateConfig(
+        data=given["data"],
+        grating=given["grating"],
+        models=[MODEL | {"effects": effects, "operators": operators}],
+        solver={"blur_px": [], "coarsen": "auto", "max_steps": 100, "select": select},
+        compensate=None,
+    )
+    scans = read_calibration(cfg.data, cfg.grating, folder / "c.yaml", log=lambda *_: None)
+    said = []
+    return (
+        scans,
+        (lambda: identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)),
+        said,
+    )
+
+
+def _path_error_px(model, scans, case) -> float:
+    """rms (px) of the fitted tip path against the generator's over every pixel, after the one
+    rigid motion (turn and shift) no image can see."""
+    fitted = np.concatenate([np.asarray(p).reshape(-1, 2) for scan in scans for p in model.paths(scan)])
+    true = np.concatenate(
+        [
+            np.asarray(s.truth[f"tip_{k}_nm"]).reshape(-1, 2)
+            for s in case["scans"]
+            for k in ("trace", "retrace")
+        ]
+    )
+    a, b = fitted - fitted.mean(axis=0), true - true.mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    r = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    e = a @ r - b
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) / scans[0].raster.pixel_size[0]
+
+
+def test_a_drawn_scanner_is_recovered_from_one_scan(tmp_path):
+    """A Preisach scanner with drive lag, creep, coupling and drift, a lattice of rounded pits or
+    pillars with sloped walls under a broadened tip, a plane, a bow, line offsets, spikes and
+    noise, one 0-degree scan: the model step A keeps puts the held-out features where they are
+    to a third of the raw images' error or better and within 0.3 px, and its tip path over the
+    scan is nearer the true one than a third of the nominal calibration's distance from it."""
+    case = G.draw_case(3, "fine", line_rates_hz=(1.0,), angles_deg=(0.0,), pixels=64)
+    scans, run, said = _identify(
+        case, tmp_path, ["creep", "coupling", "bow", "feedback_lag"], select=False, operators=4
+    )
+    ident = run()
+    v = ident.validation
+    pixel = scans[0].raster.pixel_size[0]
+    assert ident.plausible, (ident.failures, said[-5:])
+    assert v["held_out_rms_nm"] <= min(v["held_out_raw_rms_nm"] / 3, 0.3 * pixel), said[-3:]
+    nominal = nominal_scan_model(scans[0], ident.spec, scans)
+    assert _path_error_px(ident.model, scans, case) < _path_error_px(nominal, scans, case) / 3
+
+
+def test_a_three_by_three_lattice_is_refused_or_reduced_with_the_reason(tmp_path):
+    """Nine features, half of them held out, give about 20 training coordinates; a four-play
+    scanner with creep, coupling, bow and feedback lag has as many parameters: step A refuses, or
+    keeps a smaller model and its log says which rungs the data did not support."""
+    case = G.draw_case(901, "fine", pixels=64, unidentifiable="few_features")
+    effects = ["creep", "coupling", "bow", "feedback_lag"]
+    _, run, said = _identify(case, tmp_path, effects, operators=4)
+    try:
+        ident = run()
+    except ValueError as e:
+        assert "feature" in str(e) or "determine" in str(e)
+        return
+    kept = ident.spec
+    assert kept.operators < 4 or set(kept.effects) < set(effects) or ident.failures, kept
+    assert any("model ladder" in line and "not kept" in line for line in said)
