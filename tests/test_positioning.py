@@ -452,13 +452,12 @@ def test_cli_run_positions_on_particles_and_pushes_them(cli_run):
 
 BLANK_RUN = """
 calibration:
-  simulate: {pixels: 32, size_nm: 8000, line_rate_hz: 10}
-  model: {name: pi, kind: pi, operators: 4, effects: []}
-  solver: {max_steps: 1, blur_px: [1.0]}
-workspace: {size_nm: 2000, pixels: 32, line_rate_hz: 10}
-landmarks: {n: 2, start_px: 8, step_px: 16, interpolation: [polynomial], m: 2, degree: 1}
-particles: {radius_nm: [10, 20], per_cell: 1}
-local_scan: {points: 16, max_lines: 3}
+  simulate: {{pixels: 32, size_nm: 8000, line_rate_hz: 10}}
+  model_file: {model}
+workspace: {{size_nm: 2000, pixels: 32, line_rate_hz: 10}}
+landmarks: {{n: 2, start_px: 8, step_px: 16, interpolation: [polynomial], m: 2, degree: 1}}
+particles: {{radius_nm: [10, 20], per_cell: 1}}
+local_scan: {{points: 16, max_lines: 3}}
 stages: [open_loop, A]
 """
 
@@ -474,8 +473,11 @@ def test_a_survey_that_finds_no_particle_is_reported_not_a_crash(tmp_path, monke
     real = survey.find_targets
     nothing = lambda *a: tuple(x[:0] for x in real(*a))  # what a blank image gives
     monkeypatch.setattr(survey, "find_targets", nothing)
+    from jaxafm.model.io import save_model
+
+    save_model(default_afm().scanner.without("drift", "noise"), tmp_path / "true.json")
     cfg = tmp_path / "run.yaml"
-    cfg.write_text(BLANK_RUN)
+    cfg.write_text(BLANK_RUN.format(model=tmp_path / "true.json"))
     result = CliRunner().invoke(app, ["run", str(cfg), "--out", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     assert result.output.count("failed: no particle found in the image") == 2  # open loop and A

@@ -157,6 +157,9 @@ def identify(
     began = time.perf_counter()
     trace, retraces = scans[0].feature_matches()
     found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
+    nominal_scan_model(
+        scans[0], spec, scans
+    )  # the configured kind, effects and plays: refused before any work
     first = matching_spec(spec) if plan.select else spec
     model = nominal_scan_model(scans[0], first, scans) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
