@@ -884,7 +884,7 @@ def step_a_nanosurf_quantities(results: Results) -> Table:
 
 
 STEP_A_INDEPENDENT = Run(
-    "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 6 --pixels 64"
+    "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 3 --pixels 64"
 )
 
 

@@ -18,7 +18,7 @@ generator's truth:
     python experiments/step_a_independent.py [--cases 20] [--speeds 4] [--shard 1/2]
 
 writes experiments/results/step_a_independent/ (cases-K-of-N.json per shard, then --summarise:
-summary.json and step_a_independent.png).
+summary.json, what the docs table shows).
 """
 
 from __future__ import annotations
@@ -191,7 +191,9 @@ def _line(r: dict) -> str:
         return head + f"refused: {r['refused']}"
     return head + (
         f"model {r['gpi_model_kind']} {r['gpi_model_operators']} {r['gpi_model_effects']}; "
-        f"tip path {r['tip_path_rms_px']:.3f} px (per scan {np.round(r['tip_path_per_scan_rms_px'], 3).tolist()}), held-out {r['gpi_held_out_rms_nm'] / r['pixel_nm']:.3f} px, "
+        f"tip path {r['tip_path_rms_px']:.3f} px "
+        f"(per scan {np.round(r['tip_path_per_scan_rms_px'], 3).tolist()}), "
+        f"held-out {r['gpi_held_out_rms_nm'] / r['pixel_nm']:.3f} px, "
         f"distances {r['gpi_held_out_distance_error_max_corrected_pct']:.3f} % max; "
         f"failures {r['gpi_failures']}; {r['seconds']:.0f} s"
     )
