@@ -176,11 +176,17 @@ def chord_residuals(raw, args) -> Array:
     scans, chords)``, ``chords`` as :func:`chord_data` gives them."""
     start, scans, chords = args
     model = start.free_parameters(scans[0])[1](raw)
+    return _chord_offsets(model, scans, chords, [model.paths(scan) for scan in scans])
+
+
+def _chord_offsets(model: ScanModel, scans: tuple, chords: tuple, paths: list) -> Array:
+    """:func:`chord_residuals` of ``model`` with the tip's ``paths`` (per scan, trace and
+    retrace) given."""
     out = []
-    for scan, images in zip(scans, chords):
+    for scan, images, path in zip(scans, chords, paths):
         shift = model.edge_delay / scan.raster.sample_time  # columns of this scan
-        for path, (ends, ij, along, w), forward in zip(model.paths(scan), images, (1.0, -1.0)):
-            tips = model.chord_ends(path, ends, forward * shift)
+        for trace, (ends, ij, along, w), forward in zip(path, images, (1.0, -1.0)):
+            tips = model.chord_ends(trace, ends, forward * shift)
             out.append(w * model.chord_offsets(tips, ij, along) / min(scan.pitch))
     return jnp.concatenate(out)
 
@@ -197,13 +203,7 @@ def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -
 
     def residuals(p):
         m = eqx.tree_at(lambda m: (m.edge_delay, m.chord_slope), model, (p[0], p[1:]))
-        out = []
-        for scan, images, path in zip(scans, chords, paths):
-            shift = m.edge_delay / scan.raster.sample_time
-            for trace, (ends, ij, along, w), forward in zip(path, images, (1.0, -1.0)):
-                tips = m.chord_ends(trace, ends, forward * shift)
-                out.append(w * m.chord_offsets(tips, ij, along) / min(scan.pitch))
-        return jnp.concatenate(out)
+        return _chord_offsets(m, scans, chords, paths)
 
     p = jnp.concatenate([jnp.reshape(model.edge_delay, 1), model.chord_slope])
     keep = jnp.asarray([1.0 if free_delay else 0.0, 1.0, 1.0])
