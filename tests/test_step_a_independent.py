@@ -12,7 +12,8 @@ import independent_lattice as G
 import numpy as np
 
 from jaxafm.config import CalibrateConfig
-from jaxafm.identify.scan_model import nominal_scan_model
+from jaxafm.identify.scan_model import ScanModelSpec, feature_reach, nominal_scan_model
+from jaxafm.identify.selection import supported_dead_zones
 from jaxafm.jobs.calibrate import identify_model, read_calibration
 
 MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
@@ -89,3 +90,22 @@ def test_a_three_by_three_lattice_is_refused_or_reduced_with_the_reason(tmp_path
     kept = ident.spec
     assert kept.operators < 4 or set(kept.effects) < set(effects) or ident.failures, kept
     assert any("model ladder" in line and "not kept" in line for line in said)
+
+
+def test_the_dead_zones_sit_inside_the_features_reach_and_as_many_as_it_holds(tmp_path):
+    """A lattice of pitch P filling an image of half width W / 2 has a feature within P of every
+    border, so its chords reach between W / 2 - P and W / 2 from the centre; the model ladder's
+    dead zones sit inside that reach (none beyond the last chord, where no data holds its
+    weight), and on a lattice reaching about two pitches from the centre, one a side (their
+    stretches must hold a pitch), which the note says."""
+    case = G.draw_case(5, "fine", line_rates_hz=(1.0,), angles_deg=(0.0, 90.0), pixels=64)
+    scans, _, _ = _identify(case, tmp_path, ["asymmetry", "coupling"])
+    half, pitch = scans[0].raster.size[0] / 2, min(scans[0].pitch)
+    configured = ScanModelSpec(kind="gpi", effects=("asymmetry", "coupling"), operators=4, deadzones=3)
+    spec, note = supported_dead_zones(configured, scans)
+    assert spec.deadzones == 1 and "pitch" in note
+    for k in (0, 1):
+        below, above = feature_reach(scans, k)
+        assert half - pitch < above <= half and -half <= below < -(half - pitch)
+        zones = getattr(nominal_scan_model(scans[0], spec, scans).scanner, "xy"[k]).hysteresis.deadzone
+        assert below < float(zones.lower.min()) and float(zones.upper.max()) < above

@@ -241,6 +241,20 @@ def test_a_set_of_measured_scans_of_different_sizes_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_speed_series_with_one_speed_twice_is_refused_before_the_run(tmp_path):
+    """Two scans at one angle and one line rate are not a speed series: the error names the
+    angle, the rate and how often it was given, and nothing is written."""
+    z = np.asarray(_scans(angles=(0.0,), rotation=0.0)[0][0].trace)
+    _write_pair(tmp_path, "a", z, 6000.0)
+    pair = "{trace: a_trace.npz, retrace: a_retrace.npz, line_rate_hz: 1, angle_deg: 0}"
+    proc = _calibrate(tmp_path, f"{{scans: [{pair}, {pair}]}}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "data: scans:" in proc.stderr and "line_rate_hz 1 is given 2 times" in proc.stderr, proc.stderr[
+        -2000:
+    ]
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_set_whose_scans_show_different_pitches_names_the_scan(tmp_path):
     """Two scans of one size said to show one lattice, the second of a lattice of half the
     pitch: the run names that scan and the spacing it shows before it writes anything."""
@@ -343,3 +357,21 @@ def test_an_image_without_its_size_is_refused_before_the_run(tmp_path):
     proc = _calibrate(tmp_path, "{trace: t.tif, retrace: r.tif, line_rate_hz: 1}")
     assert proc.returncode == 2 and "size" in proc.stderr and "t.tif" in proc.stderr, proc.stderr[-1500:]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_later_scans_lattice_shift_is_found_through_a_model_loose_across_the_lattice():
+    """A later scan's features seen through the first scan's model: a whole shift of (1, -2)
+    sites, plus the model's error growing linearly to 0.6 pitch at the lattice's edge, plus
+    noise. Rounding the offsets alone splits them between shifts; with the trend taken out
+    every feature gives the shift. Offsets that follow no shift and no trend (scans of
+    different lattices) still do not agree."""
+    from jaxafm.identify.staged_fit import _index_shift
+
+    rng = np.random.default_rng(0)
+    ij = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), axis=-1).reshape(-1, 2).astype(float)
+    d = np.array([1.0, -2.0]) + ij @ np.array([[0.2, 0.05], [-0.05, 0.2]]) + rng.normal(0, 0.05, ij.shape)
+    assert float(np.mean(np.all(np.round(d) == np.round(np.median(d, axis=0)), axis=1))) < 0.8
+    shift, agree = _index_shift(d, ij)
+    assert shift.tolist() == [1.0, -2.0] and agree >= 0.95
+    _, agree = _index_shift(rng.uniform(-1.5, 1.5, ij.shape), ij)
+    assert agree < 0.8

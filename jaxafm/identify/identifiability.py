@@ -175,6 +175,6 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     ):  # an axis's loop over the whole drive may extrapolate: its sd says how far
         warnings.filterwarnings("ignore", message="a drive far beyond the model's range")
         value = np.asarray(q(unravel(flat)))
-    G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
+        G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
     return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]

@@ -54,8 +54,10 @@ class ScanModelSpec:
 
     Attributes:
         kind: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
-            ``deadzones`` dead zones a side, evenly over the imaged half width: beyond it no data
-            would hold them; a ``gpi`` without ``asymmetry`` among the effects is a ``pi``) or
+            ``deadzones`` dead zones a side, evenly over the imaged half width, or with
+            ``deadzones_in_reach`` inside the reach of the features' chords
+            (:func:`feature_reach`), beyond which no data would hold them; a ``gpi`` without
+            ``asymmetry`` among the effects is a ``pi``) or
             ``preisach`` (``levels`` levels over ``+-u_max``).
         effects: the other effects to fit (names as in docs/conventions.md; those of
             :data:`~jaxafm.config.names.MODEL_EFFECTS`).
@@ -63,6 +65,8 @@ class ScanModelSpec:
         deadzones: dead zones a side.
         levels: Preisach levels.
         rotation: the lattice's known angle on the stage (rad), or ``None`` to fit it.
+        deadzones_in_reach: lay the dead zones out inside the features' reach (step A's model
+            ladder does, :func:`~jaxafm.identify.selection.supported_dead_zones`).
     """
 
     kind: str = "gpi"
@@ -71,6 +75,7 @@ class ScanModelSpec:
     deadzones: int = 3
     levels: int = 20
     rotation: Optional[float] = 0.0
+    deadzones_in_reach: bool = False
 
 
 class ScanModel(eqx.Module):
@@ -296,6 +301,23 @@ def play_span(scans: tuple, k: int) -> float:
     return PLAY_SPAN * min(swept) if swept else scans[0].u_max
 
 
+def feature_reach(scans: tuple, k: int) -> tuple:
+    """How far (nm, ``(below, above)``, below < 0 < above) the features' chords reach from the
+    stage's centre along its axis ``k``, at their nominal positions over the ``scans``: where
+    step A's dead zones may sit (:func:`_nominal_axis` lays them out evenly inside it). A dead
+    zone beyond the last chord end has no data to hold its weight, and the fitted slope there,
+    free, sends the tip through the image's margins anywhere; half the imaged width when the
+    features do not straddle the centre."""
+    ends = np.concatenate(
+        [scan.raster.nominal(scan.features()[0].chords.ends.reshape(-1, 2))[:, k] for scan in scans]
+    )
+    below, above = float(ends.min()), float(ends.max())
+    if below < 0 < above:
+        return below, above
+    half = scans[0].raster.size[k] / 2
+    return -half, half
+
+
 def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tuple) -> Axis:
     """Axis ``k`` of :func:`nominal_scan_model`: the nominal line through ``spec.kind``'s operator."""
     kind = "pi" if spec.kind == "gpi" and "asymmetry" not in spec.effects else spec.kind
@@ -305,9 +327,10 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tup
     else:
         h = PrandtlIshlinskii.uniform(spec.operators, play_span(scans, k), gain, others=1e-3)
         if kind == "gpi":
-            imaged = scan.raster.size[k] / 2  # dead zones where the image constrains them
-            steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1) * imaged
-            h = GeneralizedPI(h, Deadzone.identity(-steps, steps))
+            half = scan.raster.size[k] / 2
+            below, above = feature_reach(scans, k) if spec.deadzones_in_reach else (-half, half)
+            steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1)
+            h = GeneralizedPI(h, Deadzone.identity(steps * below, steps * above))
         elif kind != "pi":
             raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
     return Axis(

@@ -9,7 +9,9 @@ and feedback lag -- towards the configured one. At each step it tries every next
 doubled or quadrupled (up to the configured number; Preisach levels likewise), or one more configured effect
 (:data:`EFFECT_ORDER`), each started from the best model so far, and moves to the one with the
 lowest score if that is lower than the best so far (forward stepwise selection); it stops when
-no next rung lowers it.
+no next rung lowers it. An effect whose rung failed to lower the best score at two steps in a row
+is not tried again, to spare its fits (an effect may fail once, before the plays it needs, and
+still be kept later).
 
 The score is the small-sample Akaike information criterion of the training features
 (:func:`aicc`): the features, not the chords, are the independent data (a feature's chords share
@@ -31,7 +33,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .scan_model import ScanModelSpec
+from .scan_model import ScanModelSpec, feature_reach
 
 #: the effects after the plays, in the order the ladder tries them
 EFFECT_ORDER = ("bow", "creep", "asymmetry", "drift", "rate_dependence")
@@ -79,6 +81,29 @@ def aicc(residuals_nm: np.ndarray, parameters: float) -> tuple:
     n, k, rss = e.size, float(parameters), float(np.sum(e**2))
     score = n * np.log(max(rss, 1e-300) / n) + 2 * k + 2 * k * (k + 1) / (n - k - 1) if k < n - 1 else np.inf
     return float(score), f"{n // 2} features {np.sqrt(rss / n * 2):.1f} nm rms, {k:.1f} parameters"
+
+
+def supported_dead_zones(spec: ScanModelSpec, scans: tuple) -> tuple:
+    """``(spec, note)``: ``spec`` with its dead zones inside the features' reach R from the centre
+    (:func:`~jaxafm.identify.scan_model.feature_reach`), no more a side than they can hold, and
+    why in words (empty when their number is unchanged). m a side sit ``R / (m + 1)`` apart; a
+    stretch shorter than the pitch P may hold no feature, and a dead zone whose stretch holds
+    none bends the axis between features where nothing shows it. So m is at most ``R / P - 1``
+    on either axis (at least 1: the asymmetry rung needs one)."""
+    if spec.kind != "gpi" or "asymmetry" not in spec.effects:
+        return spec, ""
+    spec = dataclasses.replace(spec, deadzones_in_reach=True)
+    pitch = min(scans[0].pitch)
+    reach = min(min(-below, above) for below, above in (feature_reach(scans, k) for k in (0, 1)))
+    most = max(1, int(reach / pitch) - 1)
+    if most >= spec.deadzones:
+        return spec, ""
+    note = (
+        f"{most} dead zone{'s' * (most > 1)} a side, not {spec.deadzones}: the features reach "
+        f"{reach:.4g} nm from the centre, {reach / pitch:.2g} pitches, and each dead zone's stretch "
+        "must hold a pitch"
+    )
+    return dataclasses.replace(spec, deadzones=most), note
 
 
 def base_spec(spec: ScanModelSpec) -> ScanModelSpec:
@@ -136,6 +161,7 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
     log(f"  model ladder: {rungs[0].label}: score {best.score:.1f} ({best.note})")
     reason = _rate_dependence(spec, line_rates)
     skipped = ["rate_dependence"] if reason else []
+    strikes = {}
     if reason:
         rungs.append(Rung("+ rate_dependence", spec, float("nan"), "", False, reason))
         log(f"  model ladder: + rate_dependence: {reason}")
@@ -156,10 +182,34 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
                 )
             rungs.append(Rung(other, o_cand, o_new.score, o_new.note, kept and other == label, note))
             log(f"  model ladder: {other}: score {o_new.score:.1f} ({o_new.note}), {note}")
+        for effect in _struck(tried, best.score, strikes):
+            skipped.append(effect)
+            log(
+                f"  model ladder: + {effect}: not tried again (it lowered the score at neither of the last two steps)"
+            )
         if not kept:
             break
         best, current = new, cand
     return best.model, current, rungs
+
+
+#: how many steps in a row an effect's rung may fail to lower the best score before the ladder
+#: stops trying it
+STRIKES = 2
+
+
+def _struck(tried: list, best: float, strikes: dict) -> list:
+    """The effects whose rungs have now failed to lower the ``best`` score :data:`STRIKES` steps in
+    a row (``strikes``, per effect, counts them and is updated); play doublings are always tried."""
+    out = []
+    for label, _, new in tried:
+        if not label.startswith("+ "):
+            continue
+        effect = label[2:]
+        strikes[effect] = strikes.get(effect, 0) + 1 if new.score >= best else 0
+        if strikes[effect] >= STRIKES:
+            out.append(effect)
+    return out
 
 
 def _rate_dependence(spec: ScanModelSpec, line_rates: Sequence[float]) -> str:

@@ -43,7 +43,7 @@ from .held_out import (
 from .identifiability import identifiability
 from .plausibility import implausible, undetermined, unvalidated
 from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, transplant
-from .selection import RungFit, aicc, matching_spec, select
+from .selection import RungFit, aicc, matching_spec, select, supported_dead_zones
 from .stages import (
     FitPlan,
     Stage,
@@ -160,6 +160,10 @@ def identify(
     nominal_scan_model(
         scans[0], spec, scans
     )  # the configured kind, effects and plays: refused before any work
+    if plan.select:
+        spec, note = supported_dead_zones(spec, scans)
+        if note:
+            log(f"  model: {note}")
     first = matching_spec(spec) if plan.select else spec
     model = nominal_scan_model(scans[0], first, scans) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
@@ -346,14 +350,13 @@ def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list)
     coordinates: its rising fast axis follows the branch that the first scan's slow axis
     traced, while its retrace follows a branch no earlier image showed (its retrace indices
     follow the trace's, :meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`). The shift
-    is the nearest whole number of their median; unless four in five trace features round to
-    that same shift, the scans are unmatchable (an error naming the scan)."""
+    is the nearest whole number of their median (:func:`_index_shift`); unless four in five trace
+    features round to that same shift, the scans are unmatchable (an error naming the scan)."""
     train, test = list(train), list(test)
     for k in range(1, len(scans)):
         trace = found[k][0]
         d = np.asarray(model.site_errors(scans[k], [(trace.rc, trace.ij)])[0])
-        shift = np.round(np.median(d, axis=0))
-        agree = float(np.mean(np.all(np.round(d) == shift, axis=1)))
+        shift, agree = _index_shift(d, trace.ij)
         if agree < 0.8:
             raise ValueError(
                 f"{scans[k].name}: only {100 * agree:.0f} % of its trace features lie nearest the same "
@@ -367,3 +370,27 @@ def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list)
 
         train[k], test[k] = move(train[k]), move(test[k])
     return train, test
+
+
+def _index_shift(d: np.ndarray, ij: np.ndarray) -> tuple:
+    """``(shift, agree)``: the whole lattice shift (2,) of a scan's features whose offsets from
+    their sites are ``d`` (n, 2) pitches at its indices ``ij`` (n, 2), and the fraction of features
+    that round to it. The first scan's model is loose on the axis that scan swept slowly (its
+    loop there unseen): its error may grow across the lattice, so where the offsets themselves
+    do not agree, their trend along the indices (a plane, least squares after dropping the
+    features more than half a pitch off it) is taken out first: that trend is the model's, a
+    wrong shift is the same whole number everywhere."""
+    shift = np.round(np.median(d, axis=0))
+    agree = float(np.mean(np.all(np.round(d) == shift, axis=1)))
+    if agree >= 0.8 or len(d) < 6:
+        return shift, agree
+    X = np.column_stack([np.ones(len(d)), ij - np.median(ij, axis=0)])
+    keep = np.ones(len(d), bool)
+    for _ in range(3):
+        coef = np.linalg.lstsq(X[keep], d[keep], rcond=None)[0]
+        keep = np.all(np.abs(d - X @ coef) < 0.5, axis=1)
+        if keep.sum() < 3:
+            return shift, agree
+    flat = d - X[:, 1:] @ coef[1:]
+    shift = np.round(np.median(flat, axis=0))
+    return shift, float(np.mean(np.all(np.round(flat) == shift, axis=1)))
