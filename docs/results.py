@@ -643,7 +643,7 @@ GOALS = [
         STEP_A_INDEPENDENT,
         "docs/step_a.md#lattices-jaxafm-did-not-make-python-experimentsstep_a_independentpy",
         lambda m: (
-            ", ".join("not kept" if v is None else q(v, "%", 0) for v in m["rate_lag_relative_error_pct"])
+            ", ".join("not kept" if v is None else f"{v:+.0f} %" for v in m["rate_lag_relative_error_pct"])
             or "no speed series"
         ),
         lambda m: (
@@ -939,8 +939,8 @@ def step_a_independent(results: Results) -> Table:
             f"{both('held_out_distance_error_max_pct', '%', 2)}",
         ),
         (
-            "speed series: fitted rate lag against the truth (goal within 10 %)",
-            ", ".join("not kept" if v is None else q(v, "%", 0) for v in m["rate_lag_relative_error_pct"])
+            "speed series: fitted rate lag, relative error against the truth (goal within 10 %)",
+            ", ".join("not kept" if v is None else f"{v:+.0f} %" for v in m["rate_lag_relative_error_pct"])
             or "–",
         ),
     ]
