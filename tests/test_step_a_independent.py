@@ -105,7 +105,7 @@ def test_the_dead_zones_sit_inside_the_features_reach_and_as_many_as_it_holds(tm
     spec, note = supported_dead_zones(configured, scans)
     assert spec.deadzones == 1 and "pitch" in note
     for k in (0, 1):
-        below, above = feature_reach(scans, k)
+        below, above = feature_reach(scans)[k]
         assert half - pitch < above <= half and -half <= below < -(half - pitch)
         zones = getattr(nominal_scan_model(scans[0], spec, scans).scanner, "xy"[k]).hysteresis.deadzone
         assert below < float(zones.lower.min()) and float(zones.upper.max()) < above

@@ -54,9 +54,9 @@ class ScanModelSpec:
 
     Attributes:
         kind: ``pi`` (``operators`` plays evenly over ``[0, u_max)``), ``gpi`` (plus
-            ``deadzones`` dead zones a side, evenly over the imaged half width, or with
-            ``deadzones_in_reach`` inside the reach of the features' chords
-            (:func:`feature_reach`), beyond which no data would hold them; a ``gpi`` without
+            ``deadzones`` dead zones a side, evenly over the imaged half width, or inside
+            ``deadzone_reach`` (the features' chords' reach, :func:`feature_reach`), beyond which
+            no data would hold them; a ``gpi`` without
             ``asymmetry`` among the effects is a ``pi``) or
             ``preisach`` (``levels`` levels over ``+-u_max``).
         effects: the other effects to fit (names as in docs/conventions.md; those of
@@ -65,8 +65,9 @@ class ScanModelSpec:
         deadzones: dead zones a side.
         levels: Preisach levels.
         rotation: the lattice's known angle on the stage (rad), or ``None`` to fit it.
-        deadzones_in_reach: lay the dead zones out inside the features' reach (step A's model
-            ladder does, :func:`~jaxafm.identify.selection.supported_dead_zones`).
+        deadzone_reach: per stage axis ``(below, above)`` nm, where to lay the dead zones out
+            instead of the imaged half width (step A's model ladder sets it,
+            :func:`~jaxafm.identify.selection.supported_dead_zones`).
     """
 
     kind: str = "gpi"
@@ -75,7 +76,7 @@ class ScanModelSpec:
     deadzones: int = 3
     levels: int = 20
     rotation: Optional[float] = 0.0
-    deadzones_in_reach: bool = False
+    deadzone_reach: Optional[tuple] = None
 
 
 class ScanModel(eqx.Module):
@@ -301,21 +302,22 @@ def play_span(scans: tuple, k: int) -> float:
     return PLAY_SPAN * min(swept) if swept else scans[0].u_max
 
 
-def feature_reach(scans: tuple, k: int) -> tuple:
-    """How far (nm, ``(below, above)``, below < 0 < above) the features' chords reach from the
-    stage's centre along its axis ``k``, at their nominal positions over the ``scans``: where
-    step A's dead zones may sit (:func:`_nominal_axis` lays them out evenly inside it). A dead
-    zone beyond the last chord end has no data to hold its weight, and the fitted slope there,
-    free, sends the tip through the image's margins anywhere; half the imaged width when the
+def feature_reach(scans: tuple) -> tuple:
+    """How far (nm, ``(below, above)`` per stage axis, below < 0 < above) the features' chords
+    reach from the stage's centre, at their nominal positions over the ``scans``: where step A's
+    dead zones may sit (:func:`_nominal_axis` lays them out evenly inside it). A dead zone beyond
+    the last chord end has no data to hold its weight, and the fitted slope there, free, sends
+    the tip through the image's margins anywhere; half the imaged width on an axis whose
     features do not straddle the centre."""
     ends = np.concatenate(
-        [scan.raster.nominal(scan.features()[0].chords.ends.reshape(-1, 2))[:, k] for scan in scans]
+        [scan.raster.nominal(scan.features()[0].chords.ends.reshape(-1, 2)) for scan in scans]
     )
-    below, above = float(ends.min()), float(ends.max())
-    if below < 0 < above:
-        return below, above
-    half = scans[0].raster.size[k] / 2
-    return -half, half
+    reach = []
+    for k in (0, 1):
+        below, above = float(ends[:, k].min()), float(ends[:, k].max())
+        half = scans[0].raster.size[k] / 2
+        reach.append((below, above) if below < 0 < above else (-half, half))
+    return tuple(reach)
 
 
 def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tuple) -> Axis:
@@ -328,7 +330,7 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tup
         h = PrandtlIshlinskii.uniform(spec.operators, play_span(scans, k), gain, others=1e-3)
         if kind == "gpi":
             half = scan.raster.size[k] / 2
-            below, above = feature_reach(scans, k) if spec.deadzones_in_reach else (-half, half)
+            below, above = spec.deadzone_reach[k] if spec.deadzone_reach else (-half, half)
             steps = (np.arange(spec.deadzones) + 1) / (spec.deadzones + 1)
             h = GeneralizedPI(h, Deadzone.identity(steps * below, steps * above))
         elif kind != "pi":

@@ -92,9 +92,9 @@ def supported_dead_zones(spec: ScanModelSpec, scans: tuple) -> tuple:
     on either axis (at least 1: the asymmetry rung needs one)."""
     if spec.kind != "gpi" or "asymmetry" not in spec.effects:
         return spec, ""
-    spec = dataclasses.replace(spec, deadzones_in_reach=True)
+    spec = dataclasses.replace(spec, deadzone_reach=feature_reach(scans))
     pitch = min(scans[0].pitch)
-    reach = min(min(-below, above) for below, above in (feature_reach(scans, k) for k in (0, 1)))
+    reach = min(min(-below, above) for below, above in spec.deadzone_reach)
     most = max(1, int(reach / pitch) - 1)
     if most >= spec.deadzones:
         return spec, ""
