@@ -279,6 +279,32 @@ def _lattice_errors(rows):
     return [abs(r["rotation_error_deg"]) for r in rows]
 
 
+UNCERTAINTY = Run("uncertainty_coverage/metrics.json", "python experiments/uncertainty_coverage.py")
+POSTERIOR_CHECK = Run("posterior_check/metrics.json", "python experiments/posterior_check.py")
+UNCERTAINTY_MODELS = {"pi": "PI", "gpi": "generalised PI", "gpi_creep": "generalised PI + creep"}
+UNCERTAINTY_RECORDS = {"sine": "sine", "ramped": "ramped sine", "step": "step + sine (5 kHz)"}
+
+
+def _in_record(m: dict) -> list:
+    """The real records' own held-out rows (not the cross-record ones) of the coverage run."""
+    return [(k, v) for k, v in m["real"].items() if "->" not in k]
+
+
+def _coverage_goal(m: dict) -> str:
+    """The default (AR(1)) 90 % coverage on the real records' held-out parts and the generator's."""
+    own = [v["ar1_coverage_90_pct"] for _, v in _in_record(m)]
+    cross = [v["ar1_coverage_90_pct"] for k, v in m["real"].items() if "->" in k]
+    gen = m["generator_summary"]
+    return (
+        f"real records, own held-out part: {span(own, '%')} ({sum(85 <= c <= 95 for c in own)} of {len(own)} "
+        f"fits in 85–95 %); across records: {span(cross, '%')}; independent generator: "
+        + "; ".join(
+            f"{UNCERTAINTY_MODELS[kind]} median {q(gen[f'generator/{kind}/ar1']['median_coverage_90_pct'], '%')}"
+            for kind in ("pi", "gpi_creep")
+        )
+    )
+
+
 STEP_A_INDEPENDENT = Run(
     "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 20 --pixels 64"
 )
@@ -710,6 +736,33 @@ GOALS = [
         lambda m: m["verdict_flips"] == 0,
     ),
 ]
+GOALS.append(
+    Goal(
+        "uncertainty_coverage",
+        "actuator fits: held-out samples inside the 90 % band in 85–95 % (each real record, cross-record, generator)",
+        UNCERTAINTY,
+        "docs/uncertainty.md",
+        _coverage_goal,
+        lambda m: all(85 <= v["ar1_coverage_90_pct"] <= 95 for v in m["real"].values()),
+    )
+)
+GOALS.append(
+    Goal(
+        "posterior_vs_nuts",
+        "Laplace posterior within 20 % of NUTS (means and sds, per parameter)",
+        POSTERIOR_CHECK,
+        "docs/uncertainty.md#the-laplace-approximation-against-nuts",
+        lambda m: "; ".join(
+            f"{case}: mean gap ≤ {q(c['mode']['max_mean_gap_over_nuts_sd'], 'sd', 2)}, "
+            f"sd error ≤ {q(100 * c['mode']['max_sd_error'], '%')}"
+            for case, c in m.items()
+        ),
+        lambda m: all(
+            c["mode"]["max_mean_gap_over_nuts_sd"] <= 0.2 and c["mode"]["max_sd_error"] <= 0.2
+            for c in m.values()
+        ),
+    )
+)
 #: The README's short table: the positioning goals and the real data.
 README_GOALS = (
     "step_a_linearity",
@@ -730,6 +783,7 @@ PAGE_TITLES = {
     "model": "model",
     "real_data": "real data",
     "diagnosis": "diagnosis",
+    "uncertainty": "uncertainty",
 }
 
 
@@ -1710,6 +1764,73 @@ PIEZO_MODELS = (
     ("generalised PI + creep (optimistix LM)", "gpi_creep"),
     ("generalised PI + lag + creep (optimistix LM)", "gpi_lag_creep"),
 )
+
+
+# --- uncertainty (docs/uncertainty.md) -------------------------------------------------------
+
+BAND_METHODS = (("ar1", "AR(1), the default"), ("blocks", "blocks"), ("iid", "i.i.d., the naive band"))
+
+
+@table("uncertainty_real")
+def uncertainty_real(results: Results) -> Table:
+    m = results(UNCERTAINTY)["real"]
+    rows = []
+    for key, v in m.items():
+        records, kind = key.split("/")
+        fitted, _, scored = records.partition("->")
+        rows.append(
+            [UNCERTAINTY_MODELS[kind], UNCERTAINTY_RECORDS[fitted], UNCERTAINTY_RECORDS[scored or fitted]]
+            + [q(v["iid_residual_sd_nm"], "nm", 0) if not scored else "–", q(v["rms_error_nm"], "nm", 0)]
+            + [f"{q(v['fit_s'], 's')} + {q(v['posterior_s'], 's')}" if "fit_s" in v else "–"]
+            + [
+                f"{q(v[f'{meth}_coverage_90_pct'], '%')} / {q(v[f'{meth}_coverage_50_pct'], '%')} "
+                f"(×{q(v[f'{meth}_width_90_over_rms'], '', 2)})"
+                for meth, _ in BAND_METHODS
+            ]
+        )
+    header = ["model", "fitted on", "scored on", "training rms", "held-out rms", "fit + posterior"]
+    header += [name for _, name in BAND_METHODS]
+    note = (
+        "Each band cell: the held-out samples inside the 90 % / 50 % band, and (×) the 90 % band's mean "
+        "width over the held-out rms error (a calibrated Gaussian band: 90 % / 50 %, ×3.3)."
+    )
+    return Table(header, rows, [UNCERTAINTY], note)
+
+
+@table("posterior_check")
+def posterior_check(results: Results) -> Table:
+    rows = []
+    for case, c in results(POSTERIOR_CHECK).items():
+        for which, name in (
+            ("mode", "Laplace at the AR(1) posterior's mode"),
+            ("saved", "the saved fit and its AR(1) covariance"),
+        ):
+            v = c[which]
+            rows.append(
+                [case, name, count(c["parameters"]), count(c["samples"])]
+                + [q(v["max_mean_gap_over_nuts_sd"], "sd", 2), q(100 * v["max_sd_error"], "%")]
+            )
+    header = ["record", "Gaussian", "parameters", "NUTS draws", "largest mean gap", "largest sd error"]
+    return Table(
+        header, rows, [POSTERIOR_CHECK], "Gaps and errors relative to the NUTS sd of each parameter."
+    )
+
+
+@table("uncertainty_generator")
+def uncertainty_generator(results: Results) -> Table:
+    m = results(UNCERTAINTY)["generator_summary"]
+    rows = []
+    for kind in ("pi", "gpi_creep"):
+        for meth, name in BAND_METHODS:
+            v = m[f"generator/{kind}/{meth}"]
+            rows.append(
+                [UNCERTAINTY_MODELS[kind], name, count(v["records"])]
+                + [q(v[k], "%") for k in ("median_coverage_90_pct", "median_coverage_50_pct")]
+                + [q(v["share_90_within_85_95_pct"], "%"), q(v["median_width_90_over_rms"], "×", 2)]
+            )
+    header = ["model", "noise model", "records", "median 90 % coverage", "median 50 % coverage"]
+    header += ["records with 85–95 %", "median width / rms"]
+    return Table(header, rows, [UNCERTAINTY])
 
 
 @table("piezo_fit")

@@ -65,6 +65,10 @@ _HOMES = {
     "play": "model.hysteresis",
     "load_model": "model.io",
     "predict": "model.apply",
+    "Band": "model.posterior",
+    "band": "model.posterior",
+    "Posterior": "model.posterior",
+    "read_model_and_posterior": "model.io",
     "read_model_file": "model.io",
     "save_model": "model.io",
     "Axis": "model.scanner",
@@ -116,5 +120,6 @@ if TYPE_CHECKING:  # what static tools (type checkers, editors, the API docs) se
         Preisach,
         play,
     )
-    from .model.io import load_model, read_model_file, save_model
+    from .model.io import load_model, read_model_and_posterior, read_model_file, save_model
+    from .model.posterior import Band, Posterior, band
     from .model.scanner import Axis, Scanner, default_scanner

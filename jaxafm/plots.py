@@ -65,6 +65,30 @@ def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -
     fig.savefig(path, dpi=120)
 
 
+def prediction_band(record, spread, start: int, path, title: str = "") -> None:
+    """A prediction's error against time with its band (:class:`~jaxafm.model.posterior.Band`):
+    measured - predicted (nm) from sample ``start`` on, the band about zero shaded, and the same
+    over the first two seconds, where the loop's shape shows."""
+    t, e = record.t[start:], (record.d - spread.mean)[start:]
+    lower, upper = (b[start:] - spread.mean[start:] for b in spread.bounds())
+    inside = 100 * float(np.mean((e >= lower) & (e <= upper)))
+    pct = f"{100 * spread.level:g} %"
+    fig, axes = subplots(2, 1, figsize=(12, 7))
+    near = t <= t[0] + 2.0
+    for ax, keep in zip(axes, (slice(None), near)):
+        ax.fill_between(t[keep], lower[keep], upper[keep], color="C0", alpha=0.25, lw=0, label=f"{pct} band")
+        ax.plot(t[keep], e[keep], color="k", lw=0.6, label=f"measured - predicted ({inside:.1f} % inside)")
+        ax.axhline(0, color="0.5", lw=0.5)
+        ax.set(xlabel="time [s]", ylabel="error [nm]")
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=8, loc="upper right")
+    axes[0].set_title("the evaluated part")
+    axes[1].set_title("its first 2 s")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def compensated_drive(t, u, cycle: int, wanted, model, path, title: str = "") -> None:
     """A compensating drive and what the model does with it: the drive (V) against time with
     its initialisation cycle shaded, the wanted and model outputs (µm), and their difference

@@ -31,6 +31,14 @@ class PredictConfig(Strict):
         description="re-estimate one constant sensor offset (nm) per axis on the samples before "
         "evaluate_from (the whole record if 0), and report it",
     )
+    level: Optional[float] = Field(
+        None,
+        gt=0,
+        lt=1,
+        description="the probability of the prediction band (0.9: 90 %); default 0.9 where the model "
+        "file holds an uncertainty (models from `jaxafm fit`), none otherwise; set for a model "
+        "without one, an error",
+    )
     output: str = "runs/predict"
 
 

@@ -19,14 +19,34 @@ parameters, centred on the start).
 - **Leave one group out** (:func:`leave_group_out`): the residuals a group would have if the fit
   had not seen it, from the one fit, ``e_g = (I - J_g H^-1 J_g^T)^-1 r_g``: exact for a linear
   least-squares problem, a Gauss-Newton step from the solution otherwise (the block PRESS).
-- **Identifiability** (:func:`open_directions`): the eigenvectors of ``J^T J`` whose curvature
-  ``lambda`` is small against the prior's, ``lambda < ratio * prior``: combinations of
-  parameters the data leave as the prior had them.
+- **A fit's posterior** (:func:`posterior_of`): the covariance of a one-axis
+  actuator fit's raw parameters under one of three noise models, and a new measurement's
+  spread ``s`` about the model (:class:`~jaxafm.model.posterior.Posterior`). ``ar1`` (the
+  default): the covariance of the least-squares estimate the fit made when its errors are an
+  AR(1) process (the residuals' lag-1 autocorrelation ``rho``), the sandwich
+  ``H^-1 J^T Sigma J H^-1`` with ``Sigma`` the AR(1) covariance (:func:`_ar1_covariance`;
+  Cochrane & Orcutt 1949 whiten the same way);
+  ``blocks``: the cluster-robust covariance above with contiguous blocks of residuals as the
+  groups, each as long as the residuals stay correlated (:func:`correlation_length`); both take
+  ``s`` from the leave-one-block-out residuals (what the fit does on data it has not seen).
+  ``iid``: the textbook ``s^2 H^-1`` with ``s`` the training rms, the naive band. Every method
+  has the prior ``P = s^2 / sigma_p^2 I`` with ``sigma_p`` = :data:`PRIOR_SD` (raw parameters
+  are order one, so a direction the data do not fix comes out about as wide as the parameter's
+  own scale). ``ar1`` is the default by measured coverage: on straight lines with AR(1) noise
+  it covers the offset as stated where ``blocks`` runs narrow (too few blocks for strongly
+  correlated residuals, tests/test_posterior.py), and on the real records it matches ``blocks``
+  (``experiments/uncertainty_coverage.py``, docs/uncertainty.md).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.signal import lfilter
+
+from ..model.posterior import METHODS, Posterior
+
+#: the prior sd of every raw (order-one) parameter of :func:`posterior_of`
+PRIOR_SD = 1.0
 
 
 def hessian(J: np.ndarray, prior=None) -> np.ndarray:
@@ -41,18 +61,77 @@ def covariance(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None) -> 
     Hinv = np.linalg.pinv(hessian(J, prior))
     k = J.shape[1]
     meat = np.zeros((k, k)) if prior is None else np.mean(r**2) * np.asarray(prior)
-    for g in np.unique(groups):
-        s = J[groups == g].T @ r[groups == g]
-        meat += np.outer(s, s)
-    return Hinv @ meat @ Hinv
+    _, index = np.unique(groups, return_inverse=True)
+    scores = np.zeros((index.max() + 1, k))
+    np.add.at(scores, index, J * np.asarray(r)[:, None])  # J_g^T r_g, one row per group
+    return Hinv @ (meat + scores.T @ scores) @ Hinv
 
 
 def leave_group_out(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None) -> dict:
-    """Each group's residuals (its rows) had the fit not seen it: ``{group: e_g}``."""
-    Hinv = np.linalg.pinv(hessian(J, prior))
+    """Each group's residuals (its rows) had the fit not seen it: ``{group: e_g}``, through the
+    Woodbury identity ``(I - J_g H^-1 J_g^T)^-1 = I + J_g (H - J_g^T J_g)^-1 J_g^T``: a (k, k)
+    solve per group, whatever its size."""
+    H = hessian(J, prior)
+    order = np.argsort(groups, kind="stable")
+    names, first = np.unique(np.asarray(groups)[order], return_index=True)
     out = {}
-    for g in np.unique(groups):
-        rows = groups == g
-        Jg = J[rows]
-        out[g] = np.linalg.solve(np.eye(rows.sum()) - Jg @ Hinv @ Jg.T, r[rows])
+    for g, rows in zip(names, np.split(order, first[1:])):
+        Jg, rg = J[rows], r[rows]
+        out[g] = rg + Jg @ np.linalg.lstsq(H - Jg.T @ Jg, Jg.T @ rg, rcond=None)[0]
     return out
+
+
+def correlation_length(r: np.ndarray) -> int:
+    """Samples over which the residuals ``r`` stay correlated: twice the first lag at which
+    their autocorrelation falls below zero, at least 1 and at most a tenth of the record."""
+    x = np.asarray(r, dtype=float) - np.mean(r)
+    n = len(x)
+    spectrum = np.fft.rfft(x, 2 * n)
+    acf = np.fft.irfft(spectrum * np.conj(spectrum))[:n]
+    below = np.flatnonzero(acf < 0)
+    first = int(below[0]) if len(below) else n
+    return int(max(1, min(2 * first, n // 10)))
+
+
+def posterior_of(
+    J: np.ndarray, r: np.ndarray, input_span_v: float, output_range_nm: float, method: str
+) -> Posterior:
+    """The :class:`~jaxafm.model.posterior.Posterior` of a fit whose residuals are ``r`` (n,) nm
+    with Jacobian ``J`` (n, k) in the raw parameters of ``free_parameters(input_span_v,
+    output_range_nm)``, under the noise model ``method`` (module docstring)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown noise model {method!r}; one of {', '.join(METHODS)}")
+    C, sd, block = _noise_model(method, J, r)
+    return Posterior(C, sd, input_span_v, output_range_nm, method, block)
+
+
+def _noise_model(method: str, J: np.ndarray, r: np.ndarray) -> tuple:
+    """``(C, s, block)`` of :func:`posterior_of` for the residuals ``r`` (n,) nm and their Jacobian
+    ``J`` (n, k)."""
+    eye = np.eye(J.shape[1]) / PRIOR_SD**2
+    s2 = float(np.mean(r**2))
+    if method == "iid":
+        return s2 * np.linalg.inv(J.T @ J + s2 * eye), np.sqrt(s2), 1
+    block = correlation_length(r)
+    groups = np.arange(len(r)) // block
+    held = np.concatenate(list(leave_group_out(J, r, groups, prior=s2 * eye).values()))
+    spread = float(np.sqrt(np.mean(held**2)))
+    if method == "blocks":
+        C = covariance(J, r, groups, prior=s2 * eye)
+        return 0.5 * (C + C.T), spread, block
+    return _ar1_covariance(J, r, s2 * eye), spread, block
+
+
+def _ar1_covariance(J: np.ndarray, r: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """The covariance of the least-squares estimate when its errors are AR(1) (module
+    docstring): ``H^-1 (J^T Sigma J + s^2 P) H^-1``, ``H = J^T J + P``, with ``Sigma`` the AR(1)
+    covariance of the residuals' lag-1 autocorrelation ``rho`` and innovation variance
+    ``s_w^2``. ``Sigma = s_w^2 L^-1 L^-T`` for the whitening ``(L x)_t = x_t - rho x_{t-1}``,
+    so ``J^T Sigma J = s_w^2 A^T A`` with ``A = L^-T J``, the backward filter
+    ``A_t = J_t + rho A_{t+1}``."""
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1])
+    sw2 = float(np.mean((r[1:] - rho * r[:-1]) ** 2))
+    A = lfilter([1.0], [1.0, -rho], J[::-1], axis=0)[::-1]
+    Hinv = np.linalg.inv(hessian(J, prior))
+    C = Hinv @ (sw2 * A.T @ A + np.mean(r**2) * prior) @ Hinv
+    return 0.5 * (C + C.T)

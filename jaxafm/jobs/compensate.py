@@ -1,8 +1,12 @@
 """``jaxafm compensate CONFIG``: the drive voltages that make a saved model (one axis, or a
 two-axis scanner) follow a wanted trajectory, after the initialisation cycle
 (:func:`~jaxafm.identify.compensate.drive`). The whole drive is then run through the model: its
-tracking error is the model-predicted error of the drive. Writes ``drive.csv`` (``t_s,u_v``, or
-``t_s,ux_v,uy_v``: what a controller loads), ``tracking.csv``, ``metrics.json`` and
+tracking error is the model-predicted error of the drive. A model that carries its uncertainty
+(one axis, from ``jaxafm fit``) also says how far the actuator itself is expected to stray from
+the wanted trajectory under that drive: the 90 % band of its prediction
+(:func:`jaxafm.model.posterior.band`), as ``expected_error_90_nm`` (the band's mean half-width)
+and ``lower_nm``/``upper_nm`` columns of ``tracking.csv``. Writes ``drive.csv`` (``t_s,u_v``,
+or ``t_s,ux_v,uy_v``: what a controller loads), ``tracking.csv``, ``metrics.json`` and
 ``compensate.png`` (one per axis for a scanner).
 """
 
@@ -20,8 +24,9 @@ from ..identify.fit import error_metrics
 from ..instrument.afm import Raster
 from ..instrument.records import write_columns
 from ..model.apply import axes_of, predict
+from ..model.posterior import band
 from .folder import Output
-from .inputs import read_model
+from .inputs import read_model, read_model_and_posterior
 
 AXES = "xy"
 
@@ -150,7 +155,7 @@ def ranges(about: dict, model_path: Path) -> tuple:
 def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dict:
     """Compute the drive, check it through the model (and ``check_models``), and write the
     results into ``out``."""
-    model, about, model_path = read_model(cfg.model, config_path)
+    model, about, posterior, model_path = read_model_and_posterior(cfg.model, config_path)
     u_range, y_range = ranges(about, model_path)
     t, x = wanted_trajectory(cfg.trajectory, config_path, y_range)
     method = choose_method(model, cfg.method)
@@ -175,6 +180,14 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
     }
     for label, y in outputs.items():
         metrics |= _tracking(label, y, x, y_range, tags, log)
+    spread = None if posterior is None else band(model, posterior, u[:, 0], times)
+    if spread is not None:
+        lower, upper = (b[n:] for b in spread.bounds())
+        metrics["expected_error_90_nm"] = float(np.mean(upper - lower) / 2)
+        log(
+            f"  the actuator itself, driven so: within ±{metrics['expected_error_90_nm']:.3g} nm of the model's "
+            "path 90 % of the time (the model's uncertainty, mean half-width of its band)"
+        )
     y = outputs[""]
     for k, tag in enumerate(tags):
         title = f"{method} inverse of {model_path.name}" + (f", axis {tag[0]}" if tag else "")
@@ -191,6 +204,8 @@ def run(cfg: CompensateConfig, config_path: Path, out: Output, log=print) -> dic
             f"model_{tag}nm": y[:, k],
             f"error_{tag}nm": y[:, k] - x[:, k],
         }
+    if spread is not None:
+        tracked |= {"lower_nm": lower, "upper_nm": upper}
     out.write("tracking.csv", lambda path: write_columns(path, {"t_s": times[n:]} | tracked))
     return out.write_metrics(metrics)
 

@@ -4,6 +4,7 @@ validated on its held-out part. Writes ``model_NAME.json`` per model, ``metrics.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import jax
@@ -13,10 +14,12 @@ import numpy as np
 from .. import plots
 from ..config import ActuatorFitConfig, ModelSpec, SimulatedData
 from ..identify.fit import FitResult, error_metrics, fit_operator, initial_operator
+from ..identify.uncertainty import posterior_of
 from ..instrument.records import Record
 from ..model.apply import predict
 from ..model.effects import Creep, RateDependence
 from ..model.io import describe, save_model
+from ..model.posterior import linear_band, linearise
 from ..model.scanner import Axis, default_scanner
 from .folder import Output
 from .inputs import read_record_file
@@ -94,6 +97,7 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
     for spec in cfg.models:
         res = _fit(spec, starts[spec.name], record, split, settle, history, log)
         predictions[spec.name] = pred = predict(res.model, record.u, record.t, history)
+        post, spread, post_s = _posterior(res.model, record, split, settle, history)
         about = describe(
             res.model,
             u,
@@ -102,13 +106,18 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
             source=record.meta["source"],
             train_fraction=cfg.train_fraction,
         )
-        out.write(f"model_{spec.name}.json", lambda path: save_model(res.model, path, about))
+        out.write(f"model_{spec.name}.json", lambda path: save_model(res.model, path, about, post))
         scores = _scores(spec.name, pred, record, split, settle)
-        metrics |= scores | {
-            f"{spec.name}_fit_s": res.seconds,
-            f"{spec.name}_solver_steps": res.steps,
-            f"{spec.name}_converged": res.converged,
-        }
+        metrics |= (
+            scores
+            | _band_scores(spec.name, spread, record.d, split)
+            | {
+                f"{spec.name}_posterior_s": post_s,
+                f"{spec.name}_fit_s": res.seconds,
+                f"{spec.name}_solver_steps": res.steps,
+                f"{spec.name}_converged": res.converged,
+            }
+        )
         if truth is not None:  # simulated: distance to the noiseless truth on the held-out part
             clean = record.meta["clean_output_nm"]
             metrics[f"{spec.name}_heldout_vs_truth_rms_error_pct"] = error_metrics(
@@ -139,6 +148,18 @@ def _fit(spec: ModelSpec, start, record: Record, split: int, settle: int, histor
     if not res.converged:
         log(f"  WARNING: {res.message}")
     return res
+
+
+def _posterior(model, record: Record, split: int, settle: int, history) -> tuple:
+    """``(posterior, band, seconds)``: the fitted ``model``'s posterior from its training part
+    (:func:`~jaxafm.identify.uncertainty.posterior_of`, AR(1) noise model), its 90 % band over
+    the whole record, and the wall time both took (s): one linearisation serves both."""
+    start = time.perf_counter()
+    u, d = record.u[:split], record.d[:split]
+    span, d_range = float(u.max() - u.min()), float(d[settle:].max() - d[settle:].min())
+    y, G = linearise(model, span, d_range, record.u, record.t, history)
+    post = posterior_of(G[settle:split], y[settle:split] - d[settle:], span, d_range, "ar1")
+    return post, linear_band(y, G, post), time.perf_counter() - start
 
 
 def _split(record: Record, train_fraction: float, settle_s: float) -> tuple:
@@ -172,6 +193,20 @@ def _scores(name: str, pred, record: Record, split: int, settle: int) -> dict:
     return {f"{name}_train_{k}": v for k, v in train.items()} | {
         f"{name}_heldout_{k}": v for k, v in held.items()
     }
+
+
+def _band_scores(name: str, spread, d, split: int) -> dict:
+    """How often the held-out measurements fall inside the model's 90 % and 50 % bands, and the
+    bands' mean widths (nm)."""
+    out = {}
+    for level in (0.9, 0.5):
+        lower, upper = (b[split:] for b in spread.bounds(level))
+        pct = round(100 * level)
+        out[f"{name}_heldout_coverage_{pct}_pct"] = 100 * float(
+            np.mean((d[split:] >= lower) & (d[split:] <= upper))
+        )
+        out[f"{name}_heldout_band_{pct}_width_nm"] = float(np.mean(upper - lower))
+    return out
 
 
 def _table(rows) -> str:

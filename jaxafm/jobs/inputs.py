@@ -10,7 +10,7 @@ from pathlib import Path
 from ..config import ImageFile, RecordData, resolve_data_path
 from ..instrument.images import AFMImage, read_image
 from ..instrument.records import Record, read_record
-from ..model.io import read_model_file
+from ..model import io as model_io
 
 
 def read_record_file(data: RecordData, config_path: Path, require_output: bool = True) -> Record:
@@ -43,6 +43,20 @@ def read_image_file(spec, config_path, key: str) -> AFMImage:
     return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
 
 
+def read_model_and_posterior(spec: str, config_path: Path, key: str = "model") -> tuple:
+    """The model file a config key names: ``(model, about, posterior, path)``
+    (:func:`~jaxafm.model.io.read_model_and_posterior`).
+
+    Raises:
+        ValueError: naming the key and the file.
+    """
+    path = resolve_data_path(spec, config_path)
+    try:
+        return (*model_io.read_model_and_posterior(path), path)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{key}: {e}") from None
+
+
 def read_model(spec: str, config_path: Path, key: str = "model") -> tuple:
     """The model file a config key names: ``(model, about, path)``
     (:func:`~jaxafm.model.io.read_model_file`).
@@ -50,8 +64,5 @@ def read_model(spec: str, config_path: Path, key: str = "model") -> tuple:
     Raises:
         ValueError: naming the key and the file.
     """
-    path = resolve_data_path(spec, config_path)
-    try:
-        return (*read_model_file(path), path)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{key}: {e}") from None
+    model, about, _, path = read_model_and_posterior(spec, config_path, key)
+    return model, about, path

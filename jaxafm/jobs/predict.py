@@ -4,8 +4,11 @@ record has measured output.
 The model runs over the whole record from the history its file names (or the config's
 ``history_v``); the scores cover the samples from ``evaluate_from`` on, in nm and in % of the
 record's output range, overall and per branch (input rising or falling), exactly as
-``jaxafm fit`` scores its held-out part. Writes ``prediction.csv``, ``metrics.json`` and
-``predict.png`` (one figure per axis for a scanner).
+``jaxafm fit`` scores its held-out part. A model from ``jaxafm fit`` carries its uncertainty
+(:mod:`jaxafm.model.posterior`): the prediction then has a band at ``level`` (default 90 %),
+written as ``lower_nm``/``upper_nm`` columns, scored by how often the measured output falls in
+it (``coverage_pct``) and drawn in ``predict_band.png``. Writes ``prediction.csv``,
+``metrics.json`` and ``predict.png`` (one figure per axis for a scanner).
 """
 
 from __future__ import annotations
@@ -20,8 +23,9 @@ from ..config import PredictConfig
 from ..identify.fit import error_metrics
 from ..instrument.records import Record, write_columns
 from ..model.apply import axes_of, input_history, predict
+from ..model.posterior import band
 from .folder import Output
-from .inputs import read_model, read_record_file
+from .inputs import read_model_and_posterior, read_record_file
 
 
 def outside_range(u: np.ndarray, about: dict) -> tuple:
@@ -67,7 +71,13 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
         ValueError: naming the key, the file and the value: a record the model cannot take, or
             the extrapolation above.
     """
-    model, about, model_path = read_model(cfg.model, config_path)
+    model, about, posterior, model_path = read_model_and_posterior(cfg.model, config_path)
+    if posterior is None and cfg.level is not None:
+        raise ValueError(
+            f"level: {cfg.level} asks for a band, but the model file {model_path} holds no uncertainty "
+            "(models from `jaxafm fit` carry one; a calibrated scanner or an older file does not): "
+            "refit it with `jaxafm fit`, or remove `level`"
+        )
     record = read_record_file(cfg.data, config_path, require_output=False)
     axes = axes_of(model)
     if record.u.ndim != axes:
@@ -77,7 +87,11 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
         )
     start = record.split(cfg.evaluate_from) if cfg.evaluate_from > 0 else 0
     share, fitted = outside_range(record.u, about)
-    pred = predict(model, record.u, record.t, input_history(about, cfg.history_v)).reshape(record.u.shape)
+    history = input_history(about, cfg.history_v)
+    pred = predict(model, record.u, record.t, history).reshape(record.u.shape)
+    spread = (
+        None if posterior is None else band(model, posterior, record.u, record.t, history, cfg.level or 0.9)
+    )
     metrics = {"samples": len(record)} | (
         {} if record.d is None else {"evaluated_samples": len(record) - start}
     )
@@ -87,6 +101,8 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
         fit_part = slice(0, start) if start else slice(None)
         offset = np.mean(record.d[fit_part] - pred[fit_part], axis=0)
         pred = pred + offset
+        if spread is not None:
+            spread = dataclasses.replace(spread, mean=spread.mean + offset)
         metrics["offset_nm"] = np.atleast_1d(offset).tolist()
     tags = [None] if axes == 1 else [0, 1]
     scores = [] if record.d is None else [_scores(record, pred, k, start) for k in tags]
@@ -105,8 +121,27 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
     for k, axis_scores in zip(tags, scores):
         metrics |= axis_scores
         _log_and_plot(record, pred, k, start, axis_scores, model_path, out, log)
-    out.write("prediction.csv", lambda path: _write_csv(path, record, pred))
+    if spread is not None:
+        metrics |= _band(record, spread, start, model_path, out, log)
+    out.write("prediction.csv", lambda path: _write_csv(path, record, pred, spread))
     return out.write_metrics(metrics)
+
+
+def _band(record: Record, spread, start: int, model_path: Path, out: Output, log) -> dict:
+    """The band's level, mean width and (where the record has output) coverage from sample
+    ``start`` on, logged and drawn in ``predict_band.png``."""
+    lower, upper = (b[start:] for b in spread.bounds())
+    pct = f"{100 * spread.level:g}"
+    scores = {"band_level": spread.level, "band_width_nm": float(np.mean(upper - lower))}
+    line = f"{pct} % band: mean width {scores['band_width_nm']:.1f} nm"
+    if record.d is not None:
+        d = record.d[start:]
+        scores["coverage_pct"] = 100 * float(np.mean((d >= lower) & (d <= upper)))
+        line += f", holds {scores['coverage_pct']:.1f} % of the measured samples"
+        title = f"{model_path.name} on {Path(record.meta['source']).name}"
+        out.write("predict_band.png", lambda path: plots.prediction_band(record, spread, start, path, title))
+    log(line)
+    return scores
 
 
 def _scores(record: Record, pred: np.ndarray, k, start: int) -> dict:
@@ -173,15 +208,17 @@ def _log_and_plot(
     )
 
 
-def _write_csv(path: Path, record: Record, pred: np.ndarray) -> None:
-    """One row per sample: time, input, predicted output, and the measured one and the difference
-    where the record has it."""
+def _write_csv(path: Path, record: Record, pred: np.ndarray, spread=None) -> None:
+    """One row per sample: time, input, predicted output, the band's bounds where the model has
+    one, and the measured one and the difference where the record has it."""
     u, p = (np.reshape(a, (len(record), -1)) for a in (record.u, pred))
     d = None if record.d is None else np.reshape(record.d, (len(record), -1))
     columns = {"t_s": record.t}
     for k in range(u.shape[1]):
         a = "" if u.shape[1] == 1 else "xy"[k]
         columns |= {f"u{a}_v": u[:, k], f"predicted{a}_nm": p[:, k]}
+        if spread is not None:  # one axis: only `jaxafm fit` models carry an uncertainty
+            columns |= dict(zip(("lower_nm", "upper_nm"), spread.bounds()))
         if d is not None:
             columns |= {f"measured{a}_nm": d[:, k], f"error{a}_nm": p[:, k] - d[:, k]}
     write_columns(path, columns)

@@ -106,7 +106,14 @@ JOBS = {
         Job(
             "predict",
             config.PredictConfig,
-            ("metrics.json", "prediction.csv", "predict.png", "predict_x.png", "predict_y.png"),
+            (
+                "metrics.json",
+                "prediction.csv",
+                "predict.png",
+                "predict_x.png",
+                "predict_y.png",
+                "predict_band.png",
+            ),
         ),
         Job(
             "compensate",

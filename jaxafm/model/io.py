@@ -1,11 +1,13 @@
 """Model parameters to and from JSON: readable, versioned, self-describing, round-trips exactly.
 
-``{"format": "jaxafm-model", "version": 2, "model": {"type": "PrandtlIshlinskii",
-"fields": {"thresholds": [...], ...}}, "about": {...}}``; arrays as nested lists (V, nm, s as
-in the code), nested modules as nested objects, absent effects as ``null``. ``about``
-(:func:`describe`) says how to use the model: units, axes, effects, the input history it
-assumes, the input and output ranges it was fitted on, the data, the jaxafm version.
-Version-1 files (no ``about``) are still read.
+``{"format": "jaxafm-model", "version": 3, "model": {"type": "PrandtlIshlinskii",
+"fields": {"thresholds": [...], ...}}, "about": {...}, "uncertainty": {...} or null}``; arrays
+as nested lists (V, nm, s as in the code), nested modules as nested objects, absent effects as
+``null``. ``about`` (:func:`describe`) says how to use the model: units, axes, effects, the
+input history it assumes, the input and output ranges it was fitted on, the data, the jaxafm
+version. ``uncertainty`` is the fit's :class:`~jaxafm.model.posterior.Posterior`
+(:meth:`~jaxafm.model.posterior.Posterior.to_dict`), checked on load. Version-1 files (no
+``about``) and version-2 files (no ``uncertainty``) are still read, as models without one.
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import effects, hysteresis, scanner
+from .posterior import Posterior
 
-FORMAT, VERSION = "jaxafm-model", 2
-READABLE = (1, 2)  # format versions this jaxafm reads
+FORMAT, VERSION = "jaxafm-model", 3
+READABLE = (1, 2, 3)  # format versions this jaxafm reads
 _TYPES = {
     cls.__name__: cls
     for module in (hysteresis, effects, scanner)
@@ -69,12 +72,19 @@ def _decode(obj, where: str = "model"):
     return obj
 
 
-def save_model(model, path, about: Optional[dict] = None) -> None:
+def save_model(model, path, about: Optional[dict] = None, posterior: Optional[Posterior] = None) -> None:
     """Write ``model`` (any jaxafm scanner, axis, operator or effect) as JSON, with ``about``
-    (:func:`describe`; default: its units, axes and effects only), atomically: a reader (or a
-    run killed while writing) sees the old file or the whole new one."""
+    (:func:`describe`; default: its units, axes and effects only) and its ``posterior`` (None:
+    none), atomically: a reader (or a run killed while writing) sees the old file or the whole
+    new one."""
     path = Path(path)
-    doc = {"format": FORMAT, "version": VERSION, "model": _encode(model), "about": about or describe(model)}
+    doc = {
+        "format": FORMAT,
+        "version": VERSION,
+        "model": _encode(model),
+        "about": about or describe(model),
+        "uncertainty": None if posterior is None else posterior.to_dict(),
+    }
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.write_text(json.dumps(doc, indent=None))
     tmp.replace(path)
@@ -114,9 +124,17 @@ def read_model_file(path) -> tuple:
 
     Raises:
         ValueError: naming the file: not a saved model, a format version this jaxafm does not
-            read, broken (truncated, edited into something that cannot be built) or not
-            monotone (:func:`check_monotone`).
+            read, broken (truncated, edited into something that cannot be built), not
+            monotone (:func:`check_monotone`) or with an uncertainty that does not fit it
+            (:meth:`~jaxafm.model.posterior.Posterior.from_dict`).
     """
+    model, about, _ = read_model_and_posterior(path)
+    return model, about
+
+
+def read_model_and_posterior(path) -> tuple:
+    """:func:`read_model_file`'s model and ``about``, and the model's posterior (None where the
+    file holds none: written by ``jaxafm calibrate``, by hand, or in format version 1 or 2)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model file {path} does not exist")
@@ -143,7 +161,12 @@ def read_model_file(path) -> tuple:
     about = doc.get("about") or {}
     if not isinstance(about, dict):
         raise ValueError(f"{path}: 'about' must be a mapping, got {type(about).__name__}")
-    return model, about
+    if doc.get("uncertainty") is None:
+        return model, about, None
+    try:
+        return model, about, Posterior.from_dict(doc["uncertainty"], model)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 def check_monotone(model) -> None:
