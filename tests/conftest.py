@@ -6,7 +6,9 @@ programs more than once (the same scan in several tests, the same study in this 
 and in the ``jaxafm study`` processes test_study starts). A persistent compilation cache
 in a folder of this session's own turns each repeat into a read: the same executable,
 so nothing a test computes or checks changes. The folder starts empty (no result of an
-earlier run is reused) and is removed when the session ends.
+earlier run is reused) and is removed when the session ends. The pytest process makes it
+before pytest-xdist starts its workers, which find it through ``JAXAFM_TEST_XLA_CACHE`` and
+share it: a program one worker compiled, the other reads.
 
 After each test module the in-memory executables are dropped (``jax.clear_caches``); the next
 module reads what it shares from the folder. Kept for the whole session, they crashed it twice in
@@ -38,9 +40,16 @@ if "PYTEST_XDIST_WORKER" in os.environ:  # -n 2 on 2 cores: one core to each wor
 import jax
 import pytest
 
-_CACHE = tempfile.mkdtemp(prefix="jaxafm-tests-xla-")
-_SETTINGS = {"JAX_COMPILATION_CACHE_DIR": _CACHE, "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
-_BEFORE = {k: os.environ.get(k) for k in _SETTINGS}
+_OWNER = "JAXAFM_TEST_XLA_CACHE" not in os.environ  # the pytest process that made the folder
+_BEFORE = {
+    k: os.environ.get(k) for k in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS")
+}
+_CACHE = os.environ.get("JAXAFM_TEST_XLA_CACHE") or tempfile.mkdtemp(prefix="jaxafm-tests-xla-")
+_SETTINGS = {
+    "JAXAFM_TEST_XLA_CACHE": _CACHE,  # xdist's workers, started after this, find and share it
+    "JAX_COMPILATION_CACHE_DIR": _CACHE,
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+}
 
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -73,6 +82,9 @@ def _drop_executables():
 
 
 def pytest_unconfigure(config):
+    if not _OWNER:  # a worker: the process that made the folder removes it
+        return
+    os.environ.pop("JAXAFM_TEST_XLA_CACHE", None)
     for k, v in _BEFORE.items():
         if v is None:
             os.environ.pop(k, None)

@@ -211,9 +211,9 @@ def test_a_second_scan_reuses_the_compiled_solves(caplog):
     for scan in (first, second):
         caplog.clear()
         with jax.log_compiles(), caplog.at_level(logging.WARNING):
-            identify(
+            identify(  # the default generalised PI with 4 plays, not 20: shapes, not sizes, are the point
                 scan,
-                ScanModelSpec(effects=("coupling",)),
+                ScanModelSpec(effects=("coupling",), operators=4),
                 FitPlan(max_steps=2, blur_px=(), select=False),
                 log=lambda m: None,
             )

@@ -298,7 +298,10 @@ def test_an_implausible_fit_saves_no_model(tmp_path, monkeypatch):
     cfg = CalibrateConfig(
         simulate={"pixels": 32, "size_nm": 4000},
         models=[{"name": "pi", "kind": "pi", "operators": 4, "effects": []}],
-        solver={"max_steps": 2, "blur_px": []},
+        # the configured model alone, no ladder (whose rungs this check does not need); 4 steps,
+        # not 2: after 2 the path was still the nominal raster, a regular grid whose Delaunay
+        # triangulation in the validation figure (calibrate._placed) took 15 s of the test
+        solver={"max_steps": 4, "blur_px": [], "select": False},
         compensate=None,
     )
     with pytest.raises(ValueError, match="failed the plausibility checks.*pi: the tip travels 9 µm"):
