@@ -51,3 +51,24 @@ def test_a_loop_too_fine_for_the_nominal_plays_is_named_as_the_shape_not_as_cree
     record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": "independent generator: control"})
     res = D.diagnose_record(record, D.Nominal(), ("creep", "drift"), log=lambda s: None)
     assert (res.verdict, res.shape) == (None, "finer")
+
+
+def test_a_rung_dropped_at_the_recheck_leaves_the_verdict_with_the_named_models_numbers():
+    """Strong creep under a PI truth and a PI nominal (the generator's full 6 s, 1 kHz, two-axis
+    record): the generalised-PI rung is significant on the nominal, creep is then added to it,
+    and with creep in, the rung is no longer needed. The verdict names "creep" on the nominal
+    shape, so its numbers must be PI + creep's: the gap before is the nominal's, the gap after
+    is the verdict fit's, and every candidate is compared on the nominal."""
+    c = make_case("creep", "high", 2020, "pi")
+    record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": "independent generator: creep"})
+    res = D.diagnose_record(record, D.Nominal(kind="pi"), ("creep",), log=lambda s: None)
+    assert [(s.effect, s.significant) for s in res.shapes if s.effect.startswith("gpi")] == [
+        ("gpi", True),
+        ("gpi (with creep)", False),
+    ]
+    assert res.verdict == "creep" and res.shape is None and res.base is res.nominal
+    verdict = res.verdict_json()
+    assert verdict["heldout_gap_before_nm"] == res.nominal.heldout_gap_nm
+    assert verdict["heldout_gap_after_nm"] == res.top.fit.heldout_gap_nm == res.final.heldout_gap_nm
+    assert verdict["total_shrink_pct"] == pytest.approx(verdict["shrink_pct"])
+    assert all(c.heldout_gap_before_nm == res.nominal.heldout_gap_nm for c in res.candidates)

@@ -457,13 +457,29 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
         ranked, verdict, base = _simpler(data, nominal, base, ranked, verdict, rules, log)
     if verdict and shape:  # is the richer shape still needed once the effect is in?
         plain = next((c.fit for c in ranked if c.effect == verdict and base is nominal), None)
-        recheck = Candidate.compare(
-            shape, plain or data.fit_candidate(verdict, nominal), with_shape[verdict], rules
-        )
+        plain = plain or data.fit_candidate(verdict, nominal)
+        recheck = Candidate.compare(shape, plain, with_shape[verdict], rules)
         shapes.append(dataclasses.replace(recheck, effect=f"{shape} (with {verdict})"))
         log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
-        shape = shape if recheck.significant else None
+        if not recheck.significant:
+            shape = None
+            if base is not nominal:
+                ranked, verdict = _on_nominal(data, nominal, ranked, {verdict: plain}, rules, log)
+                base = nominal
     return Diagnosis(data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings)
+
+
+def _on_nominal(data: DataKind, nominal: Fit, ranked, fitted: dict, rules: Rules, log) -> tuple:
+    """The recheck dropped the rung the effects were added to: every effect compared on the
+    nominal model instead (``fitted``: effect -> its fit on the nominal, where one was made), so
+    that the verdict and its numbers are those of the model it names. Returns ``(ranked,
+    verdict)`` (:func:`rank`)."""
+    plain = []
+    for c in ranked:
+        fit = fitted.get(c.effect) or data.fit_candidate(c.effect, nominal)
+        plain.append(Candidate.compare(c.effect, nominal, fit, rules))
+        log(plain[-1].line().replace("+ ", "+ (on the nominal) ", 1))
+    return rank(plain, rules)
 
 
 def _climb(data: DataKind, nominal: Fit, rules: Rules, log) -> tuple:

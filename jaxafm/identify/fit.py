@@ -382,3 +382,23 @@ def error_metrics(pred, d, d_range: Optional[float] = None) -> dict:
         "rms_error_pct": 100 * rms / d_range,
         "max_error_pct": 100 * worst / d_range,
     }
+
+
+def inside_range(u, fitted) -> np.ndarray:
+    """Which samples (T,) of the input ``u`` ((T,) or (T, A) V) lie inside the ``fitted`` range
+    ((A, 2) V: one [min, max] per axis) on every axis."""
+    lo, hi = np.asarray(fitted, dtype=float).reshape(-1, 2).T
+    u = np.reshape(np.asarray(u, dtype=float), (len(u), -1))
+    return np.all((u >= lo) & (u <= hi), axis=1)
+
+
+def range_metrics(pred, d, inside: np.ndarray, d_range: float) -> dict:
+    """:func:`error_metrics` on the samples ``inside`` the fitted input range (keys ``inside_``)
+    and on the others (``outside_``, where there are any), and the share outside
+    (``outside_share_pct``): a model scored beyond the range it was fitted on extrapolates."""
+    pred, d = np.asarray(pred), np.asarray(d)
+    out = {"outside_share_pct": 100 * float(np.mean(~inside))}
+    for name, where in (("inside", inside), ("outside", ~inside)):
+        if where.any():
+            out |= {f"{name}_{k}": v for k, v in error_metrics(pred[where], d[where], d_range).items()}
+    return out

@@ -13,7 +13,14 @@ import numpy as np
 
 from .. import plots
 from ..config import ActuatorFitConfig, ModelSpec, SimulatedData
-from ..identify.fit import FitResult, error_metrics, fit_operator, initial_operator
+from ..identify.fit import (
+    FitResult,
+    error_metrics,
+    fit_operator,
+    initial_operator,
+    inside_range,
+    range_metrics,
+)
 from ..identify.uncertainty import posterior_of
 from ..instrument.records import Record
 from ..model.apply import predict
@@ -111,6 +118,7 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
         metrics |= (
             scores
             | _band_scores(spec.name, spread, record.d, split)
+            | _rate_lag(spec.name, res.model, record, log)
             | {
                 f"{spec.name}_posterior_s": post_s,
                 f"{spec.name}_fit_s": res.seconds,
@@ -186,13 +194,36 @@ def _split(record: Record, train_fraction: float, settle_s: float) -> tuple:
 
 def _scores(name: str, pred, record: Record, split: int, settle: int) -> dict:
     """A model's errors on the training part (after the settling) and the held-out part, in nm
-    and % of the output range."""
+    and % of the output range; the held-out part's also inside and outside the training part's
+    input range, and the share outside (:func:`~jaxafm.identify.fit.range_metrics`)."""
     d_range = float(record.d.max() - record.d.min())
     train = error_metrics(pred[settle:split], record.d[settle:split], d_range)
     held = error_metrics(pred[split:], record.d[split:], d_range)
+    u = record.u
+    inside = inside_range(u[split:], [[u[:split].min(), u[:split].max()]])
+    held |= range_metrics(pred[split:], record.d[split:], inside, d_range)
     return {f"{name}_train_{k}": v for k, v in train.items()} | {
         f"{name}_heldout_{k}": v for k, v in held.items()
     }
+
+
+def _rate_lag(name: str, model, record: Record, log) -> dict:
+    """A fitted rate-dependence lag (s), and whether the record determined it: a lag that ends
+    below the sample interval changes no sample (the ZOH step's memory ``exp(-dt / tau)`` is
+    below ``1/e``) and predicts what the model without it does; it is reported as not
+    identified, with a warning. ``{}`` for a model without one."""
+    lag = getattr(model, "rate_dependence", None)
+    if lag is None:
+        return {}
+    tau, dt = float(lag.tau), float(np.median(np.diff(record.t)))
+    identified = tau >= dt
+    if not identified:
+        log(
+            f"  WARNING: {name}: rate dependence not identified: its lag ended at {tau * 1e6:.3g} µs, below "
+            f"the sample interval {dt * 1e6:.3g} µs, where it changes no sample; the model predicts what "
+            "the one without it does (no drive in the record is fast enough to show a lag)"
+        )
+    return {f"{name}_rate_lag_s": tau, f"{name}_rate_lag_identified": identified}
 
 
 def _band_scores(name: str, spread, d, split: int) -> dict:

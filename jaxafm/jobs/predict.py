@@ -20,7 +20,7 @@ import numpy as np
 
 from .. import plots
 from ..config import PredictConfig
-from ..identify.fit import error_metrics
+from ..identify.fit import error_metrics, inside_range, range_metrics
 from ..instrument.records import Record, write_columns
 from ..model.apply import axes_of, input_history, predict
 from ..model.posterior import band
@@ -34,9 +34,7 @@ def outside_range(u: np.ndarray, about: dict) -> tuple:
     fitted = about.get("input_range_v")
     if fitted is None:
         return 0.0, None
-    lo, hi = np.asarray(fitted, dtype=float).T
-    u = np.reshape(u, (len(u), -1))
-    return float(np.mean(np.any((u < lo) | (u > hi), axis=1))), np.asarray(fitted)
+    return float(np.mean(~inside_range(u, fitted))), np.asarray(fitted)
 
 
 def branch_metrics(pred: np.ndarray, d: np.ndarray, u: np.ndarray, d_range: float) -> dict:
@@ -105,7 +103,8 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
             spread = dataclasses.replace(spread, mean=spread.mean + offset)
         metrics["offset_nm"] = np.atleast_1d(offset).tolist()
     tags = [None] if axes == 1 else [0, 1]
-    scores = [] if record.d is None else [_scores(record, pred, k, start) for k in tags]
+    inside = None if fitted is None else inside_range(record.u, fitted)
+    scores = [] if record.d is None else [_scores(record, pred, k, start, inside) for k in tags]
     _check_extrapolation(dict(zip(tags, scores)), share, fitted, model_path)
     out.prepare()
     if share > 0:
@@ -144,15 +143,19 @@ def _band(record: Record, spread, start: int, model_path: Path, out: Output, log
     return scores
 
 
-def _scores(record: Record, pred: np.ndarray, k, start: int) -> dict:
+def _scores(record: Record, pred: np.ndarray, k, start: int, inside) -> dict:
     """One axis's scores from sample ``start`` on (``k``: the axis of a scanner; ``None``: the
-    record's one axis), keys as in ``metrics.json`` (``x_``, ``y_`` before a scanner's)."""
+    record's one axis), keys as in ``metrics.json`` (``x_``, ``y_`` before a scanner's): overall,
+    per branch, and inside and outside the model's fitted input range where its file says it
+    (``inside``: which samples lie in it; :func:`~jaxafm.identify.fit.range_metrics`)."""
     u, d, p = _axis(record, pred, k)
     tag = _tag(k)
     d_range = float(d.max() - d.min())
     scores = error_metrics(p[start:], d[start:], d_range) | branch_metrics(
         p[start:], d[start:], u[start:], d_range
     )
+    if inside is not None:
+        scores |= range_metrics(p[start:], d[start:], inside[start:], d_range)
     return {f"{tag}output_range_nm": d_range} | {f"{tag}{key}": v for key, v in scores.items()}
 
 
