@@ -81,7 +81,7 @@ def prediction_band(record, spread, start: int, path, title: str = "") -> None:
         ax.axhline(0, color="0.5", lw=0.5)
         ax.set(xlabel="time [s]", ylabel="error [nm]")
         ax.grid(True, alpha=0.3)
-    axes[0].legend(fontsize=8, loc="upper right")
+    axes[0].legend(fontsize=8, loc="lower right")
     axes[0].set_title("the evaluated part")
     axes[1].set_title("its first 2 s")
     fig.suptitle(title)

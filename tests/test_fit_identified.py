@@ -68,3 +68,20 @@ def test_held_out_scores_are_split_at_the_training_input_range(tmp_path):
     parts = {k: metrics[f"pi_heldout_{k}_rms_error_nm"] ** 2 for k in ("inside", "outside")}
     whole = (1 - outside.mean()) * parts["inside"] + outside.mean() * parts["outside"]
     assert whole == pytest.approx(metrics["pi_heldout_rms_error_nm"] ** 2, rel=1e-9)
+
+
+def test_a_model_that_trains_worse_than_one_it_contains_is_called_a_solver_failure(tmp_path):
+    """A generalised PI holds the PI of the same plays (its dead zones at the identity), so its
+    best fit trains at least as well. Stopped after one step it does not, and the run says so;
+    let converge, it is not flagged."""
+    models = [
+        {"name": "pi", "kind": "pi", "operators": 8},
+        {"name": "stalled", "kind": "gpi", "operators": 8, "deadzones": 1, "max_steps": 1},
+        {"name": "gpi", "kind": "gpi", "operators": 8, "deadzones": 1},
+    ]
+    metrics, output = fit(tmp_path, make_case(None, "control", 10_001, "preisach"), models)
+    assert metrics["stalled_train_rms_error_nm"] > metrics["pi_train_rms_error_nm"]
+    assert metrics["stalled_trains_worse_than"] == "pi"
+    assert "WARNING: stalled trains worse than pi, a model it contains" in output
+    assert metrics["gpi_trains_worse_than"] is None and metrics["pi_trains_worse_than"] is None
+    assert metrics["gpi_train_rms_error_nm"] <= metrics["pi_train_rms_error_nm"]

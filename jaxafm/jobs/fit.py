@@ -132,6 +132,7 @@ def run(cfg: ActuatorFitConfig, config_path: Path, out: Output, log=print) -> di
                 pred[split:], clean[split:], metrics["output_range_nm"]
             )["rms_error_pct"]
         rows.append((spec.name, spec.solver_name, scores, res.seconds, res.converged))
+    metrics |= _nesting(cfg.models, metrics, log)
     title = Path(record.meta["source"]).name
     out.write("fit.png", lambda path: plots.actuator_fit(record, predictions, split, path, title=title))
     out.write_metrics(metrics)
@@ -156,6 +157,52 @@ def _fit(spec: ModelSpec, start, record: Record, split: int, settle: int, histor
     if not res.converged:
         log(f"  WARNING: {res.message}")
     return res
+
+
+def contains(rich: ModelSpec, plain: ModelSpec) -> bool:
+    """Whether the model ``rich`` holds ``plain`` as a special case: the same plays (or levels)
+    with its effects and more, or a generalised PI over ``plain``'s PI (dead zones at the
+    identity). Its best fit then trains at least as well as ``plain``'s."""
+    if rich.name == plain.name or (plain.creep and not rich.creep):
+        return False
+    if plain.rate_dependence and not rich.rate_dependence:
+        return False
+    if rich.kind == plain.kind == "preisach":
+        return rich.levels == plain.levels
+    if rich.kind == plain.kind == "gpi":
+        return (rich.operators, rich.deadzones) == (plain.operators, plain.deadzones)
+    if plain.kind == "pi" and rich.kind in ("pi", "gpi"):
+        return rich.operators == plain.operators
+    return plain.kind == rich.kind == "linear"
+
+
+#: how much worse (relative) a model may train than one it contains before it is called a
+#: solver failure: the solvers' tolerances leave well under 1e-3 of the loss
+NESTING_TOLERANCE = 1e-3
+
+
+def _nesting(specs: list, metrics: dict, log) -> dict:
+    """Per model, the name of a model it contains that trains better (its training rms more
+    than :data:`NESTING_TOLERANCE` below), with a warning: the richer model's best fit cannot
+    be worse, so its solver stopped short of it (a start where a gradient vanishes, a step
+    limit). ``{name}_trains_worse_than``: that name, or None."""
+    out = {}
+    for rich in specs:
+        rms = metrics[f"{rich.name}_train_rms_error_nm"]
+        worse = [
+            p.name
+            for p in specs
+            if contains(rich, p) and rms > (1 + NESTING_TOLERANCE) * metrics[f"{p.name}_train_rms_error_nm"]
+        ]
+        out[f"{rich.name}_trains_worse_than"] = worse[0] if worse else None
+        if worse:
+            plain = metrics[f"{worse[0]}_train_rms_error_nm"]
+            log(
+                f"WARNING: {rich.name} trains worse than {worse[0]}, a model it contains ({rms:.4g} nm "
+                f"against {plain:.4g} nm rms): its best fit cannot be, so the solver stopped short of it "
+                f"(converged: {metrics[f'{rich.name}_converged']}); raise max_steps or try another solver"
+            )
+    return out
 
 
 def _posterior(model, record: Record, split: int, settle: int, history) -> tuple:
