@@ -1884,8 +1884,16 @@ def predict_compensate(results: Results) -> Table:
             f"{q(fit['gpi_heldout_rms_error_pct'], '%', 3)} / {q(fit['gpi_heldout_max_error_pct'], '%', 3)}",
         ),
         (
+            "`jaxafm predict`: the model's 90 % band, mean width / held-out samples inside it",
+            f"{q(p['band_width_nm'], 'nm')} / {q(p['coverage_pct'], '%')}",
+        ),
+        (
             "`jaxafm compensate`: the drive through the generalised PI, rms / max",
             " / ".join(q(c[f"tracking_{k}_error_nm"], "nm", 2, tiny=True) for k in ("rms", "max")),
+        ),
+        (
+            "`jaxafm compensate`: the actuator itself expected within (90 %, the model's band)",
+            f"± {q(c['expected_error_90_nm'], 'nm')}",
         ),
         (
             "the same drive through the Preisach model, rms / max",
