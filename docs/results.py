@@ -1833,6 +1833,31 @@ def uncertainty_generator(results: Results) -> Table:
     return Table(header, rows, [UNCERTAINTY])
 
 
+PLAY_SCAN = (
+    ("2 CPU cores", Run("bench_play_scan/cpu.json", "python experiments/bench_play_scan.py")),
+    (
+        "one H200",
+        Run("bench_play_scan/gpu_nvidia_h200.json", "python experiments/bench_play_scan.py (on an H200)"),
+    ),
+)
+
+
+@table("play_scan")
+def play_scan(results: Results) -> Table:
+    rows = []
+    for device, run in PLAY_SCAN:
+        for r in results(run)["rows"]:
+            cells = [device, count(r["T"])]
+            for part in ("", "grad_"):
+                seq, par = (r[f"{m}_{part}samples_per_s"] for m in ("sequential", "associative"))
+                cells.append(f"{seq:.2e} / {par:.2e} ({q(par / seq, '×', 2)})")
+            cells.append(" / ".join(q(r[f"{m}_compile_s"], "s", 2) for m in ("sequential", "associative")))
+            rows.append(cells)
+    header = ["device", "samples", "plays: samples/s, sequential / associative", "loss + gradient"]
+    header += ["compile, sequential / associative"]
+    return Table(header, rows, [run for _, run in PLAY_SCAN], "50 plays; the same numbers on both paths.")
+
+
 @table("piezo_fit")
 def piezo_fit(results: Results) -> Table:
     m = results(PIEZO_FIT)

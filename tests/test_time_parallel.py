@@ -1,0 +1,81 @@
+"""The plays as an associative scan over time (jaxafm.model.hysteresis.associative_plays)
+against the sample-by-sample scan: the same numbers and the same derivatives, and every play
+operator the same whichever path runs it."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxafm.model import hysteresis as H
+from jaxafm.model.scanner import default_scanner
+
+ASSOCIATIVE = H.associative_plays
+
+
+def drive(T: int, seed: int) -> jax.Array:
+    """A random walk with reversals of every size (minor loops in major ones), in V."""
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(np.cumsum(rng.normal(0.0, 0.3, T)) + rng.normal(0.0, 0.05, T))
+
+
+def sequential(u, radii, start):
+    return jax.lax.scan(H._play_step(radii), start, u)[1]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_associative_plays_equal_the_sequential_ones_bit_for_bit(seed):
+    """A clamp only selects one of its arguments, so both paths give the same floats."""
+    u = drive(500, seed)
+    radii = jnp.linspace(0.0, 2.0, 12)
+    start = H.play_state(radii, jnp.asarray([0.0, 3.0, -1.0]))  # a start with a history
+    np.testing.assert_array_equal(H.associative_plays(u, radii, start), sequential(u, radii, start))
+
+
+def test_their_gradients_agree_with_each_other_and_with_finite_differences():
+    """d(loss)/d(drive) and d(loss)/d(radii) of a PI readout by both paths, and against central
+    differences (float64, step 1e-6 V: the plays are piecewise linear, so away from a kink the
+    differences are exact to round-off; the drive is random, so no sample sits on one)."""
+    u = drive(200, 3)
+    radii = jnp.linspace(0.1, 1.5, 8)
+    w = jnp.linspace(1.0, 0.3, 8)
+    target = jnp.sin(jnp.arange(200) / 9.0)
+
+    def loss(path, u, radii):
+        start = H.play_state(radii, u[:1])
+        return jnp.sum((path(u, radii, start) @ w - target) ** 2)
+
+    ga = jax.grad(lambda u, r: loss(H.associative_plays, u, r), argnums=(0, 1))(u, radii)
+    gs = jax.grad(lambda u, r: loss(sequential, u, r), argnums=(0, 1))(u, radii)
+    for a, s in zip(ga, gs):
+        np.testing.assert_allclose(a, s, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(s))))
+    h = 1e-6
+    for i in (5, 77, 150):
+        e = jnp.zeros_like(u).at[i].set(h)
+        fd = (loss(sequential, u + e, radii) - loss(sequential, u - e, radii)) / (2 * h)
+        assert float(ga[0][i]) == pytest.approx(float(fd), rel=1e-6, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    "operator",
+    [
+        lambda: H.PrandtlIshlinskii.with_loop_width(10, 20.0, 10_000.0, 0.15),
+        lambda: default_scanner().x.hysteresis,
+        lambda: H.Preisach.uniform(8, -10.0, 10.0, total=5_000.0),
+    ],
+    ids=["pi", "gpi", "preisach"],
+)
+def test_every_play_operator_is_the_same_on_the_time_parallel_path(operator, monkeypatch):
+    """The operators run through play_map (or play): forced onto the associative path on this
+    CPU, their outputs equal the sequential path's to round-off of the readout's sums."""
+    op = operator()
+    u = 8.0 * jnp.sin(jnp.linspace(0.0, 12.0, 400)) * jnp.linspace(1.0, 0.2, 400)
+    plain = np.asarray(op(u))
+    ran = []
+    monkeypatch.setattr(H, "time_parallel", lambda: True)
+    monkeypatch.setattr(H, "associative_plays", lambda *a: ran.append(1) or ASSOCIATIVE(*a))
+    parallel = np.asarray(op(u))
+    assert ran, "the associative path did not run"
+    np.testing.assert_allclose(parallel, plain, rtol=1e-12, atol=1e-9)
