@@ -98,16 +98,10 @@ def scores(model, posteriors: dict, t, u, d, history, first: int, offset_until: 
     for method, p in posteriors.items():
         band = linear_band(y, G, p)
         for level in LEVELS:
-            inside = np.abs(e) <= _half_width(band, level)[first:]
-            out[f"{method}_coverage_{round(100 * level)}_pct"] = 100 * float(np.mean(inside))
-        out[f"{method}_width_90_over_rms"] = float(np.mean(2 * _half_width(band, 0.9)[first:]) / rms)
+            out[f"{method}_coverage_{round(100 * level)}_pct"] = 100 * band.coverage(d, level, first)
+        out[f"{method}_width_90_over_rms"] = band.width(0.9, first) / rms
         out[f"{method}_residual_sd_nm"] = p.residual_sd_nm
     return out
-
-
-def _half_width(band, level: float) -> np.ndarray:
-    lower, upper = band.bounds(level)
-    return 0.5 * (upper - lower)
 
 
 def real_records() -> dict:

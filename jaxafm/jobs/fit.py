@@ -278,12 +278,9 @@ def _band_scores(name: str, spread, d, split: int) -> dict:
     bands' mean widths (nm)."""
     out = {}
     for level in (0.9, 0.5):
-        lower, upper = (b[split:] for b in spread.bounds(level))
         pct = round(100 * level)
-        out[f"{name}_heldout_coverage_{pct}_pct"] = 100 * float(
-            np.mean((d[split:] >= lower) & (d[split:] <= upper))
-        )
-        out[f"{name}_heldout_band_{pct}_width_nm"] = float(np.mean(upper - lower))
+        out[f"{name}_heldout_coverage_{pct}_pct"] = 100 * spread.coverage(d, level, split)
+        out[f"{name}_heldout_band_{pct}_width_nm"] = spread.width(level, split)
     return out
 
 

@@ -129,13 +129,11 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
 def _band(record: Record, spread, start: int, model_path: Path, out: Output, log) -> dict:
     """The band's level, mean width and (where the record has output) coverage from sample
     ``start`` on, logged and drawn in ``predict_band.png``."""
-    lower, upper = (b[start:] for b in spread.bounds())
     pct = f"{100 * spread.level:g}"
-    scores = {"band_level": spread.level, "band_width_nm": float(np.mean(upper - lower))}
+    scores = {"band_level": spread.level, "band_width_nm": spread.width(start=start)}
     line = f"{pct} % band: mean width {scores['band_width_nm']:.1f} nm"
     if record.d is not None:
-        d = record.d[start:]
-        scores["coverage_pct"] = 100 * float(np.mean((d >= lower) & (d <= upper)))
+        scores["coverage_pct"] = 100 * spread.coverage(record.d, start=start)
         line += f", holds {scores['coverage_pct']:.1f} % of the measured samples"
         title = f"{model_path.name} on {Path(record.meta['source']).name}"
         out.write("predict_band.png", lambda path: plots.prediction_band(record, spread, start, path, title))

@@ -123,10 +123,17 @@ class Band:
         z = float(norm.ppf(0.5 + check_level(self.level if level is None else level) / 2))
         return self.mean - z * self.sd, self.mean + z * self.sd
 
-    def coverage(self, measured, level: Optional[float] = None) -> float:
-        """The fraction of ``measured`` (T,) nm inside the band at ``level``."""
-        lower, upper = self.bounds(level)
+    def coverage(self, measured, level: Optional[float] = None, start: int = 0) -> float:
+        """The fraction of ``measured`` (T,) nm inside the band at ``level``, from sample
+        ``start`` on."""
+        lower, upper = (b[start:] for b in self.bounds(level))
+        measured = np.asarray(measured)[start:]
         return float(np.mean((measured >= lower) & (measured <= upper)))
+
+    def width(self, level: Optional[float] = None, start: int = 0) -> float:
+        """The band's mean width (nm) at ``level``, from sample ``start`` on."""
+        lower, upper = self.bounds(level)
+        return float(np.mean(upper[start:] - lower[start:]))
 
 
 def check_level(level, where: str = "level") -> float:
