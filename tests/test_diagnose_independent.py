@@ -72,3 +72,13 @@ def test_a_rung_dropped_at_the_recheck_leaves_the_verdict_with_the_named_models_
     assert verdict["heldout_gap_after_nm"] == res.top.fit.heldout_gap_nm == res.final.heldout_gap_nm
     assert verdict["total_shrink_pct"] == pytest.approx(verdict["shrink_pct"])
     assert all(c.heldout_gap_before_nm == res.nominal.heldout_gap_nm for c in res.candidates)
+
+
+def test_a_generalised_pi_nominal_never_fits_worse_than_the_pi_it_holds():
+    """A generalised PI holds the PI of the same plays (dead zones at the identity), so its
+    nominal fit must train at least as well as the PI nominal on the same split; it starts from
+    that PI's fit. A Preisach truth (the generator's), where the two differ."""
+    c = make_case(None, "control", 10_001, "preisach", drive=DRIVE)
+    record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": "independent generator: control"})
+    fits = {k: D.ActuatorRecord.split_off(record, D.Nominal(kind=k)).fit_nominal() for k in ("pi", "gpi")}
+    assert fits["gpi"].train_rms_nm <= fits["pi"].train_rms_nm * (1 + 1e-9)

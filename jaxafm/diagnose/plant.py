@@ -381,7 +381,7 @@ def creep_stage(t: np.ndarray, gamma: float = GAMMA0) -> Creep:
     return Creep.logarithmic(gamma, CREEP_TAU_MIN, span, CREEP_PER_DECADE)
 
 
-def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) -> Plant:
+def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None, deadzones: int = 3) -> Plant:
     """``plant`` plus the candidate effect ``name``, started where it changes nothing (or nearly).
 
     Arguments:
@@ -391,7 +391,8 @@ def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) 
             :class:`~jaxafm.model.hysteresis.GeneralizedPI`, identity at the start), ``coupling``,
             ``bow`` or ``drift``.
         u: the training drives (T, k) V.
-        d: the training outputs (T, k) nm (the dead zones' steps: 1/4, 2/4, 3/4 of half their range).
+        d: the training outputs (T, k) nm (``asymmetry``'s dead zones: ``deadzones`` steps a side,
+            evenly over half their range: 1/4, 2/4, 3/4 for 3).
         t: the record's times (T,) s (the creep stage spans them).
         mode: where a vibration candidate starts, per axis (Hz, dimensionless).
 
@@ -410,7 +411,7 @@ def with_effect(plant: Plant, name: str, u, d, t, mode: Optional[tuple] = None) 
     if name == "asymmetry":
         axes = []
         for i, a in enumerate(plant.axes):
-            steps = (np.arange(3) + 1) / 4 * np.ptp(d[:, i]) / 2
+            steps = (np.arange(deadzones) + 1) / (deadzones + 1) * np.ptp(d[:, i]) / 2
             dz = Deadzone.identity(-steps, steps, centre=float(np.mean(d[:, i])))
             axes.append(dataclasses.replace(a, hysteresis=GeneralizedPI(a.hysteresis, dz)))
         return plant.with_axes(tuple(axes))

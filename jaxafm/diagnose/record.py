@@ -278,11 +278,22 @@ class ActuatorRecord(DataKind):
 
     def fit_nominal(self) -> RecordFit:
         """The nominal model, started by :func:`~jaxafm.diagnose.plant.nominal_plant` and fitted.
+        A generalised PI nominal holds the PI of the same plays (its dead zones at the identity):
+        it is started from that PI's fit, with dead zones that change nothing, so it never ends
+        worse than the PI (a fit from the straight line can stall far above it).
 
         Raises:
             ValueError: when it explains less than :data:`MIN_EXPLAINED` of the output variance.
         """
-        fit = self._fit(nominal_plant(self.spec, self.u, self.d, self.record.t, self.train, self.history))
+        if self.spec.kind == "gpi":
+            pi = self.spec.model_copy(update={"kind": "pi"})
+            pi_fit = self._fit(nominal_plant(pi, self.u, self.d, self.record.t, self.train, self.history))
+            plant = with_effect(
+                pi_fit.plant, "asymmetry", self.u, self.d, self.record.t, deadzones=self.spec.deadzones
+            )
+            fit = self._fit(plant)
+        else:
+            fit = self._fit(nominal_plant(self.spec, self.u, self.d, self.record.t, self.train, self.history))
         r, d = fit.residual[self.train], self.d[self.train]
         explained = 1 - np.sum(r**2) / np.sum((d - d.mean(0)) ** 2)
         if not np.isfinite(explained) or explained < MIN_EXPLAINED:
