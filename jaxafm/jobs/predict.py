@@ -28,13 +28,13 @@ from .folder import Output
 from .inputs import read_model_and_posterior, read_record_file
 
 
-def outside_range(u: np.ndarray, about: dict) -> tuple:
-    """The fraction of input samples outside the range the model was fitted on, and the range
-    ((axes, 2) V; None where the file does not say)."""
+def fitted_range(u: np.ndarray, about: dict) -> tuple:
+    """Which input samples (T,) lie inside the range the model was fitted on, and that range
+    ((axes, 2) V); ``(None, None)`` where the file does not say."""
     fitted = about.get("input_range_v")
     if fitted is None:
-        return 0.0, None
-    return float(np.mean(~inside_range(u, fitted))), np.asarray(fitted)
+        return None, None
+    return inside_range(u, fitted), np.asarray(fitted)
 
 
 def branch_metrics(pred: np.ndarray, d: np.ndarray, u: np.ndarray, d_range: float) -> dict:
@@ -84,7 +84,8 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
             f"{1 if record.u.ndim == 1 else record.u.shape[1]} input column(s)"
         )
     start = record.split(cfg.evaluate_from) if cfg.evaluate_from > 0 else 0
-    share, fitted = outside_range(record.u, about)
+    inside, fitted = fitted_range(record.u, about)
+    share = 0.0 if inside is None else float(np.mean(~inside))
     history = input_history(about, cfg.history_v)
     pred = predict(model, record.u, record.t, history).reshape(record.u.shape)
     spread = (
@@ -103,7 +104,6 @@ def run(cfg: PredictConfig, config_path: Path, out: Output, log=print) -> dict:
             spread = dataclasses.replace(spread, mean=spread.mean + offset)
         metrics["offset_nm"] = np.atleast_1d(offset).tolist()
     tags = [None] if axes == 1 else [0, 1]
-    inside = None if fitted is None else inside_range(record.u, fitted)
     scores = [] if record.d is None else [_scores(record, pred, k, start, inside) for k in tags]
     _check_extrapolation(dict(zip(tags, scores)), share, fitted, model_path)
     out.prepare()
