@@ -208,3 +208,21 @@ def test_cli_writes_the_diagnosis_once(tmp_path):
     assert (out / "residuals.png").stat().st_size > 10_000
     again = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
     assert again.exit_code == 2 and "--overwrite" in again.output and "Traceback" not in again.output
+
+
+def test_a_candidate_that_trains_worse_than_the_model_it_was_added_to_is_a_solver_failure():
+    """A candidate starts where it changes nothing, so its best fit trains at least as well as
+    the model it is added to; ending worse (beyond the solvers' tolerance) is said as a failure,
+    in the log line and in diagnosis.json, and never as a finding."""
+    from jaxafm.diagnose.core import Candidate, Fit, Rules
+    from jaxafm.identify.fit import NESTING_TOLERANCE
+
+    def fit(rms):
+        return Fit(np.zeros(3), 10, rms, rms, 100 * np.log(rms))
+
+    nominal = fit(184.8)
+    worse = Candidate.compare("creep", nominal, fit(184.8 * (1 + 10 * NESTING_TOLERANCE)), Rules())
+    within = Candidate.compare("creep", nominal, fit(184.8 * (1 + NESTING_TOLERANCE / 10)), Rules())
+    assert (worse.trains_worse, within.trains_worse) == (True, False)
+    assert "solver stopped short" in worse.line() and "solver" not in within.line()
+    assert worse.to_json()["trains_worse_than_without"] is True

@@ -45,7 +45,7 @@ from typing import Any, ClassVar, Optional
 import numpy as np
 
 from ..config.names import check_effect_names
-from ..identify.fit import bic
+from ..identify.fit import NESTING_TOLERANCE, bic
 
 #: Why an effect that is not in the nominal model cannot be tried: ``{kind name: {effect: reason}}``
 #: (the kinds: ``record``, ``image``, ``scans``). Every kind also skips :data:`NOISE` and the
@@ -155,6 +155,10 @@ class Candidate:
         extra_parameters: the parameters the candidate adds.
         significant: whether it passes both :class:`Rules`.
         fit: the candidate's :class:`Fit`.
+        trains_worse: a candidate effect trains worse than the model it was added to (by more
+            than :data:`~jaxafm.identify.fit.NESTING_TOLERANCE`): started there, where it changes
+            nothing, its best fit cannot, so its solver stopped short of it (a failure, not a
+            finding).
     """
 
     effect: str
@@ -166,10 +170,13 @@ class Candidate:
     extra_parameters: int
     significant: bool
     fit: Fit
+    trains_worse: bool = False
 
     @classmethod
-    def compare(cls, effect: str, nominal: Fit, fit: Fit, rules: Rules) -> Candidate:
-        """``fit`` (nominal + ``effect``) against ``nominal`` under ``rules``."""
+    def compare(cls, effect: str, nominal: Fit, fit: Fit, rules: Rules, nested: bool = True) -> Candidate:
+        """``fit`` (nominal + ``effect``) against ``nominal`` under ``rules``; ``nested``: ``fit``
+        started from ``nominal``'s (a candidate effect), so that training worse is a failure (a
+        hysteresis rung started afresh is not)."""
         before, after = nominal.heldout_gap_nm, fit.heldout_gap_nm
         shrink, dbic = 100 * (1 - after / before), float(fit.bic - nominal.bic)
         return cls(
@@ -182,6 +189,7 @@ class Candidate:
             fit.parameters - nominal.parameters,
             bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic),
             fit,
+            nested and bool(fit.train_rms_nm > (1 + NESTING_TOLERANCE) * nominal.train_rms_nm),
         )
 
     def to_json(self) -> dict:
@@ -195,7 +203,8 @@ class Candidate:
             "delta_bic",
             "extra_parameters",
         )
-        return {k: getattr(self, k) for k in common} | self.fit.shown() | {"significant": self.significant}
+        flags = {"significant": self.significant, "trains_worse_than_without": self.trains_worse}
+        return {k: getattr(self, k) for k in common} | self.fit.shown() | flags
 
     def line(self) -> str:
         """The candidate's result, for the log."""
@@ -203,6 +212,7 @@ class Candidate:
             f"  + {self.effect:16s} held-out gap {self.heldout_gap_after_nm:8.3g} nm "
             f"({self.shrink_pct:+6.1f} %), delta BIC {self.delta_bic:+9.1f}"
             + ("  significant" if self.significant else "")
+            + ("  trains worse than without it: the solver stopped short" if self.trains_worse else "")
         )
 
 
@@ -458,7 +468,7 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
     if verdict and shape:  # is the richer shape still needed once the effect is in?
         plain = next((c.fit for c in ranked if c.effect == verdict and base is nominal), None)
         plain = plain or data.fit_candidate(verdict, nominal)
-        recheck = Candidate.compare(shape, plain, with_shape[verdict], rules)
+        recheck = Candidate.compare(shape, plain, with_shape[verdict], rules, nested=False)
         shapes.append(dataclasses.replace(recheck, effect=f"{shape} (with {verdict})"))
         log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
         if not recheck.significant:
@@ -487,7 +497,7 @@ def _climb(data: DataKind, nominal: Fit, rules: Rules, log) -> tuple:
     it: ``(that richest fit, its kind or None, the rungs tried)``."""
     base, shape, shapes = nominal, None, []
     for kind in data.shapes:
-        shapes.append(Candidate.compare(kind, base, data.fit_shape(kind, base), rules))
+        shapes.append(Candidate.compare(kind, base, data.fit_shape(kind, base), rules, nested=False))
         log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
         if shapes[-1].significant:
             base, shape = shapes[-1].fit, kind

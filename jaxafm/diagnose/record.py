@@ -109,6 +109,8 @@ class ActuatorRecord(DataKind):
         history: inputs (H, k) V applied before ``t[0]``, or ``None``.
         max_steps: Levenberg-Marquardt steps per fit.
         blocks: the number of alternating blocks of a blocked split, 0 for a later held-out part.
+        fitted: the nominal's fit, once made (:meth:`checked_against_pi`).
+        notes: what the run must say beside the split's warnings (a nominal replaced, and why).
     """
 
     record: Record
@@ -119,6 +121,8 @@ class ActuatorRecord(DataKind):
     history: Optional[Array] = None
     max_steps: int = 300
     blocks: int = 0
+    fitted: Optional[RecordFit] = None
+    notes: tuple = ()
 
     name = "record"
     gap_label = "held-out gap (rms) [nm]"
@@ -277,23 +281,13 @@ class ActuatorRecord(DataKind):
         )
 
     def fit_nominal(self) -> RecordFit:
-        """The nominal model, started by :func:`~jaxafm.diagnose.plant.nominal_plant` and fitted.
-        A generalised PI nominal holds the PI of the same plays (its dead zones at the identity):
-        it is started from that PI's fit, with dead zones that change nothing, so it never ends
-        worse than the PI (a fit from the straight line can stall far above it).
+        """The nominal model, started by :func:`~jaxafm.diagnose.plant.nominal_plant` and fitted
+        (:meth:`_nominal_fit`; the fit :meth:`checked_against_pi` made, where it made one).
 
         Raises:
             ValueError: when it explains less than :data:`MIN_EXPLAINED` of the output variance.
         """
-        if self.spec.kind == "gpi":
-            pi = self.spec.model_copy(update={"kind": "pi"})
-            pi_fit = self._fit(nominal_plant(pi, self.u, self.d, self.record.t, self.train, self.history))
-            plant = with_effect(
-                pi_fit.plant, "asymmetry", self.u, self.d, self.record.t, deadzones=self.spec.deadzones
-            )
-            fit = self._fit(plant)
-        else:
-            fit = self._fit(nominal_plant(self.spec, self.u, self.d, self.record.t, self.train, self.history))
+        fit = self.fitted or self._nominal_fit(self.spec)
         r, d = fit.residual[self.train], self.d[self.train]
         explained = 1 - np.sum(r**2) / np.sum((d - d.mean(0)) ** 2)
         if not np.isfinite(explained) or explained < MIN_EXPLAINED:
@@ -304,6 +298,40 @@ class ActuatorRecord(DataKind):
                 "data.output_columns) and that the output follows the input"
             )
         return fit
+
+    def _nominal_fit(self, spec: Nominal) -> RecordFit:
+        """The nominal ``spec`` fitted. A generalised PI holds the PI of the same plays (its dead
+        zones at the identity): it is started from that PI's fit, with dead zones that change
+        nothing, so it never ends worse than the PI (a fit from the straight line can stall far
+        above it)."""
+        if spec.kind != "gpi":
+            return self._fit(nominal_plant(spec, self.u, self.d, self.record.t, self.train, self.history))
+        pi = spec.model_copy(update={"kind": "pi"})
+        pi_fit = self._fit(nominal_plant(pi, self.u, self.d, self.record.t, self.train, self.history))
+        plant = with_effect(
+            pi_fit.plant, "asymmetry", self.u, self.d, self.record.t, deadzones=spec.deadzones
+        )
+        return self._fit(plant)
+
+    def checked_against_pi(self) -> ActuatorRecord:
+        """This record with a Preisach nominal checked against the PI of as many plays: the
+        factorised Preisach density does not hold a PI exactly, so it cannot start from the PI's
+        fit as a generalised PI does, and its own start (alternating least squares on the plane)
+        can stall where the PI fits well. Where the Preisach trains worse than the PI, its fit
+        has failed: the diagnosis goes on from the PI, and :meth:`warnings` says so with both
+        training errors. Other nominals are returned as they are (unfitted)."""
+        if self.spec.kind != "preisach":
+            return self
+        fits = {k: self._nominal_fit(self.spec.model_copy(update={"kind": k})) for k in ("preisach", "pi")}
+        if fits["preisach"].train_rms_nm <= fits["pi"].train_rms_nm:
+            return dataclasses.replace(self, fitted=fits["preisach"])
+        note = (
+            f"the Preisach nominal ({self.spec.levels} levels) trains worse than a PI of "
+            f"{self.spec.operators} plays on the same record ({fits['preisach'].train_rms_nm:.3g} nm against "
+            f"{fits['pi'].train_rms_nm:.3g} nm rms): its fit failed, and the diagnosis starts from the PI"
+        )
+        pi = self.spec.model_copy(update={"kind": "pi"})
+        return dataclasses.replace(self, spec=pi, fitted=fits["pi"], notes=self.notes + (note,))
 
     def fit_shape(self, kind: str, base: RecordFit) -> RecordFit:
         """The nominal model with a richer hysteresis: ``finer`` starts afresh with twice the plays,
@@ -327,7 +355,7 @@ class ActuatorRecord(DataKind):
 
     def warnings(self) -> list:
         """Held-out inputs beyond the training range (by how much), and a held-out part that is
-        nearly a flat hold, per input; each with the split that fixes it."""
+        nearly a flat hold, per input, each with the split that fixes it; then the :attr:`notes`."""
         out = []
         u_train, u_held = self.u[self.train], self.u[self.heldout]
         fix = "a blocked split (split: blocked) puts training data on both sides of every held-out block"
@@ -347,7 +375,7 @@ class ActuatorRecord(DataKind):
                     f"{100 * held_span / span:.1f} % of the training span): it tests creep and drift, not the "
                     f"hysteresis; {fix}"
                 )
-        return out
+        return out + list(self.notes)
 
     def describe(self) -> dict:
         return {
@@ -479,7 +507,7 @@ def diagnose_record(
     if settle is None:
         settle = auto_settle(record, train_fraction, history, blocks)
     data = ActuatorRecord.split_off(record, spec, train_fraction, settle, history, rules.max_steps, blocks)
-    return diagnose(data, candidates, rules, log)
+    return diagnose(data.checked_against_pi(), candidates, rules, log)
 
 
 #: A drive has reversed once it is this fraction of its range away from both its running maximum

@@ -163,6 +163,11 @@ def _table(rows: list, skipped: dict) -> list:
             f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | {_sizes(r) or '-'} | "
             f"{'yes' if r['significant'] else 'no'}"
             + (" (stopped at its step limit)" if r.get("stopped_at_step_limit") else "")
+            + (
+                " (trains worse than without it: a solver failure)"
+                if r.get("trains_worse_than_without")
+                else ""
+            )
             + " |"
         )
     for name, why in skipped.items():

@@ -39,6 +39,9 @@ from . import geodesic
 
 Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
+#: how much worse (relative) a model may train than one it contains before it is called a
+#: solver failure: the solvers' tolerances leave well under 1e-3 of the loss
+NESTING_TOLERANCE = 1e-3
 
 
 def initial_operator(kind: str, u, d, *, operators: int = 20, levels: int = 20, deadzones: int = 3):

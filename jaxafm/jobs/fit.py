@@ -14,6 +14,7 @@ import numpy as np
 from .. import plots
 from ..config import ActuatorFitConfig, ModelSpec, SimulatedData
 from ..identify.fit import (
+    NESTING_TOLERANCE,
     FitResult,
     error_metrics,
     fit_operator,
@@ -174,11 +175,6 @@ def contains(rich: ModelSpec, plain: ModelSpec) -> bool:
     if plain.kind == "pi" and rich.kind in ("pi", "gpi"):
         return rich.operators == plain.operators
     return plain.kind == rich.kind == "linear"
-
-
-#: how much worse (relative) a model may train than one it contains before it is called a
-#: solver failure: the solvers' tolerances leave well under 1e-3 of the loss
-NESTING_TOLERANCE = 1e-3
 
 
 def _nesting(specs: list, metrics: dict, log) -> dict:
