@@ -1858,6 +1858,32 @@ def play_scan(results: Results) -> Table:
     return Table(header, rows, [run for _, run in PLAY_SCAN], "50 plays; the same numbers on both paths.")
 
 
+LAG_SCAN = (
+    ("2 CPU cores", Run("bench_lag_scan/cpu.json", "python experiments/bench_lag_scan.py")),
+    (
+        "one H200",
+        Run("bench_lag_scan/gpu_nvidia_h200.json", "python experiments/bench_lag_scan.py (on an H200)"),
+    ),
+)
+
+
+@table("lag_scan")
+def lag_scan(results: Results) -> Table:
+    rows = []
+    for device, run in LAG_SCAN:
+        for r in results(run)["rows"]:
+            cells = [device, count(r["lags"]), count(r["T"])]
+            for part in ("", "grad_"):
+                seq, par = (r[f"{m}_{part}samples_per_s"] for m in ("sequential", "associative"))
+                cells.append(f"{seq:.2e} / {par:.2e} ({q(par / seq, '×', 2)})")
+            cells.append(" / ".join(q(r[f"{m}_compile_s"], "s", 2) for m in ("sequential", "associative")))
+            cells.append(f"{max(r['max_relative_difference'], r['max_relative_gradient_difference']):.0e}")
+            rows.append(cells)
+    header = ["device", "lags", "samples", "lags: samples/s, sequential / associative", "loss + gradient"]
+    header += ["compile, sequential / associative", "largest relative difference"]
+    return Table(header, rows, [run for _, run in LAG_SCAN])
+
+
 @table("piezo_fit")
 def piezo_fit(results: Results) -> Table:
     m = results(PIEZO_FIT)

@@ -1,6 +1,7 @@
-"""The plays as an associative scan over time (jaxafm.model.hysteresis.associative_plays)
-against the sample-by-sample scan: the same numbers and the same derivatives, and every play
-operator the same whichever path runs it."""
+"""The plays and the first-order lags as associative scans over time
+(jaxafm.model.hysteresis.associative_plays, jaxafm.model.effects.associative_lags) against the
+sample-by-sample scans: the same numbers and the same derivatives, and every play operator and
+lag stage the same whichever path runs it."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxafm.model import effects as E
 from jaxafm.model import hysteresis as H
 from jaxafm.model.scanner import default_scanner
 
 ASSOCIATIVE = H.associative_plays
+LAGS = E.associative_lags
 
 
 def drive(T: int, seed: int) -> jax.Array:
@@ -79,3 +82,60 @@ def test_every_play_operator_is_the_same_on_the_time_parallel_path(operator, mon
     parallel = np.asarray(op(u))
     assert ran, "the associative path did not run"
     np.testing.assert_allclose(parallel, plain, rtol=1e-12, atol=1e-9)
+
+
+def lag_inputs(T: int = 500, seed: int = 0) -> tuple:
+    """A random-walk drive (nm) on irregular sample times (s) through lags from 1 ms to 1000 s
+    (a creep bank's span and a rate lag's), started off rest."""
+    rng = np.random.default_rng(seed)
+    t = jnp.asarray(np.cumsum(rng.uniform(1e-3, 2e-2, T)))
+    v = jnp.asarray(np.cumsum(rng.normal(0.0, 1.0, T)))
+    return v, t, jnp.logspace(-3, 3, 9), jnp.asarray(rng.normal(0.0, 5.0, 9))
+
+
+def test_associative_lags_equal_the_sequential_ones_and_so_do_their_gradients(monkeypatch):
+    """Affine steps compose into affine steps: the associative scan gives the sequential lags to
+    round-off (the sums run in another order), and so does the gradient of a loss with respect
+    to the drive, the time constants and the start."""
+    v, t, taus, z0 = lag_inputs()
+    w = jnp.linspace(0.2, 1.0, 9)
+
+    def loss(v, taus, z0):
+        out, z = E.lowpass(v, t, taus, z0, None, w)
+        return jnp.sum(jnp.sin(out / 50.0)) + jnp.sum(z)
+
+    plain = (E.lowpass(v, t, taus, z0, None, w), jax.grad(loss, argnums=(0, 1, 2))(v, taus, z0))
+    monkeypatch.setattr(E, "time_parallel", lambda: True)
+    ran = []
+    monkeypatch.setattr(E, "associative_lags", lambda *a: ran.append(1) or LAGS(*a))
+    parallel = (E.lowpass(v, t, taus, z0, None, w), jax.grad(loss, argnums=(0, 1, 2))(v, taus, z0))
+    assert ran, "the associative path did not run"
+    for a, b in zip(jax.tree.leaves(parallel), jax.tree.leaves(plain)):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(b))))
+
+
+def test_a_step_through_the_associative_lags_is_the_closed_form(monkeypatch):
+    """A step ``d0`` at ``t[0]`` from rest: ``z_k = d0 (1 - exp(-(t - t0) / tau_k))`` exactly."""
+    monkeypatch.setattr(E, "time_parallel", lambda: True)
+    t = jnp.linspace(0.0, 50.0, 1001)
+    taus = jnp.asarray([0.1, 3.0, 40.0])
+    d0 = 7.0
+    _, z = E.lowpass(jnp.full(t.shape, d0), t, taus, jnp.zeros(3), t0=-1e-12)
+    Z = E.associative_lags(jnp.full(t.shape, d0), jnp.diff(t, prepend=-1e-12), taus, jnp.zeros(3))
+    np.testing.assert_allclose(
+        Z, d0 * (1 - np.exp(-(np.asarray(t)[:, None] + 1e-12) / np.asarray(taus))), atol=1e-12
+    )
+    np.testing.assert_allclose(z, Z[-1], atol=1e-12)
+
+
+@pytest.mark.parametrize("stage", ["creep", "rate_dependence"])
+def test_every_lag_stage_is_the_same_on_the_time_parallel_path(stage, monkeypatch):
+    """Creep and the rate lag run through lowpass: forced onto the associative path on this CPU,
+    their outputs equal the sequential path's to round-off."""
+    module = {"creep": E.Creep.logarithmic(0.02), "rate_dependence": E.RateDependence(jnp.asarray(2e-3))}[
+        stage
+    ]
+    v, t, _, _ = lag_inputs(seed=1)
+    plain = np.asarray(module(v, t))
+    monkeypatch.setattr(E, "time_parallel", lambda: True)
+    np.testing.assert_allclose(np.asarray(module(v, t)), plain, rtol=1e-12, atol=1e-10)

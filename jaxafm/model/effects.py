@@ -15,7 +15,7 @@ import numpy as np
 from jax import lax
 
 from .. import checks
-from .hysteresis import softplus_inverse
+from .hysteresis import softplus_inverse, time_parallel
 
 Array = jax.Array
 
@@ -36,7 +36,9 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -
     a sample, so a fitted ``tau`` absorbs about ``dt/2``. ``z0`` is the state at
     ``t0`` (default ``t[0]``). Returns the lags' weighted sum ``Z @ weights`` (T,)
     (default weights: ones) and the final state (K,); only the sum is stored,
-    which keeps forward-mode Jacobians through many lags cheap.
+    which keeps forward-mode Jacobians through many lags cheap. On any backend but the CPU
+    (:func:`~jaxafm.model.hysteresis.time_parallel`) the lags run as an associative scan over
+    time (:func:`associative_lags`).
     """
     dt = jnp.diff(t, prepend=t[:1] if t0 is None else jnp.reshape(t0, (1,)))
     weights = jnp.ones_like(taus) if weights is None else weights
@@ -51,8 +53,28 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -
     if v.shape[0] == 1:  # one sample (the inverses step sample by sample): no scan
         z, out = step(z0, (v[0], dt[0]))
         return out[None], z
+    if time_parallel():
+        Z = associative_lags(v, dt, taus, z0)
+        return Z @ weights, Z[-1]
     z, out = lax.scan(step, z0, (v, dt))
     return out, z
+
+
+def associative_lags(v: Array, dt: Array, taus: Array, z0: Array) -> Array:
+    """The lags ``Z`` (T, K) of :func:`lowpass` from ``z0`` (K,), as a prefix composition over
+    time. Each step is affine, ``z -> a z + b`` with ``a = exp(-dt_n / tau_k)``,
+    ``b = (1 - a) v_n``, and affine maps compose into affine maps, ``(a1, b1)`` then ``(a2, b2)``
+    being ``(a1 a2, a2 b1 + b2)``: ``Z_n = A_n z0 + B_n`` with ``(A, B)`` the associative scan
+    (``jax.lax.associative_scan``, depth O(log T)) of the steps. Equal to the sequential lags to
+    round-off (the sums are taken in another order)."""
+    a = jnp.exp(-dt[:, None] / taus)
+    b = (1 - a) * v[:, None]
+
+    def compose(first, then):
+        return first[0] * then[0], then[0] * first[1] + then[1]
+
+    A, B = lax.associative_scan(compose, (a, b))
+    return A * z0 + B
 
 
 class Creep(eqx.Module):

@@ -132,11 +132,13 @@ def play(u: Array, radii: Array, history=None) -> Array:
 
 
 def time_parallel() -> bool:
-    """Whether the plays run as an associative scan over time (:func:`associative_plays`)
-    rather than sample by sample: on any backend but the CPU. Measured side by side
-    (``experiments/bench_play_scan.py``, 50 plays): on 2 CPU cores the associative scan is
-    4-10 times slower and compiles for up to a minute; on an H200 the sample-by-sample scan
-    runs under 1e5 samples/s and the associative one up to 3e8."""
+    """Whether the plays and the first-order lags run as associative scans over time
+    (:func:`associative_plays`, :func:`~jaxafm.model.effects.associative_lags`) rather than
+    sample by sample: on any backend but the CPU. Measured side by side
+    (``experiments/bench_play_scan.py``, 50 plays; ``experiments/bench_lag_scan.py``): on 2 CPU
+    cores the associative plays are 4-10 times slower and compile for up to a minute, the lags
+    mixed (0.2-2.9 times); on an H200 the sample-by-sample scans run under 1e5 samples/s and the
+    associative ones up to 3e8 (plays) and 1e9 (one lag)."""
     return jax.default_backend() != "cpu"
 
 
