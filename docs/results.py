@@ -1002,6 +1002,29 @@ def step_a_independent(results: Results) -> Table:
     return Table(["", "median (worst) over the saved cases"], facts(rows), [STEP_A_INDEPENDENT])
 
 
+STEP_A_FLOOR = Run(
+    "step_a_independent/floor.json", "python experiments/step_a_floor.py --seeds 100 106 114 116"
+)
+
+
+@table("step_a_floor")
+def step_a_floor(results: Results) -> Table:
+    px = lambda v: "–" if v is None else q(v, "px", 2)
+    rows = []
+    for r in results(STEP_A_FLOOR):
+        a, floor, alone = r["step_a"], r["floor"], r["floor_hysteresis_only"]
+        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        rows.append(
+            [f"{r['seed']} ({scans})", q(100 * a["inside_share"], "%", 0)]
+            + [px(a[k]) for k in ("all_px", "inside_px", "outside_px")]
+            + [px(floor[k]) for k in ("all_px", "inside_px", "outside_px")]
+            + [px(alone["all_px"])]
+        )
+    header = ["case", "pixels inside the reach", "step A: all pixels", "inside", "outside"]
+    header += ["floor: all pixels", "inside", "outside", "floor, hysteresis alone"]
+    return Table(header, rows, [STEP_A_FLOOR], "Tip path rms against the truth after the rigid motion.")
+
+
 @table("step_a_ablation")
 def step_a_ablation(results: Results) -> Table:
     m = results(STEP_A_ABL)

@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxafm.config import CalibrateConfig
 from jaxafm.identify.fit import clear_caches
+from jaxafm.identify.scan_model import feature_reach
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
 OUT = Path(__file__).parent / "results" / "step_a_independent"
@@ -60,11 +61,10 @@ def plan(cases: int, speeds: int) -> list:
     return out
 
 
-def run_case(spec: dict, pixels: int, kind: str) -> dict:
-    """Draw, write, read and identify one case; score it against the truth. The compiled
-    functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
-    jax.clear_caches()
-    clear_caches()
+def draw_and_read(spec: dict, pixels: int, kind: str, magnitudes: dict | None = None) -> tuple:
+    """``(case, scans)``: the generator's case for ``spec`` (its scanner's ``magnitudes`` as
+    :func:`independent_lattice.draw_case` takes them), written as a user would give it and read
+    back through ``jaxafm calibrate``'s own reading; and the step A configuration for it."""
     case = G.draw_case(
         spec["seed"],
         kind,
@@ -72,6 +72,7 @@ def run_case(spec: dict, pixels: int, kind: str) -> dict:
         angles_deg=spec["angles"],
         pixels=pixels,
         unidentifiable=spec["unidentifiable"],
+        magnitudes=magnitudes,
     )
     series = len(spec["rates"]) > 1
     with tempfile.TemporaryDirectory() as folder:
@@ -88,15 +89,27 @@ def run_case(spec: dict, pixels: int, kind: str) -> dict:
             compensate=None,
         )
         scans = read_calibration(cfg.data, cfg.grating, Path(folder) / "c.yaml", log=lambda *_: None)
-        began = time.perf_counter()
-        said = []
-        try:
-            ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)
-        except ValueError as e:
-            return _row(spec, case, {"refused": str(e)}, time.perf_counter() - began, said)
+    return case, scans, cfg
+
+
+def run_case(spec: dict, pixels: int, kind: str) -> dict:
+    """Draw, write, read and identify one case; score it against the truth. The compiled
+    functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
+    jax.clear_caches()
+    clear_caches()
+    case, scans, cfg = draw_and_read(spec, pixels, kind)
+    began = time.perf_counter()
+    said = []
+    try:
+        ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)
+    except ValueError as e:
+        return _row(spec, case, {"refused": str(e)}, time.perf_counter() - began, said)
     m = {f"gpi_{k}": v for k, v in identification_metrics(ident).items()}
     m["tip_path_rms_px"] = _path_error(ident.model, scans, case)
     m["tip_path_per_scan_rms_px"] = _path_error_per_scan(ident.model, scans, case)
+    m["tip_path_inside_reach_rms_px"], m["tip_path_outside_reach_rms_px"], m["inside_reach_share"] = (
+        path_error_by_reach(ident.model, scans, case)
+    )
     truth = case["truth"]["scanner"]
     m["true_rate_lag_s"] = truth["rate_tau_s"]
     m["true_drift_nm_per_s"] = truth["drift_nm_per_s"]
@@ -119,15 +132,38 @@ def _row(spec, case, m, seconds, said) -> dict:
     }
 
 
-def _path_error(model, scans, case) -> float:
-    """rms (px) of the fitted tip path against the true one over every pixel of every scan, after
-    the best rigid motion of the fitted frame onto the true one."""
-    fitted, true = [], []
+def _paths(model, scans, case) -> tuple:
+    """The fitted and the true tip paths (N, 2) nm over every pixel of every scan, trace then
+    retrace of each, and each pixel's nominal stage position (N, 2) nm."""
+    fitted, true, nominal = [], [], []
     for scan, s in zip(scans, case["scans"]):
+        rows, cols = np.asarray(s.truth["tip_trace_nm"]).shape[:2]
+        rc = np.stack(np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij"), -1).reshape(-1, 2)
         for k, p in zip(("trace", "retrace"), model.paths(scan)):
             fitted.append(np.asarray(p).reshape(-1, 2))
             true.append(np.asarray(s.truth[f"tip_{k}_nm"]).reshape(-1, 2))
-    return _rigid_rms(np.concatenate(fitted), np.concatenate(true)) / scans[0].raster.pixel_size[0]
+            nominal.append(np.asarray(scan.raster.nominal(rc.astype(float))))
+    return np.concatenate(fitted), np.concatenate(true), np.concatenate(nominal)
+
+
+def _path_error(model, scans, case) -> float:
+    """rms (px) of the fitted tip path against the true one over every pixel of every scan, after
+    the best rigid motion of the fitted frame onto the true one."""
+    fitted, true, _ = _paths(model, scans, case)
+    return float(np.sqrt(np.mean(_rigid_errors(fitted, true)))) / scans[0].raster.pixel_size[0]
+
+
+def path_error_by_reach(model, scans, case) -> tuple:
+    """:func:`_path_error` (px) over the pixels inside the features' chords' reach on both stage
+    axes (:func:`~jaxafm.identify.scan_model.feature_reach`: where the data hold the path) and
+    over those outside it (the image's margins, where the model extrapolates; None when there
+    are none), and the share of pixels inside."""
+    fitted, true, nominal = _paths(model, scans, case)
+    e = _rigid_errors(fitted, true)
+    reach = feature_reach(scans)
+    inside = np.all([(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)], axis=0)
+    rms = lambda m: float(np.sqrt(np.mean(e[m]))) / scans[0].raster.pixel_size[0] if m.any() else None
+    return rms(inside), rms(~inside), float(inside.mean())
 
 
 def _path_error_per_scan(model, scans, case) -> list:
@@ -138,17 +174,16 @@ def _path_error_per_scan(model, scans, case) -> list:
     for scan, s in zip(scans, case["scans"]):
         a = np.concatenate([np.asarray(p).reshape(-1, 2) for p in model.paths(scan)])
         b = np.concatenate([np.asarray(s.truth[f"tip_{k}_nm"]).reshape(-1, 2) for k in ("trace", "retrace")])
-        out.append(_rigid_rms(a, b) / scan.raster.pixel_size[0])
+        out.append(float(np.sqrt(np.mean(_rigid_errors(a, b)))) / scan.raster.pixel_size[0])
     return out
 
 
-def _rigid_rms(a: np.ndarray, b: np.ndarray) -> float:
-    """rms length (nm) of ``a - b`` after the rigid motion of ``a`` that fits ``b`` best."""
+def _rigid_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared lengths (N,) nm^2 of ``a - b`` after the rigid motion of ``a`` that fits ``b`` best."""
     ma, mb = a.mean(axis=0), b.mean(axis=0)
     u, _, vt = np.linalg.svd((a - ma).T @ (b - mb))
     r = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    e = (a - ma) @ r + mb - b
-    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return np.sum(((a - ma) @ r + mb - b) ** 2, axis=1)
 
 
 def _stat(rows: list, value, how) -> float | None:

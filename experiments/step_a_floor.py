@@ -1,0 +1,122 @@
+"""Where step A's tip-path error on the independent generator comes from: the data, or the model.
+
+For a few of ``experiments/step_a_independent.py``'s cases (the same draws), three numbers in
+pixels, each the rms of the tip path against the generator's truth after the one rigid motion no
+image can see:
+
+- **step A**: the ``jaxafm calibrate`` fit of the case, as that study runs it, over every pixel,
+  and split into the pixels inside the features' chords' reach (where the images hold the path)
+  and those outside it (the image's margins, where the model extrapolates);
+- **floor**: the richest model step A can fit (generalised PI, 16 plays, 3 dead zones a side
+  inside the reach, every effect: asymmetry, creep, coupling, bow, drift, rate dependence)
+  fitted by Levenberg-Marquardt straight to the true tip path, with the rigid motion free: no
+  image, no feature finding, no held-out split. What no identification from images can beat;
+- **floor, hysteresis only**: the same, on the case drawn again with the generator's lag, creep,
+  coupling and drift switched off, its Preisach hysteresis alone.
+
+    python experiments/step_a_floor.py [--seeds 100 106 116] [--steps 300]
+
+writes experiments/results/step_a_independent/floor.json (the table of docs/step_a.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import benchutil  # noqa: F401  (puts tests/ on sys.path)
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import step_a_independent as S
+
+from jaxafm.identify.fit import clear_caches
+from jaxafm.identify.scan_model import ScanModelSpec, feature_reach, nominal_scan_model
+from jaxafm.jobs.calibrate import identify_model
+
+#: the richest model step A may fit (as the study's MODEL, with every effect)
+RICHEST = ("gpi", ("asymmetry", "creep", "coupling", "bow", "drift", "rate_dependence"), 16, 3)
+#: the generator's effects besides hysteresis, switched off for the hysteresis-only floor
+HYSTERESIS_ONLY = {"tau_s": 0, "creep_per_decade": 0, "coupling": 0, "drift_nm_per_s": 0, "bow_per_nm": 0}
+
+
+def floor(scans, case, steps: int) -> dict:
+    """The richest model fitted straight to the case's true tip path (module docstring): its rms
+    (px) over every pixel, inside and outside the features' reach, and the solver's steps."""
+    kind, effects, plays, zones = RICHEST
+    spec = ScanModelSpec(kind, effects, plays, zones, rotation=None, deadzone_reach=feature_reach(scans))
+    raw, rebuild = nominal_scan_model(scans[0], spec, scans).as_float64().free_parameters(scans[0])
+    true = [
+        jnp.asarray(np.stack([s.truth["tip_trace_nm"], s.truth["tip_retrace_nm"]])) for s in case["scans"]
+    ]
+    pixel = scans[0].raster.pixel_size[0]
+
+    def residuals(p, _):
+        model, (turn, dx, dy) = rebuild(p[0]), p[1]
+        c, s = jnp.cos(turn), jnp.sin(turn)
+        moved = lambda a: a @ jnp.asarray([[c, s], [-s, c]]) + jnp.stack([dx, dy])
+        return jnp.concatenate(
+            [(moved(jnp.stack(model.paths(scan))) - t).ravel() / pixel for scan, t in zip(scans, true)]
+        )
+
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
+    sol = optx.least_squares(residuals, solver, (raw, jnp.zeros(3)), max_steps=steps, throw=False)
+    model = rebuild(sol.value[0])
+    inside, outside, _ = S.path_error_by_reach(model, scans, case)
+    return {
+        "all_px": S._path_error(model, scans, case),
+        "inside_px": inside,
+        "outside_px": outside,
+        "steps": int(sol.stats["num_steps"]),
+    }
+
+
+def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
+    spec = next(c for c in S.plan(20, 3) if c["seed"] == seed)
+    out = {"seed": seed, "rates_hz": list(spec["rates"]), "angles_deg": list(spec["angles"])}
+    jax.clear_caches()
+    clear_caches()
+    case, scans, cfg = S.draw_and_read(spec, pixels, kind)
+    began = time.perf_counter()
+    ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None)
+    inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
+    out["step_a"] = {
+        "all_px": S._path_error(ident.model, scans, case),
+        "inside_px": inside,
+        "outside_px": outside,
+        "inside_share": share,
+        "model": f"{ident.spec.kind} {ident.spec.operators} plays + {', '.join(ident.spec.effects)}",
+        "edge_delay_s": float(ident.model.edge_delay),
+        "seconds": time.perf_counter() - began,
+    }
+    out["floor"] = floor(scans, case, steps)
+    case, scans, _ = S.draw_and_read(spec, pixels, kind, magnitudes=HYSTERESIS_ONLY)
+    out["floor_hysteresis_only"] = floor(scans, case, steps)
+    return out
+
+
+def main() -> None:
+    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--seeds", type=int, nargs="+", default=[100, 106, 116])
+    a.add_argument("--steps", type=int, default=300, help="Levenberg-Marquardt steps of each floor fit")
+    a.add_argument("--pixels", type=int, default=64)
+    a.add_argument("--kind", default="fine")
+    args = a.parse_args()
+    out = S.OUT / "floor.json"
+    rows = json.loads(out.read_text()) if out.exists() else []
+    for seed in args.seeds:
+        rows = [r for r in rows if r["seed"] != seed] + [run(seed, args.steps, args.pixels, args.kind)]
+        out.write_text(json.dumps(sorted(rows, key=lambda r: r["seed"]), indent=1, default=float))
+        r = rows[-1]
+        print(
+            f"seed {seed}: step A {r['step_a']['all_px']:.2f} px (inside the reach {r['step_a']['inside_px']:.2f}, "
+            f"outside {r['step_a']['outside_px'] or 0:.2f}); floor {r['floor']['all_px']:.2f} px, hysteresis "
+            f"alone {r['floor_hysteresis_only']['all_px']:.2f} px",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
