@@ -66,7 +66,7 @@ def floor(scans, case, steps: int) -> dict:
     model = rebuild(sol.value[0])
     inside, outside, _ = S.path_error_by_reach(model, scans, case)
     return {
-        "all_px": S._path_error(model, scans, case),
+        "all_px": S.path_error(model, scans, case),
         "inside_px": inside,
         "outside_px": outside,
         "steps": int(sol.stats["num_steps"]),
@@ -83,7 +83,7 @@ def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
     out["step_a"] = {
-        "all_px": S._path_error(ident.model, scans, case),
+        "all_px": S.path_error(ident.model, scans, case),
         "inside_px": inside,
         "outside_px": outside,
         "inside_share": share,

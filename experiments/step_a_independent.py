@@ -105,7 +105,7 @@ def run_case(spec: dict, pixels: int, kind: str) -> dict:
     except ValueError as e:
         return _row(spec, case, {"refused": str(e)}, time.perf_counter() - began, said)
     m = {f"gpi_{k}": v for k, v in identification_metrics(ident).items()}
-    m["tip_path_rms_px"] = _path_error(ident.model, scans, case)
+    m["tip_path_rms_px"] = path_error(ident.model, scans, case)
     m["tip_path_per_scan_rms_px"] = _path_error_per_scan(ident.model, scans, case)
     m["tip_path_inside_reach_rms_px"], m["tip_path_outside_reach_rms_px"], m["inside_reach_share"] = (
         path_error_by_reach(ident.model, scans, case)
@@ -146,7 +146,7 @@ def _paths(model, scans, case) -> tuple:
     return np.concatenate(fitted), np.concatenate(true), np.concatenate(nominal)
 
 
-def _path_error(model, scans, case) -> float:
+def path_error(model, scans, case) -> float:
     """rms (px) of the fitted tip path against the true one over every pixel of every scan, after
     the best rigid motion of the fitted frame onto the true one."""
     fitted, true, _ = _paths(model, scans, case)
@@ -154,7 +154,7 @@ def _path_error(model, scans, case) -> float:
 
 
 def path_error_by_reach(model, scans, case) -> tuple:
-    """:func:`_path_error` (px) over the pixels inside the features' chords' reach on both stage
+    """:func:`path_error` (px) over the pixels inside the features' chords' reach on both stage
     axes (:func:`~jaxafm.identify.scan_model.feature_reach`: where the data hold the path) and
     over those outside it (the image's margins, where the model extrapolates; None when there
     are none), and the share of pixels inside."""
@@ -167,7 +167,7 @@ def path_error_by_reach(model, scans, case) -> tuple:
 
 
 def _path_error_per_scan(model, scans, case) -> list:
-    """:func:`_path_error` of each scan alone, each after its own rigid motion: small where each
+    """:func:`path_error` of each scan alone, each after its own rigid motion: small where each
     scan's path is right but the scans' paths sit apart (a lattice offset between them that the
     fit took up as drift, say)."""
     out = []
