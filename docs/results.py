@@ -1865,17 +1865,27 @@ PLAY_SCAN = (
 )
 
 
-@table("play_scan")
-def play_scan(results: Results) -> Table:
+def _scan_rows(
+    results: Results, runs: Sequence[tuple], lead: Callable, tail: Callable = lambda r: []
+) -> list:
+    """A time-parallel benchmark's rows (``bench_play_scan``, ``bench_lag_scan``): per device and
+    row, the ``lead`` cells, then samples/s sequential / associative with their ratio, forward
+    and loss + gradient, both compile times, and the ``tail`` cells."""
     rows = []
-    for device, run in PLAY_SCAN:
+    for device, run in runs:
         for r in results(run)["rows"]:
-            cells = [device, count(r["T"])]
+            cells = [device] + lead(r)
             for part in ("", "grad_"):
                 seq, par = (r[f"{m}_{part}samples_per_s"] for m in ("sequential", "associative"))
                 cells.append(f"{seq:.2e} / {par:.2e} ({q(par / seq, '×', 2)})")
             cells.append(" / ".join(q(r[f"{m}_compile_s"], "s", 2) for m in ("sequential", "associative")))
-            rows.append(cells)
+            rows.append(cells + tail(r))
+    return rows
+
+
+@table("play_scan")
+def play_scan(results: Results) -> Table:
+    rows = _scan_rows(results, PLAY_SCAN, lambda r: [count(r["T"])])
     header = ["device", "samples", "plays: samples/s, sequential / associative", "loss + gradient"]
     header += ["compile, sequential / associative"]
     return Table(header, rows, [run for _, run in PLAY_SCAN], "50 plays; the same numbers on both paths.")
@@ -1892,16 +1902,8 @@ LAG_SCAN = (
 
 @table("lag_scan")
 def lag_scan(results: Results) -> Table:
-    rows = []
-    for device, run in LAG_SCAN:
-        for r in results(run)["rows"]:
-            cells = [device, count(r["lags"]), count(r["T"])]
-            for part in ("", "grad_"):
-                seq, par = (r[f"{m}_{part}samples_per_s"] for m in ("sequential", "associative"))
-                cells.append(f"{seq:.2e} / {par:.2e} ({q(par / seq, '×', 2)})")
-            cells.append(" / ".join(q(r[f"{m}_compile_s"], "s", 2) for m in ("sequential", "associative")))
-            cells.append(f"{max(r['max_relative_difference'], r['max_relative_gradient_difference']):.0e}")
-            rows.append(cells)
+    largest = lambda r: [f"{max(r['max_relative_difference'], r['max_relative_gradient_difference']):.0e}"]
+    rows = _scan_rows(results, LAG_SCAN, lambda r: [count(r["lags"]), count(r["T"])], largest)
     header = ["device", "lags", "samples", "lags: samples/s, sequential / associative", "loss + gradient"]
     header += ["compile, sequential / associative", "largest relative difference"]
     return Table(header, rows, [run for _, run in LAG_SCAN])

@@ -28,7 +28,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from bench_play_scan import timed
+from bench_play_scan import device_name, timed
 
 from jaxafm import plots
 from jaxafm.model import effects
@@ -112,9 +112,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--lengths", type=int, nargs="+", default=list(LENGTHS))
     args = ap.parse_args()
-    device = jax.devices()[0]
-    kind = "" if device.platform == "cpu" else f"_{device.device_kind}"
-    name = f"{device.platform}{kind}".lower().replace(" ", "_")
+    name = device_name()
     rows = []
     for lags in args.lags:
         for T in args.lengths:

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxafm import plots
-from jaxafm.model.hysteresis import play
+from jaxafm.model.hysteresis import associative_plays, play
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_play_scan"
 LENGTHS = (1_000, 10_000, 100_000, 1_000_000)
@@ -43,16 +43,9 @@ LENGTHS = (1_000, 10_000, 100_000, 1_000_000)
 
 def associative_play(u: jax.Array, radii: jax.Array) -> jax.Array:
     """The plays (T, n) of radii ``radii`` for the drive ``u`` (T,), every play at ``u[0]``
-    before it (``jaxafm``'s start), by an associative scan of clamps (module docstring)."""
-
-    def compose(first, then):
-        (a, b), (c, d) = first, then
-        return jnp.where(a < c, c, jnp.where(a > d, d, a)), jnp.where(b < c, c, jnp.where(b > d, d, b))
-
-    lo, hi = u[:, None] - radii, u[:, None] + radii
-    A, B = jax.lax.associative_scan(compose, (lo, hi), axis=0)
-    p0 = jnp.broadcast_to(u[0], radii.shape)
-    return jnp.where(p0 < A, A, jnp.where(p0 > B, B, p0))
+    before it (``jaxafm``'s start), by the associative scan of clamps (module docstring;
+    ``jaxafm.model.hysteresis.associative_plays``)."""
+    return associative_plays(u, radii, jnp.broadcast_to(u[0], radii.shape))
 
 
 def drive(T: int, seed: int = 0) -> np.ndarray:
@@ -75,6 +68,14 @@ def timed(f, *args, repeats: int) -> tuple:
         jax.block_until_ready(compiled(*args))
         runs.append(time.perf_counter() - start)
     return compile_s, statistics.median(runs), out
+
+
+def device_name() -> str:
+    """The default JAX device as the result files are named: ``cpu``, or the platform and the
+    device's kind (``gpu_nvidia_h200``)."""
+    device = jax.devices()[0]
+    kind = "" if device.platform == "cpu" else f"_{device.device_kind}"
+    return f"{device.platform}{kind}".lower().replace(" ", "_")
 
 
 def measure(T: int, plays: int, repeats: int) -> dict:
@@ -136,9 +137,7 @@ def main() -> None:
     ap.add_argument("--lengths", type=int, nargs="+", default=list(LENGTHS))
     ap.add_argument("--out", type=Path, default=None, help="the JSON file (default: results/<device>.json)")
     args = ap.parse_args()
-    device = jax.devices()[0]
-    kind = "" if device.platform == "cpu" else f"_{device.device_kind}"
-    name = f"{device.platform}{kind}".lower().replace(" ", "_")
+    name = device_name()
     rows = []
     for T in args.lengths:
         rows.append(measure(T, args.plays, args.repeats))
