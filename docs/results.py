@@ -1025,6 +1025,24 @@ def step_a_floor(results: Results) -> Table:
     return Table(header, rows, [STEP_A_FLOOR], "Tip path rms against the truth after the rigid motion.")
 
 
+RATE_LAG = Run("rate_lag_discretisation/metrics.json", "python experiments/rate_lag_discretisation.py")
+
+
+@table("rate_lag_discretisation")
+def rate_lag_discretisation(results: Results) -> Table:
+    rows = []
+    for r in results(RATE_LAG)["rows"]:
+        rate = "0.5, 1 and 2 Hz at once" if r["line_rate_hz"] == "all" else q(r["line_rate_hz"], "Hz", 1)
+        closed = q(1e3 * r["closed_form_lag_s"], "ms", 2) if "closed_form_lag_s" in r else "–"
+        rows.append(
+            [q(1e3 * r["true_lag_s"], "ms", 1), rate]
+            + [q(1e3 * r["fitted_lag_s"], "ms", 2), closed, q(r["relative_error_pct"], "%", 0)]
+        )
+    header = ["generator's lag", "line rate", "jaxafm's lag that reproduces it", "closed form"]
+    header += ["relative error"]
+    return Table(header, rows, [RATE_LAG], "64 px lines, one sample a pixel; the lag stage alone.")
+
+
 @table("step_a_ablation")
 def step_a_ablation(results: Results) -> Table:
     m = results(STEP_A_ABL)
@@ -1868,7 +1886,7 @@ PLAY_SCAN = (
 def _scan_rows(
     results: Results, runs: Sequence[tuple], lead: Callable, tail: Callable = lambda r: []
 ) -> list:
-    """A time-parallel benchmark's rows (``bench_play_scan``, ``bench_lag_scan``): per device and
+    """A time-parallel benchmark's rows (``bench_play_scan``, ``bench_lag_scan``, ``bench_mode_scan``): per device and
     row, the ``lead`` cells, then samples/s sequential / associative with their ratio, forward
     and loss + gradient, both compile times, and the ``tail`` cells."""
     rows = []
@@ -1881,6 +1899,11 @@ def _scan_rows(
             cells.append(" / ".join(q(r[f"{m}_compile_s"], "s", 2) for m in ("sequential", "associative")))
             rows.append(cells + tail(r))
     return rows
+
+
+def _largest_difference(r: dict) -> list:
+    """The larger relative difference of a time-parallel benchmark's row, values or gradients."""
+    return [f"{max(r['max_relative_difference'], r['max_relative_gradient_difference']):.0e}"]
 
 
 @table("play_scan")
@@ -1902,11 +1925,21 @@ LAG_SCAN = (
 
 @table("lag_scan")
 def lag_scan(results: Results) -> Table:
-    largest = lambda r: [f"{max(r['max_relative_difference'], r['max_relative_gradient_difference']):.0e}"]
-    rows = _scan_rows(results, LAG_SCAN, lambda r: [count(r["lags"]), count(r["T"])], largest)
+    rows = _scan_rows(results, LAG_SCAN, lambda r: [count(r["lags"]), count(r["T"])], _largest_difference)
     header = ["device", "lags", "samples", "lags: samples/s, sequential / associative", "loss + gradient"]
     header += ["compile, sequential / associative", "largest relative difference"]
     return Table(header, rows, [run for _, run in LAG_SCAN])
+
+
+MODE_SCAN = Run("bench_mode_scan/cpu.json", "python experiments/bench_mode_scan.py")
+
+
+@table("mode_scan")
+def mode_scan(results: Results) -> Table:
+    rows = _scan_rows(results, (("2 CPU cores", MODE_SCAN),), lambda r: [count(r["T"])], _largest_difference)
+    header = ["device", "samples", "mode: samples/s, sequential / associative", "loss + gradient"]
+    header += ["compile, sequential / associative", "largest relative difference"]
+    return Table(header, rows, [MODE_SCAN])
 
 
 @table("piezo_fit")

@@ -16,6 +16,7 @@ generator's truth:
   reduced with the reason.
 
     python experiments/step_a_independent.py [--cases 20] [--speeds 4] [--shard 1/2] [--resume]
+    python experiments/step_a_independent.py --seeds 102 105  # those cases again, in place
 
 writes experiments/results/step_a_independent/ (cases-K-of-N.json per shard, after each case;
 with --resume the cases already in one are skipped; then --summarise: summary.json, what the docs
@@ -291,6 +292,19 @@ def _line(r: dict) -> str:
     )
 
 
+def rerun(seeds: list, cases: list, pixels: int, kind: str) -> None:
+    """Run the cases of ``seeds`` again, each row replacing the one of its seed in the
+    cases-*.json that holds it (after each case)."""
+    held = {r["seed"]: path for path in OUT.glob("cases-*.json") for r in json.loads(path.read_text())}
+    for spec in (c for c in cases if c["seed"] in seeds):
+        row = run_case(spec, pixels, kind)
+        print(_line(row), flush=True)
+        path = held.get(spec["seed"], OUT / "cases-rerun.json")
+        rows = json.loads(path.read_text()) if path.exists() else []
+        rows = [r for r in rows if r["seed"] != spec["seed"]] + [row]
+        path.write_text(json.dumps(sorted(rows, key=lambda r: r["seed"]), indent=1, default=float))
+
+
 def main() -> None:
     a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("--cases", type=int, default=20)
@@ -300,9 +314,14 @@ def main() -> None:
     a.add_argument("--shard", default="1/1")
     a.add_argument("--summarise", action="store_true")
     a.add_argument("--resume", action="store_true", help="skip the cases a cases-*.json already holds")
+    a.add_argument(
+        "--seeds", type=int, nargs="+", help="run these cases again, each in the file that holds it"
+    )
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    if not args.summarise:
+    if args.seeds:
+        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind)
+    elif not args.summarise:
         k, n = (int(v) for v in args.shard.split("/"))
         done = {r["seed"] for p in OUT.glob("cases-*.json") for r in json.loads(p.read_text())}
         todo = [

@@ -296,11 +296,38 @@ class Vibration(eqx.Module):
             xd1 = e * (-x * w0**2 * sn / wd + xd * (c - sigma * sn / wd))
             return jnp.stack([x1 + vn, xd1]), x1 + vn
 
+        if v.shape[0] > 1 and time_parallel():
+            S = associative_mode(v, dt, w0, sigma, wd, state)
+            return S[:, 0], S[-1]
         s, out = lax.scan(step, state, (v, dt))
         return out, s
 
     def __call__(self, v: Array, t: Array) -> Array:
         return self.run(v, t, self.initial_state(v[0]), t[0])[0]
+
+
+def associative_mode(v: Array, dt: Array, w0, sigma, wd, state: Array) -> Array:
+    """The states ``S`` (T, 2) (position nm, velocity nm/s) of :class:`Vibration` from ``state``,
+    as a prefix composition over time. Each step is affine, ``s -> M_n s + (I - M_n) (v_n, 0)``
+    with ``M_n = exp(A dt_n)`` (the class docstring's closed form), and affine maps compose into
+    affine maps, ``(M1, b1)`` then ``(M2, b2)`` being ``(M2 M1, M2 b1 + b2)``: ``S_n = P_n state +
+    Q_n`` with ``(P, Q)`` the associative scan (``jax.lax.associative_scan``, depth O(log T)) of
+    the steps. Equal to the sequential steps to round-off (the sums are taken in another order)."""
+    e, c, sn = jnp.exp(-sigma * dt), jnp.cos(wd * dt), jnp.sin(wd * dt)
+    M = e[:, None, None] * jnp.stack(
+        [
+            jnp.stack([c + sigma * sn / wd, sn / wd], -1),
+            jnp.stack([-(w0**2) * sn / wd, c - sigma * sn / wd], -1),
+        ],
+        -2,
+    )
+    b = jnp.stack([v, jnp.zeros_like(v)], -1) - M[:, :, 0] * v[:, None]
+
+    def compose(first, then):
+        return then[0] @ first[0], jnp.einsum("...ij,...j->...i", then[0], first[1]) + then[1]
+
+    P, Q = lax.associative_scan(compose, (M, b))
+    return jnp.einsum("tij,j->ti", P, state) + Q
 
 
 class Coupling(eqx.Module):

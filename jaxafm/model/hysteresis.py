@@ -132,9 +132,10 @@ def play(u: Array, radii: Array, history=None) -> Array:
 
 
 def time_parallel() -> bool:
-    """Whether the plays and the first-order lags run as associative scans over time
-    (:func:`associative_plays`, :func:`~jaxafm.model.effects.associative_lags`) rather than
-    sample by sample: on any backend but the CPU. Measured side by side
+    """Whether the plays, the first-order lags and the vibration mode run as associative scans
+    over time (:func:`associative_plays`, :func:`~jaxafm.model.effects.associative_lags`,
+    :func:`~jaxafm.model.effects.associative_mode`) rather than sample by sample: on any backend
+    but the CPU. Measured side by side
     (``experiments/bench_play_scan.py``, 50 plays; ``experiments/bench_lag_scan.py``): on 2 CPU
     cores the associative plays are 4-10 times slower and compile for up to a minute, the lags
     mixed (0.2-2.9 times); on an H200 the sample-by-sample scans run under 1e5 samples/s and the

@@ -1,0 +1,109 @@
+"""The scanner's vibration mode over time sample by sample (``lax.scan``) against an associative
+scan of its 2 x 2 affine steps, on the CPU and on a GPU: which one to run where, measured.
+
+The mode's step maps its (position, velocity) state affinely, ``s -> M s + (I - M) (v, 0)`` with
+``M = exp(A dt)`` (``jaxafm.model.effects.Vibration``), and affine maps compose into affine maps,
+so the mode over a whole record is the prefix composition of the steps, an associative scan of
+depth O(log T) over 2 x 2 matrices (``jaxafm.model.effects.associative_mode``).
+
+For each record length T, both paths of ``Vibration.run`` jitted: the positions (forward), and
+the gradient of a squared error with respect to the frequency, the damping and the drive (a
+fit's need). Compile time (``lower().compile()``) beside the median of ``--repeats`` runs; the
+largest difference between the two paths.
+
+    python experiments/bench_mode_scan.py                    # this machine's default JAX device
+    JAX_PLATFORMS=cpu python experiments/bench_mode_scan.py  # the CPU where a GPU is present
+
+Writes ``experiments/results/bench_mode_scan/<device>.json`` (the docs' table ``mode_scan``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from bench_play_scan import device_name, timed
+
+from jaxafm.model import effects
+
+OUT = Path(__file__).resolve().parent / "results" / "bench_mode_scan"
+LENGTHS = (1_000, 10_000, 100_000, 300_000)
+PATHS = {"sequential": False, "associative": True}
+
+
+def mode_on(path: str):
+    """``Vibration.run``'s positions forced onto one path: the choice is made when traced."""
+
+    def f(v, t, frequency, damping):
+        before = effects.time_parallel
+        effects.time_parallel = lambda: PATHS[path]
+        try:
+            return effects.Vibration(frequency, damping).run(v, t, jnp.stack([v[0], 0.0]), t[0])[0]
+        finally:
+            effects.time_parallel = before
+
+    return f
+
+
+def measure(T: int, repeats: int) -> dict:
+    """Both paths at one record length: the positions, and a loss's gradient. A 10 kHz drive
+    (a random walk, nm) through a 1 kHz mode of damping 0.05."""
+    rng = np.random.default_rng(0)
+    t = jnp.asarray(np.arange(T) * 1e-4)
+    v = jnp.asarray(np.cumsum(rng.normal(0.0, 1.0, T)))
+    frequency, damping = jnp.asarray(1e3), jnp.asarray(0.05)
+    target = jnp.asarray(np.sin(np.arange(T) / 50.0))
+    row, outs = {"T": T}, {}
+    for name in PATHS:
+        f = mode_on(name)
+        loss = lambda fr, dm, v, f=f: jnp.sum((f(v, t, fr, dm) - target) ** 2)
+        c, r, y = timed(lambda v: f(v, t, frequency, damping), v, repeats=repeats)
+        cg, rg, grads = timed(jax.grad(loss, argnums=(0, 1, 2)), frequency, damping, v, repeats=repeats)
+        outs[name] = (y, grads)
+        row |= {
+            f"{name}_compile_s": c,
+            f"{name}_run_s": r,
+            f"{name}_samples_per_s": T / r,
+            f"{name}_grad_compile_s": cg,
+            f"{name}_grad_run_s": rg,
+            f"{name}_grad_samples_per_s": T / rg,
+        }
+    (ys, gs), (ya, ga) = outs["sequential"], outs["associative"]
+    row["max_relative_difference"] = float(jnp.max(jnp.abs(ys - ya)) / jnp.max(jnp.abs(ys)))
+    row["max_relative_gradient_difference"] = float(
+        max(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)) for a, b in zip(gs, ga))
+    )
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--lengths", type=int, nargs="+", default=list(LENGTHS))
+    args = ap.parse_args()
+    name = device_name()
+    rows = []
+    for T in args.lengths:
+        rows.append(measure(T, args.repeats))
+        r = rows[-1]
+        print(
+            f"{name} T={T:>8d}: {r['sequential_samples_per_s']:.3g} (sequential) vs "
+            f"{r['associative_samples_per_s']:.3g} samples/s (associative); gradient "
+            f"{r['sequential_grad_samples_per_s']:.3g} vs {r['associative_grad_samples_per_s']:.3g}; "
+            f"compile {r['sequential_compile_s']:.2f} vs {r['associative_compile_s']:.2f} s (gradient "
+            f"{r['sequential_grad_compile_s']:.2f} vs {r['associative_grad_compile_s']:.2f} s); relative "
+            f"difference {r['max_relative_difference']:.1e}, gradient {r['max_relative_gradient_difference']:.1e}",
+            flush=True,
+        )
+    OUT.mkdir(parents=True, exist_ok=True)
+    out = OUT / f"{name}.json"
+    out.write_text(json.dumps({"device": name, "jax": jax.__version__, "rows": rows}, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
