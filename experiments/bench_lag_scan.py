@@ -28,7 +28,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from bench_play_scan import device_name, timed
+from bench_play_scan import device_name, path_timings, relative_differences, summary
 
 from jaxafm import plots
 from jaxafm.model import effects
@@ -64,23 +64,11 @@ def measure(T: int, lags: int, repeats: int) -> dict:
     for name in PATHS:
         f = lowpass_on(name)
         loss = lambda taus, v, f=f: jnp.sum((f(v, t, taus, w) - target) ** 2)
-        c, r, y = timed(lambda v: f(v, t, taus, w), v, repeats=repeats)
-        cg, rg, grads = timed(jax.grad(loss, argnums=(0, 1)), taus, v, repeats=repeats)
+        grad = jax.grad(loss, argnums=(0, 1))
+        columns, y, grads = path_timings(name, T, lambda v: f(v, t, taus, w), (v,), grad, (taus, v), repeats)
         outs[name] = (y, grads)
-        row |= {
-            f"{name}_compile_s": c,
-            f"{name}_run_s": r,
-            f"{name}_samples_per_s": T / r,
-            f"{name}_grad_compile_s": cg,
-            f"{name}_grad_run_s": rg,
-            f"{name}_grad_samples_per_s": T / rg,
-        }
-    (ys, gs), (ya, ga) = outs["sequential"], outs["associative"]
-    row["max_relative_difference"] = float(jnp.max(jnp.abs(ys - ya)) / jnp.max(jnp.abs(ys)))
-    row["max_relative_gradient_difference"] = float(
-        max(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)) for a, b in zip(gs, ga))
-    )
-    return row
+        row |= columns
+    return row | relative_differences(outs["sequential"], outs["associative"])
 
 
 def figure(path: Path) -> None:
@@ -118,15 +106,7 @@ def main() -> None:
         for T in args.lengths:
             rows.append(measure(T, lags, args.repeats))
             r = rows[-1]
-            print(
-                f"{name} lags={lags} T={T:>8d}: {r['sequential_samples_per_s']:.3g} (sequential) vs "
-                f"{r['associative_samples_per_s']:.3g} samples/s (associative); gradient "
-                f"{r['sequential_grad_samples_per_s']:.3g} vs {r['associative_grad_samples_per_s']:.3g}; "
-                f"compile {r['sequential_compile_s']:.2f} vs {r['associative_compile_s']:.2f} s (gradient "
-                f"{r['sequential_grad_compile_s']:.2f} vs {r['associative_grad_compile_s']:.2f} s); relative "
-                f"difference {r['max_relative_difference']:.1e}, gradient {r['max_relative_gradient_difference']:.1e}",
-                flush=True,
-            )
+            print(summary(f"{name} lags={lags} T={T:>8d}", r), flush=True)
     OUT.mkdir(parents=True, exist_ok=True)
     out = OUT / f"{name}.json"
     out.write_text(json.dumps({"device": name, "jax": jax.__version__, "rows": rows}, indent=1))

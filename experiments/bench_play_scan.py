@@ -70,6 +70,41 @@ def timed(f, *args, repeats: int) -> tuple:
     return compile_s, statistics.median(runs), out
 
 
+def path_timings(name: str, T: int, forward, fargs: tuple, grad, gargs: tuple, repeats: int) -> tuple:
+    """One path of a time-parallel benchmark at ``T`` samples: ``(columns, output, gradient)``,
+    the columns its compile and median run times (:func:`timed`) and samples/s, forward
+    (``forward(*fargs)``) and with a gradient (``grad(*gargs)``)."""
+    c, r, y = timed(forward, *fargs, repeats=repeats)
+    cg, rg, g = timed(grad, *gargs, repeats=repeats)
+    columns = {f"{name}_compile_s": c, f"{name}_run_s": r, f"{name}_samples_per_s": T / r}
+    columns |= {f"{name}_grad_compile_s": cg, f"{name}_grad_run_s": rg, f"{name}_grad_samples_per_s": T / rg}
+    return columns, y, g
+
+
+def relative_differences(sequential: tuple, associative: tuple) -> dict:
+    """The largest differences between two paths' ``(output, gradients)``, relative to the
+    sequential path's largest value."""
+    (ys, gs), (ya, ga) = sequential, associative
+    return {
+        "max_relative_difference": float(jnp.max(jnp.abs(ys - ya)) / jnp.max(jnp.abs(ys))),
+        "max_relative_gradient_difference": float(
+            max(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)) for a, b in zip(gs, ga))
+        ),
+    }
+
+
+def summary(head: str, r: dict) -> str:
+    """A benchmark row in a line: both paths' samples/s and compile times, their differences."""
+    return (
+        f"{head}: {r['sequential_samples_per_s']:.3g} (sequential) vs "
+        f"{r['associative_samples_per_s']:.3g} samples/s (associative); gradient "
+        f"{r['sequential_grad_samples_per_s']:.3g} vs {r['associative_grad_samples_per_s']:.3g}; "
+        f"compile {r['sequential_compile_s']:.2f} vs {r['associative_compile_s']:.2f} s (gradient "
+        f"{r['sequential_grad_compile_s']:.2f} vs {r['associative_grad_compile_s']:.2f} s); relative "
+        f"difference {r['max_relative_difference']:.1e}, gradient {r['max_relative_gradient_difference']:.1e}"
+    )
+
+
 def device_name() -> str:
     """The default JAX device as the result files are named: ``cpu``, or the platform and the
     device's kind (``gpu_nvidia_h200``)."""
@@ -89,17 +124,10 @@ def measure(T: int, plays: int, repeats: int) -> dict:
     outs = {}
     for name, plays_of in methods.items():
         loss = lambda w, u, plays_of=plays_of: jnp.sum((plays_of(u) @ w - target) ** 2)
-        c, r, P = timed(plays_of, u, repeats=repeats)
-        cg, rg, (value, grads) = timed(jax.value_and_grad(loss, argnums=(0, 1)), w, u, repeats=repeats)
+        grad = jax.value_and_grad(loss, argnums=(0, 1))
+        columns, P, (_, grads) = path_timings(name, T, plays_of, (u,), grad, (w, u), repeats)
         outs[name] = (P, grads)
-        row |= {
-            f"{name}_compile_s": c,
-            f"{name}_run_s": r,
-            f"{name}_samples_per_s": T / r,
-            f"{name}_grad_compile_s": cg,
-            f"{name}_grad_run_s": rg,
-            f"{name}_grad_samples_per_s": T / rg,
-        }
+        row |= columns
     (Ps, gs), (Pa, ga) = outs["sequential"], outs["associative"]
     row["max_plays_difference"] = float(jnp.max(jnp.abs(Ps - Pa)))
     row["max_gradient_difference"] = float(max(jnp.max(jnp.abs(a - b)) for a, b in zip(gs, ga)))
