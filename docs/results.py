@@ -1003,7 +1003,7 @@ def step_a_independent(results: Results) -> Table:
 
 
 STEP_A_FLOOR = Run(
-    "step_a_independent/floor.json", "python experiments/step_a_floor.py --seeds 100 106 114 116"
+    "step_a_independent/floor.json", "python experiments/step_a_floor.py --seeds 100 106 111 114 116"
 )
 
 
@@ -1018,11 +1018,20 @@ def step_a_floor(results: Results) -> Table:
             [f"{r['seed']} ({scans})", q(100 * a["inside_share"], "%", 0)]
             + [px(a[k]) for k in ("all_px", "inside_px", "outside_px")]
             + [px(floor[k]) for k in ("all_px", "inside_px", "outside_px")]
-            + [px(alone["all_px"])]
+            + [px(alone["all_px"]), _lags(r)]
         )
     header = ["case", "pixels inside the reach", "step A: all pixels", "inside", "outside"]
     header += ["floor: all pixels", "inside", "outside", "floor, hysteresis alone"]
+    header += ["x lag: generator / step A / floor"]
     return Table(header, rows, [STEP_A_FLOOR], "Tip path rms against the truth after the rigid motion.")
+
+
+def _lags(row: dict) -> str:
+    """A speed series' x rate lags: the generator's, step A's and the floor's (ms)."""
+    fitted = [row["step_a"].get("x_rate_lag_s"), row["floor"].get("x_rate_lag_s")]
+    if len(row["rates_hz"]) < 2 or None in fitted or "true_rate_lag_s" not in row:
+        return "–"
+    return " / ".join(q(1e3 * v, "ms", 2) for v in [row["true_rate_lag_s"]] + fitted)
 
 
 RATE_LAG = Run("rate_lag_discretisation/metrics.json", "python experiments/rate_lag_discretisation.py")
@@ -1037,10 +1046,23 @@ def rate_lag_discretisation(results: Results) -> Table:
         rows.append(
             [q(1e3 * r["true_lag_s"], "ms", 1), rate]
             + [q(1e3 * r["fitted_lag_s"], "ms", 2), closed, q(r["relative_error_pct"], "%", 0)]
+            + [q(1e3 * r["fitted_lag_linear_s"], "ms", 2), q(r["relative_error_linear_pct"], "%", 1)]
         )
-    header = ["generator's lag", "line rate", "jaxafm's lag that reproduces it", "closed form"]
-    header += ["relative error"]
+    header = ["generator's lag", "line rate", "zero hold: jaxafm's lag that reproduces it", "closed form"]
+    header += ["relative error", "linear hold: jaxafm's lag", "relative error"]
     return Table(header, rows, [RATE_LAG], "64 px lines, one sample a pixel; the lag stage alone.")
+
+
+@table("rate_lag_order")
+def rate_lag_order(results: Results) -> Table:
+    rows = [
+        [str(r["seed"]), q(r["loop_pct"], "%", 1), q(1e3 * r["true_lag_s"], "ms", 2)]
+        + [q(1e3 * r["after_lag_s"], "ms", 3), q(r["relative_error_pct"], "%", 1)]
+        for r in results(RATE_LAG)["order"]
+    ]
+    header = ["generator scanner", "loop", "drive lag before the Preisach", "the same as a lag after it"]
+    header += ["relative error"]
+    return Table(header, rows, [RATE_LAG], "x axis, hysteresis only; +-8 V triangles at 0.5, 1 and 2 Hz.")
 
 
 @table("step_a_ablation")

@@ -14,6 +14,9 @@ image can see:
 - **floor, hysteresis only**: the same, on the case drawn again with the generator's lag, creep,
   coupling and drift switched off, its Preisach hysteresis alone.
 
+Each fit's rate-dependence lag of the x axis (a speed series' fast axis) is kept beside the
+generator's drive lag: whether the model, fitted to the true path itself, holds the true lag.
+
     python experiments/step_a_floor.py [--seeds 100 106 116] [--steps 300]
 
 writes experiments/results/step_a_independent/floor.json (the table of docs/step_a.md).
@@ -69,8 +72,15 @@ def floor(scans, case, steps: int) -> dict:
         "all_px": S.path_error(model, scans, case),
         "inside_px": inside,
         "outside_px": outside,
+        "x_rate_lag_s": _x_lag(model),
         "steps": int(sol.stats["num_steps"]),
     }
+
+
+def _x_lag(model) -> float | None:
+    """The fitted rate-dependence lag (s) of the stage's x axis (the 0-degree scans' fast axis)."""
+    lag = model.scanner.x.rate_dependence
+    return None if lag is None else float(lag.tau)
 
 
 def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
@@ -79,6 +89,7 @@ def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
     jax.clear_caches()
     clear_caches()
     case, scans, cfg = S.draw_and_read(spec, pixels, kind)
+    out["true_rate_lag_s"] = case["truth"]["scanner"]["rate_tau_s"]
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
@@ -89,6 +100,7 @@ def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
         "inside_share": share,
         "model": f"{ident.spec.kind} {ident.spec.operators} plays + {', '.join(ident.spec.effects)}",
         "edge_delay_s": float(ident.model.edge_delay),
+        "x_rate_lag_s": _x_lag(ident.model),
         "seconds": time.perf_counter() - began,
     }
     out["floor"] = floor(scans, case, steps)
@@ -105,11 +117,11 @@ def main() -> None:
     a.add_argument("--kind", default="fine")
     args = a.parse_args()
     out = S.OUT / "floor.json"
-    rows = json.loads(out.read_text()) if out.exists() else []
     for seed in args.seeds:
-        rows = [r for r in rows if r["seed"] != seed] + [run(seed, args.steps, args.pixels, args.kind)]
-        out.write_text(json.dumps(sorted(rows, key=lambda r: r["seed"]), indent=1, default=float))
-        r = rows[-1]
+        r = run(seed, args.steps, args.pixels, args.kind)
+        rows = json.loads(out.read_text()) if out.exists() else []  # read again: another run may have written
+        rows = [row for row in rows if row["seed"] != seed] + [r]
+        out.write_text(json.dumps(sorted(rows, key=lambda row: row["seed"]), indent=1, default=float))
         print(
             f"seed {seed}: step A {r['step_a']['all_px']:.2f} px (inside the reach {r['step_a']['inside_px']:.2f}, "
             f"outside {r['step_a']['outside_px'] or 0:.2f}); floor {r['floor']['all_px']:.2f} px, hysteresis "

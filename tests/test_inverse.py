@@ -44,10 +44,11 @@ def hysteresis(kind: str):
     return Linear(jnp.asarray(50.0), jnp.asarray(3.0))
 
 
-def scanner(x: str, y: str) -> Scanner:
-    """Two axes with rate dependence (a lag of 2 samples) and creep, with coupling and bow."""
+def scanner(x: str, y: str, hold: str = "zero") -> Scanner:
+    """Two axes with rate dependence (a lag of 2 samples, its input held between samples as
+    ``hold`` says) and creep, with coupling and bow."""
     axis = lambda kind: Axis(
-        hysteresis(kind), RateDependence(jnp.asarray(2e-3)), Creep.logarithmic(0.02, 1e-3, 1.0, 2)
+        hysteresis(kind), RateDependence(jnp.asarray(2e-3), hold), Creep.logarithmic(0.02, 1e-3, 1.0, 2)
     )
     return Scanner(axis(x), axis(y), Coupling(jnp.asarray(0.02), jnp.asarray(-0.012)), Bow(2e-5, -1e-5))
 
@@ -95,10 +96,11 @@ def test_blocked_inverse_equals_the_sample_by_sample_one(x, y, scale):
     assert_same(model, state, new, old)
 
 
-def test_the_forward_model_of_the_drive_follows_the_wanted_path():
+@pytest.mark.parametrize("hold", ["zero", "linear"])
+def test_the_forward_model_of_the_drive_follows_the_wanted_path(hold):
     # the truth: the model run on the inverse's drive, code the inverse does not use
     for x, y in [("pi", "gpi"), ("preisach", "linear")]:
-        model = scanner(x, y)
+        model = scanner(x, y, hold)
         state, u0, here = moved(model)
         u, saturated = numerical_inverse(model, path(here), t, state, u0, U_MAX)
         assert not saturated.any()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from jaxafm import default_scanner
+from jaxafm import RateDependence, default_scanner
 from jaxafm.cli import app
 from jaxafm.config import ConfigError, load_config
 from jaxafm.instrument.records import read_record
@@ -140,6 +140,23 @@ def test_saved_scanner_round_trips(tmp_path):
     run = eqx.filter_jit(lambda m, u, t, k: m(u, t, k))  # compiled once for both (the same structure)
     np.testing.assert_array_equal(np.asarray(run(s, u, t, key)), np.asarray(run(back, u, t, key)))
     assert back.effects == s.effects
+
+
+def test_a_saved_lag_keeps_its_hold_and_a_file_without_one_reads_as_the_zero_hold(tmp_path):
+    lagged = eqx.tree_at(
+        lambda s: s.x.rate_dependence,
+        default_scanner(),
+        RateDependence(jnp.asarray(2e-3), hold="linear"),
+        is_leaf=lambda v: v is None,
+    )
+    save_model(lagged, tmp_path / "s.json")
+    assert load_model(tmp_path / "s.json").x.rate_dependence.hold == "linear"
+    saved = json.loads((tmp_path / "s.json").read_text())
+    del saved["model"]["fields"]["x"]["fields"]["rate_dependence"]["fields"][
+        "hold"
+    ]  # a file written without the key
+    write(tmp_path / "old.json", json.dumps(saved))
+    assert load_model(tmp_path / "old.json").x.rate_dependence.hold == "zero"
 
 
 def test_load_model_rejects_other_files(tmp_path):

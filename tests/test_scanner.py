@@ -182,6 +182,42 @@ def test_hysteresis_loop_widens_with_rate():
     assert lag_areas[2] > 1.2 * plain_areas[0]
 
 
+@pytest.mark.parametrize("samples_per_tau", [0.1, 1.0, 10.0])
+def test_the_linear_hold_delays_a_ramp_by_tau_at_any_sample_time(samples_per_tau):
+    """Continuous time: a ramp ``v = c t`` through ``dz/dt = (v - z) / tau`` settles to
+    ``z = c (t - tau)``. The linear hold is exact for a ramp, so it gives that delay whether a
+    sample lasts a tenth of ``tau`` or ten ``tau`` (a lag shorter than a pixel); the zero hold
+    gives ``dt / (exp(dt / tau) - 1)`` instead (closed form), far less than ``tau`` for coarse
+    samples."""
+    tau, c = 2e-3, 3.0e3  # s, nm/s
+    dt = tau / samples_per_tau
+    t = jnp.arange(400) * dt
+    v = c * t
+    for hold, want in [("linear", tau), ("zero", dt / np.expm1(dt / tau))]:
+        lag = RateDependence(jnp.asarray(tau), hold=hold)
+        z, _ = lag.run(v, t, lag.initial_state(v[0]), t[0])
+        assert float(v[-1] - z[-1]) / c == pytest.approx(want, rel=1e-9)
+
+
+def test_the_linear_hold_continues_from_its_state():
+    """Run in two pieces, the second from the first's final state (which carries the last
+    input), the linear-hold lag gives the one-piece output: the state is complete."""
+    lag = RateDependence(jnp.asarray(TAU), hold="linear")
+    u, t = sine_drive(FREQS[1])
+    whole, end = lag.run(u, t, lag.initial_state(u[0]), t[0])
+    first, mid = lag.run(u[:500], t[:500], lag.initial_state(u[0]), t[0])
+    second, end2 = lag.run(u[500:], t[500:], mid, t[499])
+    np.testing.assert_allclose(np.concatenate([first, second]), whole, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(end2, end, rtol=0, atol=1e-12)
+
+
+def test_a_lag_hold_other_than_zero_or_linear_is_refused():
+    with pytest.raises(
+        ValueError, match=r"RateDependence.hold must be one of \('zero', 'linear'\), got 'cubic'"
+    ):
+        RateDependence(jnp.asarray(TAU), hold="cubic")
+
+
 def test_tiny_tau_is_identity():
     axis = Axis(
         Linear(jnp.asarray(1.0), jnp.asarray(0.0)), rate_dependence=RateDependence(jnp.asarray(1e-12))

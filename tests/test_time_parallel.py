@@ -128,13 +128,18 @@ def test_a_step_through_the_associative_lags_is_the_closed_form(monkeypatch):
     np.testing.assert_allclose(z, Z[-1], atol=1e-12)
 
 
-@pytest.mark.parametrize("stage", ["creep", "rate_dependence"])
+LAG_STAGES = {
+    "creep": E.Creep.logarithmic(0.02),
+    "rate_dependence": E.RateDependence(jnp.asarray(2e-3)),
+    "rate_dependence, linear hold": E.RateDependence(jnp.asarray(2e-3), hold="linear"),
+}
+
+
+@pytest.mark.parametrize("stage", LAG_STAGES)
 def test_every_lag_stage_is_the_same_on_the_time_parallel_path(stage, monkeypatch):
-    """Creep and the rate lag run through lowpass: forced onto the associative path on this CPU,
-    their outputs equal the sequential path's to round-off."""
-    module = {"creep": E.Creep.logarithmic(0.02), "rate_dependence": E.RateDependence(jnp.asarray(2e-3))}[
-        stage
-    ]
+    """Creep and the rate lag (either hold): forced onto the associative path on this CPU, their
+    outputs equal the sequential path's to round-off."""
+    module = LAG_STAGES[stage]
     v, t, _, _ = lag_inputs(seed=1)
     plain = np.asarray(module(v, t))
     monkeypatch.setattr(E, "time_parallel", lambda: True)
@@ -187,3 +192,25 @@ def test_a_step_through_the_associative_mode_is_the_closed_form(monkeypatch):
     tt = np.asarray(t) + 1e-12
     closed = d0 * (1 - np.exp(-sigma * tt) * (np.cos(wd * tt) + sigma / wd * np.sin(wd * tt)))
     np.testing.assert_allclose(x, closed, atol=1e-10 * d0)
+
+
+def test_the_linear_hold_lag_equals_its_sequential_self_and_finite_differences_in_tau(monkeypatch):
+    """The first-order-hold rate lag on both paths: outputs, final state and the gradient of a
+    loss in ``tau`` and the drive agree to round-off, and the gradient in ``tau`` matches central
+    differences, with sample times from ``tau / 2`` to ``10 tau``."""
+    v, t, _, _ = lag_inputs(seed=3)
+
+    def loss(tau, v):
+        lag = E.RateDependence(tau, hold="linear")
+        out, state = lag.run(v, t, jnp.asarray([v[0] + 1.0, v[0] - 2.0]), t[0] - 1e-3)
+        return jnp.sum(jnp.sin(out / 30.0)) + state[0]
+
+    tau = jnp.asarray(2e-3)
+    plain = loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)
+    monkeypatch.setattr(E, "time_parallel", lambda: True)
+    parallel = loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(parallel)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
+    e = 1e-8
+    fd = (loss(tau + e, v) - loss(tau - e, v)) / (2 * e)
+    assert float(plain[1][0]) == pytest.approx(float(fd), rel=1e-5)

@@ -72,16 +72,16 @@ def axis_targets(model: Scanner, wanted: Array, t: Array, state: ScannerState) -
 
 
 def _lag_factors(axis: Axis, t: Array, t0) -> tuple:
-    """Per sample, the decays ``a = exp(-dt / tau)`` of the rate lag (T,) and of the creep lags
-    (T, K), and the gain ``alpha`` (T,) of the hysteresis output in the axis output,
-    ``alpha = (1 - a_rate) (1 + sum_k g_k (1 - a_k))`` (:func:`~jaxafm.model.effects.lowpass`'s
-    step; a missing stage is a factor 1)."""
+    """Per sample, the rate lag's step weights ``(a, b_prev, b_now)`` (each (T,),
+    :meth:`~jaxafm.model.effects.FirstOrderLag.weights`), the creep lags' decays
+    ``a = exp(-dt / tau)`` (T, K), and the gain ``alpha`` (T,) of the hysteresis output in the
+    axis output, ``alpha = b_now (1 + sum_k g_k (1 - a_k))`` (a missing stage is a factor 1)."""
     dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))
     rate = creep = None
     gain = jnp.ones_like(dt)
     if axis.rate_dependence is not None:
-        rate = jnp.exp(-dt / axis.rate_dependence.tau)
-        gain = gain * (1 - rate)
+        rate = axis.rate_dependence.weights(dt)
+        gain = gain * rate[2]
     if axis.creep is not None:
         creep = jnp.exp(-dt[:, None] / axis.creep.taus)
         gain = gain * (1 + (1 - creep) @ axis.creep.weights)
@@ -89,12 +89,13 @@ def _lag_factors(axis: Axis, t: Array, t0) -> tuple:
 
 
 def _lag_step(axis: Axis, lag: Array, creep: tuple, h, a_rate, a_creep) -> tuple:
-    """One sample of the rate lag and creep after the hysteresis output ``h`` nm, every lag
-    ``z <- a z + (1 - a) x``: (output, lag, creep). Sums written out, not as matrix products:
-    inside a scan over samples this fuses into one loop."""
+    """One sample of the rate lag (:meth:`~jaxafm.model.effects.FirstOrderLag.advance`, weights
+    ``a_rate``) and creep (every creep lag ``z <- a z + (1 - a) x``) after the hysteresis output
+    ``h`` nm: (output, lag, creep). Sums written out, not as matrix products: inside a scan over
+    samples this fuses into one loop."""
     v = h
     if axis.rate_dependence is not None:
-        lag = a_rate * lag + (1 - a_rate) * v
+        lag = axis.rate_dependence.advance(lag, v, a_rate)
         v = lag[0]
     if axis.creep is not None:
         z, rest = creep

@@ -337,7 +337,8 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tup
             raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
     return Axis(
         h,
-        RateDependence(jnp.asarray(5e-3)) if "rate_dependence" in spec.effects else None,
+        # a raster's drive is a ramp between its samples, one a pixel: the linear hold
+        RateDependence(jnp.asarray(5e-3), hold="linear") if "rate_dependence" in spec.effects else None,
         Creep.logarithmic(CREEP_START, per_decade=1) if "creep" in spec.effects else None,
     )
 

@@ -68,13 +68,44 @@ def associative_lags(v: Array, dt: Array, taus: Array, z0: Array) -> Array:
     (``jax.lax.associative_scan``, depth O(log T)) of the steps. Equal to the sequential lags to
     round-off (the sums are taken in another order)."""
     a = jnp.exp(-dt[:, None] / taus)
-    b = (1 - a) * v[:, None]
+    return affine_prefix(a, (1 - a) * v[:, None], z0)
+
+
+def affine_prefix(a: Array, b: Array, z0: Array) -> Array:
+    """``z_n = a_n z_{n-1} + b_n`` for every ``n`` from ``z0``, as an associative scan over the
+    first axis: ``(a1, b1)`` then ``(a2, b2)`` compose into ``(a1 a2, a2 b1 + b2)``."""
 
     def compose(first, then):
         return first[0] * then[0], then[0] * first[1] + then[1]
 
     A, B = lax.associative_scan(compose, (a, b))
     return A * z0 + B
+
+
+HOLDS = ("zero", "linear")
+
+
+def hold_weights(dt: Array, tau: Array, hold: str) -> tuple:
+    """One step of ``dz/dt = (v - z) / tau`` over ``dt`` (s), exact for the input between the
+    samples ``v_{n-1}`` and ``v_n`` held at ``v_n`` (``hold="zero"``) or a straight line
+    between them (``"linear"``, a first-order hold)::
+
+        z_n = a z_{n-1} + b_prev v_{n-1} + b_now v_n,   a = exp(-x),  x = dt / tau
+        zero:    b_prev = 0,        b_now = 1 - a
+        linear:  b_prev = g - a,    b_now = 1 - g,      g = (1 - a) / x
+
+    (the linear hold's weights from integrating ``exp(-(dt - s) / tau) v(s) / tau`` over the
+    step). Through the linear hold a ramp ``v = c t`` settles to ``z = c (t - tau)``: delayed by
+    ``tau`` at any sample time; through the zero hold by ``dt / (exp(dt / tau) - 1)``, which
+    falls far below ``tau`` once ``dt > tau``. Returns ``(a, b_prev, b_now)``."""
+    x = dt / tau
+    a = jnp.exp(-x)
+    if hold == "zero":
+        return a, jnp.zeros_like(a), 1 - a
+    small = x < 1e-6  # g = 1 - x / 2 + O(x^2); the where keeps 0 / 0 out of the gradient
+    safe = jnp.where(small, 1.0, x)
+    g = jnp.where(small, 1 - x / 2, -jnp.expm1(-safe) / safe)
+    return a, g - a, 1 - g
 
 
 class Creep(eqx.Module):
@@ -143,12 +174,22 @@ class Creep(eqx.Module):
 
 
 class FirstOrderLag(eqx.Module):
-    """``dz/dt = (v - z) / tau``: a first-order lag of time constant ``tau`` (s)."""
+    """``dz/dt = (v - z) / tau``: a first-order lag of time constant ``tau`` (s).
+
+    ``hold`` says what the input does between its samples (:func:`hold_weights`): ``"zero"``
+    held at each sample (a drive updated at the sample rate), ``"linear"`` a straight line
+    between samples (a continuous drive sampled coarsely, as a raster sampled once a pixel:
+    a lag shorter than a pixel's time then still delays the ramp by ``tau``). The linear
+    hold's state also carries the last input: ``(z, v_prev)``; the zero hold's is ``(z,)``.
+    """
 
     tau: Array  # s
+    hold: str = eqx.field(static=True, default="zero")
 
     def __check_init__(self):
         checks.positive(f"{type(self).__name__}.tau", self.tau)
+        if self.hold not in HOLDS:
+            raise ValueError(f"{type(self).__name__}.hold must be one of {HOLDS}, got {self.hold!r}")
 
     def free_parameters(self, scale: float) -> tuple:
         """The time constant at order one, kept > 0: ``raw = softplus^-1(tau / scale)``.
@@ -159,14 +200,36 @@ class FirstOrderLag(eqx.Module):
         Returns:
             ``(raw, rebuild)``: the raw parameter and ``rebuild(raw)``, a lag of the same kind.
         """
-        return softplus_inverse(self.tau / scale), lambda p: type(self)(jax.nn.softplus(p) * scale)
+        return softplus_inverse(self.tau / scale), lambda p: type(self)(jax.nn.softplus(p) * scale, self.hold)
 
     def initial_state(self, v0) -> Array:
-        return jnp.reshape(jnp.asarray(v0, dtype=float), (1,))
+        """At rest at ``v0``: ``(z,)``, or ``(z, v_prev)`` for the linear hold."""
+        v0 = jnp.asarray(v0, dtype=float)
+        return jnp.full((1 if self.hold == "zero" else 2,), v0)
+
+    def weights(self, dt: Array) -> tuple:
+        """``(a, b_prev, b_now)`` of each step ``dt`` (s): :func:`hold_weights`."""
+        return hold_weights(dt, self.tau, self.hold)
+
+    def advance(self, state: Array, v, weights: tuple) -> Array:
+        """The state after one sample ``v`` with ``weights`` (:meth:`weights`); its output is
+        ``state[0]``."""
+        a, b_prev, b_now = weights
+        z = a * state[0] + b_now * v + (b_prev * state[1] if self.hold == "linear" else 0.0)
+        return jnp.stack([z, v]) if self.hold == "linear" else jnp.reshape(z, (1,))
 
     def run(self, v: Array, t: Array, z0: Array, t0) -> tuple:
-        """Output (T,) and the final state (1,), continuing from ``z0`` at time ``t0``."""
-        return lowpass(v, t, jnp.reshape(self.tau, (1,)), z0, t0)
+        """Output (T,) and the final state, continuing from ``z0`` at time ``t0``."""
+        if self.hold == "zero":
+            return lowpass(v, t, jnp.reshape(self.tau, (1,)), z0, t0)
+        dt = jnp.diff(t, prepend=jnp.reshape(t0, (1,)))
+        a, b_prev, b_now = self.weights(dt)
+        b = b_prev * jnp.concatenate([z0[1:], v[:-1]]) + b_now * v
+        if time_parallel():
+            z = affine_prefix(a, b, z0[0])
+        else:
+            z = lax.scan(lambda z, ab: (ab[0] * z + ab[1],) * 2, z0[0], (a, b))[1]
+        return z, jnp.stack([z[-1], v[-1]])
 
     def __call__(self, v: Array, t: Array) -> Array:
         return self.run(v, t, self.initial_state(v[0]), t[0])[0]
