@@ -1,13 +1,14 @@
 """Model parameters to and from JSON: readable, versioned, self-describing, round-trips exactly.
 
-``{"format": "jaxafm-model", "version": 3, "model": {"type": "PrandtlIshlinskii",
+``{"format": "jaxafm-model", "version": 4, "model": {"type": "PrandtlIshlinskii",
 "fields": {"thresholds": [...], ...}}, "about": {...}, "uncertainty": {...} or null}``; arrays
 as nested lists (V, nm, s as in the code), nested modules as nested objects, absent effects as
 ``null``. ``about`` (:func:`describe`) says how to use the model: units, axes, effects, the
 input history it assumes, the input and output ranges it was fitted on, the data, the jaxafm
 version. ``uncertainty`` is the fit's :class:`~jaxafm.model.posterior.Posterior`
 (:meth:`~jaxafm.model.posterior.Posterior.to_dict`), checked on load. Version-1 files (no
-``about``) and version-2 files (no ``uncertainty``) are still read, as models without one.
+``about``) and version-2 files (no ``uncertainty``) are still read, as models without one;
+version-3 files (lags without ``hold``) read their lags as the zero hold, which they were.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ import numpy as np
 from . import effects, hysteresis, scanner
 from .posterior import Posterior
 
-FORMAT, VERSION = "jaxafm-model", 3
-READABLE = (1, 2, 3)  # format versions this jaxafm reads
+FORMAT, VERSION = "jaxafm-model", 4
+READABLE = (1, 2, 3, 4)  # format versions this jaxafm reads
 _TYPES = {
     cls.__name__: cls
     for module in (hysteresis, effects, scanner)
