@@ -28,7 +28,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from bench_play_scan import device_name, path_timings, relative_differences, summary
+from bench_play_scan import device_name, forced_path, path_timings, relative_differences, summary
 
 from jaxafm import plots
 from jaxafm.model import effects
@@ -42,12 +42,8 @@ def lowpass_on(path: str):
     """``lowpass`` forced onto one path: the choice is made when it is traced."""
 
     def f(v, t, taus, w):
-        before = effects.time_parallel
-        effects.time_parallel = lambda: PATHS[path]
-        try:
+        with forced_path(effects, PATHS[path]):
             return effects.lowpass(v, t, taus, jnp.zeros_like(taus), None, w)[0]
-        finally:
-            effects.time_parallel = before
 
     return f
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from bench_play_scan import device_name, path_timings, relative_differences, summary
+from bench_play_scan import device_name, forced_path, path_timings, relative_differences, summary
 
 from jaxafm.model import effects
 
@@ -39,12 +39,8 @@ def mode_on(path: str):
     """``Vibration.run``'s positions forced onto one path: the choice is made when traced."""
 
     def f(v, t, frequency, damping):
-        before = effects.time_parallel
-        effects.time_parallel = lambda: PATHS[path]
-        try:
+        with forced_path(effects, PATHS[path]):
             return effects.Vibration(frequency, damping).run(v, t, jnp.stack([v[0], 0.0]), t[0])[0]
-        finally:
-            effects.time_parallel = before
 
     return f
 

@@ -25,6 +25,7 @@ Writes ``experiments/results/bench_play_scan/<device>.json`` and, from every suc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import time
@@ -46,6 +47,18 @@ def associative_play(u: jax.Array, radii: jax.Array) -> jax.Array:
     before it (``jaxafm``'s start), by the associative scan of clamps (module docstring;
     ``jaxafm.model.hysteresis.associative_plays``)."""
     return associative_plays(u, radii, jnp.broadcast_to(u[0], radii.shape))
+
+
+@contextlib.contextmanager
+def forced_path(module, associative: bool):
+    """``module.time_parallel`` answering ``associative`` inside the block: a stage picks its path
+    when it is traced, so a function traced inside runs that path."""
+    before = module.time_parallel
+    module.time_parallel = lambda: associative
+    try:
+        yield
+    finally:
+        module.time_parallel = before
 
 
 def drive(T: int, seed: int = 0) -> np.ndarray:
