@@ -1026,12 +1026,71 @@ def step_a_floor(results: Results) -> Table:
     return Table(header, rows, [STEP_A_FLOOR], "Tip path rms against the truth after the rigid motion.")
 
 
-def _lags(row: dict) -> str:
-    """A speed series' x rate lags: the generator's, step A's and the floor's (ms)."""
-    fitted = [row["step_a"].get("x_rate_lag_s"), row["floor"].get("x_rate_lag_s")]
+def _lags(row: dict, suffix: str = "") -> str:
+    """A speed series' x rate lags: the generator's, step A's and the floor's (ms), of the model
+    class whose keys end in ``suffix``."""
+    fitted = [row["step_a" + suffix].get("x_rate_lag_s"), row["floor" + suffix].get("x_rate_lag_s")]
     if len(row["rates_hz"]) < 2 or None in fitted or "true_rate_lag_s" not in row:
         return "–"
     return " / ".join(q(1e3 * v, "ms", 2) for v in [row["true_rate_lag_s"]] + fitted)
+
+
+STEP_A_FLOOR_PREISACH = Run(
+    "step_a_independent/floor.json",
+    "python experiments/step_a_floor.py --seeds 100 111 114 --classes preisach",
+)
+#: the study's cases, per shard file (each seed in one): step A's generalised PI held-out features
+STEP_A_CASES = tuple(
+    Run(f"step_a_independent/cases-{part}.json", STEP_A_INDEPENDENT.command)
+    for part in ("1-of-1", "1-of-2", "2-of-2", "rerun")
+)
+
+
+@table("step_a_floor_preisach")
+def step_a_floor_preisach(results: Results) -> Table:
+    px = lambda v: "–" if v is None else q(v, "px", 2)
+    study = {r["seed"]: (r, run) for run in STEP_A_CASES for r in results(run)}
+    rows, runs = [], [STEP_A_FLOOR_PREISACH]
+    for r in results(STEP_A_FLOOR_PREISACH):
+        if "step_a_preisach" not in r:
+            continue
+        gpi, pre = r["step_a"], r["step_a_preisach"]
+        case, run = study[r["seed"]]
+        runs += [run] if run not in runs else []
+        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        rows.append(
+            [f"{r['seed']} ({scans})"]
+            + [f"{px(gpi['all_px'])} ({px(gpi['inside_px'])} / {px(gpi['outside_px'])})"]
+            + [px(case["gpi_held_out_rms_nm"] / case["pixel_nm"]), px(r["floor"]["all_px"])]
+            + [f"{px(pre['all_px'])} ({px(pre['inside_px'])} / {px(pre['outside_px'])})"]
+            + [px(pre["held_out_px"]), px(r["floor_preisach"]["all_px"]), pre["model"]]
+            + [_lags(r, "_preisach")]
+        )
+    header = ["case", "generalised PI: step A (inside / outside the reach)", "held-out features", "floor"]
+    header += ["Preisach: step A (inside / outside the reach)", "held-out features", "floor"]
+    header += ["Preisach model the ladder kept", "x lag: generator / Preisach step A / floor"]
+    note = "Tip path rms against the truth after the rigid motion; held-out features as `jaxafm calibrate` gives them."
+    return Table(header, rows, runs, note)
+
+
+PREISACH_LEVELS = Run(
+    "step_a_independent/preisach_levels.json", "python experiments/step_a_preisach_levels.py"
+)
+
+
+@table("step_a_preisach_levels")
+def step_a_preisach_levels(results: Results) -> Table:
+    m = results(PREISACH_LEVELS)
+    px = lambda v: q(v, "px", 2)
+    rows = [
+        [count(r["levels"]), px(r["held_out_px"]), px(r["all_px"]), px(r["inside_px"])]
+        + [px(r["x_margins_px"]), px(r["y_margins_px"]), q(r["plausible"])]
+        for r in m["rows"]
+    ]
+    header = ["levels", "held-out features", "tip path: all pixels", "inside the reach", "x margins"]
+    header += ["y margins", "saved as plausible"]
+    note = f"Case {m['seed']}, the ladder off, with {', '.join(m['effects'])}; tip path rms after the rigid motion."
+    return Table(header, rows, [PREISACH_LEVELS], note)
 
 
 RATE_LAG = Run("rate_lag_discretisation/metrics.json", "python experiments/rate_lag_discretisation.py")

@@ -1,25 +1,29 @@
 """Where step A's tip-path error on the independent generator comes from: the data, or the model.
 
-For a few of ``experiments/step_a_independent.py``'s cases (the same draws), three numbers in
-pixels, each the rms of the tip path against the generator's truth after the one rigid motion no
-image can see:
+For a few of ``experiments/step_a_independent.py``'s cases (the same draws), numbers in pixels,
+each the rms of the tip path against the generator's truth after the one rigid motion no image
+can see, for each model class step A fits (``--classes``: the generalised PI, ``gpi``, and the
+Preisach plane, ``preisach``):
 
-- **step A**: the ``jaxafm calibrate`` fit of the case, as that study runs it, over every pixel,
-  and split into the pixels inside the features' chords' reach (where the images hold the path)
-  and those outside it (the image's margins, where the model extrapolates);
-- **floor**: the richest model step A can fit (generalised PI, 16 plays, 3 dead zones a side
-  inside the reach, every effect: asymmetry, creep, coupling, bow, drift, rate dependence)
-  fitted by Levenberg-Marquardt straight to the true tip path, with the rigid motion free: no
-  image, no feature finding, no held-out split. What no identification from images can beat;
-- **floor, hysteresis only**: the same, on the case drawn again with the generator's lag, creep,
-  coupling and drift switched off, its Preisach hysteresis alone.
+- **step A**: the ``jaxafm calibrate`` fit of the case with that class as its richest model (for
+  ``gpi`` as the study runs it), over every pixel, and split into the pixels inside the features'
+  chords' reach (where the images hold the path) and those outside it (the image's margins,
+  where the model extrapolates); beside it the held-out features' residual;
+- **floor**: the richest model of the class step A can fit (generalised PI: 16 plays, 3 dead
+  zones a side inside the reach; Preisach: 16 levels over the drive; every effect: creep,
+  coupling, bow, drift, rate dependence, and the generalised PI's asymmetry) fitted by
+  Levenberg-Marquardt straight to the true tip path, with the rigid motion free: no image, no
+  feature finding, no held-out split. What no identification from images can beat;
+- **floor, hysteresis only** (``gpi``): the same, on the case drawn again with the generator's
+  lag, creep, coupling and drift switched off, its Preisach hysteresis alone.
 
 Each fit's rate-dependence lag of the x axis (a speed series' fast axis) is kept beside the
 generator's drive lag: whether the model, fitted to the true path itself, holds the true lag.
 
-    python experiments/step_a_floor.py [--seeds 100 106 116] [--steps 300]
+    python experiments/step_a_floor.py [--seeds 100 106 116] [--classes gpi preisach] [--steps 300]
 
-writes experiments/results/step_a_independent/floor.json (the table of docs/step_a.md).
+writes experiments/results/step_a_independent/floor.json (the tables of docs/step_a.md); a class's
+numbers replace those of an earlier run, the other class's stay.
 """
 
 from __future__ import annotations
@@ -37,19 +41,27 @@ import step_a_independent as S
 
 from jaxafm.identify.fit import clear_caches
 from jaxafm.identify.scan_model import ScanModelSpec, feature_reach, nominal_scan_model
-from jaxafm.jobs.calibrate import identify_model
+from jaxafm.jobs.calibrate import identification_metrics, identify_model
 
-#: the richest model step A may fit (as the study's MODEL, with every effect)
-RICHEST = ("gpi", ("asymmetry", "creep", "coupling", "bow", "drift", "rate_dependence"), 16, 3)
+#: the richest model of each class step A may fit (as the study's MODEL and PREISACH, with every
+#: effect): kind, effects, plays or levels, dead zones a side
+RICHEST = {
+    "gpi": ("gpi", ("asymmetry", "creep", "coupling", "bow", "drift", "rate_dependence"), 16, 3),
+    "preisach": ("preisach", ("creep", "coupling", "bow", "drift", "rate_dependence"), 16, 0),
+}
+#: step A's configured richest model of each class
+CONFIGURED = {"gpi": S.MODEL, "preisach": S.PREISACH}
 #: the generator's effects besides hysteresis, switched off for the hysteresis-only floor
 HYSTERESIS_ONLY = {"tau_s": 0, "creep_per_decade": 0, "coupling": 0, "drift_nm_per_s": 0, "bow_per_nm": 0}
 
 
-def floor(scans, case, steps: int) -> dict:
-    """The richest model fitted straight to the case's true tip path (module docstring): its rms
-    (px) over every pixel, inside and outside the features' reach, and the solver's steps."""
-    kind, effects, plays, zones = RICHEST
-    spec = ScanModelSpec(kind, effects, plays, zones, rotation=None, deadzone_reach=feature_reach(scans))
+def floor(scans, case, steps: int, model_class: str = "gpi") -> dict:
+    """The richest model of ``model_class`` fitted straight to the case's true tip path (module
+    docstring): its rms (px) over every pixel, inside and outside the features' reach, and the
+    solver's steps."""
+    kind, effects, size, zones = RICHEST[model_class]
+    reach = feature_reach(scans)
+    spec = ScanModelSpec(kind, effects, size, zones, size, rotation=None, deadzone_reach=reach)
     raw, rebuild = nominal_scan_model(scans[0], spec, scans).as_float64().free_parameters(scans[0])
     true = [
         jnp.asarray(np.stack([s.truth["tip_trace_nm"], s.truth["tip_retrace_nm"]])) for s in case["scans"]
@@ -83,51 +95,74 @@ def _x_lag(model) -> float | None:
     return None if lag is None else float(lag.tau)
 
 
-def run(seed: int, steps: int, pixels: int, kind: str) -> dict:
-    spec = next(c for c in S.plan(20, 3) if c["seed"] == seed)
-    out = {"seed": seed, "rates_hz": list(spec["rates"]), "angles_deg": list(spec["angles"])}
+def step_a(spec: dict, pixels: int, kind: str, model_class: str) -> dict:
+    """Step A's fit of the case with ``model_class`` as its richest model, scored (module
+    docstring)."""
     jax.clear_caches()
     clear_caches()
-    case, scans, cfg = S.draw_and_read(spec, pixels, kind)
-    out["true_rate_lag_s"] = case["truth"]["scanner"]["rate_tau_s"]
+    case, scans, cfg = S.draw_and_read(spec, pixels, kind, model=CONFIGURED[model_class])
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
-    out["step_a"] = {
+    held_out = identification_metrics(ident)["held_out_rms_nm"]
+    size = ident.spec.levels if ident.spec.kind == "preisach" else ident.spec.operators
+    return {
         "all_px": S.path_error(ident.model, scans, case),
         "inside_px": inside,
         "outside_px": outside,
         "inside_share": share,
-        "model": f"{ident.spec.kind} {ident.spec.operators} plays + {', '.join(ident.spec.effects)}",
+        "held_out_px": held_out / scans[0].raster.pixel_size[0],
+        "plausible": ident.plausible,
+        "model": f"{ident.spec.kind} {size} + {', '.join(ident.spec.effects)}",
         "edge_delay_s": float(ident.model.edge_delay),
         "x_rate_lag_s": _x_lag(ident.model),
         "seconds": time.perf_counter() - began,
     }
-    out["floor"] = floor(scans, case, steps)
-    case, scans, _ = S.draw_and_read(spec, pixels, kind, magnitudes=HYSTERESIS_ONLY)
-    out["floor_hysteresis_only"] = floor(scans, case, steps)
+
+
+def run(seed: int, steps: int, pixels: int, kind: str, model_class: str) -> dict:
+    """One case's numbers for ``model_class`` (module docstring), keyed as floor.json keeps them:
+    ``step_a``, ``floor``, ``floor_hysteresis_only`` for ``gpi``; ``step_a_preisach``,
+    ``floor_preisach`` for ``preisach``."""
+    spec = next(c for c in S.plan(20, 3) if c["seed"] == seed)
+    out = {"seed": seed, "rates_hz": list(spec["rates"]), "angles_deg": list(spec["angles"])}
+    suffix = "" if model_class == "gpi" else f"_{model_class}"
+    out["step_a" + suffix] = step_a(spec, pixels, kind, model_class)
+    case, scans, _ = S.draw_and_read(spec, pixels, kind)
+    out["true_rate_lag_s"] = case["truth"]["scanner"]["rate_tau_s"]
+    out["floor" + suffix] = floor(scans, case, steps, model_class)
+    if model_class == "gpi":
+        case, scans, _ = S.draw_and_read(spec, pixels, kind, magnitudes=HYSTERESIS_ONLY)
+        out["floor_hysteresis_only"] = floor(scans, case, steps)
     return out
 
 
 def main() -> None:
     a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("--seeds", type=int, nargs="+", default=[100, 106, 116])
+    a.add_argument("--classes", nargs="+", choices=sorted(RICHEST), default=["gpi"])
     a.add_argument("--steps", type=int, default=300, help="Levenberg-Marquardt steps of each floor fit")
     a.add_argument("--pixels", type=int, default=64)
     a.add_argument("--kind", default="fine")
     args = a.parse_args()
     out = S.OUT / "floor.json"
     for seed in args.seeds:
-        r = run(seed, args.steps, args.pixels, args.kind)
-        rows = json.loads(out.read_text()) if out.exists() else []  # read again: another run may have written
-        rows = [row for row in rows if row["seed"] != seed] + [r]
-        out.write_text(json.dumps(sorted(rows, key=lambda row: row["seed"]), indent=1, default=float))
-        print(
-            f"seed {seed}: step A {r['step_a']['all_px']:.2f} px (inside the reach {r['step_a']['inside_px']:.2f}, "
-            f"outside {r['step_a']['outside_px'] or 0:.2f}); floor {r['floor']['all_px']:.2f} px, hysteresis "
-            f"alone {r['floor_hysteresis_only']['all_px']:.2f} px",
-            flush=True,
-        )
+        for model_class in args.classes:
+            r = run(seed, args.steps, args.pixels, args.kind, model_class)
+            rows = (
+                json.loads(out.read_text()) if out.exists() else []
+            )  # read again: another run may have written
+            earlier = next((row for row in rows if row["seed"] == seed), {})
+            rows = [row for row in rows if row["seed"] != seed] + [earlier | r]
+            out.write_text(json.dumps(sorted(rows, key=lambda row: row["seed"]), indent=1, default=float))
+            suffix = "" if model_class == "gpi" else f"_{model_class}"
+            a_, f_ = r["step_a" + suffix], r["floor" + suffix]
+            print(
+                f"seed {seed}, {model_class}: step A {a_['all_px']:.2f} px (inside the reach "
+                f"{a_['inside_px']:.2f}, outside {a_['outside_px'] or 0:.2f}, held-out features "
+                f"{a_['held_out_px']:.2f}); floor {f_['all_px']:.2f} px",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

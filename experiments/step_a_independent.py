@@ -43,6 +43,9 @@ from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_c
 
 OUT = Path(__file__).parent / "results" / "step_a_independent"
 MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
+#: the other model class step A can fit: a Preisach plane (its branches may differ in shape, so no
+#: asymmetry effect)
+PREISACH = {"name": "preisach", "kind": "preisach", "levels": 16}
 #: the effects step A may fit: the generator has no z lag, so the drive's lag is the scanner's own
 EFFECTS = ["asymmetry", "creep", "coupling", "bow", "drift"]
 
@@ -62,10 +65,13 @@ def plan(cases: int, speeds: int) -> list:
     return out
 
 
-def draw_and_read(spec: dict, pixels: int, kind: str, magnitudes: dict | None = None) -> tuple:
+def draw_and_read(
+    spec: dict, pixels: int, kind: str, magnitudes: dict | None = None, model: dict = MODEL
+) -> tuple:
     """``(case, scans)``: the generator's case for ``spec`` (its scanner's ``magnitudes`` as
     :func:`independent_lattice.draw_case` takes them), written as a user would give it and read
-    back through ``jaxafm calibrate``'s own reading; and the step A configuration for it."""
+    back through ``jaxafm calibrate``'s own reading; and the step A configuration for it, with
+    ``model`` (:data:`MODEL` or :data:`PREISACH`) as its richest model."""
     case = G.draw_case(
         spec["seed"],
         kind,
@@ -82,10 +88,12 @@ def draw_and_read(spec: dict, pixels: int, kind: str, magnitudes: dict | None = 
         # the one-speed case asks for the rate dependence one speed cannot fix
         lag = series or spec["unidentifiable"] == "one_speed"
         effects = EFFECTS + (["rate_dependence"] if lag else ["feedback_lag"])
+        if model["kind"] == "preisach":
+            effects.remove("asymmetry")
         cfg = CalibrateConfig(
             data=given["data"],
             grating=given["grating"],
-            models=[MODEL | {"effects": effects}],
+            models=[model | {"effects": effects}],
             solver={"blur_px": [], "coarsen": "auto", "max_steps": 200},
             compensate=None,
         )

@@ -674,6 +674,12 @@ CALIBRATE = [
     ),
     nan_case("calibrate-solver.coarsen-zero", "calibrate", "solver.coarsen", 0),
     case(
+        "calibrate-models.0-asymmetry-without-dead-zones",
+        "calibrate",
+        {"models.0": {"name": "p", "kind": "preisach", "levels": 4, "effects": ["asymmetry", "creep"]}},
+        (key("models.0"), "'asymmetry'", "'preisach'", "kind: gpi"),
+    ),
+    case(
         "calibrate-solver.max_steps-more-than-stages",
         "calibrate",
         {"solver.max_steps": [20, 12, 8]},

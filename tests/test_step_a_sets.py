@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxafm.config import CalibrationImages, CalibrationLattice, SimulatedCalibration
+from jaxafm.config import CalibrationImages, CalibrationLattice, CalibrationModel, SimulatedCalibration
 from jaxafm.identify import features, held_out, staged_fit
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.plausibility import implausible
@@ -186,6 +186,15 @@ def test_implausible_models_are_named():
     assert any("times its width" in f for f in implausible(tripled, scans))
     assert any("creep runs against the move" in f for f in implausible(backwards, scans))
     assert any("branch falls" in f for f in implausible(falling, scans))
+
+
+@pytest.mark.parametrize("kind", ["pi", "preisach"])
+def test_a_model_without_dead_zones_leaves_asymmetry_out_of_its_default_effects(kind):
+    """``asymmetry`` is a generalised PI's dead zones: a PI or Preisach model named without effects
+    fits the others (its ladder would otherwise try a rung that changes nothing)."""
+    assert "asymmetry" in CalibrationModel(name="g").effects
+    effects = CalibrationModel(name="m", kind=kind).effects
+    assert "asymmetry" not in effects and {"creep", "coupling", "bow", "feedback_lag"} <= set(effects)
 
 
 def test_default_sensitivity_from_the_stated_range_or_the_images():

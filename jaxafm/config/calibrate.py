@@ -187,16 +187,34 @@ class CalibrationImages(Strict):
         return [("data", CalibrationPair(**{k: getattr(self, k) for k in fields}))]
 
 
+#: the effects step A fits when a model names none (``asymmetry`` for a generalised PI only)
+CALIBRATION_EFFECTS = ("asymmetry", "creep", "coupling", "bow", "feedback_lag")
+
+
 class CalibrationModel(HysteresisSpec):
     """One scanner model to identify (an ablation lists several): the shared hysteresis spec
-    and the effects besides hysteresis to fit from the images."""
+    and the effects besides hysteresis to fit from the images. ``asymmetry`` is the generalised
+    PI's dead zones: a ``pi`` or ``preisach`` model leaves it out of its default effects and
+    refuses it when named (a Preisach plane's branches take their own shapes without it)."""
 
     name: ModelName
     kind: HysteresisKind = "gpi"
     operators: Operators = 16
-    effects: list[str] = Field(
-        ["asymmetry", "creep", "coupling", "bow", "feedback_lag"], description="effects besides hysteresis"
-    )
+    effects: list[str] = Field(list(CALIBRATION_EFFECTS), description="effects besides hysteresis")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _asymmetry_with_gpi(cls, given):
+        if not isinstance(given, dict) or given.get("kind", "gpi") == "gpi":
+            return given
+        if given.get("effects") is None:
+            return given | {"effects": [e for e in CALIBRATION_EFFECTS if e != "asymmetry"]}
+        if "asymmetry" in given["effects"]:
+            raise ValueError(
+                f"effect 'asymmetry' is the dead zones of a generalised PI (kind: gpi), and kind "
+                f"{given['kind']!r} has none; leave it out of effects, or use kind: gpi"
+            )
+        return given
 
     @field_validator("effects")
     @classmethod
