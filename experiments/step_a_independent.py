@@ -167,12 +167,20 @@ def path_error_by_reach(model, scans, case) -> tuple:
     axes (:func:`~jaxafm.identify.scan_model.feature_reach`: where the data hold the path) and
     over those outside it (the image's margins, where the model extrapolates; None when there
     are none), and the share of pixels inside."""
-    fitted, true, nominal = _paths(model, scans, case)
-    e = _rigid_errors(fitted, true)
-    reach = feature_reach(scans)
-    inside = np.all([(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)], axis=0)
+    e, inside_axes = path_errors_by_axis_reach(model, scans, case)
+    inside = inside_axes[0] & inside_axes[1]
     rms = lambda m: float(np.sqrt(np.mean(e[m]))) / scans[0].raster.pixel_size[0] if m.any() else None
     return rms(inside), rms(~inside), float(inside.mean())
+
+
+def path_errors_by_axis_reach(model, scans, case) -> tuple:
+    """The squared tip-path errors (N,) nm^2 of every pixel of every scan after the rigid motion
+    (:func:`path_error`'s), and per stage axis whether each pixel lies inside the features'
+    chords' reach on it (2 masks (N,))."""
+    fitted, true, nominal = _paths(model, scans, case)
+    reach = feature_reach(scans)
+    inside = [(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)]
+    return _rigid_errors(fitted, true), inside
 
 
 def _path_error_per_scan(model, scans, case) -> list:

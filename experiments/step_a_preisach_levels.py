@@ -23,7 +23,6 @@ import benchutil  # noqa: F401  (puts tests/ on sys.path)
 import numpy as np
 import step_a_independent as S
 
-from jaxafm.identify.scan_model import feature_reach
 from jaxafm.jobs.calibrate import identification_metrics, identify_model
 
 #: the effects step A's ladder keeps on case 100 with a Preisach class
@@ -40,10 +39,7 @@ def scored(seed: int, levels: int) -> dict:
     ident = identify_model(scans, model, solver, cfg.grating, log=lambda *_: None)
     seconds = time.perf_counter() - began
     pixel = scans[0].raster.pixel_size[0]
-    fitted, true, nominal = S._paths(ident.model, scans, case)
-    e2 = S._rigid_errors(fitted, true)
-    reach = feature_reach(scans)
-    inside = [(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)]
+    e2, inside = S.path_errors_by_axis_reach(ident.model, scans, case)
     rms = lambda m: float(np.sqrt(np.mean(e2[m]))) / pixel
     return {
         "levels": levels,
