@@ -1082,14 +1082,20 @@ PREISACH_LEVELS = Run(
 def step_a_preisach_levels(results: Results) -> Table:
     m = results(PREISACH_LEVELS)
     px = lambda v: q(v, "px", 2)
+    spread = lambda v: "none" if v is None else q(v, "mean relay weights", 2)
     rows = [
-        [count(r["levels"]), px(r["held_out_px"]), px(r["all_px"]), px(r["inside_px"])]
-        + [px(r["x_margins_px"]), px(r["y_margins_px"]), q(r["plausible"])]
+        [count(r["levels"]), spread(r["prior_spread"]), px(r["held_out_px"]), px(r["all_px"])]
+        + [px(r["inside_px"]), px(r["x_margins_px"]), px(r["y_margins_px"])]
+        + [f"{px(r['sd_inside_px'])} / {px(r['sd_outside_px'])}", q(r["plausible"])]
         for r in m["rows"]
     ]
-    header = ["levels", "held-out features", "tip path: all pixels", "inside the reach", "x margins"]
-    header += ["y margins", "saved as plausible"]
-    note = f"Case {m['seed']}, the ladder off, with {', '.join(m['effects'])}; tip path rms after the rigid motion."
+    header = ["levels", "density prior's spread", "held-out features", "tip path: all pixels"]
+    header += ["inside the reach", "x margins", "y margins", "its predicted sd: inside / outside the reach"]
+    header += ["saved as plausible"]
+    note = (
+        f"Case {m['seed']}, the ladder off, with {', '.join(m['effects'])}; tip path rms after the rigid "
+        "motion; its sd as the fit predicts it (`path_sd`), rms over the pixels."
+    )
     return Table(header, rows, [PREISACH_LEVELS], note)
 
 

@@ -21,6 +21,7 @@ Each fit's rate-dependence lag of the x axis (a speed series' fast axis) is kept
 generator's drive lag: whether the model, fitted to the true path itself, holds the true lag.
 
     python experiments/step_a_floor.py [--seeds 100 106 116] [--classes gpi preisach] [--steps 300]
+        [--no-floor]
 
 writes experiments/results/step_a_independent/floor.json (the tables of docs/step_a.md); a class's
 numbers replace those of an earlier run, the other class's stay.
@@ -120,14 +121,16 @@ def step_a(spec: dict, pixels: int, kind: str, model_class: str) -> dict:
     }
 
 
-def run(seed: int, steps: int, pixels: int, kind: str, model_class: str) -> dict:
+def run(seed: int, steps: int, pixels: int, kind: str, model_class: str, floors: bool = True) -> dict:
     """One case's numbers for ``model_class`` (module docstring), keyed as floor.json keeps them:
     ``step_a``, ``floor``, ``floor_hysteresis_only`` for ``gpi``; ``step_a_preisach``,
-    ``floor_preisach`` for ``preisach``."""
+    ``floor_preisach`` for ``preisach``; step A's alone unless ``floors``."""
     spec = next(c for c in S.plan(20, 3) if c["seed"] == seed)
     out = {"seed": seed, "rates_hz": list(spec["rates"]), "angles_deg": list(spec["angles"])}
     suffix = "" if model_class == "gpi" else f"_{model_class}"
     out["step_a" + suffix] = step_a(spec, pixels, kind, model_class)
+    if not floors:
+        return out
     case, scans, _ = S.draw_and_read(spec, pixels, kind)
     out["true_rate_lag_s"] = case["truth"]["scanner"]["rate_tau_s"]
     out["floor" + suffix] = floor(scans, case, steps, model_class)
@@ -144,11 +147,12 @@ def main() -> None:
     a.add_argument("--steps", type=int, default=300, help="Levenberg-Marquardt steps of each floor fit")
     a.add_argument("--pixels", type=int, default=64)
     a.add_argument("--kind", default="fine")
+    a.add_argument("--no-floor", action="store_true", help="fit step A alone, keep the floors floor.json has")
     args = a.parse_args()
     out = S.OUT / "floor.json"
     for seed in args.seeds:
         for model_class in args.classes:
-            r = run(seed, args.steps, args.pixels, args.kind, model_class)
+            r = run(seed, args.steps, args.pixels, args.kind, model_class, floors=not args.no_floor)
             rows = (
                 json.loads(out.read_text()) if out.exists() else []
             )  # read again: another run may have written
@@ -156,7 +160,7 @@ def main() -> None:
             rows = [row for row in rows if row["seed"] != seed] + [earlier | r]
             out.write_text(json.dumps(sorted(rows, key=lambda row: row["seed"]), indent=1, default=float))
             suffix = "" if model_class == "gpi" else f"_{model_class}"
-            a_, f_ = r["step_a" + suffix], r["floor" + suffix]
+            a_, f_ = r["step_a" + suffix], (earlier | r)["floor" + suffix]
             print(
                 f"seed {seed}, {model_class}: step A {a_['all_px']:.2f} px (inside the reach "
                 f"{a_['inside_px']:.2f}, outside {a_['outside_px'] or 0:.2f}, held-out features "

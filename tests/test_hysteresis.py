@@ -246,6 +246,28 @@ def test_preisach_smooth_equals_spread_relays():
     assert bound < 0.01 * np.ptp(y)
 
 
+def test_preisach_roughness_is_the_second_differences_of_a_polynomial_density():
+    """Closed forms, in units of ``total`` over the ``n (n + 1) / 2`` relays: a density linear in
+    ``alpha`` and ``beta`` below the diagonal, with any ridge on the diagonal that is linear along
+    it, has no roughness (the ridge is the reversible part, not continued by its neighbours);
+    ``c i^2`` below the diagonal has ``2 c`` along ``alpha`` and 0 along ``beta``; ``c k^2`` on
+    the diagonal ``2 c`` there."""
+    n = N_LEVELS
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    below, diagonal = (i > j).astype(float), np.eye(n)
+    unit = 3.0 / (n * (n + 1) / 2)  # total = 3 nm
+    rough = lambda d: np.asarray(preisach(d * unit, True).roughness(3.0))
+    along_alpha = np.sum((i - 1 > j) & (i + 1 < n))
+    along_beta = np.sum((j >= 1) & (j + 1 < i))
+    assert rough(np.zeros((n, n))).size == along_alpha + along_beta + n - 2
+    flat = (2.0 + 0.3 * i - 0.2 * j) * below + (9.0 - 0.5 * i) * diagonal
+    np.testing.assert_allclose(rough(flat), 0.0, atol=1e-12)
+    curved = rough(0.25 * i**2 * below)
+    np.testing.assert_allclose(curved[:along_alpha], 0.5, rtol=1e-12)
+    np.testing.assert_allclose(curved[along_alpha:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(rough(0.25 * i**2 * diagonal)[along_alpha + along_beta :], 0.5, rtol=1e-12)
+
+
 def test_far_outside_plane_saturates():
     """History far above / below the plane: every relay up / down (both kinds)."""
     d = random_density(6)

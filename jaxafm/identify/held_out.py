@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .features import neighbour_distances, pitch_spread
-from .fit import linearisation, residual_values
+from .fit import residual_values
 from .scan_model import ScanModel
-from .stages import chord_residuals, image_residuals
+from .stages import chord_linearisation, image_residuals
 
 Array = jax.Array
 
@@ -123,11 +123,11 @@ def fitted_parameters(model: ScanModel, scans: tuple, chords: tuple) -> float:
     """How many parameters the chord stage's data ``chords`` fix in ``model``: the trace of the
     hat matrix ``J (J^T J + P)^-1 J^T`` of its residuals, with a weak prior ``P`` (one order-one
     unit of each raw parameter, its natural scale, as unlikely as one standard deviation of the
-    residuals), so that a direction the data do not fix does not count."""
-    model = model.as_float64()
-    raw = model.free_parameters(scans[0])[0]
-    r, J = linearisation(chord_residuals, raw, (model, scans, chords))
-    H = J.T @ J + np.mean(r[np.any(J != 0, axis=1)] ** 2) * np.eye(J.shape[1])
+    residuals), so that a direction the data do not fix does not count; a Preisach density's
+    smoothness prior (:func:`~jaxafm.identify.stages.chord_linearisation`) joins ``P``, so a
+    fine plane counts the shapes the data fix, not its relays."""
+    r, J, smooth = chord_linearisation(model, scans, chords)
+    H = J.T @ J + smooth + np.mean(r[np.any(J != 0, axis=1)] ** 2) * np.eye(J.shape[1])
     return float(np.trace(np.linalg.solve(H, J.T @ J)))
 
 

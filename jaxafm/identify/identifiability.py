@@ -31,9 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import linearisation
 from .scan_model import ScanModel
-from .stages import chord_residuals, feature_groups
+from .stages import chord_linearisation, feature_groups
 from .uncertainty import covariance
 
 #: what is physically negligible, per unit of a quantity (its own units; % of travel for loops)
@@ -158,16 +157,24 @@ def _scan_loop(model: ScanModel, scan) -> jnp.ndarray:
     return jnp.mean((retrace[:, mid] - trace[:, mid]) @ fast)
 
 
+def chord_covariance(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarray:
+    """The covariance (k, k) of the model's raw parameters (raveled) from the chord stage's data
+    ``chords`` on ``scans``: cluster-robust, one feature a cluster, with one order-one unit of
+    each raw parameter and a Preisach density's smoothness prior where the data say nothing
+    (module docstring)."""
+    r, J, smooth = chord_linearisation(model, scans, chords)
+    groups = feature_groups(chords)
+    real = groups >= 0
+    prior = np.mean(r[real] ** 2) * np.eye(J.shape[1]) + smooth
+    return covariance(J[real], r[real], groups[real], prior)
+
+
 def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.ndarray) -> list:
     """The model's :class:`Quantity` list, each with its standard deviation from the chord
     stage's data ``chords`` on ``scans`` (module docstring)."""
     model = model.as_float64()
     raw = model.free_parameters(scans[0])[0]
-    r, J = linearisation(chord_residuals, raw, (model, scans, chords))
-    groups = feature_groups(chords)
-    real = groups >= 0
-    prior = np.mean(r[real] ** 2) * np.eye(J.shape[1])  # one order-one unit of each raw parameter
-    C = covariance(J[real], r[real], groups[real], prior)
+    C = chord_covariance(model, scans, chords)
     keys, names, units, q = _quantities(model, scans, drive)
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
     with (
@@ -178,3 +185,36 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
         G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
     return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]
+
+
+def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
+    """How uncertain (nm) the fitted tip path is at every pixel, beyond the one rigid motion of
+    the whole path that no image can see (a translation is the lattice's phase, a turn its
+    angle): per scan an array (2, lines, pixels), trace and retrace, of
+    ``sqrt(tr(G_p C G_p^T))``, ``G_p`` the pixel's tip position's gradient (2, k) in the raw
+    parameters with the rigid motions projected out of every column, and ``C``
+    :func:`chord_covariance` (the delta method, as for the quantities). Where the chords hold
+    the path it is about their precision; where the model alone carries it (between the
+    features and beyond their reach) it says how far the parameters the data leave open can
+    move it."""
+    model = model.as_float64()
+    raw, rebuild = model.free_parameters(scans[0])
+    C = chord_covariance(model, scans, chords)
+    flat, unravel = jax.flatten_util.ravel_pytree(raw)
+    paths = lambda x, scan: jnp.stack(rebuild(unravel(x)).paths(scan))
+    G = [np.asarray(jax.jacfwd(paths)(flat, scan)) for scan in scans]  # (2, lines, pixels, 2, k)
+    shapes = [g.shape[:3] for g in G]
+    G = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in G])  # (N, 2, k)
+    p = np.concatenate([np.asarray(paths(flat, scan)).reshape(-1, 2) for scan in scans])
+    p = p - p.mean(axis=0)
+    rigid = np.stack(
+        [np.tile([1.0, 0.0], (len(p), 1)), np.tile([0.0, 1.0], (len(p), 1)), p @ [[0, 1], [-1, 0]]]
+    )
+    q, _ = np.linalg.qr(rigid.reshape(3, -1).T)  # (2N, 3) orthonormal rigid motions
+    flatG = G.reshape(-1, G.shape[-1])
+    G = (flatG - q @ (q.T @ flatG)).reshape(G.shape)
+    sd = np.sqrt(np.maximum(np.einsum("nij,jk,nik->n", G, C, G), 0.0))
+    return [
+        a.reshape(shape)
+        for a, shape in zip(np.split(sd, np.cumsum([np.prod(s) for s in shapes])[:-1]), shapes)
+    ]

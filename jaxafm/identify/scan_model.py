@@ -166,6 +166,18 @@ class ScanModel(eqx.Module):
         the stages' compiled functions see the same argument types from every model."""
         return jax.tree.map(lambda x: jnp.array(x, dtype=float) if eqx.is_inexact_array(x) else x, self)
 
+    def roughness(self, scan: CalibrationScan) -> Array:
+        """The second differences of each Preisach axis' density
+        (:meth:`~jaxafm.model.hysteresis.Preisach.roughness`) in units of the mean relay weight
+        of :meth:`free_parameters`' scale; empty for plays."""
+        travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
+        parts = [
+            h.roughness(travel)
+            for h in (self.scanner.x.hysteresis, self.scanner.y.hysteresis)
+            if isinstance(h, Preisach)
+        ]
+        return jnp.concatenate(parts) if parts else jnp.zeros(0)
+
     def free_parameters(self, scan: CalibrationScan) -> tuple:
         """``(raw, rebuild)``: the fitted parameters at order one, and the map back to a model.
 

@@ -80,6 +80,9 @@ class Identification:
         quantities: the fitted model's physical quantities with their standard deviations
             (:func:`~jaxafm.identify.identifiability.identifiability`).
         kinds: per stage, its :class:`~jaxafm.identify.stages.StageKind`.
+        chords: the training chords the quantities' standard deviations come from
+            (:func:`~jaxafm.identify.stages.chord_data` at full resolution): what any other
+            uncertainty of the model needs (:func:`~jaxafm.identify.identifiability.path_sd`).
     """
 
     model: ScanModel
@@ -93,6 +96,7 @@ class Identification:
     rungs: tuple = ()
     quantities: tuple = ()
     kinds: tuple = ()
+    chords: tuple = ()
 
     @property
     def image_rms_pct(self) -> Optional[float]:
@@ -174,7 +178,8 @@ def identify(
             fit.train, fit.test = _align(fit.model, scans, fit.found, fit.train, fit.test)
         fit.run(stage, limit, i, len(stages))
     validation = validate(fit.model, scans, fit.train, fit.test)
-    quantities = identifiability(fit.model, scans, chord_data(fit.train, scans, 1), drive_range(scans))
+    chords = chord_data(fit.train, scans, 1)
+    quantities = identifiability(fit.model, scans, chords, drive_range(scans))
     failures = implausible(fit.model, scans) + unvalidated(validation, min(scans[0].pitch))
     return Identification(
         fit.model,
@@ -188,6 +193,7 @@ def identify(
         tuple(fit.rungs),
         tuple(quantities),
         tuple(fit.kinds),
+        chords,
     )
 
 

@@ -1058,6 +1058,32 @@ class Preisach(PlayOperator):
         """Indices of the lower triangle (alpha >= beta), where the density may be non-zero."""
         return np.tril_indices(self.levels)
 
+    def roughness(self, total) -> Array:
+        """The density's second differences, in units of ``total`` nm spread evenly over the
+        ``n (n + 1) / 2`` relays: below the diagonal along ``alpha`` (``density[i+1, j] -
+        2 density[i, j] + density[i-1, j]``) and along ``beta`` (likewise in ``j``), on cells
+        with ``i > j`` only, and along the diagonal (``density[k+1, k+1] - 2 density[k, k] +
+        density[k-1, k-1]``). The diagonal's relays have no width: they are the reversible part
+        of the output, a ridge the hysteretic density beside it need not continue, so no
+        difference spans both. Zero for a density linear in ``alpha`` and ``beta`` below the
+        diagonal and linear along it. As a prior (step A's,
+        :func:`~jaxafm.identify.stages.smooth_chord_residuals`) this is second-difference
+        Tikhonov regularisation: it carries the density smoothly into the cells the data leave
+        free instead of letting each take any weight."""
+        n = self.levels
+        i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        d = self.density / (total / (n * (n + 1) / 2))
+        a = np.nonzero((i - 1 > j) & (i + 1 < n))
+        b = np.nonzero((j >= 1) & (j + 1 < i))
+        k = np.arange(1, n - 1)
+        return jnp.concatenate(
+            [
+                d[a[0] + 1, a[1]] - 2 * d[a] + d[a[0] - 1, a[1]],
+                d[b[0], b[1] + 1] - 2 * d[b] + d[b[0], b[1] - 1],
+                d[k + 1, k + 1] - 2 * d[k, k] + d[k - 1, k - 1],
+            ]
+        )
+
     def free_parameters(self, u_span, d_range, positive: bool = True) -> tuple:
         """The lower triangle's densities in units of ``d_range`` over their number (softplus-raw
         when ``positive``) and the offset in units of ``d_range``; the plane stays."""
