@@ -170,9 +170,8 @@ class ScanModel(eqx.Module):
         """The second differences of each Preisach axis' density
         (:meth:`~jaxafm.model.hysteresis.Preisach.roughness`) in units of the mean relay weight
         of :meth:`free_parameters`' scale; empty for plays."""
-        travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
         parts = [
-            h.roughness(travel)
+            h.roughness(_travel(scan))
             for h in (self.scanner.x.hysteresis, self.scanner.y.hysteresis)
             if isinstance(h, Preisach)
         ]
@@ -220,8 +219,9 @@ class ScanModel(eqx.Module):
             if axis.rate_dependence is not None:
                 lag = axis.rate_dependence.free_parameters(LAG_SCALE_S)
                 parts.append((lambda m, a=a: getattr(m.scanner, a).rate_dependence, lag))
-        travel = 2 * scan.u_max * float(np.mean(scan.sensitivity))
-        hysteresis = [getattr(s, a).hysteresis.free_parameters(2 * scan.u_max, travel) for a in ("x", "y")]
+        hysteresis = [
+            getattr(s, a).hysteresis.free_parameters(2 * scan.u_max, _travel(scan)) for a in ("x", "y")
+        ]
         raw = ([r for _, (r, _) in parts], [r for r, _ in hysteresis])
 
         def rebuild(raw):
@@ -234,6 +234,12 @@ class ScanModel(eqx.Module):
             return eqx.tree_at(lambda m: (m.scanner.x.hysteresis, m.scanner.y.hysteresis), m, tuple(h))
 
         return raw, rebuild
+
+
+def _travel(scan: CalibrationScan) -> float:
+    """The travel (nm) over the drive span ``+-u_max`` at the mean sensitivity: the scale of step
+    A's hysteresis weights."""
+    return 2 * scan.u_max * float(np.mean(scan.sensitivity))
 
 
 def _scaled(value: Array, scale: float) -> tuple:

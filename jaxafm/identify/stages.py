@@ -353,18 +353,18 @@ CHORD_NOISE = 0.01
 IMAGE_NOISE = 0.05
 
 
-def density_prior(raw, args) -> Array:
+def density_prior(raw, args, noise: float) -> Array:
     """The Preisach densities' roughness (:meth:`ScanModel.roughness`) of the model ``raw``
-    stands for, empty for plays."""
+    stands for, weighed against a residual spread ``noise``: ``noise / DENSITY_CURVATURE`` times
+    it, the rows that add ``sum (roughness / DENSITY_CURVATURE)^2`` to ``sum (r / noise)^2`` in
+    least-squares form. Empty for plays."""
     start, scans, _ = args
-    return start.free_parameters(scans[0])[1](raw).roughness(scans[0])
+    return noise / DENSITY_CURVATURE * start.free_parameters(scans[0])[1](raw).roughness(scans[0])
 
 
 def smooth_chord_residuals(raw, args) -> Array:
-    """:func:`chord_residuals` and the density prior's rows weighed against a chord's spread:
-    the least-squares form of ``sum (r / CHORD_NOISE)^2 + sum (roughness / DENSITY_CURVATURE)^2``."""
-    prior = CHORD_NOISE / DENSITY_CURVATURE * density_prior(raw, args)
-    return jnp.concatenate([chord_residuals(raw, args), prior])
+    """:func:`chord_residuals` and the density prior's rows weighed against a chord's spread."""
+    return jnp.concatenate([chord_residuals(raw, args), density_prior(raw, args, CHORD_NOISE)])
 
 
 def smooth_chord_loss(raw, args) -> Array:
@@ -387,14 +387,13 @@ def chord_linearisation(model: ScanModel, scans: tuple, chords: tuple) -> tuple:
 
 def smooth_image_residuals(raw, args) -> Array:
     """:func:`image_residuals` and the density prior's rows weighed against a pixel's spread."""
-    prior = IMAGE_NOISE / DENSITY_CURVATURE * density_prior(raw, args)
-    return jnp.concatenate([image_residuals(raw, args), prior])
+    return jnp.concatenate([image_residuals(raw, args), density_prior(raw, args, IMAGE_NOISE)])
 
 
 def smooth_image_loss(raw, args) -> Array:
-    """Half the mean square of :func:`smooth_image_residuals` over the image residuals' count."""
-    r = smooth_image_residuals(raw, args)
-    return 0.5 * jnp.sum(r**2) / (r.size - density_prior(raw, args).size)
+    """Half the sum of squares of :func:`smooth_image_residuals` over the image residuals' count."""
+    r = image_residuals(raw, args)
+    return 0.5 * (jnp.sum(r**2) + jnp.sum(density_prior(raw, args, IMAGE_NOISE) ** 2)) / r.size
 
 
 # ---------------------------------------------------------------------------------------------
