@@ -37,6 +37,7 @@ from jaxafm import plots
 from jaxafm.identify.fit import fit_operator, initial_operator
 from jaxafm.identify.uncertainty import posterior_of
 from jaxafm.instrument.records import read_record
+from jaxafm.jobs.fit import MODEL_CREEP
 from jaxafm.model.effects import Creep
 from jaxafm.model.posterior import METHODS, linear_band, linearise
 from jaxafm.model.scanner import Axis
@@ -61,7 +62,7 @@ def start_model(kind: str, u, d):
     """The start of a fit of ``kind`` (``gpi_creep``: a generalised PI with logarithmic creep),
     as ``jaxafm fit`` builds it."""
     h = initial_operator(kind.removesuffix("_creep"), u, d, operators=20, deadzones=3)
-    return Axis(h, creep=Creep.logarithmic(gamma=0.0, tau_min=0.1, tau_max=100.0)) if "creep" in kind else h
+    return Axis(h, creep=Creep.logarithmic(**MODEL_CREEP)) if "creep" in kind else h
 
 
 def fitted(kind: str, t, u, d, history, settle: int) -> tuple:

@@ -15,9 +15,11 @@ from typer.testing import CliRunner
 
 from jaxafm.cli import app
 from jaxafm.identify.uncertainty import PRIOR_SD, posterior_of
+from jaxafm.model.effects import Creep
 from jaxafm.model.hysteresis import Linear
 from jaxafm.model.io import read_model_and_posterior, read_model_file, save_model
 from jaxafm.model.posterior import Posterior, band, check_level, linear_band, linearise
+from jaxafm.model.scanner import Axis
 
 SPAN_V, RANGE_NM = 10.0, 50.0  # the raw parameters' scale: any fixed pair, shared by the fits
 
@@ -171,6 +173,21 @@ def test_a_version_2_file_loads_as_a_model_without_uncertainty(tmp_path):
     path.write_text(json.dumps(doc))
     model, _, post = read_model_and_posterior(path)
     assert post is None and float(model.gain) == 30.0
+
+
+def test_a_version_4_file_with_creep_loads_without_its_uncertainty_and_a_version_5_one_with(tmp_path):
+    """A version-4 uncertainty is over creep weights of either sign, which the raw parameters of
+    this version do not describe (they are >= 0); without creep it still holds."""
+    line = Linear(jnp.asarray(30.0), jnp.asarray(5.0))
+    axis = Axis(line, creep=Creep.logarithmic(0.01, 0.1, 10.0))
+    for version, model, kept in ((5, axis, True), (4, axis, False), (4, line, True)):
+        k = 2 + (model.creep.weights.size if model is axis else 0)
+        path = tmp_path / f"m{version}_{k}.json"
+        save_model(model, path, posterior=Posterior(np.eye(k) * 1e-6, 2.0, SPAN_V, RANGE_NM, "iid", 1))
+        doc = json.loads(path.read_text())
+        doc["version"] = version
+        path.write_text(json.dumps(doc))
+        assert (read_model_and_posterior(path)[2] is not None) == kept, (version, k)
 
 
 runner = CliRunner()

@@ -1,6 +1,6 @@
 """Model parameters to and from JSON: readable, versioned, self-describing, round-trips exactly.
 
-``{"format": "jaxafm-model", "version": 4, "model": {"type": "PrandtlIshlinskii",
+``{"format": "jaxafm-model", "version": 5, "model": {"type": "PrandtlIshlinskii",
 "fields": {"thresholds": [...], ...}}, "about": {...}, "uncertainty": {...} or null}``; arrays
 as nested lists (V, nm, s as in the code), nested modules as nested objects, absent effects as
 ``null``. ``about`` (:func:`describe`) says how to use the model: units, axes, effects, the
@@ -9,6 +9,9 @@ version. ``uncertainty`` is the fit's :class:`~jaxafm.model.posterior.Posterior`
 (:meth:`~jaxafm.model.posterior.Posterior.to_dict`), checked on load. Version-1 files (no
 ``about``) and version-2 files (no ``uncertainty``) are still read, as models without one;
 version-3 files (lags without ``hold``) read their lags as the zero hold, which they were.
+Version-3 and 4 files of a model with creep are read without their uncertainty: it is over
+creep weights of either sign, and a fit keeps them >= 0
+(:meth:`~jaxafm.model.effects.Creep.free_parameters`).
 """
 
 from __future__ import annotations
@@ -28,8 +31,9 @@ import numpy as np
 from . import effects, hysteresis, scanner
 from .posterior import Posterior
 
-FORMAT, VERSION = "jaxafm-model", 4
-READABLE = (1, 2, 3, 4)  # format versions this jaxafm reads
+FORMAT, VERSION = "jaxafm-model", 5
+READABLE = (1, 2, 3, 4, 5)  # format versions this jaxafm reads
+SIGNED_CREEP = (3, 4)  # format versions whose uncertainty is over creep weights of either sign
 _TYPES = {
     cls.__name__: cls
     for module in (hysteresis, effects, scanner)
@@ -135,7 +139,8 @@ def read_model_file(path) -> tuple:
 
 def read_model_and_posterior(path) -> tuple:
     """:func:`read_model_file`'s model and ``about``, and the model's posterior (None where the
-    file holds none: written by ``jaxafm calibrate``, by hand, or in format version 1 or 2)."""
+    file holds none: written by ``jaxafm calibrate``, by hand, or in format version 1 or 2; and
+    for a model with creep in format version 3 or 4, whose uncertainty is over signed creep weights)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"model file {path} does not exist")
@@ -162,12 +167,18 @@ def read_model_and_posterior(path) -> tuple:
     about = doc.get("about") or {}
     if not isinstance(about, dict):
         raise ValueError(f"{path}: 'about' must be a mapping, got {type(about).__name__}")
-    if doc.get("uncertainty") is None:
+    if doc.get("uncertainty") is None or (doc["version"] in SIGNED_CREEP and _has_creep(model)):
         return model, about, None
     try:
         return model, about, Posterior.from_dict(doc["uncertainty"], model)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{path}: {e}") from None
+
+
+def _has_creep(model) -> bool:
+    """Whether ``model`` has a creep stage anywhere."""
+    leaves = jax.tree_util.tree_leaves(model, is_leaf=lambda m: isinstance(m, effects.Creep))
+    return any(isinstance(leaf, effects.Creep) for leaf in leaves)
 
 
 def check_monotone(model) -> None:

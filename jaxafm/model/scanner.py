@@ -85,7 +85,7 @@ class Axis(eqx.Module):
             positive: keep the hysteresis weights non-negative
                 (:meth:`AbstractHysteresis.free_parameters`).
             lag_scale_s: the rate-dependence time constant (s) a raw value of about 1 stands for.
-            creep_scale: the creep weight a raw value of 1 stands for (every weight free).
+            creep_scale: the creep weight a raw value of 1 stands for (every weight its own, >= 0).
 
         Returns:
             ``(raw, rebuild)``: a tuple of the present stages' raw parameters and
