@@ -1073,30 +1073,49 @@ def step_a_floor_preisach(results: Results) -> Table:
     return Table(header, rows, runs, note)
 
 
-PREISACH_LEVELS = Run(
-    "step_a_independent/preisach_levels.json", "python experiments/step_a_preisach_levels.py"
-)
+PREISACH_LEVELS = {
+    100: Run("step_a_independent/preisach_levels_100.json", "python experiments/step_a_preisach_levels.py"),
+    111: Run(
+        "step_a_independent/preisach_levels_111.json",
+        "python experiments/step_a_preisach_levels.py --seed 111 --runs 4 8 16 "
+        "--effects coupling rate_dependence creep",
+    ),
+}
 
 
-@table("step_a_preisach_levels")
-def step_a_preisach_levels(results: Results) -> Table:
-    m = results(PREISACH_LEVELS)
-    px = lambda v: q(v, "px", 2)
-    spread = lambda v: "none" if v is None else q(v, "mean relay weights", 2)
-    rows = [
-        [count(r["levels"]), spread(r["prior_spread"]), px(r["held_out_px"]), px(r["all_px"])]
-        + [px(r["inside_px"]), px(r["x_margins_px"]), px(r["y_margins_px"])]
-        + [f"{px(r['sd_inside_px'])} / {px(r['sd_outside_px'])}", q(r["plausible"])]
-        for r in m["rows"]
-    ]
-    header = ["levels", "density prior's spread", "held-out features", "tip path: all pixels"]
-    header += ["inside the reach", "x margins", "y margins", "its predicted sd: inside / outside the reach"]
-    header += ["saved as plausible"]
-    note = (
-        f"Case {m['seed']}, the ladder off, with {', '.join(m['effects'])}; tip path rms after the rigid "
-        "motion; its sd as the fit predicts it (`path_sd`), rms over the pixels."
-    )
-    return Table(header, rows, [PREISACH_LEVELS], note)
+def preisach_levels(seed: int) -> Callable[[Results], Table]:
+    """The table of ``experiments/step_a_preisach_levels.py`` on case ``seed``."""
+
+    def make(results: Results) -> Table:
+        run = PREISACH_LEVELS[seed]
+        m = results(run)
+        px = lambda v: q(v, "px", 2)
+        spread = lambda v: "none" if v is None else q(v, "mean relay weights", 2)
+        rows = [
+            [count(r["levels"]), spread(r["prior_spread"]), px(r["held_out_px"]), px(r["all_px"])]
+            + [px(r["inside_px"]), px(r["x_margins_px"]), px(r["y_margins_px"])]
+            + [f"{px(r['sd_inside_px'])} / {px(r['sd_outside_px'])}", q(r["plausible"])]
+            for r in m["rows"]
+        ]
+        header = ["levels", "density prior's spread", "held-out features", "tip path: all pixels"]
+        header += [
+            "inside the reach",
+            "x margins",
+            "y margins",
+            "its predicted sd: inside / outside the reach",
+        ]
+        header += ["saved as plausible"]
+        note = (
+            f"Case {m['seed']}, the ladder off, with {', '.join(m['effects'])}; tip path rms after the rigid "
+            "motion; its sd as the fit predicts it (`path_sd`), rms over the pixels."
+        )
+        return Table(header, rows, [run], note)
+
+    return make
+
+
+table("step_a_preisach_levels")(preisach_levels(100))
+table("step_a_preisach_levels_111")(preisach_levels(111))
 
 
 RATE_LAG = Run("rate_lag_discretisation/metrics.json", "python experiments/rate_lag_discretisation.py")
