@@ -17,10 +17,12 @@ generator's truth:
 
     python experiments/step_a_independent.py [--cases 20] [--speeds 4] [--shard 1/2] [--resume]
     python experiments/step_a_independent.py --seeds 102 105  # those cases again, in place
+    python experiments/step_a_independent.py --model preisach  # step A with the Preisach class
 
-writes experiments/results/step_a_independent/ (cases-K-of-N.json per shard, after each case;
-with --resume the cases already in one are skipped; then --summarise: summary.json, what the docs
-table shows).
+writes experiments/results/step_a_independent/ (step_a_independent_preisach/ with --model
+preisach): cases-K-of-N.json per shard, after each case (with --resume the cases already in one
+are skipped); then summary.json and summary.png, what the docs table shows (--summarise: those
+alone).
 """
 
 from __future__ import annotations
@@ -48,6 +50,14 @@ MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
 PREISACH = {"name": "preisach", "kind": "preisach", "levels": 16}
 #: the effects step A may fit: the generator has no z lag, so the drive's lag is the scanner's own
 EFFECTS = ["asymmetry", "creep", "coupling", "bow", "drift"]
+#: the study of each model class (``--model``): step A's richest model and where the results go
+CLASSES = {"gpi": (MODEL, OUT), "preisach": (PREISACH, OUT.parent / "step_a_independent_preisach")}
+
+
+def _key(row: dict, name: str) -> str:
+    """The key of step A's metric ``name`` in a case's ``row``: prefixed with the model class the
+    case was fitted with (``gpi_``, ``preisach_``)."""
+    return f"{row.get('model_class', 'gpi')}_{name}"
 
 
 def plan(cases: int, speeds: int) -> list:
@@ -101,19 +111,23 @@ def draw_and_read(
     return case, scans, cfg
 
 
-def run_case(spec: dict, pixels: int, kind: str) -> dict:
-    """Draw, write, read and identify one case; score it against the truth. The compiled
-    functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
+def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL) -> dict:
+    """Draw, write, read and identify one case with ``model`` as step A's richest model; score it
+    against the truth. The compiled functions of earlier cases are dropped first: kept, they fill
+    the memory of a long run."""
     jax.clear_caches()
     clear_caches()
-    case, scans, cfg = draw_and_read(spec, pixels, kind)
+    case, scans, cfg = draw_and_read(spec, pixels, kind, model=model)
     began = time.perf_counter()
     said = []
     try:
         ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)
     except ValueError as e:
-        return _row(spec, case, {"refused": str(e)}, time.perf_counter() - began, said)
-    m = {f"gpi_{k}": v for k, v in identification_metrics(ident).items()}
+        refused = {"model_class": model["name"], "refused": str(e)}
+        return _row(spec, case, refused, time.perf_counter() - began, said)
+    m = {"model_class": model["name"]} | {
+        f"{model['name']}_{k}": v for k, v in identification_metrics(ident).items()
+    }
     m["tip_path_rms_px"] = path_error(ident.model, scans, case)
     m["tip_path_per_scan_rms_px"] = _path_error_per_scan(ident.model, scans, case)
     m["tip_path_inside_reach_rms_px"], m["tip_path_outside_reach_rms_px"], m["inside_reach_share"] = (
@@ -208,41 +222,43 @@ def _stat(rows: list, value, how) -> float | None:
     return float(how([value(r) for r in rows])) if rows else None
 
 
-def summarise() -> dict:
-    """The shards' cases in one summary: the drawn cases' scores (median and worst), the speed
-    series' fitted lags against the truth, and what became of the unidentifiable cases."""
-    rows = [r for p in sorted(OUT.glob("cases-*.json")) for r in json.loads(p.read_text())]
+def summarise(out: Path = OUT) -> dict:
+    """The shards' cases in ``out`` in one summary: the drawn cases' scores (median and worst),
+    the speed series' fitted lags against the truth, and what became of the unidentifiable cases."""
+    rows = [r for p in sorted(out.glob("cases-*.json")) for r in json.loads(p.read_text())]
     drawn = [r for r in rows if r["unidentifiable"] is None]
-    saved = [r for r in drawn if "refused" not in r and r.get("gpi_plausible")]
+    saved = [r for r in drawn if "refused" not in r and r.get(_key(r, "plausible"))]
     s = {"cases": len(drawn), "saved": len(saved)}
     scores = {
         "tip_path_rms_px": lambda r: r["tip_path_rms_px"],
         "tip_path_worst_scan_rms_px": lambda r: max(r["tip_path_per_scan_rms_px"]),
-        "held_out_rms_px": lambda r: r["gpi_held_out_rms_nm"] / r["pixel_nm"],
-        "held_out_raw_rms_px": lambda r: r["gpi_held_out_raw_rms_nm"] / r["pixel_nm"],
-        "held_out_distance_error_rms_pct": lambda r: r["gpi_held_out_distance_error_rms_corrected_pct"],
-        "held_out_distance_error_max_pct": lambda r: r["gpi_held_out_distance_error_max_corrected_pct"],
-        "held_out_distance_error_max_raw_pct": lambda r: r["gpi_held_out_distance_error_max_raw_pct"],
+        "held_out_rms_px": lambda r: r[_key(r, "held_out_rms_nm")] / r["pixel_nm"],
+        "held_out_raw_rms_px": lambda r: r[_key(r, "held_out_raw_rms_nm")] / r["pixel_nm"],
+        "held_out_distance_error_rms_pct": lambda r: r[_key(r, "held_out_distance_error_rms_corrected_pct")],
+        "held_out_distance_error_max_pct": lambda r: r[_key(r, "held_out_distance_error_max_corrected_pct")],
+        "held_out_distance_error_max_raw_pct": lambda r: r[_key(r, "held_out_distance_error_max_raw_pct")],
     }
     for key, value in scores.items():
         s |= {f"{key}_median": _stat(saved, value, np.median), f"{key}_max": _stat(saved, value, np.max)}
     series = [r for r in drawn if len(r["rates_hz"]) > 1]
     s["speed_series"] = len(series)
     s["rate_lag_relative_error_pct"] = [
-        100 * (r["gpi_x_rate_lag_s"] / r["true_rate_lag_s"] - 1) if r.get("gpi_x_rate_lag_s") else None
+        100 * (r[_key(r, "x_rate_lag_s")] / r["true_rate_lag_s"] - 1)
+        if r.get(_key(r, "x_rate_lag_s"))
+        else None
         for r in series
     ]
     s["unidentifiable"] = [
-        {"case": r["unidentifiable"], "outcome": _outcome(r), "ladder": r.get("gpi_model_ladder")}
+        {"case": r["unidentifiable"], "outcome": _outcome(r), "ladder": r.get(_key(r, "model_ladder"))}
         for r in rows
         if r["unidentifiable"] is not None
     ]
-    (OUT / "summary.json").write_text(json.dumps(s, indent=1))
-    _figure(drawn)
+    (out / "summary.json").write_text(json.dumps(s, indent=1))
+    _figure(drawn, out)
     return s
 
 
-def _figure(drawn: list) -> None:
+def _figure(drawn: list, out: Path) -> None:
     """summary.png: per drawn case, the tip path's and the held-out features' rms error (px)
     against the goals, and the largest held-out distance error raw and corrected (%)."""
     import matplotlib
@@ -255,19 +271,26 @@ def _figure(drawn: list) -> None:
     x = np.arange(len(rows))
     fig, (a, b) = plt.subplots(2, 1, figsize=(max(6, 0.55 * len(rows)), 6.5), sharex=True)
     a.bar(x - 0.2, [r["tip_path_rms_px"] for r in rows], 0.4, label="tip path, every pixel")
-    a.bar(x + 0.2, [r["gpi_held_out_rms_nm"] / r["pixel_nm"] for r in rows], 0.4, label="held-out features")
+    a.bar(
+        x + 0.2, [r[_key(r, "held_out_rms_nm")] / r["pixel_nm"] for r in rows], 0.4, label="held-out features"
+    )
     a.axhline(0.1, color="C0", ls="--", lw=1, label="goal, tip path (0.1 px)")
     a.axhline(0.15, color="C1", ls="--", lw=1, label="goal, held-out (0.15 px)")
     a.set_ylabel("rms error (px)")
     a.legend(fontsize=8)
     b.bar(
         x - 0.2,
-        [r["gpi_held_out_distance_error_max_raw_pct"] for r in rows],
+        [r[_key(r, "held_out_distance_error_max_raw_pct")] for r in rows],
         0.4,
         label="raw image",
         color="0.6",
     )
-    b.bar(x + 0.2, [r["gpi_held_out_distance_error_max_corrected_pct"] for r in rows], 0.4, label="corrected")
+    b.bar(
+        x + 0.2,
+        [r[_key(r, "held_out_distance_error_max_corrected_pct")] for r in rows],
+        0.4,
+        label="corrected",
+    )
     b.axhline(0.2, color="k", ls="--", lw=1, label="goal (0.2 %)")
     b.set_yscale("log")
     b.set_ylim(bottom=0.1)
@@ -275,9 +298,15 @@ def _figure(drawn: list) -> None:
     b.set_xticks(x, labels, fontsize=7)
     b.set_xlabel("case (seed, scans)")
     b.legend(fontsize=8)
-    fig.suptitle("Step A on the independent generator's lattices\n(chords only, model ladder)", fontsize=10)
+    richest = (
+        {"gpi": "generalised PI", "preisach": "Preisach"}[rows[0].get("model_class", "gpi")] if rows else ""
+    )
+    fig.suptitle(
+        f"Step A on the independent generator's lattices\n(chords only, model ladder up to the {richest} class)",
+        fontsize=10,
+    )
     fig.tight_layout()
-    fig.savefig(OUT / "summary.png", dpi=120)
+    fig.savefig(out / "summary.png", dpi=120)
     plt.close(fig)
 
 
@@ -286,11 +315,17 @@ def _outcome(r: dict) -> str:
     or saved, with the rungs the ladder did not try (why) and the model it kept."""
     if "refused" in r:
         return f"refused: {r['refused']}"
-    if r.get("gpi_failures"):
-        return "not plausible: " + "; ".join(r["gpi_failures"])
-    skipped = [rung for rung in r.get("gpi_model_ladder", []) if ": not tried" in rung]
-    kept = f"{r['gpi_model_kind']}, {r['gpi_model_operators']} plays + {', '.join(r['gpi_model_effects'])}"
+    if r.get(_key(r, "failures")):
+        return "not plausible: " + "; ".join(r[_key(r, "failures")])
+    skipped = [rung for rung in r.get(_key(r, "model_ladder"), []) if ": not tried" in rung]
+    kept = f"{r[_key(r, 'model_kind')]}, {_size(r)} + {', '.join(r[_key(r, 'model_effects')])}"
     return "saved, reduced: " + "; ".join(skipped + [f"kept {kept}"]) if skipped else f"saved ({kept})"
+
+
+def _size(r: dict) -> str:
+    """The kept model's plays (PI, generalised PI) or levels (Preisach), in words."""
+    what = "levels" if r[_key(r, "model_kind")] == "preisach" else "plays"
+    return f"{r[_key(r, 'model_operators')]} {what}"
 
 
 def _line(r: dict) -> str:
@@ -299,23 +334,23 @@ def _line(r: dict) -> str:
     if "refused" in r:
         return head + f"refused: {r['refused']}"
     return head + (
-        f"model {r['gpi_model_kind']} {r['gpi_model_operators']} {r['gpi_model_effects']}; "
+        f"model {r[_key(r, 'model_kind')]} {_size(r)} {r[_key(r, 'model_effects')]}; "
         f"tip path {r['tip_path_rms_px']:.3f} px "
         f"(per scan {np.round(r['tip_path_per_scan_rms_px'], 3).tolist()}), "
-        f"held-out {r['gpi_held_out_rms_nm'] / r['pixel_nm']:.3f} px, "
-        f"distances {r['gpi_held_out_distance_error_max_corrected_pct']:.3f} % max; "
-        f"failures {r['gpi_failures']}; {r['seconds']:.0f} s"
+        f"held-out {r[_key(r, 'held_out_rms_nm')] / r['pixel_nm']:.3f} px, "
+        f"distances {r[_key(r, 'held_out_distance_error_max_corrected_pct')]:.3f} % max; "
+        f"failures {r[_key(r, 'failures')]}; {r['seconds']:.0f} s"
     )
 
 
-def rerun(seeds: list, cases: list, pixels: int, kind: str) -> None:
+def rerun(seeds: list, cases: list, pixels: int, kind: str, model: dict = MODEL, out: Path = OUT) -> None:
     """Run the cases of ``seeds`` again, each row replacing the one of its seed in the
-    cases-*.json that holds it (after each case)."""
-    held = {r["seed"]: path for path in OUT.glob("cases-*.json") for r in json.loads(path.read_text())}
+    cases-*.json of ``out`` that holds it (after each case)."""
+    held = {r["seed"]: path for path in out.glob("cases-*.json") for r in json.loads(path.read_text())}
     for spec in (c for c in cases if c["seed"] in seeds):
-        row = run_case(spec, pixels, kind)
+        row = run_case(spec, pixels, kind, model)
         print(_line(row), flush=True)
-        path = held.get(spec["seed"], OUT / "cases-rerun.json")
+        path = held.get(spec["seed"], out / "cases-rerun.json")
         rows = json.loads(path.read_text()) if path.exists() else []
         rows = [r for r in rows if r["seed"] != spec["seed"]] + [row]
         path.write_text(json.dumps(sorted(rows, key=lambda r: r["seed"]), indent=1, default=float))
@@ -333,23 +368,30 @@ def main() -> None:
     a.add_argument(
         "--seeds", type=int, nargs="+", help="run these cases again, each in the file that holds it"
     )
+    a.add_argument(
+        "--model",
+        choices=sorted(CLASSES),
+        default="gpi",
+        help="step A's model class (its own results folder)",
+    )
     args = a.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
+    model, folder = CLASSES[args.model]
+    folder.mkdir(parents=True, exist_ok=True)
     if args.seeds:
-        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind)
+        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder)
     elif not args.summarise:
         k, n = (int(v) for v in args.shard.split("/"))
-        done = {r["seed"] for p in OUT.glob("cases-*.json") for r in json.loads(p.read_text())}
+        done = {r["seed"] for p in folder.glob("cases-*.json") for r in json.loads(p.read_text())}
         todo = [
             c for c in plan(args.cases, args.speeds)[k - 1 :: n] if not (args.resume and c["seed"] in done)
         ]
-        out = OUT / f"cases-{k}-of-{n}.json"
+        out = folder / f"cases-{k}-of-{n}.json"
         rows = json.loads(out.read_text()) if args.resume and out.exists() else []
         for spec in todo:
-            rows.append(run_case(spec, args.pixels, args.kind))
+            rows.append(run_case(spec, args.pixels, args.kind, model))
             print(_line(rows[-1]), flush=True)
             out.write_text(json.dumps(rows, indent=1, default=float))
-    print(json.dumps(summarise(), indent=1))
+    print(json.dumps(summarise(folder), indent=1))
 
 
 if __name__ == "__main__":

@@ -8,9 +8,12 @@ the configuration allows -- straight axes (a one-play PI operator), with the con
 and feedback lag -- towards the configured one. At each step it tries every next rung: the plays
 doubled or quadrupled (up to the configured number; Preisach levels likewise), or one more configured effect
 (:data:`EFFECT_ORDER`), each started from the best model so far, and moves to the one with the
-lowest score if that is lower than the best so far (forward stepwise selection); it stops when
-no next rung lowers it. An effect whose rung failed to lower the best score at two steps in a row
-is not tried again, to spare its fits (an effect may fail once, before the plays it needs, and
+lowest score if that is lower than the best so far by :data:`MIN_GAIN` at least (forward stepwise
+selection); it stops when no next rung lowers it that much. Models whose scores lie within 2 of
+each other are about equally supported by the data (Burnham & Anderson 2002, section 2.6), and of
+two such the plainer is kept: a richer rung that fits its training features no better than that
+only swings more between them. An effect whose rung did not lower the best score at all at two
+steps in a row is not tried again, to spare its fits (an effect may fail once, before the plays it needs, and
 still be kept later).
 
 The score is the small-sample Akaike information criterion of the training features
@@ -170,7 +173,7 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
         if not tried:
             break
         label, cand, new = min(tried, key=lambda t: t[2].score)
-        kept = new.score < best.score
+        kept = new.score <= best.score - MIN_GAIN
         for other, o_cand, o_new in tried:
             if other != label:
                 note = "not kept (another rung scored lower)"
@@ -178,7 +181,7 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
                 note = (
                     f"kept ({best.score:.1f} -> {new.score:.1f})"
                     if kept
-                    else f"not kept (no lower than {best.score:.1f})"
+                    else f"not kept (not {MIN_GAIN:g} below {best.score:.1f})"
                 )
             rungs.append(Rung(other, o_cand, o_new.score, o_new.note, kept and other == label, note))
             log(f"  model ladder: {other}: score {o_new.score:.1f} ({o_new.note}), {note}")
@@ -193,8 +196,11 @@ def select(spec: ScanModelSpec, fit: Callable, line_rates: Sequence[float], log:
     return best.model, current, rungs
 
 
-#: how many steps in a row an effect's rung may fail to lower the best score before the ladder
-#: stops trying it
+#: how much a richer rung must lower the best score to be kept (module docstring)
+MIN_GAIN = 2.0
+#: how many steps in a row an effect's rung may fail to lower the best score at all before the
+#: ladder stops trying it (a rung that lowers it by less than :data:`MIN_GAIN` is not kept, but
+#: its effect is tried again: it may need plays still to come)
 STRIKES = 2
 
 
