@@ -1126,6 +1126,36 @@ def step_a_independent_preisach(results: Results) -> Table:
     return Table(header, rows, runs, note)
 
 
+STEP_A_REAL_CLASSES = Run("step_a_real_classes/metrics.json", "python experiments/step_a_real_classes.py")
+
+
+@table("step_a_real_classes")
+def step_a_real_classes(results: Results) -> Table:
+    """Each Nanosurf lattice identified with each model class."""
+    classes = {"gpi": "generalised PI (committed run)", "preisach": "Preisach plane"}
+    kinds = {"pi": "PI", "gpi": "generalised PI", "preisach": "Preisach"}
+    rows = []
+    for lattice, by_class in results(STEP_A_REAL_CLASSES).items():
+        for name, r in by_class.items():
+            size = "levels" if r["model_kind"] == "preisach" else "plays"
+            kept = f"{kinds[r['model_kind']]}, {r['model_operators']} {size} + " + ", ".join(
+                r["model_effects"]
+            )
+            rows.append(
+                [lattice.replace("_", " "), classes[name]]
+                + [f"{q(r['held_out_raw_rms_nm'], 'nm')} → {q(r['held_out_rms_nm'], 'nm')}"]
+                + [
+                    f"{q(r['held_out_pitch_std_raw_pct'], '%', 2)} → {q(r['held_out_pitch_std_corrected_pct'], '%', 2)}"
+                ]
+                + [q(r["held_out_distance_error_max_corrected_pct"], "%", 2), kept, q(r["plausible"])]
+            )
+    header = ["lattice", "richest model", "held-out features: raw → corrected", "their local pitch spread"]
+    header += ["largest distance error, corrected", "model the ladder kept", "saved as plausible"]
+    return Table(
+        header, rows, [STEP_A_REAL_CLASSES], "The held-out features as `jaxafm calibrate` gives them."
+    )
+
+
 PREISACH_LEVELS = {
     100: Run("step_a_independent/preisach_levels_100.json", "python experiments/step_a_preisach_levels.py"),
     111: Run(
