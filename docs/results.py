@@ -1138,9 +1138,9 @@ def step_a_real_classes(results: Results) -> Table:
     for lattice, by_class in results(STEP_A_REAL_CLASSES).items():
         for name, r in by_class.items():
             size = "levels" if r["model_kind"] == "preisach" else "plays"
-            kept = f"{kinds[r['model_kind']]}, {r['model_operators']} {size} + " + ", ".join(
-                r["model_effects"]
-            )
+            shape = f"{kinds[r['model_kind']]}, {r['model_operators']} {size}"
+            shape = "straight axes" if r["model_kind"] == "pi" and r["model_operators"] == 1 else shape
+            kept = f"{shape} + " + ", ".join(r["model_effects"])
             rows.append(
                 [lattice.replace("_", " "), classes[name]]
                 + [f"{q(r['held_out_raw_rms_nm'], 'nm')} → {q(r['held_out_rms_nm'], 'nm')}"]
