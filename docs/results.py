@@ -308,6 +308,11 @@ def _coverage_goal(m: dict) -> str:
 STEP_A_INDEPENDENT = Run(
     "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 20 --pixels 64"
 )
+#: the generator's cases run again with the tip path's coverage (``--seeds``)
+STEP_A_COVERAGE = Run(
+    STEP_A_INDEPENDENT.path,
+    "python experiments/step_a_independent.py --pixels 64 --seeds 109 115 116 112 107 119 118 102",
+)
 
 
 NANOSURF = tuple(
@@ -763,6 +768,38 @@ GOALS.append(
         ),
     )
 )
+GOALS += [
+    Goal(
+        f"step_a_real_{label.replace(' ', '_')}_coverage",
+        f"step A on a real lattice (Nanosurf {label}): held-out features inside the 90 % ellipse the fit "
+        "predicts for them in 85–95 %",
+        run,
+        "docs/uncertainty.md#step-a-how-sure-the-fit-is-of-where-it-puts-the-tip",
+        lambda m: (
+            f"{q(m['gpi_held_out_coverage_90_pct'], '%', 0)} of {count(m['gpi_held_out_points'])} "
+            f"(50 % ellipse: {q(m['gpi_held_out_coverage_50_pct'], '%', 0)}); predicted "
+            f"{q(m['gpi_held_out_predicted_rms_nm'], 'nm')} rms, found {q(m['gpi_held_out_offsets_rms_nm'], 'nm')}"
+        ),
+        lambda m: 85 <= m["gpi_held_out_coverage_90_pct"] <= 95,
+    )
+    for label, run in NANOSURF
+]
+GOALS.append(
+    Goal(
+        "step_a_independent_coverage",
+        "step A on an independent generator's lattices: the true tip path inside the 90 % ellipse the fit "
+        "predicts at 85–95 % of the pixels (median over the cases)",
+        STEP_A_COVERAGE,
+        "docs/uncertainty.md#step-a-how-sure-the-fit-is-of-where-it-puts-the-tip",
+        lambda m: (
+            f"{q(m['tip_path_coverage_90_pct_median'], '%', 0)} from the parameters, "
+            f"{q(m['tip_path_coverage_90_with_spread_pct_median'], '%', 0)} with a feature's spread added, "
+            f"over {count(m['coverage_cases'])} cases (held-out features: "
+            f"{q(m['held_out_coverage_90_pct_median'], '%', 0)})"
+        ),
+        lambda m: 85 <= m["tip_path_coverage_90_with_spread_pct_median"] <= 95,
+    )
+)
 #: The README's short table: the positioning goals and the real data.
 README_GOALS = (
     "step_a_linearity",
@@ -1122,6 +1159,65 @@ def step_a_independent_preisach(results: Results) -> Table:
         "Tip path rms against the truth after the rigid motion (inside / outside the features' reach where "
         "the run split it); held-out features as `jaxafm calibrate` gives them; not saved: refused, or "
         "judged not plausible."
+    )
+    return Table(header, rows, runs, note)
+
+
+def _ellipses(r: dict, key: str) -> str:
+    """The 90 % and 50 % ellipses' coverage of ``key`` (``..._{level}..._pct``) in ``r``."""
+    return f"{q(r[key.format(90)], '%', 0)} / {q(r[key.format(50)], '%', 0)}"
+
+
+@table("step_a_coverage")
+def step_a_coverage(results: Results) -> Table:
+    """Step A's predicted position errors against the held-out features (real lattices and the
+    generator) and against the generator's true tip path."""
+    rows = []
+    lattices = [(f"{label} (real)", run) for label, run in NANOSURF] + [
+        ("jaxafm's simulated AFM", STEP_A_SIM)
+    ]
+    for label, run in lattices:
+        m = results(run)
+        rows.append(
+            [label, count(m["gpi_held_out_points"])]
+            + [f"{q(m['gpi_held_out_offsets_rms_nm'], 'nm')} / {q(m['gpi_held_out_predicted_rms_nm'], 'nm')}"]
+            + [
+                _ellipses(m, "gpi_held_out_coverage_{}_pct"),
+                q(m["gpi_held_out_parameters_share_pct"], "%", 0),
+            ]
+            + ["–"] * 3
+        )
+    runs = [run for _, run in lattices]
+    cases = [(r, run) for run in STEP_A_CASES for r in results(run) if "tip_path_coverage_90_pct" in r]
+    for r, run in sorted(cases, key=lambda c: c[0]["seed"]):
+        rerun = Run(run.path, STEP_A_COVERAGE.command)
+        runs += [rerun] if rerun not in runs else []
+        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        px = r["pixel_nm"]
+        rows.append(
+            [f"{r['seed']} ({scans}, generator)", count(r["gpi_held_out_points"])]
+            + [f"{q(r['gpi_held_out_offsets_rms_nm'], 'nm')} / {q(r['gpi_held_out_predicted_rms_nm'], 'nm')}"]
+            + [
+                _ellipses(r, "gpi_held_out_coverage_{}_pct"),
+                q(r["gpi_held_out_parameters_share_pct"], "%", 0),
+            ]
+            + [
+                f"{q(r['tip_path_rms_px'] * px, 'nm')} / {q(r['tip_path_predicted_rms_px'] * px, 'nm')} / "
+                f"{q(r['tip_path_predicted_rms_with_spread_px'] * px, 'nm')}",
+                _ellipses(r, "tip_path_coverage_{}_pct"),
+                _ellipses(r, "tip_path_coverage_{}_with_spread_pct")
+                + f" ({q(r['tip_path_coverage_90_with_spread_inside_reach_pct'], '%', 0)} inside, "
+                f"{q(r['tip_path_coverage_90_with_spread_outside_reach_pct'], '%', 0)} beyond)",
+            ]
+        )
+    header = ["lattice or case", "held-out points", "their offsets / predicted, rms"]
+    header += ["inside the 90 % / 50 % ellipses", "parameters' share of the prediction"]
+    header += ["true tip path: error / predicted (parameters) / predicted (+ spread), rms"]
+    header += ["inside the 90 % / 50 % ellipses, parameters"]
+    header += ["the same, + spread (90 %: inside the features' reach, beyond it)"]
+    note = (
+        "A point is one feature in one image; its offset, how far the model misplaces it along each scan axis; "
+        "the tip path, every pixel of every scan after the one rigid motion no image can see."
     )
     return Table(header, rows, runs, note)
 

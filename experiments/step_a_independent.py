@@ -12,6 +12,8 @@ generator's truth:
 - the held-out features' residual (pixels) and the relative errors of the distances between them
   (%), as ``jaxafm calibrate`` reports them;
 - with a speed series, the fitted rate-dependence lag against the generator's drive lag;
+- how well the fit knows its own errors: the held-out features and the true tip path inside the
+  ellipses it predicts (:func:`path_coverage`; the features' as ``jaxafm calibrate`` reports them);
 - the deliberately unidentifiable cases (one scan at one speed; a 3 x 3 lattice): refused, or
   reduced with the reason.
 
@@ -40,6 +42,7 @@ import numpy as np
 
 from jaxafm.config import CalibrateConfig
 from jaxafm.identify.fit import clear_caches
+from jaxafm.identify.identifiability import LEVELS, ellipse_quantile, feature_spread, path_covariance
 from jaxafm.identify.scan_model import feature_reach
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
@@ -133,6 +136,7 @@ def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL) -> dict:
     m["tip_path_inside_reach_rms_px"], m["tip_path_outside_reach_rms_px"], m["inside_reach_share"] = (
         path_error_by_reach(ident.model, scans, case)
     )
+    m |= path_coverage(ident, scans, case)
     truth = case["truth"]["scanner"]
     m["true_rate_lag_s"] = truth["rate_tau_s"]
     m["true_drift_nm_per_s"] = truth["drift_nm_per_s"]
@@ -211,10 +215,53 @@ def _path_error_per_scan(model, scans, case) -> list:
 
 def _rigid_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Squared lengths (N,) nm^2 of ``a - b`` after the rigid motion of ``a`` that fits ``b`` best."""
+    return np.sum(_rigid(a, b)[0] ** 2, axis=1)
+
+
+def _rigid(a: np.ndarray, b: np.ndarray) -> tuple:
+    """``(e, r)``: the errors (N, 2) nm of ``a`` against ``b`` after the rigid motion of ``a``
+    that fits ``b`` best (Kabsch), and its turn ``r`` (2, 2), ``a`` turned is ``a @ r``."""
     ma, mb = a.mean(axis=0), b.mean(axis=0)
     u, _, vt = np.linalg.svd((a - ma).T @ (b - mb))
     r = u @ np.diag([1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    return np.sum(((a - ma) @ r + mb - b) ** 2, axis=1)
+    return (a - ma) @ r + mb - b, r
+
+
+def path_coverage(ident, scans, case) -> dict:
+    """How well step A knows its own tip path: the true path's errors (:func:`path_error`'s)
+    inside the 50 % and 90 % ellipses the fit predicts at each pixel, % of the pixels, and the
+    rms error it predicts (px): from the parameters' covariance alone
+    (:func:`jaxafm.identify.identifiability.path_covariance`), and with the spread of a feature
+    the fit did not see added on both axes (``_with_spread``;
+    :func:`jaxafm.identify.identifiability.feature_spread`: chord noise, feature irregularity
+    and what of the model's error the features show); the latter's 90 % coverage also inside
+    the features' reach on both stage axes and outside it (:func:`path_error_by_reach`'s split)."""
+    fitted, true, nominal = _paths(ident.model, scans, case)
+    e, r = _rigid(fitted, true)
+    cov = np.concatenate([c.reshape(-1, 2, 2) for c in path_covariance(ident.model, scans, ident.chords)])
+    cov = r.T @ cov @ r  # into the truth's frame, as the errors
+    spread = np.trace(feature_spread(ident.model, scans, ident.chords)) / 2 * np.eye(2)
+    pixel = scans[0].raster.pixel_size[0]
+    out = {}
+    for name, c in (("", cov), ("_with_spread", cov + spread)):
+        inside = np.einsum("ni,nij,nj->n", e, np.linalg.pinv(c), e)[:, None] <= [
+            ellipse_quantile(L) for L in LEVELS
+        ]
+        out |= {
+            f"tip_path_coverage_{round(100 * L)}{name}_pct": 100 * float(np.mean(i))
+            for L, i in zip(LEVELS, inside.T)
+        }
+        out[f"tip_path_predicted_rms{name}_px"] = (
+            float(np.sqrt(np.mean(np.trace(c, axis1=1, axis2=2)))) / pixel
+        )
+    reach = feature_reach(scans)
+    within = np.all([(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)], axis=0)
+    held = inside[:, LEVELS.index(0.9)]
+    for name, where in (("inside", within), ("outside", ~within)):
+        out[f"tip_path_coverage_90_with_spread_{name}_reach_pct"] = (
+            100 * float(np.mean(held[where])) if where.any() else None
+        )
+    return out
 
 
 def _stat(rows: list, value, how) -> float | None:
@@ -240,6 +287,13 @@ def summarise(out: Path = OUT) -> dict:
     }
     for key, value in scores.items():
         s |= {f"{key}_median": _stat(saved, value, np.median), f"{key}_max": _stat(saved, value, np.max)}
+    covered = [r for r in saved if "tip_path_coverage_90_pct" in r]
+    s["coverage_cases"] = len(covered)
+    for level in (90, 50):
+        for key in (f"tip_path_coverage_{level}_pct", f"tip_path_coverage_{level}_with_spread_pct"):
+            s[f"{key}_median"] = _stat(covered, lambda r: r[key], np.median)
+        key = f"held_out_coverage_{level}_pct"
+        s[f"{key}_median"] = _stat(covered, lambda r: r[_key(r, key)], np.median)
     series = [r for r in drawn if len(r["rates_hz"]) > 1]
     s["speed_series"] = len(series)
     s["rate_lag_relative_error_pct"] = [

@@ -512,6 +512,25 @@ def _validation_shifts(ax, view) -> None:
     )
 
 
+def _ellipses(ax, sites, ellipse, errors, scale: float) -> None:
+    """At each of ``sites`` (n, 2) nm the ellipse ``x^T E^-1 x <= 1`` of ``ellipse`` (n, 2, 2)
+    nm^2 (none where NaN), magnified by ``scale`` as the error arrows, and how many of the
+    ``errors`` (n, 2) nm it holds."""
+    from matplotlib.patches import Ellipse
+
+    known = np.all(np.isfinite(ellipse), axis=(1, 2))
+    inside = 0
+    for site, E, e in zip(sites[known], ellipse[known], errors[known]):
+        values, vectors = np.linalg.eigh(E)
+        minor, major = 2 * np.sqrt(np.maximum(values, 0.0)) * scale / 1e3
+        angle = np.degrees(np.arctan2(vectors[1, 1], vectors[0, 1]))  # of the major axis
+        ax.add_patch(
+            Ellipse(site / 1e3, major, minor, angle=angle, fill=False, color="C0", lw=0.6, alpha=0.7)
+        )
+        inside += int(e @ np.linalg.solve(E, e) <= 1.0)
+    ax.plot([], [], color="C0", lw=0.6, label=f"predicted 90 % ellipse: holds {inside} of {known.sum()}")
+
+
 def _validation_held_out(ax, view) -> None:
     """The held-out features' errors from their sites, raw and corrected, as magnified arrows."""
     sites = view.held_sites
@@ -535,6 +554,8 @@ def _validation_held_out(ax, view) -> None:
                 width=0.004,
                 label=f"{label}, x{scale:.3g}: rms {rms:.3g} nm",
             )
+            if c == "C0" and view.held_ellipse is not None:
+                _ellipses(ax, sites, view.held_ellipse, e, scale)
         ax.plot(sites[:, 0] / 1e3, sites[:, 1] / 1e3, "k.", ms=2)
         ax.legend(fontsize=8, loc="upper right")
     what = "held-out features" if view.held_out else "every other site (fitted: no hold-out)"

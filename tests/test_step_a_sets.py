@@ -174,6 +174,18 @@ def test_an_image_stage_that_worsens_the_held_out_features_is_not_kept(monkeypat
     assert "REJECTED: the held-out features got worse (10.00 -> 50.00 nm)" in ident.stages[1].message
 
 
+@functools.cache
+def _small_fit():
+    """A four-play PI with coupling and creep fitted to the features of one 0-degree scan of the
+    simulated default scanner, half of the features held out."""
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    spec = ScanModelSpec(kind="pi", effects=("coupling", "creep"), operators=4)
+    ident = staged_fit.identify(
+        scans, spec, FitPlan(max_steps=20, blur_px=(), select=False), log=lambda *_: None
+    )
+    return scans, ident
+
+
 def test_path_sd_is_the_spread_of_paths_drawn_from_the_covariance():
     """The delta method's tip-path sd (``path_sd``) against Monte Carlo: paths of raw parameters
     drawn from ``eps^2`` times the chord covariance (``eps`` small, so the path is linear in
@@ -184,11 +196,7 @@ def test_path_sd_is_the_spread_of_paths_drawn_from_the_covariance():
 
     from jaxafm.identify.identifiability import chord_covariance, path_sd
 
-    scans, _ = _scans(angles=(0.0,), rotation=0.0)
-    spec = ScanModelSpec(kind="pi", effects=("coupling", "creep"), operators=4)
-    ident = staged_fit.identify(
-        scans, spec, FitPlan(max_steps=20, blur_px=(), select=False), log=lambda *_: None
-    )
+    scans, ident = _small_fit()
     sd = path_sd(ident.model, scans, ident.chords)[0].ravel()
     model = ident.model.as_float64()
     raw, rebuild = model.free_parameters(scans[0])
@@ -209,6 +217,58 @@ def test_path_sd_is_the_spread_of_paths_drawn_from_the_covariance():
     assert sd.max() > 0
     np.testing.assert_allclose(spread, sd, rtol=0.2)
     assert abs(np.sqrt(np.mean(spread**2)) / np.sqrt(np.mean(sd**2)) - 1) < 0.07
+
+
+def test_held_out_features_fall_in_their_predicted_ellipses_as_often_as_stated():
+    """The held-out features sit between the training ones (a checkerboard), so their offsets
+    are drawn like the training features' (the chords' noise, the features' irregularity, the
+    model's error between the features) plus the parameters' error: the predicted 90 % and 50 %
+    ellipses hold 90 % and 50 % of them to within three binomial standard deviations of the
+    count, and the rms the fit predicts is the offsets' own to within the sampling error of an
+    rms over n features of 2-D offsets, 1 / sqrt(4 n), four times over (the features' noise
+    differs along and across the lines). The parameters alone (a sixth of the prediction here)
+    would fail it."""
+    _, ident = _small_fit()
+    v = ident.validation
+    n = v["held_out_points"]
+    assert n >= 20
+    for level in (50, 90):
+        p = level / 100
+        assert abs(v[f"held_out_coverage_{level}_pct"] - level) <= 100 * 3 * np.sqrt(p * (1 - p) / n), v
+    ratio = v["held_out_predicted_rms_nm"] / v["held_out_offsets_rms_nm"]
+    assert abs(np.log(ratio)) <= 4 / np.sqrt(4 * n), v
+
+
+def test_feature_points_average_each_features_chords_along_and_across_the_lines():
+    """Closed form: per image and feature, the mean over its chords along the lines and over
+    those across; a feature with chords one way only is left out, the padding is not counted."""
+    from jaxafm.identify.identifiability import feature_points
+    from jaxafm.identify.stages import PaddedChords
+
+    def image(ij, along, weight):
+        n = len(ij)
+        return PaddedChords(
+            np.zeros((n, 2, 2)), np.asarray(ij, float), np.asarray(along), np.asarray(weight, float)
+        )
+
+    first = image([[0, 0], [0, 0], [0, 0], [1, 0], [0, 0]], [True, True, False, True, True], [1, 1, 1, 1, 0])
+    second = image([[0, 0], [0, 0], [0, 0]], [True, False, False], [1, 1, 1])
+    values = np.array([1.0, 3.0, 5.0, 7.0, 100.0, 2.0, 4.0, 6.0])
+    keys, means = feature_points(((first, second),), values)
+    np.testing.assert_allclose(means, [[2.0, 5.0], [2.0, 5.0]])
+    np.testing.assert_array_equal(keys, [[0, 0, 0], [1, 0, 0]])
+
+
+def test_the_ellipse_quantile_holds_its_level_of_a_gaussian():
+    """``-2 ln(1 - level)``, the chi-square quantile with two degrees of freedom, against 200,000
+    draws of a correlated 2-D Gaussian (sampling error of a fraction about 0.001)."""
+    from jaxafm.identify.identifiability import ellipse_quantile
+
+    C = np.array([[4.0, 1.5], [1.5, 1.0]])
+    x = np.random.default_rng(0).multivariate_normal([0, 0], C, 200_000)
+    d2 = np.einsum("ni,ij,nj->n", x, np.linalg.inv(C), x)
+    for level in (0.5, 0.9, 0.99):
+        assert abs(np.mean(d2 <= ellipse_quantile(level)) - level) < 0.005
 
 
 def test_implausible_models_are_named():

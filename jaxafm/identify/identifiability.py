@@ -26,13 +26,15 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .held_out import fitted_parameters
 from .scan_model import ScanModel
-from .stages import chord_linearisation, feature_groups
+from .stages import chord_linearisation, feature_groups, feature_keys
 from .uncertainty import covariance
 
 #: what is physically negligible, per unit of a quantity (its own units; % of travel for loops)
@@ -187,16 +189,15 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]
 
 
-def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
-    """How uncertain (nm) the fitted tip path is at every pixel, beyond the one rigid motion of
-    the whole path that no image can see (a translation is the lattice's phase, a turn its
-    angle): per scan an array (2, lines, pixels), trace and retrace, of
-    ``sqrt(tr(G_p C G_p^T))``, ``G_p`` the pixel's tip position's gradient (2, k) in the raw
-    parameters with the rigid motions projected out of every column, and ``C``
-    :func:`chord_covariance` (the delta method, as for the quantities). Where the chords hold
-    the path it is about their precision; where the model alone carries it (between the
-    features and beyond their reach) it says how far the parameters the data leave open can
-    move it."""
+def path_covariance(model: ScanModel, scans: tuple, chords: tuple) -> list:
+    """How uncertain the fitted tip path is at every pixel, beyond the one rigid motion of the
+    whole path that no image can see (a translation is the lattice's phase, a turn its angle):
+    per scan an array (2, lines, pixels, 2, 2) nm^2, trace and retrace, of ``G_p C G_p^T``,
+    ``G_p`` the pixel's tip position's gradient (2, k) in the raw parameters with the rigid
+    motions projected out of every column, and ``C`` :func:`chord_covariance` (the delta
+    method, as for the quantities). Where the chords hold the path it is about their
+    precision; where the model alone carries it (between the features and beyond their reach)
+    it says how far the parameters the data leave open can move it."""
     model = model.as_float64()
     raw, rebuild = model.free_parameters(scans[0])
     C = chord_covariance(model, scans, chords)
@@ -213,8 +214,130 @@ def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
     q, _ = np.linalg.qr(rigid.reshape(3, -1).T)  # (2N, 3) orthonormal rigid motions
     flatG = G.reshape(-1, G.shape[-1])
     G = (flatG - q @ (q.T @ flatG)).reshape(G.shape)
-    sd = np.sqrt(np.maximum(np.einsum("nij,jk,nik->n", G, C, G), 0.0))
+    cov = np.einsum("nij,jk,nlk->nil", G, C, G)
     return [
-        a.reshape(shape)
-        for a, shape in zip(np.split(sd, np.cumsum([np.prod(s) for s in shapes])[:-1]), shapes)
+        a.reshape(shape + (2, 2))
+        for a, shape in zip(np.split(cov, np.cumsum([np.prod(s) for s in shapes])[:-1]), shapes)
     ]
+
+
+def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
+    """The tip path's standard deviation (nm) at every pixel, ``sqrt`` of the trace of
+    :func:`path_covariance`: per scan (2, lines, pixels)."""
+    return [
+        np.sqrt(np.maximum(np.trace(c, axis1=-2, axis2=-1), 0.0))
+        for c in path_covariance(model, scans, chords)
+    ]
+
+
+# ---------------------------------------------------------------------------------------------
+# Where the model puts a feature it did not train on, and how sure it is
+
+
+def feature_points(chords: tuple, values: np.ndarray) -> tuple:
+    """Per feature per image (a *point*), the mean of ``values`` (n, ...) over its chords along
+    the lines and over those across them, for the rows of
+    :func:`~jaxafm.identify.stages.chord_residuals` over ``chords``: ``(keys, means)``, ``keys``
+    (p, 3) the image's number (scan by scan, trace then retrace) and the feature's lattice
+    indices, ``means`` (p, 2, ...). A chord's residual is its midpoint's offset from the
+    feature's site along the chord, so the two means are how far the model misplaces the feature
+    along each scan axis. Features with chords in one direction only (at an image's edge) are
+    left out."""
+    rows = [c for images in chords for c in images]
+    image = np.concatenate([np.full(len(c.weight), i) for i, c in enumerate(rows)])
+    along = np.concatenate([np.asarray(c.along, bool) for c in rows])
+    real = np.concatenate([np.asarray(c.weight) > 0 for c in rows])
+    keys, point = np.unique(
+        np.column_stack([image, np.nan_to_num(feature_keys(chords))])[real], axis=0, return_inverse=True
+    )
+    slot = 2 * point.ravel() + (~along[real])
+    values = np.asarray(values)[real]
+    count = np.bincount(slot, minlength=2 * len(keys)).reshape(-1, 2)
+    sums = np.zeros((count.size,) + values.shape[1:])
+    np.add.at(sums, slot, values)
+    both = np.all(count > 0, axis=1)
+    means = sums.reshape((-1, 2) + values.shape[1:]) / np.maximum(count, 1).reshape(
+        (-1, 2) + (1,) * (values.ndim - 1)
+    )
+    return keys[both], means[both]
+
+
+def feature_spread(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarray:
+    """The spread (2, 2) nm^2 of a feature's offsets (:func:`feature_points`, along and across
+    the lines) about where the model puts it, beyond the parameters' error: the training points'
+    offsets ``m`` as fitted, ``sum m m^T / p`` over the ``p`` points, with the degrees of freedom
+    the fit took from them given back, ``N / (N - k)`` for the ``N = 2 p`` offsets and the ``k``
+    parameters the data fix (:func:`~jaxafm.identify.held_out.fitted_parameters`; the unbiased
+    ``RSS / (n - k)`` of least squares). It holds the chords' noise, the features' own
+    irregularity and whatever of the model's error the training features show."""
+    r, _, _ = chord_linearisation(model, scans, chords)
+    m = feature_points(chords, r)[1] * min(scans[0].pitch)
+    n, k = m.size, fitted_parameters(model, scans, chords)
+    return m.T @ m / len(m) * n / max(n - k, 1.0)
+
+
+#: the levels of the predicted ellipses :func:`position_check` scores
+LEVELS = (0.5, 0.9)
+
+
+def ellipse_quantile(level: float) -> float:
+    """The squared Mahalanobis radius that holds ``level`` of a 2-D Gaussian: ``-2 ln(1 - level)``
+    (the chi-square quantile with two degrees of freedom)."""
+    return -2.0 * np.log1p(-level)
+
+
+class PointPredictions(NamedTuple):
+    """Where the model puts features and how sure it is (:func:`point_predictions`): per point,
+    its image and lattice indices ``keys`` (p, 3) (:func:`feature_points`), its ``offsets``
+    (p, 2) nm along and across the lines, their predicted ``covariance`` (p, 2, 2) nm^2, and the
+    parameters' part of it, ``parameters`` (p, 2, 2) nm^2."""
+
+    keys: np.ndarray
+    offsets: np.ndarray
+    covariance: np.ndarray
+    parameters: np.ndarray
+
+
+def point_predictions(model: ScanModel, scans: tuple, train: tuple, test: tuple) -> PointPredictions:
+    """Where the model puts the features of the chords ``test`` and how sure it is: each
+    point's offset and its predicted covariance ``G C G^T + S``, ``G`` the offset's gradient in
+    the raw parameters, ``C`` :func:`chord_covariance` and ``S`` :func:`feature_spread`, both
+    from the training chords ``train`` (:func:`~jaxafm.identify.stages.chord_data`)."""
+    pitch = min(scans[0].pitch)
+    C = chord_covariance(model, scans, train)
+    S = feature_spread(model, scans, train)
+    r, J, _ = chord_linearisation(model, scans, test)
+    keys, m = feature_points(test, r)
+    G = feature_points(test, J)[1] * pitch
+    parameters = np.einsum("pij,jk,plk->pil", G, C, G)
+    return PointPredictions(keys, m * pitch, parameters + S, parameters)
+
+
+def position_check(model: ScanModel, scans: tuple, train: tuple, test: tuple) -> dict:
+    """How well the fit knows where it puts the features it did not train on: each held-out
+    point's offset ``m`` against its predicted covariance ``S_m`` (:func:`point_predictions`
+    of the held-out chords ``test`` from the training chords ``train``):
+
+    - ``held_out_coverage_50_pct``, ``held_out_coverage_90_pct``: the held-out points inside
+      their predicted 50 % and 90 % ellipses (``m^T S_m^-1 m`` at most
+      :func:`ellipse_quantile`); a calibrated prediction holds 50 % and 90 %;
+    - ``held_out_offsets_rms_nm``: the rms length of ``m``; ``held_out_predicted_rms_nm``: the
+      rms length the prediction expects, ``sqrt(mean tr S_m)``;
+    - ``held_out_parameters_share_pct``: the parameters' share of that expectation (the rest
+      is :func:`feature_spread`: chords, features, the model's error)."""
+    _, m, cov, parameters = point_predictions(model, scans, train, test)
+    if not len(m):
+        return {}
+    d2 = np.einsum("pi,pij,pj->p", m, np.linalg.inv(cov), m)
+    total = np.trace(cov, axis1=1, axis2=2)
+    return {
+        f"held_out_coverage_{round(100 * level)}_pct": float(100 * np.mean(d2 <= ellipse_quantile(level)))
+        for level in LEVELS
+    } | {
+        "held_out_points": len(m),
+        "held_out_offsets_rms_nm": float(np.sqrt(np.mean(np.sum(m**2, axis=1)))),
+        "held_out_predicted_rms_nm": float(np.sqrt(np.mean(total))),
+        "held_out_parameters_share_pct": float(
+            100 * np.sum(np.trace(parameters, axis1=1, axis2=2)) / np.sum(total)
+        ),
+    }

@@ -40,7 +40,7 @@ from .held_out import (
     split_masks,
     validate,
 )
-from .identifiability import identifiability
+from .identifiability import identifiability, position_check
 from .plausibility import implausible, undetermined, unvalidated
 from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, transplant
 from .selection import RungFit, aicc, matching_spec, select, supported_dead_zones
@@ -72,7 +72,9 @@ class Identification:
             held-out features is not, :func:`~jaxafm.identify.held_out.judge_stage`).
         held_out_nm: per stage, the held-out features' rms residual (nm) after it
             (:func:`~jaxafm.identify.held_out.held_out_rms`); NaN when no feature is held out.
-        validation: the held-out features' summary (:func:`~jaxafm.identify.held_out.validate`).
+        validation: the held-out features' summary (:func:`~jaxafm.identify.held_out.validate`)
+            and how well the fit predicts their errors
+            (:func:`~jaxafm.identify.identifiability.position_check`).
         failures: what failed the plausibility checks
             (:func:`~jaxafm.identify.plausibility.implausible`); empty if none.
         spec: the model fitted (the ladder's choice, or the configured one).
@@ -82,7 +84,7 @@ class Identification:
         kinds: per stage, its :class:`~jaxafm.identify.stages.StageKind`.
         chords: the training chords the quantities' standard deviations come from
             (:func:`~jaxafm.identify.stages.chord_data` at full resolution): what any other
-            uncertainty of the model needs (:func:`~jaxafm.identify.identifiability.path_sd`).
+            uncertainty of the model needs (:func:`~jaxafm.identify.identifiability.path_covariance`).
     """
 
     model: ScanModel
@@ -179,6 +181,8 @@ def identify(
         fit.run(stage, limit, i, len(stages))
     validation = validate(fit.model, scans, fit.train, fit.test)
     chords = chord_data(fit.train, scans, 1)
+    if validation.get("held_out_features"):
+        validation |= position_check(fit.model, scans, chords, chord_data(fit.test, scans, 1))
     quantities = identifiability(fit.model, scans, chords, drive_range(scans))
     failures = implausible(fit.model, scans) + unvalidated(validation, min(scans[0].pitch))
     return Identification(

@@ -35,10 +35,11 @@ from ..config import (
 )
 from ..identify.calibration_scan import CalibrationScan
 from ..identify.held_out import model_centres, nominal_centres, raw_errors
+from ..identify.identifiability import ellipse_quantile, point_predictions
 from ..identify.polynomial_baseline import fit_polynomials
 from ..identify.scan_model import ScanModel, ScanModelSpec
 from ..identify.staged_fit import Identification, identify
-from ..identify.stages import FitPlan
+from ..identify.stages import FitPlan, chord_data
 from ..identify.step_a import (
     Simulation,
     calibration_about,
@@ -314,7 +315,7 @@ def _identify(
     for q in ident.quantities:
         log(f"    {q.line()}")
     log(_validation_line(spec.name, ident))
-    view = validation_view(scans[0], ident.model, cfg.solver.hold_out)
+    view = validation_view(scans, ident.model, cfg.solver.hold_out, ident.chords)
     title = f"Step A, {spec.name}, on {source} ({scans[0].name})"
     v = ident.validation
     if v.get("held_out_features"):
@@ -367,6 +368,18 @@ def _validation_line(name: str, ident: Identification) -> str:
         f"distances between them {v['held_out_distance_error_max_raw_pct']:.2f} % raw -> "
         f"{v['held_out_distance_error_max_corrected_pct']:.2f} % corrected at most; lattice rotation "
         f"{float(np.rad2deg(ident.model.lattice.angle)):.3f} deg"
+    ) + _coverage_words(v)
+
+
+def _coverage_words(v: dict) -> str:
+    """How well the fit predicted the held-out features' errors
+    (:func:`~jaxafm.identify.identifiability.position_check`), in words; '' without them."""
+    if "held_out_coverage_90_pct" not in v:
+        return ""
+    return (
+        f"; predicted their errors as {v['held_out_predicted_rms_nm']:.1f} nm rms (they were "
+        f"{v['held_out_offsets_rms_nm']:.1f} nm along the scan axes), its 90 % / 50 % ellipses held "
+        f"{v['held_out_coverage_90_pct']:.0f} % / {v['held_out_coverage_50_pct']:.0f} % of them"
     )
 
 
@@ -374,7 +387,9 @@ def _validation_line(name: str, ident: Identification) -> str:
 class ValidationView:
     """What step A's validation figure shows (:func:`~jaxafm.plots.step_a_validation`) of the
     first scan's trace: nm throughout; the images and chords in the scan's nominal frame
-    (``extent`` [x0, x1, y0, y1]), the placed image, sites and errors in the stage frame."""
+    (``extent`` [x0, x1, y0, y1]), the placed image, sites and errors in the stage frame;
+    ``held_ellipse`` (n, 2, 2) nm^2, each corrected held-out error's predicted 90 % ellipse, the
+    errors ``x`` with ``x^T E^-1 x <= 1`` (``None``: not computed)."""
 
     levelled: np.ndarray
     background: np.ndarray
@@ -393,10 +408,14 @@ class ValidationView:
     held_raw: np.ndarray
     held_corrected: np.ndarray
     held_out: bool
+    held_ellipse: Optional[np.ndarray] = None
 
 
-def validation_view(scan: CalibrationScan, model: ScanModel, held_out: bool) -> ValidationView:
-    """The first scan's :class:`ValidationView` through the fitted ``model``."""
+def validation_view(scans: tuple, model: ScanModel, held_out: bool, chords: tuple = ()) -> ValidationView:
+    """The first scan's :class:`ValidationView` through the fitted ``model``; with the training
+    chords ``chords`` (:attr:`~jaxafm.identify.staged_fit.Identification.chords`), the held-out
+    features' predicted 90 % ellipses too."""
+    scan = scans[0]
     ft, fr = scan.features()
     image = ft.chords.image
     r = scan.raster
@@ -433,8 +452,11 @@ def validation_view(scan: CalibrationScan, model: ScanModel, held_out: bool) -> 
         sites_h = np.asarray(model.lattice.sites(jnp.asarray(hk, dtype=float)))
         raw_e = raw_errors((scan,), train, test, slope)
         cor_e = hc - sites_h
+        cov = _held_out_covariances(scans, model, chords, test, hk) if chords else None
+        ellipse = None if cov is None else ellipse_quantile(0.9) * cov
     else:
         sites_h = raw_e = cor_e = np.zeros((0, 2))
+        ellipse = None
     return ValidationView(
         image.levelled * image.height,
         image.background,
@@ -453,7 +475,23 @@ def validation_view(scan: CalibrationScan, model: ScanModel, held_out: bool) -> 
         raw_e,
         cor_e,
         held_out,
+        ellipse,
     )
+
+
+def _held_out_covariances(scans: tuple, model: ScanModel, train: tuple, test: list, keys) -> np.ndarray:
+    """The predicted covariance (n, 2, 2) nm^2 of the error of each held-out feature ``keys`` of
+    the first scan's trace (its chords ``test``), in the stage frame
+    (:func:`~jaxafm.identify.identifiability.point_predictions`, whose offsets run along the
+    scan's fast and slow axes); NaN for a feature with chords one way only."""
+    got = point_predictions(model, scans, train, chord_data(test, scans, 1))
+    turn = np.asarray(scans[0].raster.rotation)  # columns: the fast and the slow axis
+    out = np.full((len(keys), 2, 2), np.nan)
+    where = {tuple(k): i for i, k in enumerate(got.keys[:, 1:])}
+    for n, k in enumerate(np.asarray(keys)):
+        if tuple(k) in where:
+            out[n] = turn @ got.covariance[where[tuple(k)]] @ turn.T
+    return out
 
 
 def _placed(path: np.ndarray, z: np.ndarray) -> tuple:
