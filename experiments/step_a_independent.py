@@ -196,9 +196,14 @@ def path_errors_by_axis_reach(model, scans, case) -> tuple:
     (:func:`path_error`'s), and per stage axis whether each pixel lies inside the features'
     chords' reach on it (2 masks (N,))."""
     fitted, true, nominal = _paths(model, scans, case)
+    return _rigid_errors(fitted, true), _inside_reach(scans, nominal)
+
+
+def _inside_reach(scans, nominal: np.ndarray) -> list:
+    """Per stage axis, whether each pixel at its nominal position (N, 2) nm lies inside the
+    features' chords' reach on that axis (2 masks (N,))."""
     reach = feature_reach(scans)
-    inside = [(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)]
-    return _rigid_errors(fitted, true), inside
+    return [(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)]
 
 
 def _path_error_per_scan(model, scans, case) -> list:
@@ -254,8 +259,7 @@ def path_coverage(ident, scans, case) -> dict:
         out[f"tip_path_predicted_rms{name}_px"] = (
             float(np.sqrt(np.mean(np.trace(c, axis1=1, axis2=2)))) / pixel
         )
-    reach = feature_reach(scans)
-    within = np.all([(nominal[:, k] >= reach[k][0]) & (nominal[:, k] <= reach[k][1]) for k in (0, 1)], axis=0)
+    within = np.all(_inside_reach(scans, nominal), axis=0)
     held = inside[:, LEVELS.index(0.9)]
     for name, where in (("inside", within), ("outside", ~within)):
         out[f"tip_path_coverage_90_with_spread_{name}_reach_pct"] = (

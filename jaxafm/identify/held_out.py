@@ -126,7 +126,12 @@ def fitted_parameters(model: ScanModel, scans: tuple, chords: tuple) -> float:
     residuals), so that a direction the data do not fix does not count; a Preisach density's
     smoothness prior (:func:`~jaxafm.identify.stages.chord_linearisation`) joins ``P``, so a
     fine plane counts the shapes the data fix, not its relays."""
-    r, J, smooth = chord_linearisation(model, scans, chords)
+    return hat_trace(*chord_linearisation(model, scans, chords))
+
+
+def hat_trace(r: np.ndarray, J: np.ndarray, smooth: np.ndarray) -> float:
+    """:func:`fitted_parameters` from the chord stage's linearisation ``(r, J, smooth)``
+    (:func:`~jaxafm.identify.stages.chord_linearisation`)."""
     H = J.T @ J + smooth + np.mean(r[np.any(J != 0, axis=1)] ** 2) * np.eye(J.shape[1])
     return float(np.trace(np.linalg.solve(H, J.T @ J)))
 

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .held_out import fitted_parameters
+from .held_out import hat_trace
 from .scan_model import ScanModel
 from .stages import chord_linearisation, feature_groups, feature_keys
 from .uncertainty import covariance
@@ -164,7 +164,12 @@ def chord_covariance(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarra
     ``chords`` on ``scans``: cluster-robust, one feature a cluster, with one order-one unit of
     each raw parameter and a Preisach density's smoothness prior where the data say nothing
     (module docstring)."""
-    r, J, smooth = chord_linearisation(model, scans, chords)
+    return _covariance(chords, chord_linearisation(model, scans, chords))
+
+
+def _covariance(chords: tuple, linearised: tuple) -> np.ndarray:
+    """:func:`chord_covariance` from the chords' linearisation ``(r, J, smooth)``."""
+    r, J, smooth = linearised
     groups = feature_groups(chords)
     real = groups >= 0
     prior = np.mean(r[real] ** 2) * np.eye(J.shape[1]) + smooth
@@ -270,9 +275,14 @@ def feature_spread(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarray:
     parameters the data fix (:func:`~jaxafm.identify.held_out.fitted_parameters`; the unbiased
     ``RSS / (n - k)`` of least squares). It holds the chords' noise, the features' own
     irregularity and whatever of the model's error the training features show."""
-    r, _, _ = chord_linearisation(model, scans, chords)
-    m = feature_points(chords, r)[1] * min(scans[0].pitch)
-    n, k = m.size, fitted_parameters(model, scans, chords)
+    return _spread(chords, chord_linearisation(model, scans, chords), min(scans[0].pitch))
+
+
+def _spread(chords: tuple, linearised: tuple, pitch: float) -> np.ndarray:
+    """:func:`feature_spread` from the chords' linearisation ``(r, J, smooth)`` and the pitch (nm)
+    its residuals are in."""
+    m = feature_points(chords, linearised[0])[1] * pitch
+    n, k = m.size, hat_trace(*linearised)
     return m.T @ m / len(m) * n / max(n - k, 1.0)
 
 
@@ -304,8 +314,8 @@ def point_predictions(model: ScanModel, scans: tuple, train: tuple, test: tuple)
     the raw parameters, ``C`` :func:`chord_covariance` and ``S`` :func:`feature_spread`, both
     from the training chords ``train`` (:func:`~jaxafm.identify.stages.chord_data`)."""
     pitch = min(scans[0].pitch)
-    C = chord_covariance(model, scans, train)
-    S = feature_spread(model, scans, train)
+    trained = chord_linearisation(model, scans, train)
+    C, S = _covariance(train, trained), _spread(train, trained, pitch)
     r, J, _ = chord_linearisation(model, scans, test)
     keys, m = feature_points(test, r)
     G = feature_points(test, J)[1] * pitch
