@@ -331,6 +331,14 @@ NANOSURF = tuple(
 )
 
 
+def _largest_gap(bins: list) -> float:
+    """The largest |observed − predicted| (points) over the reliability bins with ≥ 100 trials."""
+    return max(
+        (abs(b["observed_pct"] - b["predicted_pct"]) for b in bins if b["trials"] >= 100),
+        default=float("nan"),
+    )
+
+
 def _model_kept(m: dict) -> str:
     """The model step A kept: its operator, plays per axis and effects."""
     kind = {"pi": "PI", "gpi": "generalised PI", "preisach": "Preisach"}[m["gpi_model_kind"]]
@@ -786,6 +794,24 @@ GOALS += [
 ]
 GOALS.append(
     Goal(
+        "push_odds",
+        "study: predicted first-push success within 5 points of the observed in every tenth with ≥ 100 trials, "
+        "Brier score better than the overall rate's",
+        STUDY,
+        "docs/uncertainty.md#before-a-push-its-odds",
+        lambda m: (
+            f"largest gap {q(_largest_gap(m['push_first_reliability']), 'points')} over "
+            f"{count(sum(b['trials'] >= 100 for b in m['push_first_reliability']))} tenths with ≥ 100 trials; "
+            f"Brier {m['push_first_brier']:.4f} against {m['push_first_brier_base_rate']:.4f}"
+        ),
+        lambda m: (
+            _largest_gap(m["push_first_reliability"]) <= 5
+            and m["push_first_brier"] < m["push_first_brier_base_rate"]
+        ),
+    )
+)
+GOALS.append(
+    Goal(
         "step_a_independent_coverage",
         "step A on an independent generator's lattices: the true tip path inside the 90 % ellipse the fit "
         "predicts at 85–95 % of the pixels (median over the cases)",
@@ -1220,6 +1246,30 @@ def step_a_coverage(results: Results) -> Table:
         "the tip path, every pixel of every scan after the one rigid motion no image can see."
     )
     return Table(header, rows, runs, note)
+
+
+@table("push_odds")
+def push_odds(results: Results) -> Table:
+    """The study's first pushes: predicted success against observed, per tenth of prediction."""
+    m = results(STUDY)
+    rows = [
+        [
+            f"{q(100 * b['lo'], '%', 0)}–{q(100 * b['hi'], '%', 0)}",
+            count(b["trials"]),
+            q(b["predicted_pct"], "%"),
+            q(b["observed_pct"], "%"),
+            q(b["observed_pct"] - b["predicted_pct"], "points"),
+        ]
+        for b in m["push_first_reliability"]
+    ]
+    header = ["predicted success", "trials", "mean prediction", "observed success", "observed − predicted"]
+    note = (
+        f"{count(m['push_first_trials'])} of {count(m['trials'])} trials given odds; Brier score "
+        f"{m['push_first_brier']:.4f} against {m['push_first_brier_base_rate']:.4f} for predicting every push by "
+        f"the overall rate ({q(m['push_first_success_pct'], '%')} of first pushes within "
+        f"{m['push_tolerance_radii']:g} R)."
+    )
+    return Table(header, rows, [STUDY], note)
 
 
 STEP_A_REAL_CLASSES = Run("step_a_real_classes/metrics.json", "python experiments/step_a_real_classes.py")

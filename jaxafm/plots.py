@@ -392,6 +392,42 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def push_reliability(scores: dict, predicted: np.ndarray, path, title: str = "") -> None:
+    """A reliability diagram of predicted push success: per tenth of predicted probability, the
+    observed success rate against the mean prediction (binomial 2-sd bars; the bin's trials
+    beside it), and the predictions' histogram. ``scores``:
+    :func:`~jaxafm.study.reliability.reliability`."""
+    fig, (ax, bx) = subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [1.3, 1]})
+    ax.plot([0, 100], [0, 100], color="0.6", lw=1, label="perfectly reliable")
+    ax.fill_between([0, 100], [-5, 95], [5, 105], color="0.9", label="within 5 points")
+    bins = scores["bins"]
+    p = np.array([b["predicted_pct"] for b in bins])
+    o = np.array([b["observed_pct"] for b in bins])
+    n = np.array([b["trials"] for b in bins])
+    sd = 200 * np.sqrt(np.clip(p / 100 * (1 - p / 100), 1e-9, None) / np.maximum(n, 1))
+    ax.errorbar(p, o, yerr=sd, fmt="o", color="C0", capsize=3, label="observed (2 sd of a binomial)")
+    for x, y, k in zip(p, o, n):
+        ax.annotate(f"{k}", (x, y), textcoords="offset points", xytext=(6, -10), fontsize=7)
+    ax.set(
+        xlim=(0, 100),
+        ylim=(0, 100),
+        xlabel="predicted success [%] (mean over the bin)",
+        ylabel="observed success [%]",
+        title=f"Brier {scores['brier']:.4f} against {scores['brier_base_rate']:.4f} for the overall rate",
+    )
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    q = np.asarray(predicted, float)
+    bx.hist(100 * q[np.isfinite(q)], bins=np.linspace(0, 100, 41), color="C0")
+    bx.set(
+        xlabel="predicted success [%]", ylabel="trials", yscale="log", title=f"{scores['trials']} predictions"
+    )
+    bx.grid(True, alpha=0.3)
+    fig.suptitle(title or "First push: predicted against observed success")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def step_a_validation(view, path, title: str = "") -> None:
     """Step A checked on its own data, as a microscopist reads it (``view``: a
     :class:`~jaxafm.jobs.calibrate.ValidationView`, nm and the scan's nominal frame throughout):

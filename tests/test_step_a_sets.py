@@ -286,6 +286,35 @@ def test_implausible_models_are_named():
     assert any("branch falls" in f for f in implausible(falling, scans))
 
 
+def test_image_stages_that_leave_an_implausible_scanner_give_way_to_the_last_plausible_stage():
+    """A chord stage that left the true scanner, then image stages whose scanner travels three
+    times the image: the chord stage's model is kept and the image stages are marked rejected;
+    a chord stage's implausible model, or no plausible stage before, is reported as it is."""
+    from jaxafm.identify.fit import FitResult
+    from jaxafm.identify.staged_fit import _StagedFit
+    from jaxafm.identify.stages import StageKind
+
+    scans, sim = _scans(angles=(0.0,), rotation=0.0)
+    true = _true_model(sim)
+    pi = lambda m: m.scanner.x.hysteresis.pi
+    tripled = eqx.tree_at(lambda m: pi(m).weights, true, 3 * pi(true).weights)
+
+    def staged(models, kinds):
+        said = []
+        fit = _StagedFit(scans, None, 1, [], said.append, models[-1], [], [], [], None)
+        fit.results = [FitResult(m, "", True, 1, 0.0, 0.0, "") for m in models]
+        fit.kinds, fit.accepted = list(kinds), [True] * len(models)
+        return fit, fit.fall_back(), said
+
+    chords, images = StageKind.CHORDS, StageKind.IMAGES
+    fit, failures, said = staged([true, tripled, tripled], [chords, images, images])
+    assert failures == [] and fit.model is true and fit.accepted == [True, False, False]
+    assert "REJECTED stages 2, 3" in said[0] and "the model of stage 1 is kept" in said[0]
+    for models, kinds in (([true, tripled], [images, chords]), ([tripled, tripled], [chords, images])):
+        fit, failures, said = staged(models, kinds)
+        assert any("times its width" in f for f in failures) and fit.model is tripled and not said
+
+
 @pytest.mark.parametrize("kind", ["pi", "preisach"])
 def test_a_model_without_dead_zones_leaves_asymmetry_out_of_its_default_effects(kind):
     """``asymmetry`` is a generalised PI's dead zones: a PI or Preisach model named without effects

@@ -242,6 +242,9 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     assert np.all(r["ABC_error_nm"] < 0.1 * draws["radius_nm"])
     assert np.median(r["ABC_error_nm"]) < np.median(r["AB_error_nm"]) / 5
     assert np.all(r["push_contact"]) and np.all(r["push_error_nm"] < 0.1 * draws["push_distance_nm"])
+    np.testing.assert_allclose(
+        np.hypot(r["push_first_along_nm"], r["push_first_across_nm"]), r["push_first_error_nm"]
+    )
     # the two passes give what one pass with every line gives: each trial alone, in one pass
     # (measured: the same to the last bit)
     monkeypatch.setattr(study, "FIRST_PASS_LINES", cfg.local_scan.max_lines)

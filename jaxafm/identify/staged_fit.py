@@ -179,12 +179,13 @@ def identify(
         if i == 1 and len(scans) > 1:
             fit.train, fit.test = _align(fit.model, scans, fit.found, fit.train, fit.test)
         fit.run(stage, limit, i, len(stages))
+    failures = fit.fall_back()
     validation = validate(fit.model, scans, fit.train, fit.test)
     chords = chord_data(fit.train, scans, 1)
     if validation.get("held_out_features"):
         validation |= position_check(fit.model, scans, chords, chord_data(fit.test, scans, 1))
     quantities = identifiability(fit.model, scans, chords, drive_range(scans))
-    failures = implausible(fit.model, scans) + unvalidated(validation, min(scans[0].pitch))
+    failures = failures + unvalidated(validation, min(scans[0].pitch))
     return Identification(
         fit.model,
         tuple(fit.results),
@@ -268,6 +269,34 @@ class _StagedFit:
         if len(fitted) == len(self.scans):
             self.comparable.append(error)
         self.log(f"  stage {i + 1}/{total} {name}: {message}, {seconds:.1f} s")
+
+    def fall_back(self) -> list:
+        """What makes the model so far implausible (:func:`~jaxafm.identify.plausibility.implausible`;
+        empty: nothing). Where image stages left it so and an earlier kept stage's model is
+        plausible, the latest such model is taken instead and the stages after it are rejected,
+        saying so: stages that wandered into an impossible scanner do not cost the fit the
+        plausible one they started from."""
+        failures = implausible(self.model, self.scans)
+        kept = [i for i, ok in enumerate(self.accepted) if ok]
+        if not failures or self.kinds[kept[-1]] is not StageKind.IMAGES:
+            return failures
+        for i in reversed(kept[:-1]):
+            if not implausible(self.results[i].model, self.scans):
+                later = kept[kept.index(i) + 1 :]
+                for j in later:
+                    self.accepted[j] = False
+                names = ", ".join(str(j + 1) for j in later)
+                names = (
+                    f"stages {names}: the scanner they"
+                    if len(later) > 1
+                    else f"stage {names}: the scanner it"
+                )
+                self.log(
+                    f"  REJECTED {names} left is implausible ({failures[0]}); the model of stage {i + 1} is kept"
+                )
+                self.model = self.results[i].model
+                return []
+        return failures
 
     def _fit(self, stage: Stage, level: tuple, limit: int, first: bool, ladder: bool) -> tuple:
         """``(fit, kernel, note)``: the stage fitted on the scans ``level`` (an image stage's

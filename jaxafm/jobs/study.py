@@ -50,10 +50,12 @@ from ..study.monte_carlo import (
     TrialSettings,
     Unsurveyed,
     failure_modes,
+    predicted_push_success,
     run_chunk,
     stage_summary,
 )
 from ..study.processes import check_same, from_process_0
+from ..study.reliability import reliability
 from .calibrate import calibration_scans
 from .folder import Output
 from .run import (
@@ -375,6 +377,7 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
+    odds = _push_odds(r, tol, metrics)
     modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
     out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
@@ -382,6 +385,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     out.write_metrics(metrics)
     errors = {label: r[f"{stage_key(label.replace('open loop', 'open_loop'))}_error_nm"] for label in rows}
     out.write("errors.png", lambda f: plots.study_errors(errors, r["radius_nm"], f))
+    if odds and odds["trials"]:
+        out.write("push_odds.png", lambda f: plots.push_reliability(odds, r["push_first_predicted"], f))
     log(table(rows, tol))
     if "push_first_success_pct" in metrics:
         log(
@@ -389,9 +394,43 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             f"{metrics['push_success_pct']:.1f} % after the checks ({metrics['push_corrections_mean']:.2f} "
             "corrective pushes per trial)"
         )
+    if odds:
+        log(odds_table(odds, cfg.trials))
     if modes:
         log(failure_table(modes, cfg.trials))
     return metrics
+
+
+def _push_odds(r: dict, tol: float, metrics: dict):
+    """Each trial's first-push odds (:func:`~jaxafm.study.monte_carlo.predicted_push_success`)
+    as the column ``push_first_predicted`` of ``r``, scored against what happened
+    (:func:`~jaxafm.study.reliability.reliability`) into ``metrics``; returns the scores
+    (``None`` for a study without the push)."""
+    if "push_first_error_nm" not in r:
+        return None
+    first = r["push_contact"] & (r["push_first_error_nm"] <= tol * r["radius_nm"])
+    r["push_first_predicted"] = predicted_push_success(r, tol)
+    odds = reliability(r["push_first_predicted"], first)
+    metrics |= {f"push_first_{k}": v for k, v in odds.items() if k != "bins"}
+    metrics["push_first_reliability"] = odds["bins"]
+    return odds
+
+
+def odds_table(odds: dict, trials: int) -> str:
+    """The first push's predicted success against what happened, per tenth of prediction."""
+    if not odds["trials"]:
+        return "first push: no predicted success (no scanner had enough pushes before a trial)"
+    lines = [
+        f"first push, predicted before it from the earlier pushes on its scanner: {odds['trials']} of "
+        f"{trials} trials, Brier {odds['brier']:.4f} (the overall rate's {odds['brier_base_rate']:.4f})",
+        f"{'predicted':>11s} {'trials':>7s} {'mean':>7s} {'observed':>9s}",
+    ]
+    for b in odds["bins"]:
+        lines.append(
+            f"{100 * b['lo']:4.0f}-{100 * b['hi']:3.0f} % {b['trials']:7d} {b['predicted_pct']:6.1f}% "
+            f"{b['observed_pct']:8.1f}%"
+        )
+    return "\n".join(lines)
 
 
 def failure_table(modes: dict, trials: int) -> str:

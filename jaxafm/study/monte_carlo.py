@@ -28,6 +28,7 @@ from jax.sharding import Mesh
 
 from ..instrument.afm import Raster
 from ..instrument.samples import Particles
+from ..position import push_odds
 from ..position.positioning import LocalScan, Positioner, Push, Stand
 from ..position.survey import stage_key
 from ..position.trials import TrialResults, trials
@@ -172,7 +173,10 @@ def stage_trials(
         else np.any((x["target"] < box[0]) | (x["target"] > box[1]), axis=1)
     )
     if local is None or local.max_lines <= FIRST_PASS_LINES:
-        return _unseen(call(every, local, first), np.asarray(seen)) | {"outside_grid": outside}
+        return _unseen(call(every, local, first), np.asarray(seen)) | {
+            "outside_grid": outside,
+            "target": x["target"],
+        }
     r = call(every, dataclasses.replace(local, max_lines=FIRST_PASS_LINES), first)
     again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
     size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
@@ -181,15 +185,16 @@ def stage_trials(
         r2 = call(idx, local, size)
         for k in r:
             r[k][idx] = r2[k]
-    return _unseen(r, np.asarray(seen)) | {"outside_grid": outside}
+    return _unseen(r, np.asarray(seen)) | {"outside_grid": outside, "target": x["target"]}
 
 
 def _columns(r: TrialResults) -> dict:
-    """The study's columns of the trials' results: ``error_nm``; step C's ``c_error_nm``,
-    ``c_found``, ``c_lines``, ``c_seconds``; the push's ``push_final``, ``push_first`` (the
+    """The study's columns of the trials' results: ``error_nm`` and the true ``tip`` (2,) nm;
+    step C's ``c_error_nm``, ``c_found``, ``c_lines``, ``c_seconds``, ``c_centre`` (2,) nm (the
+    centre it found, in the wanted frame); the push's ``push_final``, ``push_first`` (the
     particle's true centre after the first push), ``push_goal``, ``push_corrections``,
     ``push_contact``."""
-    columns = {"error_nm": r.error_nm}
+    columns = {"error_nm": r.error_nm, "tip": r.tip}
     if r.step_c is not None:
         scan = r.step_c.scan
         columns |= {
@@ -197,6 +202,7 @@ def _columns(r: TrialResults) -> dict:
             "c_found": scan.found,
             "c_lines": scan.lines,
             "c_seconds": scan.seconds,
+            "c_centre": scan.centre,
         }
     if r.push is not None:
         columns |= {
@@ -215,7 +221,7 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
     for k, v in r.items():
         if v.dtype == bool:
             v[~seen] = False
-        elif k.endswith("error_nm") or k.startswith("push_final"):
+        elif k.endswith("error_nm") or k.startswith("push_final") or k in ("tip", "c_centre"):
             v[~seen] = np.nan
     return r
 
@@ -248,12 +254,17 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
             }
             if with_c and settings.push:
                 miss = r["push_final"] - r["push_goal"]
+                along, across = push_odds.components(r["push_first"] - r["push_goal"], x["direction"])
                 r |= {
                     "push_error_nm": np.linalg.norm(miss, axis=-1),
                     "push_along_nm": np.sum(miss * x["direction"], axis=-1),
                     "push_first_error_nm": np.linalg.norm(r["push_first"] - r["push_goal"], axis=-1),
+                    "push_first_along_nm": along,
+                    "push_first_across_nm": across,
                 }
-        out[f"{stage_key(stage)}_error_nm"] = r["error_nm"]
+        key = stage_key(stage)
+        out[f"{key}_error_nm"] = r["error_nm"]
+        out |= _xy(f"{key}_target", r["target"]) | _xy(f"{key}_miss", r["tip"] - x["centre"])
         if stage == "A+B":
             out |= {f"AB_{k}": r[k] for k in ("modelled", "surveyed", "seen", "outside_grid")}
         if with_c:
@@ -262,12 +273,14 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
                 "ABC_found": r["c_found"],
                 "ABC_lines": r["c_lines"],
                 "ABC_local_scan_s": r["c_seconds"],
-            }
+            } | _xy("ABC_centre", r["c_centre"])
         if with_c and settings.push:
             push = (
                 "push_error_nm",
                 "push_along_nm",
                 "push_first_error_nm",
+                "push_first_along_nm",
+                "push_first_across_nm",
                 "push_corrections",
                 "push_contact",
             )
@@ -275,9 +288,17 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
     return out
 
 
+def _xy(name: str, v: np.ndarray) -> dict:
+    """A (k, 2) nm column as two: ``<name>_x_nm`` and ``<name>_y_nm``."""
+    return {f"{name}_x_nm": v[:, 0], f"{name}_y_nm": v[:, 1]}
+
+
 def _failed(n: int, modelled: bool) -> dict:
     """The columns of ``n`` trials of a stage without a survey (``modelled``: step A gave a model)."""
     return {
+        "target": np.full((n, 2), np.nan),
+        "tip": np.full((n, 2), np.nan),
+        "c_centre": np.full((n, 2), np.nan),
         "modelled": np.full(n, modelled),
         "surveyed": np.zeros(n, bool),
         "seen": np.zeros(n, bool),
@@ -290,9 +311,32 @@ def _failed(n: int, modelled: bool) -> dict:
         "push_error_nm": np.full(n, np.nan),
         "push_along_nm": np.full(n, np.nan),
         "push_first_error_nm": np.full(n, np.nan),
+        "push_first_along_nm": np.full(n, np.nan),
+        "push_first_across_nm": np.full(n, np.nan),
         "push_corrections": np.zeros(n, int),
         "push_contact": np.zeros(n, bool),
     }
+
+
+def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
+    """Each trial's predicted probability that its first push touches the particle and ends within
+    ``tolerance_radii`` R of its goal (:mod:`~jaxafm.position.push_odds`), from the first pushes
+    of the earlier trials on its scanner (trial order: the order a session would run them in):
+    whether they touched their particles, and the misses of those that did, measured against the
+    truth (the particle's true centre after the push: what a reference outside the instrument's
+    frame would measure; a check in that frame cannot see its scale error over the push). NaN
+    for a trial that did not push or had fewer than
+    :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes before it."""
+    p = np.full(len(r["trial"]), np.nan)
+    for s in np.unique(r["scanner"]):
+        idx = np.flatnonzero(r["scanner"] == s)
+        along, across = r["push_first_along_nm"][idx], r["push_first_across_nm"][idx]
+        pushed = np.isfinite(along) & np.isfinite(across)
+        touched = pushed & r["push_contact"][idx]
+        miss = push_odds.online_misses(r["push_distance_nm"][idx], along, across, touched)
+        within = push_odds.success_probability(miss, tolerance_radii * r["radius_nm"][idx])
+        p[idx] = push_odds.contact_odds(touched, pushed) * within
+    return np.where(np.isfinite(r["push_first_error_nm"]), p, np.nan)
 
 
 def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dict:
