@@ -366,18 +366,19 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     }
     for label, s in rows.items():
         metrics |= {f"{stage_key(label.replace('open loop', 'open_loop'))}_{k}": v for k, v in s.items()}
+    odds = None
     if "push_first_error_nm" in r:
         first = r["push_contact"] & (r["push_first_error_nm"] <= tol * r["radius_nm"])
         metrics |= {
             "push_first_success_pct": 100 * float(np.mean(first)),
             "push_corrections_mean": float(np.mean(r["push_corrections"])),
         }
+        odds = _push_odds(r, first, tol, metrics)
     if "ABC_found" in r:
         metrics |= {
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
-    odds = _push_odds(r, tol, metrics)
     modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
     out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
@@ -401,14 +402,11 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     return metrics
 
 
-def _push_odds(r: dict, tol: float, metrics: dict):
+def _push_odds(r: dict, first: np.ndarray, tol: float, metrics: dict) -> dict:
     """Each trial's first-push odds (:func:`~jaxafm.study.monte_carlo.predicted_push_success`)
-    as the column ``push_first_predicted`` of ``r``, scored against what happened
-    (:func:`~jaxafm.study.reliability.reliability`) into ``metrics``; returns the scores
-    (``None`` for a study without the push)."""
-    if "push_first_error_nm" not in r:
-        return None
-    first = r["push_contact"] & (r["push_first_error_nm"] <= tol * r["radius_nm"])
+    as the column ``push_first_predicted`` of ``r``, scored against whether its first push
+    succeeded, ``first`` (:func:`~jaxafm.study.reliability.reliability`), into ``metrics``;
+    returns the scores."""
     r["push_first_predicted"] = predicted_push_success(r, tol)
     odds = reliability(r["push_first_predicted"], first)
     metrics |= {f"push_first_{k}": v for k, v in odds.items() if k != "bins"}

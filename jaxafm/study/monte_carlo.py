@@ -254,11 +254,12 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
             }
             if with_c and settings.push:
                 miss = r["push_final"] - r["push_goal"]
-                along, across = push_odds.components(r["push_first"] - r["push_goal"], x["direction"])
+                first = r["push_first"] - r["push_goal"]
+                along, across = push_odds.components(first, x["direction"])
                 r |= {
                     "push_error_nm": np.linalg.norm(miss, axis=-1),
                     "push_along_nm": np.sum(miss * x["direction"], axis=-1),
-                    "push_first_error_nm": np.linalg.norm(r["push_first"] - r["push_goal"], axis=-1),
+                    "push_first_error_nm": np.linalg.norm(first, axis=-1),
                     "push_first_along_nm": along,
                     "push_first_across_nm": across,
                 }
