@@ -305,6 +305,25 @@ def test_local_scan_under_a_scale_error_verifies_the_true_centre(scale):
     assert np.all(after < 0.1 * np.asarray(radii)), after
 
 
+def test_local_scan_verifies_on_lines_through_its_estimate_alone():
+    # the guess lies on the particle's centre and step A's model is the true scanner: the first
+    # search line (along x through the guess) is centred, and a line along y through the
+    # estimate confirms y; the search line must not count as the x line of the verification,
+    # so a third line, along x through the estimate, verifies (phases: 0 search, 1 y, 2 x)
+    afm = default_afm(drift_nm_per_min=(0.0, 0.0))
+    model = afm.scanner.without("drift", "noise")
+    state = run_cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
+    pos = Positioner(afm, model)
+    stand = pos.start(state, twin_after_cycle(afm, model))
+    res, xy = jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k))(
+        CENTRES, RADII, jax.random.split(jax.random.key(9), 3)
+    )
+    assert np.asarray(res.found).all()
+    np.testing.assert_array_equal(res.lines, 3)
+    np.testing.assert_array_equal(np.asarray(res.phases)[:, :3], [[0, 1, 2]] * 3)
+    assert np.all(np.linalg.norm(np.asarray(xy - CENTRES), axis=1) < 0.1 * np.asarray(RADII))
+
+
 # ---------------------------------------------------------------------------------------------
 # The push
 

@@ -154,7 +154,7 @@ class LocalScan(eqx.Module):
     middle lies within ``centre_tolerance`` R, or ``centre_floor`` nm if more, of the line's
     centre, and its width within ``width_tolerance`` of that of a centred line (a check that it
     is the particle sought, loose enough for the scale error of a poorly identified axis); two
-    centred lines in a row, one along each axis, verify the centre. The floor is the frame's
+    centred lines through the estimate in a row, one along each axis, verify the centre. The floor is the frame's
     repeatability from line to line: with step A's model, successive lines along the slow axis
     measured the same particle 0.4-1 nm apart (``jaxafm run configs/paper.yaml``)."""
 
@@ -258,8 +258,10 @@ def local_scan(
     middle lies within ``spec.centre_tolerance`` R (at least ``spec.centre_floor``
     nm) of where it was aimed confirms
     the estimate on its axis, in any frame a scale error stretches. Two such
-    lines in a row, one per axis, with pulse widths within
-    ``spec.width_tolerance`` of a centred line's, verify the centre. A line that
+    lines through the estimate in a row, one per axis, with pulse widths within
+    ``spec.width_tolerance`` of a centred line's, verify the centre; a search line
+    never confirms (its middle carries the frame's error over the search margin's
+    length, so a centred one still left the tip 0.1 R off). A line that
     loses the particle restarts the search from the estimate. At most
     ``spec.max_lines`` lines: then ``found`` is false. Returns ``(ScanResult, stand)``.
     """
@@ -286,7 +288,8 @@ class _Search(NamedTuple):
     """The local scan's state from line to line: where things stand, the key, the ``phase`` (0
     search, 1 along y, 2 along x through the estimate), the search line ``k`` from ``origin``,
     the ``estimate``, the ``lines`` scanned, whether it is ``done`` (and ``verified``), whether
-    the last line was centred (``confirmed``), and each line's ``starts``, ``ends``, ``phases``."""
+    the last line was a centred one through the estimate (``confirmed``), and each line's
+    ``starts``, ``ends``, ``phases``."""
 
     stand: Stand
     key: Array
@@ -370,7 +373,7 @@ class _Line(NamedTuple):
             n,
             verified | exhausted | (n >= spec.max_lines),
             verified,
-            centred,
+            centred & (c.phase > 0),
             c.starts.at[c.lines].set(start),
             c.ends.at[c.lines].set(end),
             c.phases.at[c.lines].set(c.phase),
