@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import statistics
@@ -329,6 +330,15 @@ NANOSURF = tuple(
         ("round pillars", "round_pillars"),
     )
 )
+
+
+def _learning_result(m: dict) -> str:
+    """A study's A+B learning (``AB_learning``) as a sentence."""
+    return (
+        f"{q(m['learnt_median_nm'], 'nm')} against {q(m['first_round_median_nm'], 'nm')} "
+        f"(ratio {q(m['learnt_ratio'], '', 2)}) on the {count(len(m['learnt_scanners']))} scanners that reached "
+        f"10 finds; {count(len(m['unlearnt_scanners']))} never did"
+    )
 
 
 def _largest_gap(bins: list) -> float:
@@ -824,6 +834,17 @@ GOALS.append(
             f"{q(m['held_out_coverage_90_pct_median'], '%', 0)})"
         ),
         lambda m: 85 <= m["tip_path_coverage_90_with_spread_pct_median"] <= 95,
+    )
+)
+GOALS.append(
+    Goal(
+        "study_wide_learning",
+        "study_wide: the A+B error once learnt from ten or more of step C's finds at most half that of the "
+        "first round",
+        STUDY_WIDE,
+        "docs/study.md#learning-while-positioning",
+        lambda m: _learning_result(m["AB_learning"]),
+        lambda m: m["AB_learning"]["learnt_ratio"] <= 0.5,
     )
 )
 #: The README's short table: the positioning goals and the real data.
@@ -1706,6 +1727,30 @@ def failure_modes(run: Run) -> Callable[[Results], Table]:
     return make
 
 
+def study_learning(run: Run) -> Callable[[Results], Table]:
+    """A study's A+B error (median) per scanner before its moves learnt from step C's finds and after."""
+
+    def make(results: Results) -> Table:
+        m = results(run)["AB_learning"]
+        learnt = m["per_scanner_learnt"]
+        rows = [
+            [s, q(e[0], "nm")]
+            + ([q(learnt[s], "nm"), q(learnt[s] / e[0], "", 2)] if math.isfinite(learnt[s]) else ["–", "–"])
+            for s, e in m["per_scanner"].items()
+        ]
+        never = m["unlearnt_scanners"]
+        note = (
+            f"Rounds of {m['round_trials']} trials; learnt: the trials aimed by 10 finds or more. Over the "
+            f"{count(len(m['learnt_scanners']))} scanners that reached 10 finds: "
+            f"{q(m['first_round_median_nm'], 'nm')} median in their first rounds (no finds), "
+            f"{q(m['learnt_median_nm'], 'nm')} once learnt (ratio {q(m['learnt_ratio'], '', 2)})"
+            + (f"; never reached 10 finds: scanner {', '.join(map(str, never))}." if never else ".")
+        )
+        return Table(["scanner", "A+B first round", "A+B learnt", "ratio"], rows, [run], note)
+
+    return make
+
+
 for _name, _run, _wall in (
     ("study", STUDY, True),
     ("study_wide", STUDY_WIDE, False),
@@ -1714,6 +1759,8 @@ for _name, _run, _wall in (
     TABLES[f"{_name}_stages"] = study_stages(_run)
     TABLES[f"{_name}_summary"] = study_summary(_run, _wall)
     TABLES[f"{_name}_failures"] = failure_modes(_run)
+for _name, _run in (("study", STUDY), ("study_wide", STUDY_WIDE)):
+    TABLES[f"{_name}_learning"] = study_learning(_run)
 
 
 @table("bench_study")

@@ -601,3 +601,48 @@ def _validation_held_out(ax, view) -> None:
         ylabel="y (µm)",
         aspect="equal",
     )
+
+
+def learning_curve(rounds: dict, path, title: str = "") -> None:
+    """The A+B error of a scanner's trials against their place in its sequence, as step C's finds
+    teach the moves (``rounds``: :func:`~jaxafm.study.learning.learning_rounds`): each scanner's
+    median per round (thin) and the median over every scanner's trials per round (bold); and per
+    scanner, the median of its first round against that of its trials aimed by ten finds or more."""
+    fig, (ax, bx) = subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [1.6, 1]})
+    k = rounds["first_trial"]
+    for e in rounds["per_scanner"].values():
+        ax.plot(k, e, color="0.6", lw=0.8, alpha=0.7)
+    ax.plot(k, rounds["median_nm"], color="C0", lw=2.5, label="all scanners' trials")
+    ax.set(
+        xlabel="trial of the scanner (first of its round)",
+        ylabel="A+B error, median of the round [nm]",
+        yscale="log",
+        title=f"rounds of {rounds['round_trials']}; thin: one scanner each",
+    )
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    first = {s: e[0] for s, e in rounds["per_scanner"].items()}
+    learnt = rounds["per_scanner_learnt"]
+    shown = [s for s in first if np.isfinite(learnt[s]) and first[s] > 0]
+    x, y = np.array([first[s] for s in shown]), np.array([learnt[s] for s in shown])
+    lim = (0.7 * min(x.min(), y.min()), 1.4 * max(x.max(), y.max())) if shown else (1, 10)
+    bx.plot(lim, lim, color="0.6", lw=1, label="no change")
+    bx.plot(lim, np.divide(lim, 2), color="0.6", lw=1, ls="--", label="halved")
+    bx.scatter(x, y, color="C0", zorder=3)
+    for s, a, b in zip(shown, x, y):
+        bx.annotate(str(s), (a, b), textcoords="offset points", xytext=(4, 3), fontsize=7)
+    never = rounds.get("unlearnt_scanners", [])
+    bx.set(
+        xscale="log",
+        yscale="log",
+        xlim=lim,
+        ylim=lim,
+        xlabel="first round, median [nm]",
+        ylabel="aimed by 10 finds or more, median [nm]",
+        title="per scanner" + (f" (never 10 finds: {', '.join(map(str, never))})" if never else ""),
+    )
+    bx.grid(True, which="both", alpha=0.3)
+    bx.legend(fontsize=8)
+    fig.suptitle(title or "A+B moves learning from step C's finds")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)

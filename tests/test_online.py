@@ -1,5 +1,5 @@
 """Predictions learnt from earlier cases (jaxafm.position.online) against a direct least-squares
-refit on NumPy draws."""
+refit on NumPy draws; the learnt offset field against known fields."""
 
 import numpy as np
 
@@ -29,3 +29,26 @@ def test_each_case_is_predicted_by_the_least_squares_fit_to_the_observed_cases_b
     assert pred.dof[k] == rows.size - 3
     first = np.flatnonzero(np.cumsum(observed) - observed >= 3 + 3)[0]
     assert np.all(np.isnan(pred.mean[:first])) and np.all(np.isfinite(pred.cov[first]))
+
+
+def test_learnt_field_is_the_prior_mean_without_observations():
+    field = online.learn_field(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(2), 1500.0, 100.0, 5.0)
+    np.testing.assert_array_equal(field(np.array([[100.0, -300.0], [0.0, 0.0]])), 0.0)
+
+
+def test_learnt_field_recovers_a_gain_error_and_a_quadratic_bow():
+    # the offsets a scanner with a 10 % gain error on x, a 20 nm shift on y and a bow of 15 nm at
+    # the workspace's edge on y gives, seen with 1 nm of noise at 60 points of a 3 um workspace
+    # centred at (200, -100) nm: the field's coefficients are those, to the noise's error
+    # (about 1 nm / sqrt(60) on each; 1 % of the 150 nm gain term is 1.5 nm)
+    rng = np.random.default_rng(0)
+    centre, half = np.array([200.0, -100.0]), 1500.0
+    p = centre + rng.uniform(-half, half, (60, 2))
+    u = (p - centre) / half
+    truth = np.stack([0.1 * (p[:, 0] - centre[0]), 20.0 + 15.0 * u[:, 0] ** 2], -1)
+    field = online.learn_field(p, truth + rng.normal(0, 1.0, truth.shape), centre, half, 100.0, 1.0)
+    want = np.zeros((6, 2))
+    want[1, 0], want[0, 1], want[3, 1] = 0.1 * half, 20.0, 15.0
+    np.testing.assert_allclose(field.coef, want, atol=1.5)
+    q = centre + rng.uniform(-half, half, (20, 2))
+    assert np.max(np.abs(field(q)[:, 0] - 0.1 * (q[:, 0] - centre[0]))) < 1.5

@@ -79,6 +79,20 @@ STUDY_PARAMETERS = {
 }
 
 
+class Learning(Strict):
+    """Step C's finds teach the A+B moves after them on the same scanner: a smooth offset field
+    (a quadratic over the workspace, Bayesian ridge regression) learnt from every verified find
+    so far, the trials run in rounds in their order (docs/study.md)."""
+
+    round_trials: int = Field(
+        8, ge=1, le=100_000, description="trials per round; each learns from the rounds before"
+    )
+    prior_nm: float = Field(
+        100.0, gt=0, description="prior standard deviation of each coefficient of the field, nm"
+    )
+    noise_nm: float = Field(5.0, gt=0, description="scatter of one find about the field, nm")
+
+
 class StudyConfig(Positioning):
     """A Monte-Carlo positioning study: ``trials`` independent trials, each a particle of radius
     drawn from ``particle_radius_nm`` at a random place in the landmark grid, on a scanner drawn
@@ -95,6 +109,9 @@ class StudyConfig(Positioning):
         default_factory=dict, description="effect -> parameter -> distribution (see STUDY_PARAMETERS)"
     )
     particle_radius_nm: Distribution = Distribution(uniform=[5.0, 50.0])
+    learning: Optional[Learning] = Field(
+        None, description="step C's finds teach the following A+B moves (needs A+B+C); null: they do not"
+    )
     output: str = "runs/study"
 
     @model_validator(mode="after")
@@ -120,6 +137,16 @@ class StudyConfig(Positioning):
             raise ValueError(
                 f"particle_radius_nm: radii up to {self.particle_radius_nm.support[1]:g} nm need "
                 f"landmark cells of at least 8 R; they are {cell:.0f} nm: use a larger landmark step"
+            )
+        if self.learning is not None and "A+B+C" not in self.stages:
+            raise ValueError(
+                "learning: step C's finds teach the A+B moves; add 'A+B+C' to stages or remove learning"
+            )
+        if self.learning is not None and self.chunk % self.learning.round_trials:
+            raise ValueError(
+                f"chunk: {self.chunk} is not a whole number of learning.round_trials "
+                f"({self.learning.round_trials}); a round may not span two chunks (the results would "
+                "depend on the chunk size)"
             )
         needs = {"A+B+C": "A+B", "push": "A+B+C"}
         for stage, before in needs.items():

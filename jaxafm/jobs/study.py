@@ -45,11 +45,15 @@ from ..model.io import load_model, save_model
 from ..position import survey
 from ..position.positioning import Positioner
 from ..position.survey import STAGES, stage_key
+from ..study.learning import LEARNT_FINDS, learning_rounds
 from ..study.monte_carlo import (
+    NO_FINDS,
+    Learning,
     StageSurvey,
     TrialSettings,
     Unsurveyed,
     failure_modes,
+    finds,
     predicted_push_success,
     run_chunk,
     stage_summary,
@@ -122,6 +126,7 @@ def trial_settings(cfg: StudyConfig) -> TrialSettings:
         cfg.landmarks.approach_nm,
         local_scan_settings(cfg.local_scan) if "A+B+C" in cfg.stages else None,
         push_settings(cfg.push) if "push" in cfg.stages else None,
+        None if cfg.learning is None else Learning(**cfg.learning.model_dump()),
     )
 
 
@@ -276,11 +281,32 @@ def run(
             )
             _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
-            for _, a, b in (c for c in todo if c[0] == s):
-                r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings)
+            mine = [c for c in todo if c[0] == s]
+            earlier = _kept_finds(cfg, out, s, mine[0][1]) if cfg.learning else NO_FINDS
+            for _, a, b in mine:
+                r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
+                earlier = _with_finds(earlier, r) if cfg.learning else NO_FINDS
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
+
+
+def _kept_finds(cfg: StudyConfig, out: Output, s: int, a: int) -> tuple:
+    """Step C's finds on scanner ``s`` before trial ``a``, from the chunk files that a resumed
+    study kept (all written before the run began, so every process reads them alike)."""
+    finds = NO_FINDS
+    for t, c, b in _chunks(cfg):
+        if t == s and b <= a:
+            finds = _with_finds(finds, np.load(out.path / chunk_file(c, b)))
+    return finds
+
+
+def _with_finds(earlier: tuple, columns) -> tuple:
+    """``earlier`` finds and those of a chunk's ``columns`` after them
+    (:func:`~jaxafm.study.monte_carlo.finds`)."""
+    xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
+    new = finds(xy("AB_target"), xy("ABC_centre"), columns["ABC_found"])
+    return tuple(np.concatenate([e, n]) for e, n in zip(earlier, new))
 
 
 def _start(cfg: StudyConfig, config_path: Path, devices) -> tuple:
@@ -379,6 +405,9 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
+    learnt = learning_rounds(r, cfg.learning.round_trials) if "AB_learnt_from" in r else None
+    if learnt:
+        metrics["AB_learning"] = learnt
     modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
     out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
@@ -388,6 +417,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     out.write("errors.png", lambda f: plots.study_errors(errors, r["radius_nm"], f))
     if odds and odds["trials"]:
         out.write("push_odds.png", lambda f: plots.push_reliability(odds, r["push_first_predicted"], f))
+    if learnt:
+        out.write("learning.png", lambda f: plots.learning_curve(learnt, f))
     log(table(rows, tol))
     if "push_first_success_pct" in metrics:
         log(
@@ -397,6 +428,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         )
     if odds:
         log(odds_table(odds, cfg.trials))
+    if learnt:
+        log(learning_table(learnt))
     if modes:
         log(failure_table(modes, cfg.trials))
     return metrics
@@ -429,6 +462,21 @@ def odds_table(odds: dict, trials: int) -> str:
             f"{b['observed_pct']:8.1f}%"
         )
     return "\n".join(lines)
+
+
+def learning_table(learnt: dict) -> str:
+    """The A+B error per scanner in its first round and once learnt from enough finds."""
+    never = learnt["unlearnt_scanners"]
+    lines = [
+        f"A+B learning from step C's finds, over the {len(learnt['learnt_scanners'])} scanners that reached "
+        f"{LEARNT_FINDS} finds: median {learnt['first_round_median_nm']:.1f} nm in their first rounds (no finds), "
+        f"{learnt['learnt_median_nm']:.1f} nm once aimed by {LEARNT_FINDS} or more (ratio {learnt['learnt_ratio']:.2f})"
+        + (f"; never reached {LEARNT_FINDS}: scanner {', '.join(map(str, never))}" if never else ""),
+        f"{'scanner':>8s} {'first round':>12s} {f'>= {LEARNT_FINDS} finds':>13s}",
+    ]
+    for s, e in learnt["per_scanner"].items():
+        lines.append(f"{s:8d} {e[0]:10.1f}nm {learnt['per_scanner_learnt'][s]:11.1f}nm")
+    return "\n".join(lines) + f"\n(rounds of {learnt['round_trials']} trials)"
 
 
 def failure_table(modes: dict, trials: int) -> str:

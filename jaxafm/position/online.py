@@ -1,5 +1,7 @@
 """Predictions learnt while positioning: each new case predicted from the cases observed before
-it on the same scanner, by a linear regression and its predictive distribution.
+it on the same scanner, by a linear regression and its predictive distribution
+(:func:`online_regression`); and a smooth offset field over the workspace, learnt from the
+points where it was observed (:func:`learn_field`).
 
 For observations ``Y`` (n, m) on regressors ``X`` (n, p), least squares gives ``B`` (p, m) and the
 residuals' covariance ``S = R^T R / (n - p)``. A new case ``x`` (p,) is predicted at ``x B``
@@ -48,3 +50,40 @@ def online_regression(X: np.ndarray, Y: np.ndarray, observed: np.ndarray, min_ex
     cov = rss / nu[:, None, None] * (1 + leverage)[:, None, None]
     nan = np.where(ok, 1.0, np.nan)
     return Predictive(np.einsum("ki,kim->km", X, B) * nan[:, None], cov * nan[:, None, None], (n - p) * nan)
+
+
+class OffsetField(NamedTuple):
+    """A smooth offset field over the workspace learnt from points where it was observed: the
+    posterior mean of a Bayesian linear regression on a quadratic in the position
+    (:func:`learn_field`). ``coef`` (6, 2) nm: each axis's coefficients on :func:`quadratic`;
+    ``centre`` (2,) and ``half`` nm: the workspace's centre and half-size, which scale positions."""
+
+    coef: np.ndarray
+    centre: np.ndarray
+    half: float
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """The field (k, 2) nm at ``points`` (k, 2) nm."""
+        return quadratic(points, self.centre, self.half) @ self.coef
+
+
+def quadratic(points: np.ndarray, centre: np.ndarray, half: float) -> np.ndarray:
+    """The regressors (k, 6) of a quadratic field at ``points`` (k, 2) nm, in units of ``half``
+    from ``centre``: ``1, x, y, x^2, x y, y^2``."""
+    x, y = ((np.reshape(points, (-1, 2)) - centre) / half).T
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], -1)
+
+
+def learn_field(
+    points: np.ndarray, offsets: np.ndarray, centre: np.ndarray, half: float, prior_nm: float, noise_nm: float
+) -> OffsetField:
+    """The offset field that ``offsets`` (n, 2) nm observed at ``points`` (n, 2) nm support,
+    positions scaled as :func:`quadratic` scales them: each axis independently, coefficients
+    ``b ~ N(0, prior_nm^2 I)`` (a field of some ``prior_nm`` across the workspace, a priori) and
+    observations ``offset = quadratic(point) b + e``, ``e ~ N(0, noise_nm^2)``; the posterior
+    mean ``b = (F^T F + (noise_nm / prior_nm)^2 I)^-1 F^T offsets`` (ridge regression), zero
+    (the prior's mean) with no observation."""
+    centre = np.asarray(centre, float)
+    F = quadratic(points, centre, half)
+    A = F.T @ F + (noise_nm / prior_nm) ** 2 * np.eye(F.shape[1])
+    return OffsetField(np.linalg.solve(A, F.T @ np.reshape(offsets, (-1, 2))), centre, half)

@@ -7,6 +7,8 @@ A trial's target is where its particle appears in that survey image (the wanted 
 which the mean of the true trace and retrace paths passes over the particle's centre: a
 particle finder without error, :func:`image_position`); the trial then goes there (open loop,
 A, B, A+B), and for A+B+C runs the local scan from there, moves to the centre it found and pushes.
+With :class:`Learning`, a scanner's A+B trials run in rounds, each aimed by what the local scans
+of the rounds before it found (:func:`learning_trials`).
 
 Trials run in jitted, vmapped batches (:func:`run_chunk`) sharded over every JAX device of
 every process (:mod:`~jaxafm.study.processes`; one mesh axis ``trials``). Each trial's random
@@ -28,7 +30,7 @@ from jax.sharding import Mesh
 
 from ..instrument.afm import Raster
 from ..instrument.samples import Particles
-from ..position import push_odds
+from ..position import online, push_odds
 from ..position.positioning import LocalScan, Positioner, Push, Stand
 from ..position.survey import stage_key
 from ..position.trials import TrialResults, trials
@@ -99,6 +101,23 @@ class StageSurvey(eqx.Module):
 
 
 @dataclasses.dataclass(frozen=True)
+class Learning:
+    """Step C's finds teach the A+B moves that follow them on a scanner (:func:`learning_trials`).
+
+    Attributes:
+        round_trials: trials run together: each round is aimed with what the finds of the rounds
+            before it taught (the first with nothing).
+        prior_nm: the prior's standard deviation of each coefficient of the offset field
+            (:func:`~jaxafm.position.online.learn_field`), nm.
+        noise_nm: the scatter of one find about the field, nm.
+    """
+
+    round_trials: int
+    prior_nm: float
+    noise_nm: float
+
+
+@dataclasses.dataclass(frozen=True)
 class TrialSettings:
     """What every trial of a study shares.
 
@@ -110,6 +129,7 @@ class TrialSettings:
             (:func:`~jaxafm.position.positioning.goto`).
         local: step C's settings, for the trials of A+B; ``None``: no step C.
         push: the push's settings, after step C; ``None``: no push.
+        learning: how step C's finds teach the A+B moves; ``None``: they do not.
     """
 
     seed: int
@@ -117,6 +137,7 @@ class TrialSettings:
     approach: float
     local: Optional[LocalScan] = None
     push: Optional[Push] = None
+    learning: Optional[Learning] = None
 
 
 #: A vmapped local scan runs as many lines as its slowest trial, and most end within 3-4 lines:
@@ -125,20 +146,25 @@ FIRST_PASS_LINES = 6
 
 
 def stage_trials(
-    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, local=None
+    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, local=None, field=None
 ) -> dict:
     """:func:`~jaxafm.position.trials.trials` for the trials ``x`` (NumPy columns ``trial``,
     ``centre``, ``radius``, ``direction``, ``distance``) on one stage's ``survey``, split over the
-    mesh. With ``local``, in two passes (:data:`FIRST_PASS_LINES`); each trial's key is
+    mesh. Each trial aims at its particle's place in the survey image (``target``) plus the
+    learnt offset ``field`` there (an :class:`~jaxafm.position.online.OffsetField`; ``None``: no
+    offset). With ``local``, in two passes (:data:`FIRST_PASS_LINES`); each trial's key is
     ``fold_in(fold_in(root, trial), stage)``, so the second pass gives what one pass with every
-    line would. Returns the trials' NumPy columns (:func:`_columns`) and ``outside_grid``."""
+    line would. Returns the trials' NumPy columns (:func:`_columns`), ``target``, the ``offset``
+    aimed by and ``outside_grid``."""
     copies = replicate(survey, mesh)
     pos, stand, mean_path = copies.positioner, copies.stand, copies.mean_path
     work = settings.work
     target, seen = jax.vmap(image_position, (None, None, None, 0))(
         mean_path, jnp.asarray(work.origin), jnp.asarray(work.pixel_size), jnp.asarray(x["centre"])
     )
-    x = x | {"target": np.asarray(target)}
+    target = np.asarray(target)
+    offset = np.zeros_like(target) if field is None else field(target)
+    x = x | {"target": target + offset}
     frame = survey.positioner.frame
     box = (np.asarray(frame.measured).min(0), np.asarray(frame.measured).max(0)) if frame else None
     root = jax.random.fold_in(jax.random.key(settings.seed), 0)
@@ -168,15 +194,11 @@ def stage_trials(
     every = np.arange(len(x["trial"]))
     first = -(-every.size // mesh.size) * mesh.size
     outside = (
-        np.zeros(len(every), bool)
-        if box is None
-        else np.any((x["target"] < box[0]) | (x["target"] > box[1]), axis=1)
+        np.zeros(len(every), bool) if box is None else np.any((target < box[0]) | (target > box[1]), axis=1)
     )
+    about = {"outside_grid": outside, "target": target, "offset": offset}
     if local is None or local.max_lines <= FIRST_PASS_LINES:
-        return _unseen(call(every, local, first), np.asarray(seen)) | {
-            "outside_grid": outside,
-            "target": x["target"],
-        }
+        return _unseen(call(every, local, first), np.asarray(seen)) | about
     r = call(every, dataclasses.replace(local, max_lines=FIRST_PASS_LINES), first)
     again = np.flatnonzero(~r["c_found"] & (r["c_lines"] >= FIRST_PASS_LINES))
     size = -(-max(first // 16, 1) // mesh.size) * mesh.size  # one more shape to compile per batch size
@@ -185,7 +207,35 @@ def stage_trials(
         r2 = call(idx, local, size)
         for k in r:
             r[k][idx] = r2[k]
-    return _unseen(r, np.asarray(seen)) | {"outside_grid": outside, "target": x["target"]}
+    return _unseen(r, np.asarray(seen)) | about
+
+
+def learning_trials(
+    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, earlier: tuple
+) -> dict:
+    """:func:`stage_trials` with step C for the trials ``x``, run in order in rounds of
+    ``settings.learning.round_trials``: each round aims at its targets plus the offset field
+    (:func:`~jaxafm.position.online.learn_field`) that step C's verified finds on the scanner so
+    far support, each find observing ``centre found - target`` at its target (the particle's
+    place in the survey image) in the local scan's frame. ``earlier``: the ``(targets, offsets)``
+    (k, 2) nm observed before these trials. Returns the columns, with ``learnt_from`` (the finds
+    each trial's offset was learnt from)."""
+    learn, work = settings.learning, settings.work
+    centre, half = np.asarray(work.centre), max(work.size) / 2
+    points, offsets = [earlier[0]], [earlier[1]]
+    rounds = []
+    for a in range(0, len(x["trial"]), learn.round_trials):
+        seen = sum(len(p) for p in points)
+        field = online.learn_field(
+            np.concatenate(points), np.concatenate(offsets), centre, half, learn.prior_nm, learn.noise_nm
+        )
+        rows = {k: v[a : a + learn.round_trials] for k, v in x.items()}
+        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field)
+        t, o = finds(r["target"], r["c_centre"], r["c_found"])
+        points.append(t)
+        offsets.append(o)
+        rounds.append(r | {"learnt_from": np.full(len(r["target"]), seen)})
+    return {k: np.concatenate([r[k] for r in rounds]) for k in rounds[0]}
 
 
 def _columns(r: TrialResults) -> dict:
@@ -226,12 +276,27 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
     return r
 
 
-def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -> dict:
+def finds(target: np.ndarray, centre: np.ndarray, found: np.ndarray) -> tuple:
+    """What step C's verified finds observed, for :func:`learning_trials`: their targets (k, 2)
+    nm and offsets ``centre found - target`` (k, 2) nm."""
+    found = np.asarray(found, bool)
+    return target[found], centre[found] - target[found]
+
+
+#: no observation: the ``earlier`` of a scanner's first trials
+NO_FINDS = (np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def run_chunk(
+    surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings, earlier: tuple = NO_FINDS
+) -> dict:
     """The results of the trials in ``draws`` (one scanner's; NumPy columns ``trial``, ``x_nm``,
     ``y_nm``, ``radius_nm``, ``push_dx``, ``push_dy``, ``push_distance_nm``) on each stage's
     survey (``surveys``: stage name -> :class:`StageSurvey`, or :class:`Unsurveyed` where its
     trials fail), columns keyed by stage, run as one batch split over the ``mesh``'s devices
-    (the surveys replicated on them)."""
+    (the surveys replicated on them); with ``settings.learning``, A+B with step C in rounds that
+    learn from the finds before them (:func:`learning_trials`; ``earlier``: the scanner's finds
+    before these trials, :func:`finds`)."""
     x = {
         "trial": draws["trial"],
         "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1),
@@ -246,7 +311,10 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
         if isinstance(survey, Unsurveyed):  # step A refused its model or the survey found too few landmarks
             r = _failed(n, modelled=survey is not Unsurveyed.REFUSED)
         else:
-            r = stage_trials(survey, x, j, mesh, settings, settings.local if with_c else None)
+            if with_c and settings.learning:
+                r = learning_trials(survey, x, j, mesh, settings, earlier)
+            else:
+                r = stage_trials(survey, x, j, mesh, settings, settings.local if with_c else None)
             r |= {
                 "modelled": np.ones(n, bool),
                 "surveyed": np.ones(n, bool),
@@ -268,6 +336,8 @@ def run_chunk(surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings) -
         out |= _xy(f"{key}_target", r["target"]) | _xy(f"{key}_miss", r["tip"] - x["centre"])
         if stage == "A+B":
             out |= {f"AB_{k}": r[k] for k in ("modelled", "surveyed", "seen", "outside_grid")}
+        if with_c and settings.learning:
+            out |= _xy("AB_offset", r["offset"]) | {"AB_learnt_from": r["learnt_from"]}
         if with_c:
             out |= {
                 "ABC_error_nm": r["c_error_nm"],
@@ -298,6 +368,8 @@ def _failed(n: int, modelled: bool) -> dict:
     """The columns of ``n`` trials of a stage without a survey (``modelled``: step A gave a model)."""
     return {
         "target": np.full((n, 2), np.nan),
+        "offset": np.full((n, 2), np.nan),
+        "learnt_from": np.zeros(n, int),
         "tip": np.full((n, 2), np.nan),
         "c_centre": np.full((n, 2), np.nan),
         "modelled": np.full(n, modelled),
