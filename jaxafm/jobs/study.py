@@ -53,10 +53,10 @@ from ..study.monte_carlo import (
     TrialSettings,
     Unsurveyed,
     failure_modes,
-    finds,
     predicted_push_success,
     run_chunk,
     stage_summary,
+    with_chunk_finds,
 )
 from ..study.processes import check_same, from_process_0
 from ..study.reliability import reliability
@@ -285,7 +285,7 @@ def run(
             earlier = _kept_finds(cfg, out, s, mine[0][1]) if cfg.learning else NO_FINDS
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
-                earlier = _with_finds(earlier, r) if cfg.learning else NO_FINDS
+                earlier = with_chunk_finds(earlier, r) if cfg.learning else NO_FINDS
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
@@ -297,16 +297,8 @@ def _kept_finds(cfg: StudyConfig, out: Output, s: int, a: int) -> tuple:
     finds = NO_FINDS
     for t, c, b in _chunks(cfg):
         if t == s and b <= a:
-            finds = _with_finds(finds, np.load(out.path / chunk_file(c, b)))
+            finds = with_chunk_finds(finds, np.load(out.path / chunk_file(c, b)))
     return finds
-
-
-def _with_finds(earlier: tuple, columns) -> tuple:
-    """``earlier`` finds and those of a chunk's ``columns`` after them
-    (:func:`~jaxafm.study.monte_carlo.finds`)."""
-    xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
-    new = finds(xy("AB_target"), xy("ABC_centre"), columns["ABC_found"])
-    return tuple(np.concatenate([e, n]) for e, n in zip(earlier, new))
 
 
 def _start(cfg: StudyConfig, config_path: Path, devices) -> tuple:

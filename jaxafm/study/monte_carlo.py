@@ -287,6 +287,14 @@ def finds(target: np.ndarray, centre: np.ndarray, found: np.ndarray) -> tuple:
 NO_FINDS = (np.zeros((0, 2)), np.zeros((0, 2)))
 
 
+def with_chunk_finds(earlier: tuple, columns) -> tuple:
+    """``earlier`` finds and, after them, those of a chunk's written ``columns`` (:func:`run_chunk`'s
+    ``AB_target``, ``ABC_centre``, ``ABC_found``; :func:`finds`)."""
+    xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
+    new = finds(xy("AB_target"), xy("ABC_centre"), columns["ABC_found"])
+    return tuple(np.concatenate([e, n]) for e, n in zip(earlier, new))
+
+
 def run_chunk(
     surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings, earlier: tuple = NO_FINDS
 ) -> dict:
