@@ -25,6 +25,25 @@ def test_middle_creep_is_named():
     assert res.verdict == "creep"
 
 
+def test_a_drift_that_wanders_is_named_on_alternating_blocks():
+    """A drift of about 2 nm/s plus a random walk of 25 nm^2/s (the generator's middle walk): a
+    straight line cannot extrapolate it over the record's later part, so the drift is judged on
+    11 alternating blocks, its wander interpolated across each held-out block. The verdict's
+    numbers are those of that split: its gap before is the nominal's refitted there."""
+    c = make_case("drift", "middle", 47_102, "pi", drive=DRIVE, wander="walk")
+    record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": "independent generator: drift"})
+    res = D.diagnose_record(record, D.Nominal(kind="pi"), CANDIDATES, log=lambda s: None)
+    assert res.verdict == "drift" and res.top.judged_on == "11 alternating blocks"
+    blocked = res.data.blocked
+    assert blocked.blocks == 11 and not (blocked.train & blocked.heldout).any()
+    assert res.top.heldout_gap_before_nm == res.top.nominal_gap_nm == blocked.fit_nominal().heldout_gap_nm
+    verdict = res.verdict_json()
+    assert verdict["judged_on"] == "11 alternating blocks"
+    assert verdict["total_shrink_pct"] == pytest.approx(verdict["shrink_pct"])
+    others = [c for c in res.candidates if c.effect != "drift"]
+    assert all(c.judged_on == "" and c.heldout_gap_before_nm == res.nominal.heldout_gap_nm for c in others)
+
+
 def test_control_same_class_blames_nothing_and_ends_at_the_noise_floor():
     res = diagnose(None, "control", 10_000, "pi", "pi")
     assert res.verdict is None

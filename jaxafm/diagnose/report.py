@@ -115,14 +115,20 @@ def residual_tests(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
 
 def candidate_bars(a, candidates, base_gap_nm: float, xlabel: str, base: str = "nominal") -> None:
     """Each candidate's held-out gap after refitting (red: significant), against ``base_gap_nm``
-    (nm), the gap of the model ``base`` the candidates were added to, on the axes ``a``."""
+    (nm), the gap of the model ``base`` the candidates were added to, on the axes ``a``; a
+    candidate judged on another split (its label says which) has its own gap before, a tick."""
     if candidates:
+        names = [c.effect + (f"\n(on {c.judged_on})" if c.judged_on else "") for c in candidates]
         a.barh(
-            [c.effect for c in candidates],
+            names,
             [c.heldout_gap_after_nm for c in candidates],
             color=["tab:red" if c.significant else "tab:gray" for c in candidates],
         )
         a.axvline(base_gap_nm, color="k", ls="--", lw=1, label=base)
+        other = [(i, c.heldout_gap_before_nm) for i, c in enumerate(candidates) if c.judged_on]
+        if other:
+            i, before = zip(*other)
+            a.scatter(before, i, marker="|", s=400, color="k", label=f"{base}, on the split that judged it")
         a.invert_yaxis()
         a.legend(fontsize=8)
     a.set(xlabel=xlabel, title=f"{base} + candidate (red: significant)")
@@ -159,7 +165,8 @@ def _table(rows: list, skipped: dict) -> list:
     ]
     for i, r in enumerate(rows, 1):
         lines.append(
-            f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
+            f"| {i} | {r['effect']}{f' (judged on {s})' if (s := r.get('judged_on')) else ''} "
+            f"| {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
             f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | {_sizes(r) or '-'} | "
             f"{'yes' if r['significant'] else 'no'}"
             + (" (stopped at its step limit)" if r.get("stopped_at_step_limit") else "")
