@@ -1873,6 +1873,7 @@ TABLES["bench_study_gpu"] = bench_extras(GPU_STUDY)
 UNITS = (  # a fitted size's name ends in its unit: (ending, how it prints)
     ("_per_nm", lambda v: f"{v:.2g} /nm".replace("-", "−")),
     ("_nm_per_s", lambda v: q(v, "nm/s", 3)),
+    ("_nm2_per_s", lambda v: f"{v:.3g} nm²/s".replace("-", "−")),
     ("_per_decade", lambda v: q(100 * v, "%/decade", 2)),
     ("_hz", lambda v: q(v, "Hz", 0)),
     ("_s", lambda v: q(1e3 * v, "ms", 3) if abs(v) < 1 else q(v, "s", 2)),
@@ -1892,14 +1893,14 @@ def _fitted(fitted: dict, nominal: dict) -> str:
         if name in nominal:
             continue
         values = v if isinstance(v, list) else [v]
-        label = re.sub(r"_(per_nm|nm_per_s|per_decade|hz|s|nm)$", "", name).replace("_", " ")
+        label = re.sub(r"_(per_nm|nm_per_s|nm2_per_s|per_decade|hz|s|nm)$", "", name).replace("_", " ")
         parts.append(f"{label} {' / '.join(one(name, x) for x in values)}")
     return "; ".join(parts)
 
 
 def _candidate(c: dict, kind: str, nominal: dict) -> list[Cell]:
     return [
-        f"{kind} {c['effect']}",
+        f"{kind} {c['effect']}" + (f" (on {s})" if (s := c.get("judged_on")) else ""),
         q(c["heldout_gap_after_nm"], "nm", 2),
         q(c["shrink_pct"], "%"),
         q(c["delta_bic"], "", 0),

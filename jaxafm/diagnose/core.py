@@ -19,10 +19,12 @@ is here, the same for all:
   *and* lowers the BIC by at least ``Rules.min_delta_bic`` against the nominal model (Kass &
   Raftery: 10 is "very strong" evidence);
 - an effect the data's held-out part cannot test is judged on the same data split otherwise
-  (:meth:`DataKind.judged_on`: a record's drift and creep on alternating blocks where it holds
-  out its later part), against the nominal model and the shape found refitted on that split;
+  (:meth:`DataKind.judged_on`: a record's drift on alternating blocks where it holds out its
+  later part), against the nominal model and the shape found refitted on that split;
   the candidate says which split judged it;
 - candidates are ranked by shrink, best first; the verdict is the top significant one, or none;
+  where significant candidates were judged on different splits, their shrinks are not comparable:
+  they are compared on one split, the one the others were judged on (:func:`_on_one_split`);
 - a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
 - before the effects, a kind may try richer hysteresis operators, one rung at a time
   (:attr:`DataKind.shapes`: symmetric PI -> twice the plays -> generalised PI -> Preisach for
@@ -357,6 +359,9 @@ class Diagnosis:
         shape: the richer hysteresis operator the data need (its kind), or ``None``.
         base: the fit the effects were compared against (the nominal, or the rung found).
         warnings: sentences on what the split cannot test.
+        contest: where significant candidates were judged on different splits, each refitted
+            on the split the others were not judged on and compared there
+            (:func:`_on_one_split`), the verdict the best of them; else empty.
     """
 
     data: DataKind
@@ -369,6 +374,7 @@ class Diagnosis:
     shape: Optional[str] = None
     base: Optional[Fit] = None
     warnings: tuple = ()
+    contest: tuple = ()
 
     @property
     def kind(self) -> str:
@@ -497,9 +503,12 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
         tried.append(Candidate.compare(effect, split.base, fit, rules, split=split.other))
         log(tried[-1].line())
     ranked, verdict = rank(tried, rules)
+    contest, verdict = _on_one_split(splits, ranked, verdict, rules, log)
     with_shape = {c.effect: c.fit for c in ranked}
     if shape and not verdict and tried:
         ranked, verdict, base = _simpler(splits, base, ranked, verdict, rules, log)
+        if base is nominal:
+            contest, verdict = _on_one_split(splits, ranked, verdict, rules, log, on_nominal=True)
     if verdict and shape:  # is the richer shape still needed once the effect is in?
         split = splits.of(verdict)
         plain = next((c.fit for c in ranked if c.effect == verdict and base is nominal), None)
@@ -511,8 +520,11 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
             shape = None
             if base is not nominal:
                 ranked, verdict = _on_nominal(splits, ranked, {verdict: plain}, rules, log)
+                contest, verdict = _on_one_split(splits, ranked, verdict, rules, log, on_nominal=True)
                 base = nominal
-    return Diagnosis(data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings)
+    return Diagnosis(
+        data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings, contest
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -552,6 +564,29 @@ class _Splits:
                 base = data.fit_shape(kind, base)
             self._made[id(data)] = _Split(data, nominal, base, False)
         return self._made[id(data)]
+
+
+def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nominal: bool = False) -> tuple:
+    """Significant candidates judged on different splits (a record's drift on alternating blocks,
+    the others on its later part) cannot be ranked by their shrinks, each against another held-out
+    part: those judged on the data's own split are refitted on the other one (on its base, or its
+    nominal ``on_nominal``) and all compared there. Returns ``(the candidates compared there,
+    the verdict)``: the best there (:func:`rank`), or ``((), verdict)`` when the significant
+    candidates share one split."""
+    significant = [c for c in ranked if c.significant]
+    elsewhere = [c for c in significant if c.judged_on]
+    if not elsewhere or len(elsewhere) == len(significant):
+        return (), verdict
+    split = splits.of(elsewhere[0].effect)
+    base = split.nominal if on_nominal else split.base
+    contest = list(elsewhere)
+    for c in significant:
+        if not c.judged_on:
+            fit = split.data.fit_candidate(c.effect, base)
+            contest.append(Candidate.compare(c.effect, base, fit, rules, split=split.other))
+            log(contest[-1].line().replace("+ ", f"+ (against {elsewhere[0].effect}) ", 1))
+    contest, best = rank(contest, rules)
+    return contest, best or verdict
 
 
 def _on_nominal(splits: _Splits, ranked, fitted: dict, rules: Rules, log) -> tuple:

@@ -217,6 +217,13 @@ def markdown(doc: dict, notes: list) -> str:
         ] + _table(doc["hysteresis_shapes"], {})
         lines += ["", "## Effects", ""]
     lines += _table(doc["candidates"], doc["skipped"])
+    if doc.get("compared_on_one_split"):
+        lines += [
+            "",
+            "The significant effects above were judged on different held-out parts, so their shrinks "
+            "do not rank them: each was refitted on the split below and the verdict is the best there:",
+            "",
+        ] + _table(doc["compared_on_one_split"], {})
     lines += ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
     return "\n".join(lines + list(notes) + ["", "![residuals](residuals.png)", ""])
 
@@ -245,6 +252,7 @@ def write(diagnosis: Diagnosis, save: Callable, log=print) -> dict:
         "hysteresis_shapes": [c.to_json() for c in diagnosis.shapes],
         "candidates": [c.to_json() for c in diagnosis.candidates],
         "skipped": dict(diagnosis.skipped),
+        **({"compared_on_one_split": [c.to_json() for c in diagnosis.contest]} if diagnosis.contest else {}),
         "rules": dataclasses.asdict(diagnosis.rules),
         "where": found.where,
     }
