@@ -2173,9 +2173,9 @@ def independent_wandering(results: Results) -> Table:
     levels = ("low", "middle", "high")
     rows = []
     for kind, right in m["wanders"]["by_wander"].items():
-        rows.append([kind, *(f"{k}/{n}" for k, n in (right[lv] for lv in levels)), "–"])
+        rows.append([kind, *(f"{k}/{n}" if n else "–" for k, n in (right[lv] for lv in levels)), "–"])
     s = m["all"]
-    top1 = [_share(s[f"top1_{lv}_pct"], s[f"cases_{lv}"]) for lv in levels]
+    top1 = [_share(s[f"top1_{lv}_pct"], s[f"cases_{lv}"]) if f"cases_{lv}" in s else "–" for lv in levels]
     rows.append(["all", *top1, f"{s['controls_flagged']}/{s['controls']}"])
     header = ["truth", "named low", "named middle", "named high", "controls flagged"]
     note = (
