@@ -224,6 +224,11 @@ RECORDS = Run(
 )
 RECORDS_CASES = Run("withheld_records_rerun/cases.json", RECORDS.command)
 INDEPENDENT = Run("independent_check/summary.json", "python experiments/independent_check.py")
+WANDERING_COMMAND = "python experiments/independent_check.py --wandering"
+WANDERING = Run("independent_check_wandering/summary.json", WANDERING_COMMAND)
+REPORTED = Run(
+    "independent_check_wandering/reported.json", "python experiments/independent_check.py --reported"
+)
 STABILITY = Run("stability/summary.json", "python experiments/stability.py")
 STABILITY_ROWS = (
     Run("stability/rows-1-of-2.json", "python experiments/stability.py --shard 1/2"),
@@ -735,6 +740,32 @@ GOALS = [
         "docs/diagnosis.md#checked-on-records-jaxafm-did-not-make-python-experimentsindependent_checkpy",
         lambda m: f"{count(m['all']['controls_flagged'])} of {count(m['all']['controls'])}",
         lambda m: m["all"]["controls_flagged"] <= m["all"]["controls"] / 20,
+    ),
+    Goal(
+        "wandering_top1",
+        "diagnosis of drifts that wander and of creep (independent generator, half the other "
+        "hysteresis class): top-1 ≥ 95 % at the middle magnitude",
+        WANDERING,
+        "docs/diagnosis.md#drifts-that-wander-and-creep-python-experimentsindependent_checkpy-wandering",
+        lambda m: f"{q(m['all']['top1_middle_pct'], '%')} of {count(m['all']['cases_middle'])}",
+        lambda m: m["all"]["top1_middle_pct"] >= 95,
+    ),
+    Goal(
+        "wandering_controls",
+        "diagnosis of drifts that wander and of creep: ≤ 1 false alarm in 20 controls",
+        WANDERING,
+        "docs/diagnosis.md#drifts-that-wander-and-creep-python-experimentsindependent_checkpy-wandering",
+        lambda m: f"{count(m['all']['controls_flagged'])} of {count(m['all']['controls'])}",
+        lambda m: m["all"]["controls_flagged"] <= m["all"]["controls"] / 20,
+    ),
+    Goal(
+        "wandering_shrink",
+        "diagnosis of drifts that wander and of creep: median shrink above the noise floor ≥ 80 % "
+        "of the correctly named",
+        WANDERING,
+        "docs/diagnosis.md#drifts-that-wander-and-creep-python-experimentsindependent_checkpy-wandering",
+        lambda m: q(m["all"]["median_shrink_above_floor_correct_pct"], "%"),
+        lambda m: m["all"]["median_shrink_above_floor_correct_pct"] >= 80,
     ),
     Goal(
         "independent_shrink",
@@ -1842,6 +1873,7 @@ TABLES["bench_study_gpu"] = bench_extras(GPU_STUDY)
 UNITS = (  # a fitted size's name ends in its unit: (ending, how it prints)
     ("_per_nm", lambda v: f"{v:.2g} /nm".replace("-", "−")),
     ("_nm_per_s", lambda v: q(v, "nm/s", 3)),
+    ("_nm2_per_s", lambda v: f"{v:.3g} nm²/s".replace("-", "−")),
     ("_per_decade", lambda v: q(100 * v, "%/decade", 2)),
     ("_hz", lambda v: q(v, "Hz", 0)),
     ("_s", lambda v: q(1e3 * v, "ms", 3) if abs(v) < 1 else q(v, "s", 2)),
@@ -1861,14 +1893,14 @@ def _fitted(fitted: dict, nominal: dict) -> str:
         if name in nominal:
             continue
         values = v if isinstance(v, list) else [v]
-        label = re.sub(r"_(per_nm|nm_per_s|per_decade|hz|s|nm)$", "", name).replace("_", " ")
+        label = re.sub(r"_(per_nm|nm_per_s|nm2_per_s|per_decade|hz|s|nm)$", "", name).replace("_", " ")
         parts.append(f"{label} {' / '.join(one(name, x) for x in values)}")
     return "; ".join(parts)
 
 
 def _candidate(c: dict, kind: str, nominal: dict) -> list[Cell]:
     return [
-        f"{kind} {c['effect']}",
+        f"{kind} {c['effect']}" + (f" (on {s})" if (s := c.get("judged_on")) else ""),
         q(c["heldout_gap_after_nm"], "nm", 2),
         q(c["shrink_pct"], "%"),
         q(c["delta_bic"], "", 0),
@@ -2133,6 +2165,48 @@ def independent_by_effect(results: Results) -> Table:
         )
     header = ["effect", "named (low, middle, high)", "own shrink, median (low / middle / high)"]
     return Table(header, rows, [INDEPENDENT], "An asymmetry counts as named when the shape found holds it.")
+
+
+@table("independent_wandering")
+def independent_wandering(results: Results) -> Table:
+    m = results(WANDERING)
+    levels = ("low", "middle", "high")
+    rows = []
+    for kind, right in m["wanders"]["by_wander"].items():
+        rows.append([kind, *(f"{k}/{n}" if n else "–" for k, n in (right[lv] for lv in levels)), "–"])
+    s = m["all"]
+    top1 = [_share(s[f"top1_{lv}_pct"], s[f"cases_{lv}"]) if f"cases_{lv}" in s else "–" for lv in levels]
+    rows.append(["all", *top1, f"{s['controls_flagged']}/{s['controls']}"])
+    header = ["truth", "named low", "named middle", "named high", "controls flagged"]
+    note = (
+        f"Median shrink of the correctly named, own / above the noise floor: "
+        f"{q(s['median_shrink_correct_pct'], '%')} / {q(s['median_shrink_above_floor_correct_pct'], '%')}; "
+        f"wrong verdicts: {count(_wrong(s['confusion'], m['labels']))}."
+    )
+    return Table(header, rows, [WANDERING], note)
+
+
+@table("independent_reported")
+def independent_reported(results: Results) -> Table:
+    rows = []
+    for case in results(REPORTED):
+        top = next((c for c in case["candidates"] if c["effect"] == case["verdict"]), None)
+        gaps = (
+            f"{q(top['heldout_gap_before_nm'], 'nm')} → {q(top['heldout_gap_after_nm'], 'nm')} "
+            f"({q(top['shrink_pct'], '%')})"
+            if top
+            else "–"
+        )
+        rows.append(
+            [
+                case["case"],
+                f"{case['verdict'] or 'none'} ({case['shape'] or 'nominal'} shape)",
+                gaps,
+                (top or {}).get("judged_on", "the later part") if top else "–",
+            ]
+        )
+    header = ["case", "verdict (shape)", "held-out gap of the verdict", "judged on"]
+    return Table(header, rows, [REPORTED])
 
 
 @table("stability")

@@ -25,6 +25,11 @@ confusion.png.
                                                                # two processes, one core each: ~2 h
     python experiments/independent_check.py --nominal pi --shard 1/2   # only the PI-nominal cases
     python experiments/independent_check.py --summarise        # only rebuild summary and figure
+    python experiments/independent_check.py --reported     # four described cases, 60 s at 100 Hz (~5 min)
+    python experiments/independent_check.py --wandering --shard 1/2   # and --shard 2/2 beside it:
+        # drifts that wander (random walk, Ornstein-Uhlenbeck) and creep, half on Preisach truths,
+        # symmetric PI nominal (independent.wandering_cases: 108 cases + 20 controls, ~2 h on 2 cores),
+        # into experiments/results/independent_check_wandering/
 """
 
 from __future__ import annotations
@@ -40,13 +45,27 @@ import numpy as np
 matplotlib.use("Agg")
 import benchutil  # noqa: F401  (puts tests/ on sys.path)
 import matplotlib.pyplot as plt
-from independent import EFFECTS, LEVELS, MAGNITUDES, NOISE_NM, UNITS, cases, make_case
+from independent import (
+    EFFECTS,
+    LEVELS,
+    MAGNITUDES,
+    NOISE_NM,
+    REPORTED_CASES,
+    REPORTED_DRIVE,
+    UNITS,
+    WANDERS,
+    cases,
+    make_case,
+    make_drive,
+    wandering_cases,
+)
 
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose.report import above_floor, noise_floor_nm
 from jaxafm.instrument.records import Record
 
 OUT = Path(__file__).parent / "results" / "independent_check"
+WANDERING_OUT = OUT.parent / "independent_check_wandering"
 CANDIDATES = ("asymmetry", "rate_dependence", "creep", "drift", "coupling", "bow", "vibration")
 LABELS = (*EFFECTS, "none")
 CLASSES = ("same", "different")
@@ -54,13 +73,15 @@ CLASSES = ("same", "different")
 
 def case_record(case: dict) -> Record:
     """The case's record, made by the independent generator."""
-    rec = make_case(case["effect"], case["level"], case["seed"], case["truth_hysteresis"])
+    wander = case.get("wander")
+    rec = make_case(case["effect"], case["level"], case["seed"], case["truth_hysteresis"], wander=wander)
     return Record(
         t=rec["t"],
         u=rec["u"],
         d=rec["d"],
         meta={
-            "source": f"independent generator: {case['effect'] or 'control'} {case['level']} "
+            "source": f"independent generator: {case['effect'] or 'control'}"
+            f"{f' ({wander} wander)' if wander else ''} {case['level']} "
             f"seed {case['seed']}, truth {case['truth_hysteresis']}",
             "truth": rec["truth"],
         },
@@ -119,6 +140,7 @@ def run_case(case: dict, candidates: tuple) -> tuple:
         "total_shrink_pct": res.verdict_json()["total_shrink_pct"],
         "shapes": [[r.effect, r.shrink_pct, r.delta_bic, bool(r.significant)] for r in res.shapes],
         "truth_shrink_pct": shrink_of(effect) if effect else None,
+        "truth_fitted": rows[effect].fit.shown().get("fitted") if effect in rows else None,
         "candidates_used": list(used),
         "skipped": {k: str(v) for k, v in res.skipped.items()},
         "ranking": [[r.effect, r.shrink_pct, r.delta_bic, bool(r.significant)] for r in res.candidates],
@@ -227,6 +249,48 @@ def summarise(rows: list) -> dict:
     return out
 
 
+def reported(out: Path) -> None:
+    """The four cases of ``independent.REPORTED_CASES`` on their drive, every candidate, from a
+    symmetric PI nominal: each case's verdict and candidates into ``out / reported.json``."""
+    drive = make_drive(*REPORTED_DRIVE)
+    rows = []
+    for name, spec in REPORTED_CASES.items():
+        c = make_case(**spec, drive=drive)
+        record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": f"independent generator: {name}"})
+        start = time.perf_counter()
+        res = D.diagnose_record(record, D.Nominal(kind="pi"), CANDIDATES, log=lambda s: None)
+        rows.append(
+            {
+                "case": name,
+                "truth": c["truth"],
+                "verdict": res.verdict,
+                "shape": res.shape,
+                "right": res.verdict == spec["effect"],
+                "nominal_heldout_gap_nm": res.nominal.heldout_gap_nm,
+                "candidates": [c.to_json() for c in res.candidates],
+                "seconds": time.perf_counter() - start,
+            }
+        )
+        top = res.top
+        where = f", on {top.judged_on}" if top and top.judged_on else ""
+        gaps = f" ({top.heldout_gap_before_nm:.1f} -> {top.heldout_gap_after_nm:.1f} nm, {top.shrink_pct:.1f} %{where})"
+        print(f"{name}: {res.text}{gaps if top else ''}", flush=True)
+    (out / "reported.json").write_text(json.dumps(rows, indent=1))
+
+
+def by_wander(rows: list) -> dict:
+    """Per drift wander kind (and creep), the cases named right per level, as ``[right, cases]``."""
+    out = {}
+    for r in rows:
+        if r["effect"] is None:
+            continue
+        key = f"drift ({r['wander']} wander)" if r.get("wander") else r["effect"]
+        right = out.setdefault(key, {lv: [0, 0] for lv in LEVELS})[r["level"]]
+        right[0] += bool(r["correct"])
+        right[1] += 1
+    return out
+
+
 def figure(summary: dict, path: Path) -> None:
     labels = summary["labels"]
     fig, axes = plt.subplots(2, 3, figsize=(19, 12.5))
@@ -258,7 +322,7 @@ def figure(summary: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per effect and level (5; --wandering 12)")
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--limit", type=int, default=None, help="run only the first LIMIT cases")
     ap.add_argument(
@@ -276,20 +340,38 @@ def main() -> None:
     ap.add_argument(
         "--shard", default="1/1", help="K/N: run every N-th case from the K-th (writes cases-K-of-N.json)"
     )
-    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument(
+        "--wandering",
+        action="store_true",
+        help="the cases of drifts that wander and of creep (independent.wandering_cases; "
+        "--seeds default 12) into experiments/results/independent_check_wandering/",
+    )
+    ap.add_argument(
+        "--reported",
+        action="store_true",
+        help="only the four cases of independent.REPORTED_CASES (reported.json in the --wandering folder)",
+    )
+    ap.add_argument("--out", type=Path, default=None, help="the results' folder")
     ap.add_argument(
         "--summarise",
         action="store_true",
         help="only rebuild summary.json and the figure from the cases*.json files",
     )
     args = ap.parse_args()
+    args.out = args.out or (WANDERING_OUT if args.wandering or args.reported else OUT)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.reported:
+        return reported(args.out)
     k, n = (int(v) for v in args.shard.split("/"))
     tag = f"-{args.nominal}" if args.nominal else ""
     saved = args.out / (f"cases{tag}.json" if n == 1 else f"cases{tag}-{k}-of-{n}.json")
     if not args.summarise:
         rows = []  # this run's (the summary below merges every cases*.json in the folder)
-        todo = cases(args.seeds, args.controls)
+        todo = (
+            wandering_cases(args.seeds or 12, args.controls)
+            if args.wandering
+            else cases(args.seeds or 5, args.controls)
+        )
         if args.effects:
             todo = [c for c in todo if (c["effect"] or "control") in args.effects]
         if args.levels:
@@ -305,8 +387,9 @@ def main() -> None:
                 mark = "flagged" if row["flagged"] else "ok"
             else:
                 mark = "right" if row["correct"] else "wrong"
+            wander = f" ({case['wander']} wander)" if case.get("wander") else ""
             print(
-                f"[{i + 1}/{len(todo)}] {case['effect'] or 'control'} {case['level']} seed {case['seed']} "
+                f"[{i + 1}/{len(todo)}] {case['effect'] or 'control'}{wander} {case['level']} seed {case['seed']} "
                 f"(truth {case['truth_hysteresis']}, nominal {case['nominal_kind']}): verdict {row['verdict']}, "
                 f"shape {row['shape']} -> {mark} "
                 f"(gap {row['heldout_gap_before_nm']:.1f} nm, shrink {row['verdict_shrink_pct']:.1f} %, "
@@ -316,6 +399,8 @@ def main() -> None:
             saved.write_text(json.dumps(rows, indent=1))
     rows = [r for f in sorted(args.out.glob("cases*.json")) for r in json.loads(f.read_text())]
     summary = summarise(rows) | {"magnitudes": MAGNITUDES, "units": UNITS, "candidates": list(CANDIDATES)}
+    if any(r.get("wander") for r in rows):
+        summary["wanders"] = WANDERS | {"by_wander": by_wander(rows)}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
     figure(summary, args.out / "confusion.png")
     print(

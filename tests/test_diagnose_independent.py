@@ -25,6 +25,32 @@ def test_middle_creep_is_named():
     assert res.verdict == "creep"
 
 
+def test_a_drift_that_wanders_is_named_on_alternating_blocks():
+    """A drift of about 2 nm/s plus a random walk of 25 nm^2/s (the generator's middle walk): a
+    straight line cannot extrapolate it over the record's later part, so the drift is judged on
+    11 alternating blocks, its wander interpolated across each held-out block. The verdict's
+    numbers are those of that split: its gap before is the nominal's refitted there. Creep,
+    significant on the later part as well, is compared with it on the blocks."""
+    c = make_case("drift", "middle", 47_102, "pi", drive=DRIVE, wander="walk")
+    record = Record(t=c["t"], u=c["u"], d=c["d"], meta={"source": "independent generator: drift"})
+    res = D.diagnose_record(record, D.Nominal(kind="pi"), CANDIDATES, log=lambda s: None)
+    assert res.verdict == "drift" and res.top.judged_on == "11 alternating blocks"
+    blocked = res.data.blocked
+    assert blocked.blocks == 11 and not (blocked.train & blocked.heldout).any()
+    assert res.top.heldout_gap_before_nm == res.top.nominal_gap_nm == blocked.fit_nominal().heldout_gap_nm
+    verdict = res.verdict_json()
+    assert verdict["judged_on"] == "11 alternating blocks"
+    assert verdict["total_shrink_pct"] == pytest.approx(verdict["shrink_pct"])
+    others = [c for c in res.candidates if c.effect != "drift"]
+    assert all(c.judged_on == "" and c.heldout_gap_before_nm == res.nominal.heldout_gap_nm for c in others)
+    # creep is significant too, on the later part: the two are ranked on the blocks, creep refitted there
+    assert next(c for c in others if c.effect == "creep").significant
+    assert {c.effect for c in res.contest} == {"drift", "creep"}
+    assert all(c.judged_on == "11 alternating blocks" for c in res.contest)
+    assert {c.heldout_gap_before_nm for c in res.contest} == {res.top.nominal_gap_nm}
+    assert res.contest[0].effect == res.verdict
+
+
 def test_control_same_class_blames_nothing_and_ends_at_the_noise_floor():
     res = diagnose(None, "control", 10_000, "pi", "pi")
     assert res.verdict is None

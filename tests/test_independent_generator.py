@@ -10,6 +10,7 @@ from independent import (
     MAGNITUDES,
     cases,
     creep,
+    drift_wander,
     make_case,
     make_drive,
     pi_operator,
@@ -17,6 +18,7 @@ from independent import (
     preisach_operator,
     rate_dependence,
     vibration,
+    wandering_cases,
 )
 
 
@@ -189,3 +191,44 @@ def test_make_case_truth_and_control():
     assert a["truth"]["hysteresis"] == "pi"
     for axis in c["truth"]["axes"]:
         assert 0.10 <= axis["width_fraction"] <= 0.25
+
+
+@pytest.mark.parametrize("kind", ["walk", "ou"])
+def test_drift_wander_spreads_as_its_process_says(kind):
+    """Over 2000 draws at uneven times: a walk of sigma nm/sqrt(s) has variance sigma^2 t; an
+    Ornstein-Uhlenbeck process from 0 has sigma^2 (1 - exp(-2 t / tau)) and lag covariance
+    exp(-|dt| / tau) times the earlier variance. 2000 draws: a variance's relative standard
+    error is sqrt(2 / 2000) = 3 %, a covariance's sqrt((var_i var_j + cov^2) / 2000); bounds of
+    4 of them."""
+    rng = np.random.default_rng(0)
+    t = np.r_[0.0, np.cumsum(rng.uniform(0.5, 1.5, 40))]
+    sigma, tau = 3.0, 10.0
+    w = np.stack([drift_wander(t, kind, sigma, tau, rng) for _ in range(2000)])
+    assert np.all(w[:, 0] == 0)
+    var = w[:, 1:].var(axis=0)
+    if kind == "walk":
+        np.testing.assert_allclose(var, sigma**2 * t[1:], rtol=0.12)
+    else:
+        expected = sigma**2 * (1 - np.exp(-2 * t[1:] / tau))
+        np.testing.assert_allclose(var, expected, rtol=0.12)
+        i, j = 10, 30
+        cov, truth = np.mean(w[:, i] * w[:, j]), np.exp(-(t[j] - t[i]) / tau) * expected[i - 1]
+        se = np.sqrt((expected[i - 1] * expected[j - 1] + truth**2) / len(w))
+        assert cov == pytest.approx(truth, abs=4 * se)
+
+
+def test_a_wandering_drift_adds_its_process_to_the_straight_drift():
+    """The same seed with and without a wander differs by the wander alone, ``w[0] = 0``."""
+    plain = make_case("drift", "middle", 5, "pi")
+    walked = make_case("drift", "middle", 5, "pi", wander="walk")
+    w = walked["d"] - plain["d"]
+    assert np.all(w[0] == 0) and walked["truth"]["effect_parameters"]["wander"]["sigma"] == 5.0
+    assert np.std(np.diff(w[:, 0])) == pytest.approx(5.0 * np.sqrt(1e-3), rel=0.1)  # 6000 steps: 2 %
+
+
+def test_wandering_cases_are_balanced():
+    cs = wandering_cases(12, 20)
+    assert len(cs) == 3 * 3 * 12 + 20 and len({c["seed"] for c in cs}) == len(cs)
+    assert sum(c["effect"] is None for c in cs) == 20
+    assert all(c["nominal_kind"] == "pi" for c in cs)
+    assert sum(c["truth_hysteresis"] == "preisach" for c in cs) == len(cs) // 2

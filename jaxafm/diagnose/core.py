@@ -18,7 +18,13 @@ is here, the same for all:
 - a candidate is significant when it shrinks the gap by at least ``Rules.min_shrink_pct`` %
   *and* lowers the BIC by at least ``Rules.min_delta_bic`` against the nominal model (Kass &
   Raftery: 10 is "very strong" evidence);
+- an effect the data's held-out part cannot test is judged on the same data split otherwise
+  (:meth:`DataKind.judged_on`: a record's drift on alternating blocks where it holds out its
+  later part), against the nominal model and the shape found refitted on that split;
+  the candidate says which split judged it;
 - candidates are ranked by shrink, best first; the verdict is the top significant one, or none;
+  where significant candidates were judged on different splits, their shrinks are not comparable:
+  they are compared on one split, the one the others were judged on (:func:`_on_one_split`);
 - a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
 - before the effects, a kind may try richer hysteresis operators, one rung at a time
   (:attr:`DataKind.shapes`: symmetric PI -> twice the plays -> generalised PI -> Preisach for
@@ -159,6 +165,9 @@ class Candidate:
             than :data:`~jaxafm.identify.fit.NESTING_TOLERANCE`): started there, where it changes
             nothing, its best fit cannot, so its solver stopped short of it (a failure, not a
             finding).
+        judged_on: the split it was judged on, where it is not the data's own
+            (:meth:`DataKind.judged_on`), else ``""``.
+        nominal_gap_nm: the nominal model's held-out gap on that split (nm).
     """
 
     effect: str
@@ -171,12 +180,17 @@ class Candidate:
     significant: bool
     fit: Fit
     trains_worse: bool = False
+    judged_on: str = ""
+    nominal_gap_nm: Optional[float] = None
 
     @classmethod
-    def compare(cls, effect: str, nominal: Fit, fit: Fit, rules: Rules, nested: bool = True) -> Candidate:
+    def compare(
+        cls, effect: str, nominal: Fit, fit: Fit, rules: Rules, nested: bool = True, split=None
+    ) -> Candidate:
         """``fit`` (nominal + ``effect``) against ``nominal`` under ``rules``; ``nested``: ``fit``
         started from ``nominal``'s (a candidate effect), so that training worse is a failure (a
-        hysteresis rung started afresh is not)."""
+        hysteresis rung started afresh is not); ``split``: the :class:`_Split` it was judged
+        on where that is not the data's own."""
         before, after = nominal.heldout_gap_nm, fit.heldout_gap_nm
         shrink, dbic = 100 * (1 - after / before), float(fit.bic - nominal.bic)
         return cls(
@@ -190,6 +204,8 @@ class Candidate:
             bool(shrink >= rules.min_shrink_pct and dbic <= -rules.min_delta_bic),
             fit,
             nested and bool(fit.train_rms_nm > (1 + NESTING_TOLERANCE) * nominal.train_rms_nm),
+            split.data.split_label if split else "",
+            split.nominal.heldout_gap_nm if split else None,
         )
 
     def to_json(self) -> dict:
@@ -204,7 +220,8 @@ class Candidate:
             "extra_parameters",
         )
         flags = {"significant": self.significant, "trains_worse_than_without": self.trains_worse}
-        return {k: getattr(self, k) for k in common} | self.fit.shown() | flags
+        split = {"judged_on": self.judged_on} if self.judged_on else {}
+        return {k: getattr(self, k) for k in common} | split | self.fit.shown() | flags
 
     def line(self) -> str:
         """The candidate's result, for the log."""
@@ -212,6 +229,11 @@ class Candidate:
             f"  + {self.effect:16s} held-out gap {self.heldout_gap_after_nm:8.3g} nm "
             f"({self.shrink_pct:+6.1f} %), delta BIC {self.delta_bic:+9.1f}"
             + ("  significant" if self.significant else "")
+            + (
+                f"  (judged on {self.judged_on}: {self.heldout_gap_before_nm:.3g} nm before)"
+                if self.judged_on
+                else ""
+            )
             + ("  trains worse than without it: the solver stopped short" if self.trains_worse else "")
         )
 
@@ -290,6 +312,16 @@ class DataKind(abc.ABC):
         ``None`` (default: it can)."""
         return None
 
+    def judged_on(self, effect: str) -> DataKind:
+        """The data ``effect`` is judged on: these, or the same data split otherwise, where the
+        held-out part these data keep cannot test it (default: these)."""
+        return self
+
+    @property
+    def split_label(self) -> str:
+        """The split in a few words (where :meth:`judged_on` gives other data)."""
+        return "the data's split"
+
     @abc.abstractmethod
     def fit_nominal(self) -> Fit:
         """The nominal model fitted to the training part."""
@@ -327,6 +359,9 @@ class Diagnosis:
         shape: the richer hysteresis operator the data need (its kind), or ``None``.
         base: the fit the effects were compared against (the nominal, or the rung found).
         warnings: sentences on what the split cannot test.
+        contest: where significant candidates were judged on different splits, each refitted
+            on the split the others were not judged on and compared there
+            (:func:`_on_one_split`), the verdict the best of them; else empty.
     """
 
     data: DataKind
@@ -339,6 +374,7 @@ class Diagnosis:
     shape: Optional[str] = None
     base: Optional[Fit] = None
     warnings: tuple = ()
+    contest: tuple = ()
 
     @property
     def kind(self) -> str:
@@ -365,16 +401,18 @@ class Diagnosis:
 
     def verdict_json(self) -> dict:
         """The ``verdict`` section of ``diagnosis.json``: effect, shape, text and, if any, the
-        effect's gaps (against the model it was added to) and the gap left against the nominal's."""
+        effect's gaps (against the model it was added to), the split that judged it where it is
+        not the data's own, and the gap left against the nominal's on the same split."""
         top = self.top
         gaps = ("heldout_gap_before_nm", "heldout_gap_after_nm", "shrink_pct")
-        final = self.final
+        nominal = top.nominal_gap_nm if top and top.judged_on else self.nominal.heldout_gap_nm
         return {
             "effect": self.verdict,
             "hysteresis_shape": self.shape,
             "text": self.text,
             **({k: getattr(top, k) for k in gaps} if top else {}),
-            "total_shrink_pct": 100 * (1 - final.heldout_gap_nm / self.nominal.heldout_gap_nm),
+            **({"judged_on": top.judged_on} if top and top.judged_on else {}),
+            "total_shrink_pct": 100 * (1 - self.final.heldout_gap_nm / nominal),
         }
 
     def metrics(self) -> dict:
@@ -453,41 +491,114 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
         f"held-out gap {nominal.heldout_gap_nm:.3g} nm"
     )
     base, shape, shapes = _climb(data, nominal, rules, log)
+    splits = _Splits(data, nominal, base, tuple(c.effect for c in shapes if c.significant))
     tried, skipped = [], {}
     for effect in candidates:
         why = skip_reason(data, effect, nominal)
         if why:
             skipped[effect] = why
             continue
-        tried.append(Candidate.compare(effect, base, data.fit_candidate(effect, base), rules))
+        split = splits.of(effect)
+        fit = split.data.fit_candidate(effect, split.base)
+        tried.append(Candidate.compare(effect, split.base, fit, rules, split=split.other))
         log(tried[-1].line())
     ranked, verdict = rank(tried, rules)
+    contest, verdict = _on_one_split(splits, ranked, verdict, rules, log)
     with_shape = {c.effect: c.fit for c in ranked}
     if shape and not verdict and tried:
-        ranked, verdict, base = _simpler(data, nominal, base, ranked, verdict, rules, log)
+        ranked, verdict, base = _simpler(splits, base, ranked, verdict, rules, log)
+        if base is nominal:
+            contest, verdict = _on_one_split(splits, ranked, verdict, rules, log, on_nominal=True)
     if verdict and shape:  # is the richer shape still needed once the effect is in?
+        split = splits.of(verdict)
         plain = next((c.fit for c in ranked if c.effect == verdict and base is nominal), None)
-        plain = plain or data.fit_candidate(verdict, nominal)
-        recheck = Candidate.compare(shape, plain, with_shape[verdict], rules, nested=False)
+        plain = plain or split.data.fit_candidate(verdict, split.nominal)
+        recheck = Candidate.compare(shape, plain, with_shape[verdict], rules, nested=False, split=split.other)
         shapes.append(dataclasses.replace(recheck, effect=f"{shape} (with {verdict})"))
         log(shapes[-1].line().replace("+ ", "hysteresis ", 1))
         if not recheck.significant:
             shape = None
             if base is not nominal:
-                ranked, verdict = _on_nominal(data, nominal, ranked, {verdict: plain}, rules, log)
+                ranked, verdict = _on_nominal(splits, ranked, {verdict: plain}, rules, log)
+                contest, verdict = _on_one_split(splits, ranked, verdict, rules, log, on_nominal=True)
                 base = nominal
-    return Diagnosis(data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings)
+    return Diagnosis(
+        data, nominal, ranked, skipped, verdict, rules, tuple(shapes), shape, base, warnings, contest
+    )
 
 
-def _on_nominal(data: DataKind, nominal: Fit, ranked, fitted: dict, rules: Rules, log) -> tuple:
+@dataclasses.dataclass(frozen=True)
+class _Split:
+    """A split candidates are judged on: its data, nominal fit and base (the rungs found, on it);
+    ``other``: itself where it is not the diagnosed data's own split, else ``None``."""
+
+    data: DataKind
+    nominal: Fit
+    base: Fit
+    own: bool
+
+    @property
+    def other(self) -> Optional[_Split]:
+        return None if self.own else self
+
+
+class _Splits:
+    """The splits a diagnosis judges on: the data's own, and each other one an effect asks for
+    (:meth:`DataKind.judged_on`), its nominal refitted there and the rungs found climbed again."""
+
+    def __init__(self, data: DataKind, nominal: Fit, base: Fit, rungs: tuple):
+        self.data, self.rungs = data, rungs
+        self._made = {id(data): _Split(data, nominal, base, True)}
+
+    @property
+    def own(self) -> _Split:
+        """The diagnosed data's own split."""
+        return self._made[id(self.data)]
+
+    def of(self, effect: str) -> _Split:
+        """The split ``effect`` is judged on, fitted the first time it is asked for."""
+        data = self.data.judged_on(effect)
+        if id(data) not in self._made:
+            nominal = base = data.fit_nominal()
+            for kind in self.rungs:
+                base = data.fit_shape(kind, base)
+            self._made[id(data)] = _Split(data, nominal, base, False)
+        return self._made[id(data)]
+
+
+def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nominal: bool = False) -> tuple:
+    """Significant candidates judged on different splits (a record's drift on alternating blocks,
+    the others on its later part) cannot be ranked by their shrinks, each against another held-out
+    part: those judged on the data's own split are refitted on the other one (on its base, or its
+    nominal ``on_nominal``) and all compared there. Returns ``(the candidates compared there,
+    the verdict)``: the best there (:func:`rank`), or ``((), verdict)`` when the significant
+    candidates share one split."""
+    significant = [c for c in ranked if c.significant]
+    elsewhere = [c for c in significant if c.judged_on]
+    if not elsewhere or len(elsewhere) == len(significant):
+        return (), verdict
+    split = splits.of(elsewhere[0].effect)
+    base = split.nominal if on_nominal else split.base
+    contest = list(elsewhere)
+    for c in significant:
+        if not c.judged_on:
+            fit = split.data.fit_candidate(c.effect, base)
+            contest.append(Candidate.compare(c.effect, base, fit, rules, split=split.other))
+            log(contest[-1].line().replace("+ ", f"+ (against {elsewhere[0].effect}) ", 1))
+    contest, best = rank(contest, rules)
+    return contest, best or verdict
+
+
+def _on_nominal(splits: _Splits, ranked, fitted: dict, rules: Rules, log) -> tuple:
     """The recheck dropped the rung the effects were added to: every effect compared on the
-    nominal model instead (``fitted``: effect -> its fit on the nominal, where one was made), so
-    that the verdict and its numbers are those of the model it names. Returns ``(ranked,
-    verdict)`` (:func:`rank`)."""
+    nominal model of its split instead (``fitted``: effect -> its fit on that nominal, where one
+    was made), so that the verdict and its numbers are those of the model it names. Returns
+    ``(ranked, verdict)`` (:func:`rank`)."""
     plain = []
     for c in ranked:
-        fit = fitted.get(c.effect) or data.fit_candidate(c.effect, nominal)
-        plain.append(Candidate.compare(c.effect, nominal, fit, rules))
+        split = splits.of(c.effect)
+        fit = fitted.get(c.effect) or split.data.fit_candidate(c.effect, split.nominal)
+        plain.append(Candidate.compare(c.effect, split.nominal, fit, rules, split=split.other))
         log(plain[-1].line().replace("+ ", "+ (on the nominal) ", 1))
     return rank(plain, rules)
 
@@ -504,21 +615,24 @@ def _climb(data: DataKind, nominal: Fit, rules: Rules, log) -> tuple:
     return base, shape, shapes
 
 
-def _simpler(data: DataKind, nominal: Fit, rung: Fit, ranked, verdict, rules: Rules, log) -> tuple:
+def _simpler(splits: _Splits, rung: Fit, ranked, verdict, rules: Rules, log) -> tuple:
     """A rung was found and no effect on top of it: each effect is added to the nominal model
-    instead. One that is significant there with a training BIC and a held-out gap no worse than
-    the rung's explains the misfit more simply; the effects are then ranked on the nominal.
-    Returns ``(ranked, verdict, base)``, unchanged when no effect does."""
-    plain = [
-        Candidate.compare(c.effect, nominal, data.fit_candidate(c.effect, nominal), rules) for c in ranked
-    ]
-    for c in plain:
-        log(c.line().replace("+ ", "+ (on the nominal) ", 1))
-    rivals = [
-        c
-        for c in plain
-        if c.significant and c.fit.bic <= rung.bic and c.heldout_gap_after_nm <= rung.heldout_gap_nm
-    ]
+    (of the split it is judged on) instead. One that is significant there with a training BIC
+    and a held-out gap no worse than the rung's (on that split) explains the misfit more simply;
+    the effects are then ranked on the nominal. Returns ``(ranked, verdict, base)``, unchanged
+    when no effect does."""
+    plain, rivals = [], []
+    for c in ranked:
+        split = splits.of(c.effect)
+        fit = split.data.fit_candidate(c.effect, split.nominal)
+        plain.append(Candidate.compare(c.effect, split.nominal, fit, rules, split=split.other))
+        log(plain[-1].line().replace("+ ", "+ (on the nominal) ", 1))
+        if (
+            plain[-1].significant
+            and fit.bic <= split.base.bic
+            and fit.heldout_gap_nm <= split.base.heldout_gap_nm
+        ):
+            rivals.append(plain[-1])
     if not rivals:
         return ranked, verdict, rung
-    return rank(plain, rules)[0], rank(rivals, rules)[1], nominal
+    return rank(plain, rules)[0], rank(rivals, rules)[1], splits.own.nominal

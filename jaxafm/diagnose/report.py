@@ -115,14 +115,20 @@ def residual_tests(r: np.ndarray, u: np.ndarray, t: np.ndarray) -> dict:
 
 def candidate_bars(a, candidates, base_gap_nm: float, xlabel: str, base: str = "nominal") -> None:
     """Each candidate's held-out gap after refitting (red: significant), against ``base_gap_nm``
-    (nm), the gap of the model ``base`` the candidates were added to, on the axes ``a``."""
+    (nm), the gap of the model ``base`` the candidates were added to, on the axes ``a``; a
+    candidate judged on another split (its label says which) has its own gap before, a tick."""
     if candidates:
+        names = [c.effect + (f"\n(on {c.judged_on})" if c.judged_on else "") for c in candidates]
         a.barh(
-            [c.effect for c in candidates],
+            names,
             [c.heldout_gap_after_nm for c in candidates],
             color=["tab:red" if c.significant else "tab:gray" for c in candidates],
         )
         a.axvline(base_gap_nm, color="k", ls="--", lw=1, label=base)
+        other = [(i, c.heldout_gap_before_nm) for i, c in enumerate(candidates) if c.judged_on]
+        if other:
+            i, before = zip(*other)
+            a.scatter(before, i, marker="|", s=400, color="k", label=f"{base}, on the split that judged it")
         a.invert_yaxis()
         a.legend(fontsize=8)
     a.set(xlabel=xlabel, title=f"{base} + candidate (red: significant)")
@@ -159,7 +165,8 @@ def _table(rows: list, skipped: dict) -> list:
     ]
     for i, r in enumerate(rows, 1):
         lines.append(
-            f"| {i} | {r['effect']} | {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
+            f"| {i} | {r['effect']}{f' (judged on {s})' if (s := r.get('judged_on')) else ''} "
+            f"| {r['heldout_gap_before_nm']:.3g} | {r['heldout_gap_after_nm']:.3g} | "
             f"{r['shrink_pct']:.1f} | {r['delta_bic']:.1f} | {r['extra_parameters']} | {_sizes(r) or '-'} | "
             f"{'yes' if r['significant'] else 'no'}"
             + (" (stopped at its step limit)" if r.get("stopped_at_step_limit") else "")
@@ -210,6 +217,13 @@ def markdown(doc: dict, notes: list) -> str:
         ] + _table(doc["hysteresis_shapes"], {})
         lines += ["", "## Effects", ""]
     lines += _table(doc["candidates"], doc["skipped"])
+    if doc.get("compared_on_one_split"):
+        lines += [
+            "",
+            "The significant effects above were judged on different held-out parts, so their shrinks "
+            "do not rank them: each was refitted on the split below and the verdict is the best there:",
+            "",
+        ] + _table(doc["compared_on_one_split"], {})
     lines += ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
     return "\n".join(lines + list(notes) + ["", "![residuals](residuals.png)", ""])
 
@@ -238,6 +252,7 @@ def write(diagnosis: Diagnosis, save: Callable, log=print) -> dict:
         "hysteresis_shapes": [c.to_json() for c in diagnosis.shapes],
         "candidates": [c.to_json() for c in diagnosis.candidates],
         "skipped": dict(diagnosis.skipped),
+        **({"compared_on_one_split": [c.to_json() for c in diagnosis.contest]} if diagnosis.contest else {}),
         "rules": dataclasses.asdict(diagnosis.rules),
         "where": found.where,
     }

@@ -1,0 +1,179 @@
+"""Drift as a random process: a rate and a wander, by a Kalman smoother.
+
+What a model without drift leaves of a drifting record is taken, per output, as a straight
+drift of rate ``v`` plus a random-walk wander, the rest white (a local linear trend with a
+fixed slope: Durbin & Koopman, *Time Series Analysis by State Space Methods*, 2012, §3.2):
+
+    r_n = w_n + e_n,                           e_n ~ N(0, s^2),
+    w_{n+1} = w_n + v (t_{n+1} - t_n) + eta_n,   eta_n ~ N(0, lambda s^2 (t_{n+1} - t_n)),
+
+``lambda`` (1/s) the wander's diffusion over the white noise's variance. The start ``w_0`` and
+the rate ``v`` are unknown (diffuse), so the filter estimates them as it goes: ``v`` is the
+generalised-least-squares rate given the wander, not a line through the wander's excursions.
+An Ornstein-Uhlenbeck wander with a time constant longer than the record is a random walk over
+it. Samples that are not observed (held out, settling) are skipped by the filter, so the
+smoother (Rauch-Tung-Striebel) interpolates the drift across a held-out block from the training
+data on both sides and extrapolates it (rate, no wander) across a held-out end: the drift's
+prediction of what it was not trained on.
+
+``lambda`` is the maximum of the likelihood with ``s^2`` concentrated out (Durbin & Koopman
+§2.10): per output, over the ``n`` observed samples but the first two (which set the diffuse
+start and rate), with one-step prediction errors ``e_n`` of variance ``s^2 f_n``,
+
+    -2 ln L = n ln(2 pi s^2) + sum ln f_n + sum e_n^2 / (s^2 f_n),   s^2 = sum (e_n^2 / f_n) / n,
+
+found on a grid of ``lambda`` (every output at once) and refined by a parabola through the best
+grid point and its neighbours. Units: nm, s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+#: The grid of lambda (1/s) the likelihood is maximised over: from a wander whose spread over
+#: 1e4 s matches the white noise (1e-4) to one that matches it within a millisecond (1e3).
+LAMBDA_GRID = np.geomspace(1e-6, 1e4, 81)
+#: The start's and the rate's variance (units of s^2; the rate per sampling step) before any
+#: sample: diffuse; the likelihood and the smoother differ from the exact limit by O(1 / _DIFFUSE).
+_DIFFUSE = 1e8
+
+
+@dataclasses.dataclass(frozen=True)
+class Wander:
+    """A fitted drift, per output: its rate and its wander.
+
+    Attributes:
+        level: the smoothed drift ``w`` (T, k) nm at every sample, observed or not.
+        velocity: the rate ``v`` (k,) nm/s.
+        ratio: ``lambda`` (k,) 1/s, the wander's diffusion over the white noise's variance.
+        noise_var: ``s^2`` (k,) nm^2, the white noise's variance.
+        innovations: one-step prediction errors ``e_n`` (T, k) nm, 0 off :attr:`used`.
+        minus_two_log_l: ``-2 ln L`` (k,) of the observed samples, ``2 pi`` terms included.
+        used: (T, k) True on the samples in the likelihood (observed, after the first two).
+    """
+
+    level: np.ndarray
+    velocity: np.ndarray
+    ratio: np.ndarray
+    noise_var: np.ndarray
+    innovations: np.ndarray
+    minus_two_log_l: np.ndarray
+    used: np.ndarray
+
+    @property
+    def diffusion(self) -> np.ndarray:
+        """The wander's diffusion ``q = lambda s^2`` (k,) nm^2/s: its spread after ``t`` s is
+        ``sqrt(q t)`` nm."""
+        return self.ratio * self.noise_var
+
+    def bic(self, parameters: int) -> float:
+        """The BIC of a model with ``parameters`` free parameters whose residual this drift
+        explains, on the scale of a least-squares fit's ``n ln(RSS / n) + k ln n``
+        (:func:`jaxafm.identify.fit.bic`): for white residuals ``-2 ln L = n ln(2 pi RSS / n) + n``,
+        so ``-2 ln L - n (ln 2 pi + 1) + k ln n``, ``n`` the likelihood's samples. The diffuse
+        likelihood already pays for the start and the rate (the log-determinant of their
+        information, about ``ln n + 3 ln n`` where the BIC charges ``2 ln n``): ``parameters``
+        counts neither."""
+        n = int(self.used.sum())
+        return float(np.sum(self.minus_two_log_l) - n * (np.log(2 * np.pi) + 1) + parameters * np.log(n))
+
+
+def _transition(steps):
+    """The state ``(w, v h)``'s transition over ``steps = dt / h``: ``w += (v h) steps``, the
+    rate unchanged (the rate carried per sampling step ``h``, so that a diffuse start is
+    diffuse alike for both: in nm/s its variance would have to dwarf ``1 / h^2``)."""
+    return jnp.array([[1.0, steps], [0.0, 1.0]])
+
+
+def _filter(r, dt, observed, ratio, h):
+    """The Kalman filter of ``r`` (T,) for the state ``(w, v h)`` with ``lambda = ratio``,
+    covariances in units of ``s^2``: per sample the filtered and predicted means (2,) and
+    covariances (2, 2), the one-step error ``v_n``, its variance ``f_n`` and ``used``: the
+    samples in the likelihood (observed, after the first two observed, which set the diffuse
+    level and rate)."""
+
+    def step(carry, x):
+        m, p, seen = carry
+        rn, dtn, obs = x
+        f_ = _transition(dtn / h)
+        m, p = f_ @ m, f_ @ p @ f_.T + jnp.array([[ratio * dtn, 0.0], [0.0, 0.0]])
+        f = p[0, 0] + 1.0
+        e = rn - m[0]
+        gain = jnp.where(obs, p[:, 0] / f, 0.0)
+        m_f, p_f = m + gain * e, p - jnp.outer(gain, gain) * f
+        used = obs & (seen >= 2)
+        return (m_f, p_f, seen + obs), (m_f, p_f, m, p, jnp.where(used, e, 0.0), f, used)
+
+    x = (r, jnp.concatenate([jnp.zeros(1), dt]), observed)
+    start = (jnp.zeros(2), _DIFFUSE * jnp.eye(2), jnp.zeros((), int))
+    return lax.scan(step, start, x)[1]
+
+
+def _minus_two_log_l(r, dt, observed, ratio, h):
+    """``(-2 ln L with s^2 concentrated out, s^2)`` of one output at ``lambda = ratio``."""
+    *_, e, f, used = _filter(r, dt, observed, ratio, h)
+    n = jnp.sum(used)
+    s2 = jnp.sum(jnp.where(used, e**2 / f, 0.0)) / n
+    return n * jnp.log(2 * jnp.pi * s2) + jnp.sum(jnp.where(used, jnp.log(f), 0.0)) + n, s2
+
+
+@jax.jit
+def _grid(r, dt, observed, ratios, h):
+    """``-2 ln L`` (len(ratios), k) over the grid, every output of ``r`` (T, k) at once."""
+    per_output = jax.vmap(_minus_two_log_l, in_axes=(1, None, None, None, None))
+    return jax.vmap(lambda q: per_output(r, dt, observed, q, h)[0])(ratios)
+
+
+@jax.jit
+def _smooth(r, dt, observed, ratio, h):
+    """The Rauch-Tung-Striebel smoother of one output: ``(states (T, 2), e, -2 ln L, s^2, used)``."""
+    m_f, p_f, m_p, p_p, e, f, used = _filter(r, dt, observed, ratio, h)
+
+    def back(m_next, x):
+        m, p, m_pred, p_pred, dtn = x
+        m_s = m + p @ _transition(dtn / h).T @ jnp.linalg.solve(p_pred, m_next - m_pred)
+        return m_s, m_s
+
+    dts = jnp.concatenate([dt, jnp.zeros(1)])
+    xs = (m_f[:-1], p_f[:-1], m_p[1:], p_p[1:], dts[:-1])
+    _, states = lax.scan(back, m_f[-1], xs, reverse=True)
+    m2ll, s2 = _minus_two_log_l(r, dt, observed, ratio, h)
+    return jnp.concatenate([states, m_f[-1:]]), e, m2ll, s2, used
+
+
+def _refined(grid: np.ndarray, m2ll: np.ndarray) -> float:
+    """The minimum of ``m2ll`` over ``log(grid)``: the best grid point, moved to the vertex of
+    the parabola through it and its neighbours where that lies between them."""
+    i = int(np.nanargmin(m2ll))
+    x = np.log(grid)
+    if 0 < i < len(grid) - 1:
+        y0, y1, y2 = m2ll[i - 1 : i + 2]
+        curv = y0 - 2 * y1 + y2
+        if curv > 0:
+            return float(np.exp(x[i] + 0.5 * (y0 - y2) / curv * (x[i + 1] - x[i])))
+    return float(grid[i])
+
+
+def fit_wander(r, t, observed) -> Wander:
+    """The drift, a rate and a wander, in the residuals ``r`` (T,) or (T, k) nm at times ``t``
+    (T,) s, trained on the ``observed`` (T,) samples (module docstring).
+
+    Raises:
+        ValueError: when fewer than 10 samples are observed.
+    """
+    r = np.asarray(r, float).reshape(len(t), -1)
+    observed = np.asarray(observed, bool)
+    if observed.sum() < 10:
+        raise ValueError(f"a drift's wander needs at least 10 observed samples, got {int(observed.sum())}")
+    rj, dt, obs = jnp.asarray(r), jnp.diff(jnp.asarray(t, float)), jnp.asarray(observed)
+    h = float(np.median(np.diff(t)))
+    m2ll = np.asarray(_grid(rj, dt, obs, jnp.asarray(LAMBDA_GRID), h))
+    ratios = [_refined(LAMBDA_GRID, m2ll[:, k]) for k in range(r.shape[1])]
+    cols = [_smooth(rj[:, k], dt, obs, q, h) for k, q in enumerate(ratios)]
+    states, e, m2, s2, used = (np.stack([np.asarray(c[i]) for c in cols], -1) for i in range(5))
+    return Wander(states[:, 0], states[0, 1] / h, np.asarray(ratios), s2, e, m2, used)

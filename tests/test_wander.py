@@ -1,0 +1,100 @@
+"""A drift as a random process, a rate and a wander, by the Kalman smoother of
+jaxafm.diagnose.wander: against dense Gaussian algebra and against random walks drawn with NumPy."""
+
+import numpy as np
+import pytest
+
+from jaxafm.diagnose.wander import fit_wander
+
+
+def _series(seed: int, n: int = 60, q: float = 25.0, s: float = 2.0):
+    """A random walk of diffusion ``q`` nm^2/s plus white noise of ``s`` nm, at uneven times."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, n))
+    w = np.r_[0.0, np.cumsum(np.sqrt(q * np.diff(t)) * rng.standard_normal(n - 1))]
+    return t, w, w + s * rng.standard_normal(n)
+
+
+def test_the_smoothed_drift_is_the_gaussian_posterior_mean_across_a_held_out_block():
+    """The drift's posterior mean given the observed samples, by dense conditioning: prior
+    ``w(t) = w_0 + v tau + walk``, ``w_0 ~ N(0, D)``, ``v ~ N(0, D / h^2)`` (``tau = t - t_0``,
+    ``h`` = 1 ms the sampling step; units of the noise's variance), the walk's covariance
+    ``lambda min(tau_i, tau_j)``; observed ``r = w + e``. D = 1e5 stands for the diffuse start
+    (the smoother's 1e8): they differ by O(1 / D)."""
+    t, _, r = _series(0)
+    r = r + 40.0 * (t - t[0])  # a rate of 40 nm/s under the walk
+    observed = np.ones(t.size, bool)
+    observed[20:35] = False  # a held-out block: the smoother must interpolate across it
+    observed[50:] = False  # and a held-out end: extrapolate
+    wander = fit_wander(r, t, observed)
+    lam = wander.ratio[0]
+    tau = t - t[0]
+    prior = 1e5 * (1 + np.outer(tau, tau) / 1e-3**2) + lam * np.minimum.outer(tau, tau)
+    o = observed
+    mean = prior[:, o] @ np.linalg.solve(prior[np.ix_(o, o)] + np.eye(o.sum()), r[o])
+    np.testing.assert_allclose(wander.level[:, 0], mean, atol=1e-4 * np.ptp(r))
+
+
+def test_the_likelihood_is_that_of_the_samples_less_the_line_through_the_first_two():
+    """With a diffuse start and rate the likelihood is that of ``c_n = r_n - r_1 - (tau_n /
+    tau_2) (r_2 - r_1)`` (``tau`` from the first observed sample; start and rate cancel), a
+    Gaussian of covariance ``A S A^T``, ``S = s^2 (lambda min(tau_i, tau_j) + I)``: at the fitted
+    ``lambda`` and ``s^2`` the filter's ``-2 ln L`` must be it."""
+    t, _, r = _series(1)
+    observed = np.ones(t.size, bool)
+    observed[:5] = False  # settling samples: the likelihood starts at the first observed ones
+    observed[40:50] = False
+    wander = fit_wander(r, t, observed)
+    lam, s2 = wander.ratio[0], wander.noise_var[0]
+    to, ro = t[observed], r[observed]
+    tau = to - to[0]
+    a = np.eye(tau.size)[2:]
+    a[:, 0] -= 1 - tau[2:] / tau[1]
+    a[:, 1] -= tau[2:] / tau[1]
+    cov = a @ (s2 * (lam * np.minimum.outer(tau, tau) + np.eye(tau.size))) @ a.T
+    c = a @ ro
+    sign, logdet = np.linalg.slogdet(2 * np.pi * cov)
+    assert sign > 0
+    dense = logdet + c @ np.linalg.solve(cov, c)
+    assert wander.minus_two_log_l[0] == pytest.approx(dense, rel=1e-6)
+    assert wander.used[:, 0].sum() == observed.sum() - 2
+
+
+def test_a_random_walk_in_white_noise_is_recovered():
+    """6 s at 1 kHz of a walk of 25 nm^2/s in 2 nm noise (per output, two outputs, the second
+    walk half as fast): the maximum-likelihood diffusion scatters by 12 % (sd over 20 seeds of
+    this NumPy draw) and the noise variance by 1.6 %; bounds of about 3.3 sd."""
+    rng = np.random.default_rng(7)
+    t = np.arange(6000) / 1000.0
+    walk = lambda q: np.r_[0.0, np.cumsum(np.sqrt(q * np.diff(t)) * rng.standard_normal(t.size - 1))]
+    r = np.stack([walk(25.0), walk(6.25)], 1) + 2.0 * rng.standard_normal((t.size, 2))
+    wander = fit_wander(r, t, np.ones(t.size, bool))
+    np.testing.assert_allclose(wander.diffusion, [25.0, 6.25], rtol=0.4)
+    np.testing.assert_allclose(wander.noise_var, 4.0, rtol=0.05)
+
+
+def test_white_noise_has_no_wander_and_the_bic_of_a_straight_line():
+    """A rate in white noise, no walk: the rate is the least-squares line's, the fitted
+    diffusion negligible (its spread over the 3 s record well under the noise), and the BIC
+    that of the least-squares line (2 parameters) plus less than ``2 ln n``: the diffuse
+    likelihood pays for the start and the rate through the log-determinant of their information
+    (``ln n`` and ``3 ln n`` to leading order) where the BIC pays ``ln n`` for each."""
+    from jaxafm.identify.fit import bic
+
+    rng = np.random.default_rng(3)
+    t = np.arange(3000) / 1000.0
+    r = (5.0 * t + 2.0 * rng.standard_normal(t.size))[:, None]
+    wander = fit_wander(r, t, np.ones(t.size, bool))
+    line = np.polyfit(t, r[:, 0], 1)
+    assert wander.velocity[0] == pytest.approx(line[0], abs=0.05)  # 5 nm/s +- 0.07 (1 sd)
+    assert np.sqrt(wander.diffusion[0] * 3.0) < 0.5
+    rss = np.sum((r[:, 0] - np.polyval(line, t)) ** 2)
+    assert 0 < wander.bic(0) - bic(rss, t.size, 2) < 2 * np.log(t.size)
+
+
+def test_too_few_observed_samples_are_refused():
+    t = np.arange(100) / 100.0
+    observed = np.zeros(100, bool)
+    observed[:5] = True
+    with pytest.raises(ValueError, match="at least 10 observed samples, got 5"):
+        fit_wander(np.zeros(100), t, observed)
