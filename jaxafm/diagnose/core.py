@@ -498,9 +498,7 @@ def diagnose(data: DataKind, candidates, rules: Rules = Rules(), log=None) -> Di
         if why:
             skipped[effect] = why
             continue
-        split = splits.of(effect)
-        fit = split.data.fit_candidate(effect, split.base)
-        tried.append(Candidate.compare(effect, split.base, fit, rules, split=split.other))
+        tried.append(splits.of(effect).judge(effect, rules))
         log(tried[-1].line())
     ranked, verdict = rank(tried, rules)
     contest, verdict = _on_one_split(splits, ranked, verdict, rules, log)
@@ -541,6 +539,15 @@ class _Split:
     def other(self) -> Optional[_Split]:
         return None if self.own else self
 
+    def judge(
+        self, effect: str, rules: Rules, on_nominal: bool = False, fit: Optional[Fit] = None
+    ) -> Candidate:
+        """``effect`` added to this split's base (its nominal ``on_nominal``) and compared with
+        it; ``fit``: that fit where it was made already."""
+        base = self.nominal if on_nominal else self.base
+        fit = fit or self.data.fit_candidate(effect, base)
+        return Candidate.compare(effect, base, fit, rules, split=self.other)
+
 
 class _Splits:
     """The splits a diagnosis judges on: the data's own, and each other one an effect asks for
@@ -578,12 +585,10 @@ def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nomina
     if not elsewhere or len(elsewhere) == len(significant):
         return (), verdict
     split = splits.of(elsewhere[0].effect)
-    base = split.nominal if on_nominal else split.base
     contest = list(elsewhere)
     for c in significant:
         if not c.judged_on:
-            fit = split.data.fit_candidate(c.effect, base)
-            contest.append(Candidate.compare(c.effect, base, fit, rules, split=split.other))
+            contest.append(split.judge(c.effect, rules, on_nominal))
             log(contest[-1].line().replace("+ ", f"+ (against {elsewhere[0].effect}) ", 1))
     contest, best = rank(contest, rules)
     return contest, best or verdict
@@ -596,9 +601,7 @@ def _on_nominal(splits: _Splits, ranked, fitted: dict, rules: Rules, log) -> tup
     ``(ranked, verdict)`` (:func:`rank`)."""
     plain = []
     for c in ranked:
-        split = splits.of(c.effect)
-        fit = fitted.get(c.effect) or split.data.fit_candidate(c.effect, split.nominal)
-        plain.append(Candidate.compare(c.effect, split.nominal, fit, rules, split=split.other))
+        plain.append(splits.of(c.effect).judge(c.effect, rules, on_nominal=True, fit=fitted.get(c.effect)))
         log(plain[-1].line().replace("+ ", "+ (on the nominal) ", 1))
     return rank(plain, rules)
 
@@ -624,9 +627,9 @@ def _simpler(splits: _Splits, rung: Fit, ranked, verdict, rules: Rules, log) -> 
     plain, rivals = [], []
     for c in ranked:
         split = splits.of(c.effect)
-        fit = split.data.fit_candidate(c.effect, split.nominal)
-        plain.append(Candidate.compare(c.effect, split.nominal, fit, rules, split=split.other))
+        plain.append(split.judge(c.effect, rules, on_nominal=True))
         log(plain[-1].line().replace("+ ", "+ (on the nominal) ", 1))
+        fit = plain[-1].fit
         if (
             plain[-1].significant
             and fit.bic <= split.base.bic
