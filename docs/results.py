@@ -201,6 +201,8 @@ MINOR_LOOPS = Run("minor_loops.json", "python experiments/minor_loops.py")
 STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
 STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
+STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
+PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
 BENCH_STUDY = Run("bench_study/bench.json", "python experiments/bench_study.py")
 GPU_STUDY = Run(
     "gpu_h100/bench_study.json",
@@ -1792,6 +1794,39 @@ for _name, _run, _wall in (
     TABLES[f"{_name}_failures"] = failure_modes(_run)
 for _name, _run in (("study", STUDY), ("study_wide", STUDY_WIDE)):
     TABLES[f"{_name}_learning"] = study_learning(_run)
+
+
+@table("study_push_learning")
+def study_push_learning(results: Results) -> Table:
+    """study.yaml beside study_push_learning.yaml: what the push did with and without learning."""
+    runs = (STUDY, STUDY_PUSHES)
+    m = [results(r) for r in runs]
+    fails = [f["failure_modes"]["push"] for f in m]
+    rows = [
+        ["first push within 1 R"] + [q(f["push_first_success_pct"], "%") for f in m],
+        ["within 1 R after the checks"] + [q(f["push_success_pct"], "%") for f in m],
+        ["corrective pushes per trial"] + [q(f["push_corrections_mean"], "", 2) for f in m],
+        ["push error, median"] + [q(f["push_error_median_nm"], "nm") for f in m],
+        ["push error, p95"] + [q(f["push_error_p95_nm"], "nm") for f in m],
+    ]
+    rows += [[f"failed: {k}"] + [count(f[k]) for f in fails] for k in fails[0] if any(f[k] for f in fails)]
+    return Table(["", "pushes as commanded (study.yaml)", "pushes that learn"], rows, list(runs))
+
+
+@table("push_shortfall")
+def push_shortfall(results: Results) -> Table:
+    """Each study scanner's push-like move: the true travel's error per direction, and what a
+    check arriving at the goal sees of it."""
+    m = results(PUSH_SHORTFALL)
+    ways = ("+x", "-x", "+y", "-y")
+    rows = [
+        [s]
+        + [q(100 * r[w]["travel_error"], "%") for w in ways]
+        + [q(r[w]["seen_short_nm"], "nm") for w in ways]
+        for s, r in m["scanners"].items()
+    ]
+    header = ["scanner"] + [f"travel {w}" for w in ways] + [f"seen short {w}" for w in ways]
+    return Table(header, rows, [PUSH_SHORTFALL])
 
 
 @table("bench_study")

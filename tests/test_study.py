@@ -26,7 +26,7 @@ from jaxafm.jobs import study as job
 from jaxafm.jobs.run import workspace_layout
 from jaxafm.model.io import save_model
 from jaxafm.position import survey
-from jaxafm.position.online import learn_field
+from jaxafm.position.online import learn_field, learn_push
 from jaxafm.study import monte_carlo as study
 from jaxafm.study.learning import learning_rounds
 from jaxafm.study.monte_carlo import Unsurveyed, image_position, nearest_pixel
@@ -111,6 +111,15 @@ def chunk_files(out: Path) -> list:
         ({"learning": {"round_trials": 8}}, "learning: step C's finds"),
         ({"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 0}}, "learning.round_trials"),
         ({"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 3}}, "chunk: 2 is not a whole number"),
+        ({"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 2, "pushes": True}}, "learning.pushes"),
+        (
+            {
+                "stages": ["A+B", "A+B+C", "push"],
+                "push": {"corrections": 0},
+                "learning": {"round_trials": 2, "pushes": True},
+            },
+            "push.corrections >= 1",
+        ),
     ],
 )
 def test_impossible_configs_fail_naming_the_key(tmp_path, change, key):
@@ -306,6 +315,55 @@ def test_learning_aims_later_rounds_by_the_finds_of_earlier_ones(tmp_path):
         r["AB_error_nm"],
         without["AB_error_nm"],
     )
+
+
+def test_pushes_learn_from_the_checks_of_earlier_rounds(tmp_path):
+    """Four trials through the push in rounds of two, the pushes learning: the first round
+    commands what is wanted, as a study without learning pushes does; the second commands its
+    pushes through the field that the first round's checked pushes support (learn_push, by hand)."""
+    path = write(
+        tmp_path,
+        trials=4,
+        trials_per_scanner=4,
+        chunk=4,
+        stages=["A+B", "A+B+C", "push"],
+        scanner={},
+        learning={"round_trials": 2, "prior_nm": 100.0, "noise_nm": 5.0, "pushes": True},
+    )
+    cfg = load_config(path, StudyConfig)
+    contexts, _ = job.prepare_scanner(
+        cfg, path, 0, job.scanner_draws(cfg)[0], Output(tmp_path), lambda m: None
+    )
+    draws = job.trial_draws(cfg, workspace_layout(cfg)[2])
+    settings = job.trial_settings(cfg)
+    r = study.run_chunk(contexts, draws, Mesh(np.array(jax.devices()[:1]), ("trials",)), settings)
+    xy = lambda name, rows: np.stack([r[f"{name}_x_nm"][rows], r[f"{name}_y_nm"][rows]], -1)
+    wanted = np.stack([draws["push_dx"], draws["push_dy"]], -1) * draws["push_distance_nm"][:, None]
+    first = study.observed(
+        xy("AB_target", slice(0, 2)),
+        xy("ABC_centre", slice(0, 2)),
+        r["ABC_found"][:2],
+        xy("push_command", slice(0, 2)),
+        xy("push_seen_moved", slice(0, 2)),
+    )
+    assert len(first.commands) == 2  # both checks found their particle moved
+    np.testing.assert_array_equal(r["push_learnt_from"], [0, 0, 2, 2])
+    np.testing.assert_allclose(xy("push_command", slice(0, 2)), wanted[:2], rtol=1e-12)
+    field = learn_push(first.commands, first.moved, 100.0, 5.0)
+    by_hand = np.stack([np.asarray(field.command(w)) for w in wanted[2:]])
+    np.testing.assert_allclose(xy("push_command", slice(2, 4)), by_hand, rtol=1e-9)
+    assert np.all(np.abs(by_hand - wanted[2:]) > 0.01)  # they were changed
+
+
+def test_a_check_teaches_a_push_only_when_it_saw_the_particle_moved():
+    # four first pushes of 200 nm along x: seen moved by 190 nm (teaches), by 60 nm (the tip
+    # missed it: under half the command), not found (NaN), and by 120 nm (teaches)
+    command = np.array([[200.0, 0.0], [200.0, 0.0], [0.0, 200.0], [-200.0, 0.0]])
+    moved = np.array([[190.0, 1.0], [60.0, 0.0], [np.nan, np.nan], [-120.0, 0.0]])
+    seen = study.observed(np.zeros((4, 2)), np.ones((4, 2)), np.array([1, 0, 1, 0], bool), command, moved)
+    np.testing.assert_array_equal(seen.commands, command[[0, 3]])
+    np.testing.assert_array_equal(seen.moved, moved[[0, 3]])
+    np.testing.assert_array_equal(seen.offsets, np.ones((2, 2)))
 
 
 def test_learning_rounds_by_hand():

@@ -82,7 +82,8 @@ STUDY_PARAMETERS = {
 class Learning(Strict):
     """Step C's finds teach the A+B moves after them on the same scanner: a smooth offset field
     (a quadratic over the workspace, Bayesian ridge regression) learnt from every verified find
-    so far, the trials run in rounds in their order (docs/study.md)."""
+    so far, the trials run in rounds in their order (docs/study.md). With ``pushes``, the first
+    pushes' checks teach the pushes after them too (the same prior and scatter)."""
 
     round_trials: int = Field(
         8, ge=1, le=100_000, description="trials per round; each learns from the rounds before"
@@ -91,6 +92,10 @@ class Learning(Strict):
         100.0, gt=0, description="prior standard deviation of each coefficient of the field, nm"
     )
     noise_nm: float = Field(5.0, gt=0, description="scatter of one find about the field, nm")
+    pushes: bool = Field(
+        False,
+        description="the checked first pushes teach the pushes after them (needs the push and a check)",
+    )
 
 
 class StudyConfig(Positioning):
@@ -147,6 +152,15 @@ class StudyConfig(Positioning):
                 f"chunk: {self.chunk} is not a whole number of learning.round_trials "
                 f"({self.learning.round_trials}); a round may not span two chunks (the results would "
                 "depend on the chunk size)"
+            )
+        if (
+            self.learning is not None
+            and self.learning.pushes
+            and ("push" not in self.stages or self.push.corrections < 1)
+        ):
+            raise ValueError(
+                "learning.pushes: the pushes learn from the checks after them; add 'push' to stages "
+                "and set push.corrections >= 1, or set learning.pushes: false"
             )
         needs = {"A+B+C": "A+B", "push": "A+B+C"}
         for stage, before in needs.items():

@@ -28,6 +28,7 @@ from ..instrument.afm import AFM, AFMState, Raster, raster_images, raster_times
 from ..instrument.samples import Particles, Tip, surface
 from ..model.scanner import Scanner, ScannerState
 from .landmarks import LandmarkMap
+from .online import NO_PUSH_FIELD, PushField
 
 Array = jax.Array
 
@@ -452,12 +453,17 @@ def moved(sample: Particles, particle: Array, final: Array) -> Particles:
 
 class PushCheck(eqx.Module):
     """What the push and its checks did (:func:`push_and_check`): the ``first`` push, the
-    particle's true centre after the corrective pushes ``final`` (2,) nm, and the number of
-    corrective pushes made (``corrections``)."""
+    particle's true centre after the corrective pushes ``final`` (2,) nm, the number of
+    corrective pushes made (``corrections``); what the software knows of the first push: its
+    ``command`` (2,) nm (the tip's travel it asked for, in the wanted frame) and the particle's
+    move that the first check saw, ``seen_moved`` (2,) nm (NaN where it found nothing or made
+    no check)."""
 
     first: PushResult
     final: Array
     corrections: Array
+    command: Array
+    seen_moved: Array
 
 
 def push_and_check(
@@ -474,6 +480,7 @@ def push_and_check(
     local: LocalScan = LocalScan(),
     approach: float = 0.0,
     home: Array = None,
+    learnt: PushField = NO_PUSH_FIELD,
 ) -> tuple:
     """The push (:func:`push`), then up to ``spec.corrections`` rounds of: a move that arrives
     at the goal ``centre + distance * direction`` as the tip arrived at the particle, a local
@@ -483,14 +490,17 @@ def push_and_check(
     tip first goes back to ``home`` (2,) nm, where it came to the particle from (default: where
     the push started from). Straight after the push the frame carries the push's own travel
     error, and a scan there finds the particle at the goal however short it fell; arriving
-    alike gives the check the frame the particle was seen in. Returns ``(PushCheck, stand)``:
-    what the pushes did, and the next stand."""
+    alike gives the check the frame the particle was seen in. Every push is commanded through
+    ``learnt`` (:meth:`~jaxafm.position.online.PushField.command`: what the checked pushes before
+    taught of this scanner's pushes; the default commands what is wanted). Returns
+    ``(PushCheck, stand)``: what the pushes did, and the next stand."""
     direction = direction / jnp.linalg.norm(direction)
     goal = centre + distance * direction
     home = stand.wanted if home is None else home
     keys = jax.random.split(key, 1 + 3 * spec.corrections)
-    first, stand = push(pos, sample, stand, centre, particle, radius, direction, distance, keys[0], spec)
-    final, made = first.final, jnp.asarray(0)
+    command = learnt.command(distance * direction)
+    first, stand = _push_by(pos, sample, stand, centre, particle, radius, command, keys[0], spec)
+    final, made, seen_moved = first.final, jnp.asarray(0), jnp.full(2, jnp.nan)
     for i in range(spec.corrections):
         sample = moved(sample, particle, final)
         particle = final
@@ -498,23 +508,22 @@ def push_and_check(
             pos, sample, stand, goal if approach > 0 else home, keys[1 + 3 * i], approach=approach
         )
         seen, stand = local_scan(pos, sample, stand, goal, radius, keys[2 + 3 * i], local)
+        if i == 0:
+            seen_moved = jnp.where(seen.found, seen.centre - centre, jnp.nan)
         rest = goal - seen.centre
-        far = jnp.linalg.norm(rest)
-        again = seen.found & (far > spec.correct_beyond * radius)
-        unit = jnp.where(again, rest / jnp.where(far > 0, far, 1.0), direction)
-        pushed, after = push(
-            pos,
-            sample,
-            stand,
-            seen.centre,
-            particle,
-            radius,
-            unit,
-            jnp.where(again, far, 0.0),
-            keys[3 + 3 * i],
-            spec,
+        again = seen.found & (jnp.linalg.norm(rest) > spec.correct_beyond * radius)
+        rest = jnp.where(again, learnt.command(rest), 0.0)  # no push: its results are not kept
+        pushed, after = _push_by(
+            pos, sample, stand, seen.centre, particle, radius, rest, keys[3 + 3 * i], spec
         )
         final = jnp.where(again, pushed.final, final)
         stand = jax.tree_util.tree_map(lambda a, b: jnp.where(again, a, b), after, stand)
         made = made + again
-    return PushCheck(first, final, made), stand
+    return PushCheck(first, final, made, command, seen_moved), stand
+
+
+def _push_by(pos, sample, stand, centre, particle, radius, command, key, spec) -> tuple:
+    """:func:`push` of the particle seen at ``centre`` by the vector ``command`` (2,) nm."""
+    far = jnp.linalg.norm(command)
+    unit = command / jnp.where(far > 0, far, 1.0)
+    return push(pos, sample, stand, centre, particle, radius, unit, far, key, spec)

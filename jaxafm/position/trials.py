@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ..instrument.samples import Indented, Particles
+from .online import NO_PUSH_FIELD, PushField
 from .positioning import LocalScan, Positioner, Push, PushCheck, ScanResult, goto, local_scan, push_and_check
 
 #: particles each trial's local scan sees (the others lie beyond its lines)
@@ -68,12 +69,14 @@ def trials(
     local: Optional[LocalScan] = None,
     push_spec: Optional[Push] = None,
     approach: float = 0.0,
+    learnt: PushField = NO_PUSH_FIELD,
 ) -> TrialResults:
     """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``), with
     ``seen`` (batched over the trials) the particles each trial's tip meets; with ``local``,
     then step C, and with ``push_spec`` the push of each particle by ``distances`` (K,) nm along
     the unit ``directions`` (K, 2). The move to the target makes ``approach``
-    (:func:`~jaxafm.position.positioning.goto`). Errors against the true centres ``truth``
+    (:func:`~jaxafm.position.positioning.goto`); every push is commanded through ``learnt``
+    (:func:`~jaxafm.position.positioning.push_and_check`). Errors against the true centres ``truth``
     (K, 2) nm of particles of ``radii`` (K,) nm; trial k draws from ``keys[k]``."""
 
     def one(near, target, p, R, d, dist, key):
@@ -88,7 +91,7 @@ def trials(
         if push_spec is None:
             return TrialResults(xy, error, step_c)
         checked, s = push_and_check(
-            pos, near, s, res.centre, p, R, d, dist, k[3], push_spec, local, approach, stand.wanted
+            pos, near, s, res.centre, p, R, d, dist, k[3], push_spec, local, approach, stand.wanted, learnt
         )
         checked = eqx.tree_at(lambda c: c.first.path, checked, checked.first.path[::PUSH_PATH_STRIDE])
         return TrialResults(xy, error, step_c, checked, p + dist * d)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import equinox as eqx
 import jax
@@ -110,11 +110,14 @@ class Learning:
         prior_nm: the prior's standard deviation of each coefficient of the offset field
             (:func:`~jaxafm.position.online.learn_field`), nm.
         noise_nm: the scatter of one find about the field, nm.
+        pushes: the checked first pushes teach the pushes after them
+            (:func:`~jaxafm.position.online.learn_push`, with the same prior and scatter).
     """
 
     round_trials: int
     prior_nm: float
     noise_nm: float
+    pushes: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,16 +149,23 @@ FIRST_PASS_LINES = 6
 
 
 def stage_trials(
-    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, local=None, field=None
+    survey: StageSurvey,
+    x: dict,
+    stage: int,
+    mesh: Mesh,
+    settings: TrialSettings,
+    local=None,
+    field=None,
+    push_field: online.PushField = online.NO_PUSH_FIELD,
 ) -> dict:
     """:func:`~jaxafm.position.trials.trials` for the trials ``x`` (NumPy columns ``trial``,
     ``centre``, ``radius``, ``direction``, ``distance``) on one stage's ``survey``, split over the
     mesh. Each trial aims at its particle's place in the survey image (``target``) plus the
     learnt offset ``field`` there (an :class:`~jaxafm.position.online.OffsetField`; ``None``: no
-    offset). With ``local``, in two passes (:data:`FIRST_PASS_LINES`); each trial's key is
-    ``fold_in(fold_in(root, trial), stage)``, so the second pass gives what one pass with every
-    line would. Returns the trials' NumPy columns (:func:`_columns`), ``target``, the ``offset``
-    aimed by and ``outside_grid``."""
+    offset); every push is commanded through ``push_field``. With ``local``, in two passes
+    (:data:`FIRST_PASS_LINES`); each trial's key is ``fold_in(fold_in(root, trial), stage)``, so
+    the second pass gives what one pass with every line would. Returns the trials' NumPy columns
+    (:func:`_columns`), ``target``, the ``offset`` aimed by and ``outside_grid``."""
     copies = replicate(survey, mesh)
     pos, stand, mean_path = copies.positioner, copies.stand, copies.mean_path
     work = settings.work
@@ -188,6 +198,7 @@ def stage_trials(
             spec,
             settings.push if spec else None,
             settings.approach if pos.frame is not None else 0.0,
+            push_field,
         )
         return _columns(gather(r, len(idx)))
 
@@ -211,30 +222,39 @@ def stage_trials(
 
 
 def learning_trials(
-    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, earlier: tuple
+    survey: StageSurvey, x: dict, stage: int, mesh: Mesh, settings: TrialSettings, earlier: Observed
 ) -> dict:
     """:func:`stage_trials` with step C for the trials ``x``, run in order in rounds of
     ``settings.learning.round_trials``: each round aims at its targets plus the offset field
     (:func:`~jaxafm.position.online.learn_field`) that step C's verified finds on the scanner so
     far support, each find observing ``centre found - target`` at its target (the particle's
-    place in the survey image) in the local scan's frame. ``earlier``: the ``(targets, offsets)``
-    (k, 2) nm observed before these trials. Returns the columns, with ``learnt_from`` (the finds
-    each trial's offset was learnt from)."""
+    place in the survey image) in the local scan's frame; with ``settings.learning.pushes``, it
+    commands its pushes through the :class:`~jaxafm.position.online.PushField` that the checked
+    first pushes so far support (:func:`~jaxafm.position.online.learn_push`, :func:`observed`).
+    ``earlier``: what was observed before these trials. Returns the columns, with
+    ``learnt_from`` (the finds each trial's offset was learnt from) and ``push_learnt_from``
+    (the pushes its push was learnt from; 0 without learning pushes)."""
     learn, work = settings.learning, settings.work
     centre, half = np.asarray(work.centre), max(work.size) / 2
-    points, offsets = [earlier[0]], [earlier[1]]
+    seen = [earlier]
     rounds = []
     for a in range(0, len(x["trial"]), learn.round_trials):
-        seen = sum(len(p) for p in points)
+        so_far = Observed(*(np.concatenate(v) for v in zip(*seen)))
         field = online.learn_field(
-            np.concatenate(points), np.concatenate(offsets), centre, half, learn.prior_nm, learn.noise_nm
+            so_far.targets, so_far.offsets, centre, half, learn.prior_nm, learn.noise_nm
         )
+        push_field = online.NO_PUSH_FIELD
+        if learn.pushes:
+            push_field = online.learn_push(so_far.commands, so_far.moved, learn.prior_nm, learn.noise_nm)
         rows = {k: v[a : a + learn.round_trials] for k, v in x.items()}
-        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field)
-        t, o = finds(r["target"], r["c_centre"], r["c_found"])
-        points.append(t)
-        offsets.append(o)
-        rounds.append(r | {"learnt_from": np.full(len(r["target"]), seen)})
+        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field, push_field)
+        seen.append(
+            observed(
+                r["target"], r["c_centre"], r["c_found"], r.get("push_command"), r.get("push_seen_moved")
+            )
+        )
+        learnt = {"learnt_from": len(so_far.targets), "push_learnt_from": len(so_far.commands) * learn.pushes}
+        rounds.append(r | {k: np.full(len(r["target"]), n) for k, n in learnt.items()})
     return {k: np.concatenate([r[k] for r in rounds]) for k in rounds[0]}
 
 
@@ -243,7 +263,8 @@ def _columns(r: TrialResults) -> dict:
     step C's ``c_error_nm``, ``c_found``, ``c_lines``, ``c_seconds``, ``c_centre`` (2,) nm (the
     centre it found, in the wanted frame); the push's ``push_final``, ``push_first`` (the
     particle's true centre after the first push), ``push_goal``, ``push_corrections``,
-    ``push_contact``."""
+    ``push_contact``, ``push_command`` and ``push_seen_moved`` (what the software asked of the
+    first push and saw it do, :class:`~jaxafm.position.positioning.PushCheck`)."""
     columns = {"error_nm": r.error_nm, "tip": r.tip}
     if r.step_c is not None:
         scan = r.step_c.scan
@@ -261,6 +282,8 @@ def _columns(r: TrialResults) -> dict:
             "push_goal": r.push_goal,
             "push_corrections": r.push.corrections,
             "push_contact": r.push.first.contact,
+            "push_command": r.push.command,
+            "push_seen_moved": r.push.seen_moved,
         }
     return columns
 
@@ -271,28 +294,60 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
     for k, v in r.items():
         if v.dtype == bool:
             v[~seen] = False
-        elif k.endswith("error_nm") or k.startswith("push_final") or k in ("tip", "c_centre"):
+        elif (
+            k.endswith("error_nm")
+            or k.startswith("push_final")
+            or k in ("tip", "c_centre", "push_seen_moved")
+        ):
             v[~seen] = np.nan
     return r
 
 
-def finds(target: np.ndarray, centre: np.ndarray, found: np.ndarray) -> tuple:
-    """What step C's verified finds observed, for :func:`learning_trials`: their targets (k, 2)
-    nm and offsets ``centre found - target`` (k, 2) nm."""
-    found = np.asarray(found, bool)
-    return target[found], centre[found] - target[found]
+class Observed(NamedTuple):
+    """What a scanner's trials observed, for :func:`learning_trials` (each (k, 2) nm): step C's
+    verified finds, their ``targets`` and ``offsets`` (``centre found - target``), and the checked
+    first pushes, their ``commands`` and the particle's moves the checks saw (``moved``)."""
+
+    targets: np.ndarray
+    offsets: np.ndarray
+    commands: np.ndarray
+    moved: np.ndarray
 
 
 #: no observation: the ``earlier`` of a scanner's first trials
-NO_FINDS = (np.zeros((0, 2)), np.zeros((0, 2)))
+NO_FINDS = Observed(*(np.zeros((0, 2)),) * 4)
+
+#: a checked push teaches only when its particle moved at least this share of the command along
+#: it: one whose tip missed the particle left it where it was, which is no shortfall of the drive
+MOVED_AT_LEAST = 0.5
 
 
-def with_chunk_finds(earlier: tuple, columns) -> tuple:
-    """``earlier`` finds and, after them, those of a chunk's written ``columns`` (:func:`run_chunk`'s
-    ``AB_target``, ``ABC_centre``, ``ABC_found``; :func:`finds`)."""
+def observed(target, centre, found, command=None, moved=None) -> Observed:
+    """What one round's trials observed: step C's verified finds (``found``; ``target``,
+    ``centre`` found) and, with ``command`` and ``moved``, the first pushes whose check found the
+    particle moved by at least :data:`MOVED_AT_LEAST` of the command along it."""
+    found = np.asarray(found, bool)
+    if command is None:
+        command = moved = np.zeros((0, 2))
+    along = np.sum(np.nan_to_num(moved) * command, -1) / np.maximum(np.sum(command**2, -1), 1e-12)
+    pushed = np.isfinite(moved).all(-1) & (along >= MOVED_AT_LEAST)
+    return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed])
+
+
+def with_chunk_finds(earlier: Observed, columns) -> Observed:
+    """``earlier`` observations and, after them, those of a chunk's written ``columns``
+    (:func:`run_chunk`'s ``AB_target``, ``ABC_centre``, ``ABC_found``, and ``push_command``,
+    ``push_seen_moved`` where the push ran; :func:`observed`)."""
     xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
-    new = finds(xy("AB_target"), xy("ABC_centre"), columns["ABC_found"])
-    return tuple(np.concatenate([e, n]) for e, n in zip(earlier, new))
+    pushed = "push_command_x_nm" in columns
+    new = observed(
+        xy("AB_target"),
+        xy("ABC_centre"),
+        columns["ABC_found"],
+        xy("push_command") if pushed else None,
+        xy("push_seen_moved") if pushed else None,
+    )
+    return Observed(*(np.concatenate([e, n]) for e, n in zip(earlier, new)))
 
 
 def run_chunk(
@@ -346,6 +401,8 @@ def run_chunk(
             out |= {f"AB_{k}": r[k] for k in ("modelled", "surveyed", "seen", "outside_grid")}
         if with_c and settings.learning:
             out |= _xy("AB_offset", r["offset"]) | {"AB_learnt_from": r["learnt_from"]}
+            if settings.learning.pushes:
+                out["push_learnt_from"] = r["push_learnt_from"]
         if with_c:
             out |= {
                 "ABC_error_nm": r["c_error_nm"],
@@ -363,7 +420,8 @@ def run_chunk(
                 "push_corrections",
                 "push_contact",
             )
-            out |= {k: r[k] for k in push}
+            out |= {k: r[k] for k in push} | _xy("push_command", r["push_command"])
+            out |= _xy("push_seen_moved", r["push_seen_moved"])
     return out
 
 
@@ -378,6 +436,7 @@ def _failed(n: int, modelled: bool) -> dict:
         "target": np.full((n, 2), np.nan),
         "offset": np.full((n, 2), np.nan),
         "learnt_from": np.zeros(n, int),
+        "push_learnt_from": np.zeros(n, int),
         "tip": np.full((n, 2), np.nan),
         "c_centre": np.full((n, 2), np.nan),
         "modelled": np.full(n, modelled),
@@ -396,6 +455,8 @@ def _failed(n: int, modelled: bool) -> dict:
         "push_first_across_nm": np.full(n, np.nan),
         "push_corrections": np.zeros(n, int),
         "push_contact": np.zeros(n, bool),
+        "push_command": np.full((n, 2), np.nan),
+        "push_seen_moved": np.full((n, 2), np.nan),
     }
 
 
