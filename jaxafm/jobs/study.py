@@ -47,8 +47,9 @@ from ..position.positioning import Positioner
 from ..position.survey import STAGES, stage_key
 from ..study.learning import LEARNT_FINDS, learning_rounds
 from ..study.monte_carlo import (
-    NO_FINDS,
+    NOTHING_OBSERVED,
     Learning,
+    Observed,
     StageSurvey,
     TrialSettings,
     Unsurveyed,
@@ -56,7 +57,7 @@ from ..study.monte_carlo import (
     predicted_push_success,
     run_chunk,
     stage_summary,
-    with_chunk_finds,
+    with_chunk_observed,
 )
 from ..study.processes import check_same, from_process_0
 from ..study.reliability import reliability
@@ -282,23 +283,24 @@ def run(
             _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             mine = [c for c in todo if c[0] == s]
-            earlier = _kept_finds(cfg, out, s, mine[0][1]) if cfg.learning else NO_FINDS
+            earlier = _kept_observed(cfg, out, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
-                earlier = with_chunk_finds(earlier, r) if cfg.learning else NO_FINDS
+                earlier = with_chunk_observed(earlier, r) if cfg.learning else NOTHING_OBSERVED
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
 
 
-def _kept_finds(cfg: StudyConfig, out: Output, s: int, a: int) -> tuple:
-    """Step C's finds on scanner ``s`` before trial ``a``, from the chunk files that a resumed
-    study kept (all written before the run began, so every process reads them alike)."""
-    finds = NO_FINDS
+def _kept_observed(cfg: StudyConfig, out: Output, s: int, a: int) -> Observed:
+    """What scanner ``s``'s trials before trial ``a`` observed (step C's finds, the checked
+    pushes), from the chunk files that a resumed study kept (all written before the run began,
+    so every process reads them alike)."""
+    seen = NOTHING_OBSERVED
     for t, c, b in _chunks(cfg):
         if t == s and b <= a:
-            finds = with_chunk_finds(finds, np.load(out.path / chunk_file(c, b)))
-    return finds
+            seen = with_chunk_observed(seen, np.load(out.path / chunk_file(c, b)))
+    return seen
 
 
 def _start(cfg: StudyConfig, config_path: Path, devices) -> tuple:

@@ -315,7 +315,7 @@ class Observed(NamedTuple):
 
 
 #: no observation: the ``earlier`` of a scanner's first trials
-NO_FINDS = Observed(*(np.zeros((0, 2)),) * 4)
+NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4)
 
 #: a checked push teaches only when its particle moved at least this share of the command along
 #: it: one whose tip missed the particle left it where it was, which is no shortfall of the drive
@@ -334,7 +334,7 @@ def observed(target, centre, found, command=None, moved=None) -> Observed:
     return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed])
 
 
-def with_chunk_finds(earlier: Observed, columns) -> Observed:
+def with_chunk_observed(earlier: Observed, columns) -> Observed:
     """``earlier`` observations and, after them, those of a chunk's written ``columns``
     (:func:`run_chunk`'s ``AB_target``, ``ABC_centre``, ``ABC_found``, and ``push_command``,
     ``push_seen_moved`` where the push ran; :func:`observed`)."""
@@ -351,15 +351,15 @@ def with_chunk_finds(earlier: Observed, columns) -> Observed:
 
 
 def run_chunk(
-    surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings, earlier: tuple = NO_FINDS
+    surveys: dict, draws: dict, mesh: Mesh, settings: TrialSettings, earlier: Observed = NOTHING_OBSERVED
 ) -> dict:
     """The results of the trials in ``draws`` (one scanner's; NumPy columns ``trial``, ``x_nm``,
     ``y_nm``, ``radius_nm``, ``push_dx``, ``push_dy``, ``push_distance_nm``) on each stage's
     survey (``surveys``: stage name -> :class:`StageSurvey`, or :class:`Unsurveyed` where its
     trials fail), columns keyed by stage, run as one batch split over the ``mesh``'s devices
     (the surveys replicated on them); with ``settings.learning``, A+B with step C in rounds that
-    learn from the finds before them (:func:`learning_trials`; ``earlier``: the scanner's finds
-    before these trials, :func:`finds`)."""
+    learn from what the trials before them observed (:func:`learning_trials`; ``earlier``: what
+    the scanner's trials before these observed, :func:`observed`)."""
     x = {
         "trial": draws["trial"],
         "centre": np.stack([draws["x_nm"], draws["y_nm"]], -1),
