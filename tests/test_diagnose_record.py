@@ -103,6 +103,30 @@ def test_split_warns_about_a_flat_heldout_hold_and_a_blocked_split_fixes_both():
         D.ActuatorRecord.split_off(_record(u), D.Nominal(), blocks=4)
 
 
+def test_drift_blocks_are_counted_so_that_training_reaches_every_heldout_input():
+    # a 5 V sine with one excursion to 8 V at samples 175-195 of 1100: eleven blocks (100 samples
+    # each) hold it out in their second block, thirteen (84.6 samples) train on it in their third
+    t, i = np.arange(1100) / 100.0, np.arange(1100)
+    u = 5 * np.sin(2 * np.pi * 2 * t)
+    u[175:196] = np.interp(i[175:196], [175, 185, 195], [u[175], 8.0, u[195]])
+    blocked = D.ActuatorRecord.split_off(_record(u), D.Nominal()).blocked
+    assert blocked.blocks == 13
+    assert (
+        u[blocked.train].max() >= u[blocked.heldout].max()
+        and u[blocked.train].min() <= u[blocked.heldout].min()
+    )
+    assert not any("leave the training range" in w for w in blocked.warnings())
+
+    # a spike up and one down, which no count trains on both of: the first count, and it says so
+    held = np.stack([(i * b // 1100) % 2 == 1 for b in D.JUDGE_BLOCKS], 1)  # (sample, count)
+    up, down = next((a, b) for a in range(1100) for b in range(a) if (held[a] | held[b]).all())
+    u = 5 * np.sin(2 * np.pi * 2 * t)
+    u[up], u[down] = 8.0, -8.0
+    blocked = D.ActuatorRecord.split_off(_record(u), D.Nominal()).blocked
+    assert blocked.blocks == D.JUDGE_BLOCKS[0]
+    assert any("leave the training range" in w for w in blocked.warnings())
+
+
 DRIVE = make_drive(3.0, 200.0)
 
 

@@ -205,7 +205,8 @@ class DiagnoseConfig(Strict):
         "later",
         description="records: hold out the part after train_fraction (later), or every other of "
         "'blocks' equal blocks in time (blocked; train_fraction unused); with later, drift is judged "
-        "on 11 alternating blocks (jaxafm.diagnose.record.JUDGED_ON_BLOCKS)",
+        "on 11 alternating blocks, or the nearest count whose training blocks reach every held-out "
+        "input (jaxafm.diagnose.record.JUDGED_ON_BLOCKS, JUDGE_BLOCKS)",
     )
     blocks: int = Field(5, ge=3, description="records, split: blocked: an odd number of blocks")
     min_shrink_pct: float = Field(
