@@ -74,7 +74,7 @@ JUDGED_ON_BLOCKS = ("drift",)
 #: A held-out block that drives an axis beyond what the training blocks reached measures the
 #: hysteresis model's extrapolation (a Preisach plane's unvisited relays: 84-110 nm rms on a 6 s
 #: generator record whose training blocks of 11 stop 18 % of the span short on one axis, against
-#: 3-6 nm in the others), which no time-dependent effect explains and which swamps the drift.
+#: 3.5-5 nm in the others), which no time-dependent effect explains and which swamps the drift.
 JUDGE_BLOCKS = (11, 13, 9, 15, 7, 17, 19, 21)
 WANDER_ROUNDS = 2  # a drift's plant and wander refitted to what the other leaves, this many times
 VIBRATION_BAND = (10.0, 0.45)  # a mode is sought above 10 x the drive's frequency, below 0.45 x the rate
