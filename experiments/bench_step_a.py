@@ -3,12 +3,12 @@ optimistix's and scipy's solvers on the same problem.
 
 All solve the same problem in the same run: the simulated calibration scan of
 ``jaxafm calibrate configs/step_a_simulated.yaml`` at ``--pixels``, the same model and
-residuals, the same start, the same stages (the feature points on the scan coarsened along its
-lines, ``coarsen="auto"``, then the images at full resolution blurred by ``--blur`` px) and the
+residuals, the same start, the same stages (the features' chords, ``--coarsen`` pixels of a line
+averaged into one, 1 as ``jaxafm calibrate`` does, then the images at full resolution blurred by
+``--blur`` px) and the
 same step limit per stage (``--steps``; scipy counts evaluations). Runs: jaxafm's geodesic
 Levenberg-Marquardt (:mod:`jaxafm.identify.geodesic`), optimistix's Levenberg-Marquardt, scipy's
-least_squares (its residuals and Jacobian from the same jitted JAX functions), and optimistix
-again with 30 steps a stage (the step limit of the benchmark's earlier rounds). Each run starts
+least_squares (its residuals and Jacobian from the same jitted JAX functions). Each run starts
 with JAX's and jaxafm's caches of compiled functions cleared, so its first identification
 compiles all it needs; it identifies twice, and the second time reuses the compilation (their
 difference is the compile time). Accuracy is the fitted tip path against the simulation's
@@ -16,8 +16,8 @@ true one (x, rms over the image, nm) on ``--seeds`` scans that differ in the noi
 (the first one timed). The profile times one forward-mode Jacobian of the image residuals and
 of its parts.
 
-    python experiments/bench_step_a.py [--pixels 256] [--steps 20,14] [--blur 1] [--seeds 8]
-        [--runs geodesic,optimistix,scipy,optimistix30] [--profile 3] [--verbose]
+    python experiments/bench_step_a.py [--pixels 256] [--steps 100,14] [--coarsen 1] [--blur 1] [--seeds 3]
+        [--runs geodesic,optimistix,scipy] [--profile 3] [--verbose]
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def path_error(model: ScanModel, scan, truth: RasterScan) -> dict:
     }
 
 
-RUNS = ("geodesic", "optimistix", "scipy", "optimistix30")
+RUNS = ("geodesic", "optimistix", "scipy")
 
 
 def cleared() -> None:
@@ -70,9 +70,14 @@ def cleared() -> None:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pixels", type=int, default=256)
-    ap.add_argument("--steps", default="20,14", help="step limits, the feature stage's first")
+    ap.add_argument("--steps", default="100,14", help="step limits, the chord stage's first")
     ap.add_argument("--blur", default="1", help="the image stages' blurs (px), comma-separated")
-    ap.add_argument("--seeds", type=int, default=8, help="scans (simulation seeds) to measure accuracy on")
+    ap.add_argument(
+        "--coarsen",
+        default="1",
+        help="pixels of a line the chord stage averages into one (1, 2, 4, ... or auto)",
+    )
+    ap.add_argument("--seeds", type=int, default=3, help="scans (simulation seeds) to measure accuracy on")
     ap.add_argument(
         "--runs", default=",".join(RUNS), help=f"which runs, comma-separated, of {', '.join(RUNS)}"
     )
@@ -88,6 +93,7 @@ def main():
     a.out.mkdir(parents=True, exist_ok=True)
     blur = tuple(float(b) for b in a.blur.split(","))
     steps = [int(s) for s in a.steps.split(",")]
+    coarsen = a.coarsen if a.coarsen == "auto" else int(a.coarsen)
     scans = [
         calibration_scans(
             SimulatedCalibration(pixels=a.pixels, seed=seed), CalibrationLattice(rotation_deg=0.0)
@@ -101,7 +107,6 @@ def main():
         "geodesic": (f"jaxafm geodesic LM, steps {limits}", geo, steps),
         "optimistix": (f"optimistix LM, steps {limits}", lm, steps),
         "scipy": (f"scipy least_squares (trf), evaluations {limits}", "scipy.least_squares", steps),
-        "optimistix30": ("optimistix LM, 30 steps a stage", lm, 30),
     }
     runs = [every[k] for k in RUNS if k in a.runs.split(",")]
     results = {}
@@ -112,7 +117,7 @@ def main():
             return identify_scanner(
                 scan,
                 ScanModelSpec(spec.kind, tuple(spec.effects), spec.operators),
-                FitPlan(solver, blur, "auto", limit, hold_out=False, select=False),
+                FitPlan(solver, blur, coarsen, limit, hold_out=False, select=False),
                 log=log,
             )
 
@@ -147,7 +152,7 @@ def main():
         )
     profile = jacobian_profile(scans[0][0][0], spec, a.profile) if a.profile else None
     print(
-        f"\n{a.pixels}² trace/retrace pair; stages: feature points, then images blurred by "
+        f"\n{a.pixels}² trace/retrace pair; stages: chords, then images blurred by "
         f"{', '.join(f'{b:g}' for b in blur)} px; {a.seeds} scans"
     )
     print(
@@ -178,7 +183,8 @@ def main():
             print(f"  {part:34s} {r['median_s']:7.3f} s  (compile {r['compile_s']:.1f} s)")
     (a.out / "metrics.json").write_text(
         json.dumps(
-            {"pixels": a.pixels, "steps": steps, "blur_px": blur, "seeds": a.seeds, "machine": machine_info()}
+            {"pixels": a.pixels, "steps": steps, "coarsen": coarsen, "blur_px": blur, "seeds": a.seeds}
+            | {"machine": machine_info()}
             | results
             | {"jacobian_profile": profile},
             indent=1,
@@ -243,7 +249,7 @@ def _figure(results: dict, path: Path, pixels: int, device: str) -> None:
     rows = [n.replace(", ", ",\n") for n in names]
     stages = len(results[names[0]]["stage_seconds"])
     left = np.zeros(len(names))
-    parts = [(f"stage {k + 1}: " + ("feature points" if k == 0 else "images"), k) for k in range(stages)]
+    parts = [(f"stage {k + 1}: " + ("chords" if k == 0 else "images"), k) for k in range(stages)]
     for label, k in parts + [("outside the stages (start, checks)", None)]:
         s = np.array(
             [
