@@ -17,6 +17,7 @@ true one (x, rms over the image, nm) on ``--seeds`` scans that differ in the noi
 of its parts.
 
     python experiments/bench_step_a.py [--pixels 256] [--steps 100,14] [--coarsen 1] [--blur 1] [--seeds 3]
+        [--effects asymmetry,creep,coupling,bow,feedback_lag]
         [--runs geodesic,optimistix,scipy] [--profile 3] [--verbose]
 """
 
@@ -37,6 +38,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from jaxafm.config import CalibrationLattice, CalibrationModel, SimulatedCalibration
+from jaxafm.config.calibrate import CALIBRATION_EFFECTS
 from jaxafm.identify import fit, geodesic, stages
 from jaxafm.identify.image_ops import gaussian_kernel
 from jaxafm.identify.scan_model import KEY, ScanModel, ScanModelSpec, nominal_scan_model, start_lattice
@@ -84,6 +86,11 @@ def main():
     ap.add_argument(
         "--profile", type=int, default=3, help="repeats of each profiled Jacobian (0: no profile)"
     )
+    ap.add_argument(
+        "--effects",
+        default=",".join(CALIBRATION_EFFECTS),
+        help="the model's effects besides hysteresis, comma-separated (default: step A's)",
+    )
     ap.add_argument("--verbose", action="store_true", help="print the first identification's stages")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/bench_step_a"))
     a = ap.parse_args()
@@ -100,7 +107,7 @@ def main():
         )
         for seed in range(a.seeds)
     ]
-    spec = CalibrationModel(name="gpi")
+    spec = CalibrationModel(name="gpi", effects=[e for e in a.effects.split(",") if e])
     geo, lm = "jaxafm.geodesic_levenberg_marquardt", "optimistix.levenberg_marquardt"
     limits = ",".join(map(str, steps))
     every = {
@@ -184,6 +191,7 @@ def main():
     (a.out / "metrics.json").write_text(
         json.dumps(
             {"pixels": a.pixels, "steps": steps, "coarsen": coarsen, "blur_px": blur, "seeds": a.seeds}
+            | {"effects": spec.effects}
             | {"machine": machine_info()}
             | results
             | {"jacobian_profile": profile},
