@@ -287,6 +287,12 @@ class Goal:
     met: Callable[[Any], Optional[bool]] = field(default=lambda m: None)
 
 
+def _bench_runs(m: dict) -> dict:
+    """The step A benchmark's runs (name: result) in its metrics, without its settings, machine
+    and profile."""
+    return {k: v for k, v in m.items() if isinstance(v, dict) and "seconds" in v}
+
+
 def _geodesic(m: dict) -> dict:
     """The geodesic solver's run in the step A benchmark's metrics, whatever its step limits."""
     return m[f"jaxafm geodesic LM, steps {','.join(map(str, m['steps']))}"]
@@ -1533,9 +1539,7 @@ def step_a_lattices(results: Results) -> Table:
 def bench_step_a(results: Results) -> Table:
     m = results(BENCH_STEP_A)
     rows = []
-    for name, r in m.items():
-        if not (isinstance(r, dict) and "seconds" in r):
-            continue  # the run's settings, machine and profile
+    for name, r in _bench_runs(m).items():
         by_seed = r["path_x_rms_nm_by_seed"]
         rows.append(
             [
@@ -1576,7 +1580,7 @@ def bench_step_a_gpu(results: Results) -> Table:
         (GPU_STEP_A, "one NVIDIA H200"),
         (GPU_HOST_STEP_A, "2 CPU cores of the same machine"),
     ):
-        (r,) = [v for v in results(run).values() if isinstance(v, dict) and "seconds" in v]
+        (r,) = _bench_runs(results(run)).values()
         rows.append(
             [
                 device,

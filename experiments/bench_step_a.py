@@ -2,19 +2,18 @@
 optimistix's and scipy's solvers on the same problem.
 
 All solve the same problem in the same run: the simulated calibration scan of
-``jaxafm calibrate configs/step_a_simulated.yaml`` at ``--pixels``, the same model and
-residuals, the same start, the same stages (the features' chords, ``--coarsen`` pixels of a line
-averaged into one, 1 as ``jaxafm calibrate`` does, then the images at full resolution blurred by
-``--blur`` px) and the
-same step limit per stage (``--steps``; scipy counts evaluations). Runs: jaxafm's geodesic
-Levenberg-Marquardt (:mod:`jaxafm.identify.geodesic`), optimistix's Levenberg-Marquardt, scipy's
-least_squares (its residuals and Jacobian from the same jitted JAX functions). Each run starts
-with JAX's and jaxafm's caches of compiled functions cleared, so its first identification
-compiles all it needs; it identifies twice, and the second time reuses the compilation (their
-difference is the compile time). Accuracy is the fitted tip path against the simulation's
-true one (x, rms over the image, nm) on ``--seeds`` scans that differ in the noise and drift
-(the first one timed). The profile times one forward-mode Jacobian of the image residuals and
-of its parts.
+``jaxafm calibrate configs/step_a_simulated.yaml`` at ``--pixels``, the same model (``--effects``)
+and residuals, the same start, the same stages (the features' chords, ``--coarsen`` pixels of a
+line averaged into one, 1 as ``jaxafm calibrate`` does, then the images at full resolution
+blurred by ``--blur`` px) and the same step limit per stage (``--steps``; scipy counts
+evaluations). Runs: jaxafm's geodesic Levenberg-Marquardt (:mod:`jaxafm.identify.geodesic`),
+optimistix's Levenberg-Marquardt, scipy's least_squares (its residuals and Jacobian from the
+same jitted JAX functions). Each run starts with JAX's and jaxafm's caches of compiled functions
+cleared, so its first identification compiles all it needs; it identifies twice, and the second
+time reuses the compilation (their difference is the compile time). Accuracy is the fitted tip
+path against the simulation's true one (x, rms over the image, nm) on ``--seeds`` scans that
+differ in the noise and drift (the first one timed). The profile times one forward-mode Jacobian
+of the image residuals and of its parts.
 
     python experiments/bench_step_a.py [--pixels 256] [--steps 100,14] [--coarsen 1] [--blur 1] [--seeds 3]
         [--effects asymmetry,creep,coupling,bow,feedback_lag]
