@@ -1535,6 +1535,13 @@ def step_a_lattices(results: Results) -> Table:
     )
 
 
+def _timing_cells(r: dict, stages: str) -> list:
+    """A step A benchmark run's total, compiling and compiled times, and its stages' (``stages``:
+    ``"stage_seconds"`` of the first identification or ``"stage_seconds_compiled"``)."""
+    times = [q(r[k], "s") for k in ("seconds", "compile_s", "seconds_compiled")]
+    return times + [" · ".join(q(v, "", 1) for v in r[stages]) + " s"]
+
+
 @table("bench_step_a")
 def bench_step_a(results: Results) -> Table:
     m = results(BENCH_STEP_A)
@@ -1544,10 +1551,7 @@ def bench_step_a(results: Results) -> Table:
         rows.append(
             [
                 name,
-                q(r["seconds"], "s"),
-                q(r["compile_s"], "s"),
-                q(r["seconds_compiled"], "s"),
-                " · ".join(q(v, "", 1) for v in r["stage_seconds"]) + " s",
+                *_timing_cells(r, "stage_seconds"),
                 f"{q(statistics.median(by_seed), '', 2)} ({q(max(by_seed), '', 2)}) nm",
                 " · ".join(q(v, "", 1) for v in r["stage_path_x_rms_nm"]) + " nm",
             ]
@@ -1581,16 +1585,7 @@ def bench_step_a_gpu(results: Results) -> Table:
         (GPU_HOST_STEP_A, "2 CPU cores of the same machine"),
     ):
         (r,) = _bench_runs(results(run)).values()
-        rows.append(
-            [
-                device,
-                q(r["seconds"], "s"),
-                q(r["compile_s"], "s"),
-                q(r["seconds_compiled"], "s"),
-                " · ".join(q(v, "", 1) for v in r["stage_seconds_compiled"]) + " s",
-                q(r["path_x_rms_nm"], "nm", 2),
-            ]
-        )
+        rows.append([device, *_timing_cells(r, "stage_seconds_compiled"), q(r["path_x_rms_nm"], "nm", 2)])
     header = ["device", "total (first)", "compiling", "compiled", "stages, compiled", "tip path x rms"]
     return Table(header, rows, [GPU_STEP_A, GPU_HOST_STEP_A])
 
