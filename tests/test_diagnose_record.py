@@ -127,6 +127,18 @@ def test_drift_blocks_are_counted_so_that_training_reaches_every_heldout_input()
     assert any("leave the training range" in w for w in blocked.warnings())
 
 
+def test_drift_blocks_of_a_short_record_try_only_counts_it_has_samples_for():
+    # 120 samples hold eleven blocks of 10 but not thirteen (9.2): an excursion that eleven hold
+    # out (their second block, samples 10-19) is trained on by nine (samples 0-13), which is
+    # taken, and thirteen is skipped instead of refused for blocks that are too short
+    t = np.arange(120) / 100.0
+    u = 5 * np.sin(2 * np.pi * 2 * t)
+    u[12:18] = 8.0
+    blocked = D.ActuatorRecord.split_off(_record(u), D.Nominal()).blocked
+    assert blocked.blocks == 9
+    assert u[blocked.train].max() == 8.0
+
+
 DRIVE = make_drive(3.0, 200.0)
 
 

@@ -76,6 +76,7 @@ JUDGED_ON_BLOCKS = ("drift",)
 #: generator record whose training blocks of 11 stop 18 % of the span short on one axis, against
 #: 3.5-5 nm in the others), which no time-dependent effect explains and which swamps the drift.
 JUDGE_BLOCKS = (11, 13, 9, 15, 7, 17, 19, 21)
+MIN_BLOCK_SAMPLES = 10  # the shortest block of a blocked split
 WANDER_ROUNDS = 2  # a drift's plant and wander refitted to what the other leaves, this many times
 VIBRATION_BAND = (10.0, 0.45)  # a mode is sought above 10 x the drive's frequency, below 0.45 x the rate
 
@@ -193,10 +194,10 @@ class ActuatorRecord(DataKind):
         """
         n = len(record)
         if blocks:
-            if blocks < 3 or blocks % 2 == 0 or n // blocks < 10:
+            if blocks < 3 or blocks % 2 == 0 or n // blocks < MIN_BLOCK_SAMPLES:
                 raise ValueError(
                     f"split blocks: {blocks} blocks of a {n}-sample record; an odd number >= 3 of "
-                    "blocks of at least 10 samples each (training blocks at both ends)"
+                    f"blocks of at least {MIN_BLOCK_SAMPLES} samples each (training blocks at both ends)"
                 )
             train = (np.arange(n) * blocks // n) % 2 == 0
         else:
@@ -223,17 +224,24 @@ class ActuatorRecord(DataKind):
     @functools.cached_property
     def blocked(self) -> ActuatorRecord:
         """The same record, nominal and settle (at most half a block) on alternating blocks: the
-        first count of :data:`JUDGE_BLOCKS` whose training blocks reach every held-out input."""
-        splits = []
+        first count of :data:`JUDGE_BLOCKS` whose training blocks reach every held-out input
+        (counts whose blocks would be shorter than :data:`MIN_BLOCK_SAMPLES` are not tried)."""
+        n, first = len(self.record), None
         for blocks in JUDGE_BLOCKS:
-            settle = min(self.settle, len(self.record) // blocks // 2)
+            if first is not None and n // blocks < MIN_BLOCK_SAMPLES:
+                continue
             out = ActuatorRecord.split_off(
-                self.record, self.spec, settle=settle, max_steps=self.max_steps, blocks=blocks
+                self.record,
+                self.spec,
+                settle=min(self.settle, n // blocks // 2),
+                max_steps=self.max_steps,
+                blocks=blocks,
             )
-            splits.append(dataclasses.replace(out, history=self.history, notes=self.notes))
+            out = dataclasses.replace(out, history=self.history, notes=self.notes)
+            first = first or out
             if np.max(beyond_training(out.u, out.train, out.heldout)) <= RANGE_WARN_PCT:
-                return splits[-1]
-        return splits[0]
+                return out
+        return first
 
     @property
     def split_s(self) -> float:
