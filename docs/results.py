@@ -217,6 +217,7 @@ GPU_STUDY = Run(
     "python experiments/bench_study.py --batches 1024 4096 --calls 2 --loop 2 --full 0",
 )
 BENCH_HYSTERESIS = Run("bench_hysteresis.json", "python experiments/bench_hysteresis.py")
+BENCH_PREISACH_FIT = Run("bench_preisach_fit.json", "python experiments/bench_preisach_fit.py")
 BENCH_SCAN = Run("bench_scan.json", "python experiments/bench_scan.py")
 BENCH_RENDER = Run("bench_render/metrics.json", "python experiments/bench_render.py")
 GRATING_SCAN = Run("simulated_grating_scan/metrics.json", "python experiments/simulated_grating_scan.py")
@@ -586,6 +587,20 @@ GOALS = [
             f"same O(n) plays; {q(m['models'][0]['speedup_hard_vs_relay_grid'], '×')} against the O(n²) relay grid"
         ),
         lambda m: m["models"][0]["speedup_hard_vs_play_loop"] >= 50,
+    ),
+    Goal(
+        "preisach_fit",
+        "Preisach fit (50 levels, 20,000 samples): ≤ 1 s once compiled, the fit's memory ≤ 0.5 GB",
+        BENCH_PREISACH_FIT,
+        "docs/model.md#exact-fits-of-pi-and-preisach-weights-python-experimentsbench_preisach_fitpy",
+        lambda m: (
+            f"{q(_exact_fit(m)['compiled_s'], 's', 2)} ({q(_exact_fit(m)['calls'][0]['seconds'], 's', 1)} "
+            f"compiling included); {q(_fit_memory_gb(_exact_fit(m)), 'GB', 2)} above the "
+            f"{q(_exact_fit(m)['peak_before_mb'] / 1024, 'GB', 2)} held before it (BFGS: "
+            f"{q(_run(m, 'optimistix.bfgs')['compiled_s'], 's', 1)}, "
+            f"{q(_fit_memory_gb(_run(m, 'optimistix.bfgs')), 'GB', 1)})"
+        ),
+        lambda m: _exact_fit(m)["compiled_s"] <= 1.0 and _fit_memory_gb(_exact_fit(m)) <= 0.5,
     ),
     Goal(
         "real_actuator",
@@ -2320,7 +2335,7 @@ PIEZO_MODELS = (
     ("PI, 20 plays (jaxopt L-BFGS)", "pi_jaxopt"),
     ("generalised PI, 20 plays + 3+3 dead zones (optimistix LM)", "gpi"),
     ("generalised PI (jaxopt LM)", "gpi_jaxopt"),
-    ("Preisach, 30 levels (optimistix BFGS)", "preisach"),
+    ("Preisach, 30 levels (jaxafm nnls, exact)", "preisach"),
     ("generalised PI + creep (optimistix LM)", "gpi_creep"),
     ("generalised PI + lag + creep (optimistix LM)", "gpi_lag_creep"),
 )
@@ -2645,6 +2660,59 @@ def bench_hysteresis_grad(results: Results) -> Table:
             )
     header = ["model", "value+grad / forward, fitted arrays (compile)", "every array (compile)"]
     return Table(header, rows, [BENCH_HYSTERESIS])
+
+
+def _run(m: dict, name: str) -> dict:
+    """The run ``name`` of ``bench_preisach_fit``."""
+    return next(r for r in m["runs"] if r["run"] == name)
+
+
+def _exact_fit(m: dict) -> dict:
+    return _run(m, "jaxafm.nnls")
+
+
+def _peak_mb(r: dict) -> float:
+    """A run's peak resident memory over its calls (MB)."""
+    return max(c["peak_mb"] for c in r["calls"])
+
+
+def _fit_memory_gb(r: dict) -> float:
+    """A run's peak resident memory above what its process held before the fit (GB)."""
+    return (_peak_mb(r) - r["peak_before_mb"]) / 1024
+
+
+@table("bench_preisach_fit")
+def bench_preisach_fit(results: Results) -> Table:
+    m = results(BENCH_PREISACH_FIT)
+    rows = []
+    for r in m["runs"]:
+        last = r["calls"][-1]
+        rows.append(
+            [
+                f"`{r['run']}`" if "." in r["run"] and " " not in r["run"] else r["run"],
+                q(r["calls"][0]["seconds"], "s", 2),
+                q(r["compiled_s"], "s", 2),
+                f"{q(r['peak_before_mb'] / 1024, 'GB', 2)} → {q(_peak_mb(r) / 1024, 'GB', 2)}",
+                q(last["train_rms_nm"], "nm", 3),
+                q(last["heldout_rms_nm"], "nm", 3),
+                last["message"].split(": ", 1)[-1],
+            ]
+        )
+    header = [
+        "fit",
+        "first call",
+        "compiled",
+        "peak memory: before → during",
+        "training rms",
+        "held-out rms",
+        "how it ended",
+    ]
+    note = (
+        f"{m['levels']} levels ({count(m['relays'])} relays), {count(m['samples'])} training samples; "
+        f"the exact fit's parts: normal equations {q(_exact_fit(m)['parts']['normal_equations_s'], 's', 2)}, "
+        f"solve {q(_exact_fit(m)['parts']['solve_s'], 's', 2)}."
+    )
+    return Table(header, rows, [BENCH_PREISACH_FIT], note)
 
 
 @table("bench_scan")

@@ -7,7 +7,7 @@ from typing import Literal, Optional
 from pydantic import Field, model_validator
 
 from .common import HysteresisSpec, ModelName, RecordData, Seed, Solver, Strict
-from .names import EFFECTS
+from .names import EFFECTS, LINEAR_SOLVERS
 
 
 class SimulatedData(Strict):
@@ -45,15 +45,33 @@ class ModelSpec(HysteresisSpec):
     kind: Literal["linear", "pi", "gpi", "preisach"]
     creep: bool = Field(False, description="add a logarithmic creep stage (0.1 s to 100 s)")
     rate_dependence: bool = Field(False, description="add a first-order lag after hysteresis")
-    solver: Optional[Solver] = Field(None, description="default: LM, or BFGS for preisach")
+    solver: Optional[Solver | Literal[LINEAR_SOLVERS]] = Field(  # type: ignore[valid-type]
+        None,
+        description="default: jaxafm.nnls for preisach alone, BFGS for preisach with creep or a lag, "
+        "else LM; jaxafm.nnls fits pi and preisach alone",
+    )
     max_steps: int = Field(2000, ge=1, le=100_000)
+
+    @model_validator(mode="after")
+    def _linear_solver_fits_weights(self):
+        extras = [e for e in ("creep", "rate_dependence") if getattr(self, e)]
+        if self.solver in LINEAR_SOLVERS and (self.kind not in ("pi", "preisach") or extras):
+            raise ValueError(
+                f"model {self.name!r}: solver {self.solver!r} fits the weights of kind pi or preisach "
+                f"alone (outputs linear in them), not kind {self.kind!r}"
+                + "".join(f" with {e}: true" for e in extras)
+                + "; use a gradient solver"
+            )
+        return self
 
     @property
     def solver_name(self) -> str:
         """The configured solver, or the default for the model's kind."""
         if self.solver:
             return self.solver
-        return "optimistix.bfgs" if self.kind == "preisach" else "optimistix.levenberg_marquardt"
+        if self.kind == "preisach":
+            return "optimistix.bfgs" if self.creep or self.rate_dependence else LINEAR_SOLVERS[0]
+        return "optimistix.levenberg_marquardt"
 
 
 class ActuatorFitConfig(Strict):

@@ -41,6 +41,10 @@ SOLVERS = (
     "jaxafm.geodesic_levenberg_marquardt",
 )
 
+#: The solvers for operators whose output is linear in their weights (PI, Preisach): exact
+#: non-negative least squares (:mod:`jaxafm.identify.linear`). Only ``jaxafm fit`` takes them.
+LINEAR_SOLVERS = ("jaxafm.nnls",)
+
 #: Length units a data file may use -> nm per unit (every length inside jaxafm is in nm).
 LENGTH_TO_NM = {"pm": 1e-3, "Å": 0.1, "nm": 1.0, "um": 1e3, "µm": 1e3, "\u03bcm": 1e3, "mm": 1e6, "m": 1e9}
 

@@ -2,7 +2,8 @@
 
 What an image shows: ``features`` (lattice feature points), ``chords`` (features' edge
 crossings) and ``line_grating`` (a 1-D grating's pitch and distortion). Fitting a record:
-``fit`` (the solvers and hysteresis fits) and ``projection`` (nuisance parameters projected out
+``fit`` (the solvers and hysteresis fits), ``linear`` (the exact fit of PI and Preisach
+weights) and ``projection`` (nuisance parameters projected out
 of a linear least-squares problem). Step A, the scanner from calibration-lattice images:
 ``calibration_scan`` (the data), ``scan_model`` (the model and its parameters), ``image_ops``
 (interpolation and blur), ``stages`` (what each stage fits), ``staged_fit`` (:func:`identify`),

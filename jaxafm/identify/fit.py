@@ -26,7 +26,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from .. import checks
-from ..config.names import SOLVERS
+from ..config.names import LINEAR_SOLVERS, SOLVERS
 from ..model.hysteresis import (
     Deadzone,
     GeneralizedPI,
@@ -35,7 +35,7 @@ from ..model.hysteresis import (
     Preisach,
 )
 from ..model.scanner import Axis
-from . import geodesic
+from . import geodesic, linear
 
 Array = jax.Array
 MODEL_KINDS = ("linear", "pi", "gpi", "preisach")
@@ -145,15 +145,22 @@ def fit_operator(
     model runs over the whole of ``u``; the first ``settle`` samples (a
     transient the model is not meant to follow) are left out of the loss.
 
+    ``solver="jaxafm.nnls"`` (PI and Preisach operators only) solves the non-negative least
+    squares exactly (:func:`~jaxafm.identify.linear.fit_weights`); ``max_steps``, ``rtol`` and
+    ``atol`` are then unused.
+
     Never raises for a solver that stops early: ``converged`` and ``message``
     say so, with the last loss.
     """
-    check_solver(solver, max_steps, rtol, atol)
+    if solver not in LINEAR_SOLVERS:
+        check_solver(solver, max_steps, rtol, atol)
     u, d = jnp.asarray(u, dtype=float), jnp.asarray(d, dtype=float)
     _check_record(u, d, t)
     if not 0 <= settle < len(d) - 1:
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(d)})")
     d_range = float(d[settle:].max() - d[settle:].min())
+    if solver in LINEAR_SOLVERS:
+        return _fit_linear(model, u, d, history, settle, d_range)
     raw0, rebuild = model.free_parameters(float(u.max() - u.min()), d_range)
     forward = evaluator(model, u, t, history)
 
@@ -174,6 +181,16 @@ def fit_operator(
         else f"{solver}: did NOT converge in {steps} steps (max_steps={max_steps}); last loss {final:.3e}"
     )
     return FitResult(rebuild(raw), solver, ok, steps, final, seconds, message)
+
+
+def _fit_linear(model, u, d, history, settle: int, d_range: float) -> FitResult:
+    """:func:`fit_operator` with ``jaxafm.nnls``: exact, so always converged."""
+    start = time.perf_counter()
+    fitted, steps, mean_square = linear.fit_weights(model, u, d, history=history, settle=settle)
+    seconds = time.perf_counter() - start
+    final = mean_square / d_range**2
+    message = f"jaxafm.nnls: solved in {steps} pivoting steps"
+    return FitResult(fitted, "jaxafm.nnls", True, steps, final, seconds, message)
 
 
 def check_solver(solver: str, max_steps: int, rtol: float, atol: float) -> None:

@@ -661,7 +661,11 @@ class PrandtlIshlinskii(PlayOperator):
 
     def design_matrix(self, u: Array, history=None) -> Array:
         """The plays (T, n): the output is ``offset + plays @ weights``."""
-        return play(u, self.radii(), history)
+        return self.design_rows(play(u, self.radii(), history))
+
+    def design_rows(self, P: Array) -> Array:
+        """The rows of :meth:`design_matrix` for the plays ``P`` (T, n): the plays themselves."""
+        return P
 
     def with_weights(self, weights: Array, offset: Array) -> "PrandtlIshlinskii":
         return PrandtlIshlinskii(self.thresholds, weights, offset)
@@ -1105,8 +1109,14 @@ class Preisach(PlayOperator):
 
     def design_matrix(self, u: Array, history=None) -> Array:
         """The relay states (T, n(n+1)/2) of the lower triangle, row by row."""
+        return self.design_rows(play(u, self.radii(), history))
+
+    def design_rows(self, P: Array) -> Array:
+        """The rows of :meth:`design_matrix` for the plays ``P`` (T, n): the lower triangle's relay
+        states, made from n plays a sample, so that a fit can stream them in blocks of samples
+        (:func:`~jaxafm.identify.linear.normal_equations`) instead of storing all T rows."""
         tri = self._triangle()
-        return self.relay_states(play(u, self.radii(), history))[:, tri[0], tri[1]]
+        return self.relay_states(P)[:, tri[0], tri[1]]
 
     def with_weights(self, weights: Array, offset: Array) -> "Preisach":
         """The lower triangle's densities (n(n+1)/2,) nm, in ``design_matrix``'s order."""
@@ -1155,11 +1165,11 @@ class FactorizedPreisach(Preisach):
         )
         return start.with_weights(lines, plane.offset)
 
-    def design_matrix(self, u: Array, history=None) -> Array:
+    def design_rows(self, P: Array) -> Array:
         """Columns (T, n): the relay states along each play line weighted by the profile, so the
         output is ``offset + A @ lines``."""
         n = self.levels
-        states = self.relay_states(play(u, self.radii(), history)) * self.profile_matrix(self.profile)
+        states = self.relay_states(P) * self.profile_matrix(self.profile)
         i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
         onehot = ((i - j)[..., None] == np.arange(n)) & (i >= j)[..., None]
         return jnp.einsum("tij,ijk->tk", states, jnp.asarray(onehot, dtype=float))
