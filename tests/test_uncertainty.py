@@ -33,6 +33,22 @@ def test_leave_group_out_equals_the_refit_without_the_group():
             np.testing.assert_allclose(left[k], J[g == k] @ theta_k - y[g == k], rtol=1e-10, atol=1e-12)
 
 
+def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit():
+    """Groups of 3 rows and 12 parameters (the direct (b, b) form, not Woodbury's (k, k)), with a
+    ridge prior: the closed form against a refit of the other groups' rows."""
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(90, 12))
+    y = J @ rng.normal(size=12) + 0.3 * rng.normal(size=90)
+    g = np.arange(90) // 3
+    prior = 0.5 * np.eye(12)
+    theta = np.linalg.solve(J.T @ J + prior, J.T @ y)
+    left = uncertainty.leave_group_out(J, J @ theta - y, g, prior)
+    for k in np.unique(g):
+        rows = g != k
+        theta_k = np.linalg.solve(J[rows].T @ J[rows] + prior, J[rows].T @ y[rows])
+        np.testing.assert_allclose(left[k], J[g == k] @ theta_k - y[g == k], rtol=1e-10, atol=1e-12)
+
+
 def test_cluster_covariance_covers_shared_errors_where_the_plain_one_does_not():
     """Over many draws, the slope's cluster-robust standard error matches its spread across
     draws (within the Monte-Carlo noise), while s^2 (J^T J)^-1, which takes the rows as

@@ -68,16 +68,24 @@ def covariance(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None) -> 
 
 
 def leave_group_out(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None) -> dict:
-    """Each group's residuals (its rows) had the fit not seen it: ``{group: e_g}``, through the
-    Woodbury identity ``(I - J_g H^-1 J_g^T)^-1 = I + J_g (H - J_g^T J_g)^-1 J_g^T``: a (k, k)
-    solve per group, whatever its size."""
+    """Each group's residuals (its rows) had the fit not seen it: ``{group: e_g}``,
+    ``e_g = (I - J_g H^-1 J_g^T)^-1 r_g``, by whichever of two equal forms is the smaller solve: a
+    group of ``b`` rows directly, a (b, b) solve with ``J H^-1`` formed once, when ``b`` is under
+    the ``k`` parameters; otherwise the Woodbury identity ``(I - J_g H^-1 J_g^T)^-1 = I + J_g (H -
+    J_g^T J_g)^-1 J_g^T``, a (k, k) solve. (A 1,276-parameter Preisach plane on 4,000 samples in
+    groups of a few rows: 478 s by Woodbury alone.)"""
     H = hessian(J, prior)
     order = np.argsort(groups, kind="stable")
     names, first = np.unique(np.asarray(groups)[order], return_index=True)
+    rows_of = np.split(order, first[1:])
+    JHinv = J @ np.linalg.pinv(H) if min(map(len, rows_of)) < J.shape[1] else None
     out = {}
-    for g, rows in zip(names, np.split(order, first[1:])):
+    for g, rows in zip(names, rows_of):
         Jg, rg = J[rows], r[rows]
-        out[g] = rg + Jg @ np.linalg.lstsq(H - Jg.T @ Jg, Jg.T @ rg, rcond=None)[0]
+        if len(rows) < J.shape[1]:
+            out[g] = np.linalg.lstsq(np.eye(len(rows)) - JHinv[rows] @ Jg.T, rg, rcond=None)[0]
+        else:
+            out[g] = rg + Jg @ np.linalg.lstsq(H - Jg.T @ Jg, Jg.T @ rg, rcond=None)[0]
     return out
 
 

@@ -164,7 +164,7 @@ def band(model, posterior: Optional[Posterior], u, t=None, history=None, level: 
 def linear_band(y: np.ndarray, G: np.ndarray, posterior: Posterior, level: float = 0.9) -> Band:
     """The band about the prediction ``y`` (T,) nm whose Jacobian with respect to the
     posterior's raw parameters is ``G`` (T, k) (module docstring)."""
-    var = np.einsum("tk,kl,tl->t", G, posterior.covariance, G) + posterior.residual_sd_nm**2
+    var = np.sum((G @ posterior.covariance) * G, axis=1) + posterior.residual_sd_nm**2  # g^T C g
     return Band(np.asarray(y), np.sqrt(var), check_level(level))
 
 
