@@ -33,10 +33,13 @@ def test_nonnegative_solve_equals_scipy_nnls():
     A = rng.normal(size=(80, 15))
     d = A @ rng.normal(size=15) + 0.1 * rng.normal(size=80)
     assert np.any(np.linalg.lstsq(A, d, rcond=None)[0] < 0)
-    w, steps = linear.nonnegative_solve(A.T @ A, A.T @ d, ridge=0.0)
     want = nnls(A, d)[0]
-    assert steps <= 100  # pivoting ended, not scipy's fallback
     assert 0 < np.sum(want > 0) < 15
+    w, _, how = linear.nonnegative_solve(A.T @ A, A.T @ d, ridge=0.0)
+    assert how == "pivoting"
+    np.testing.assert_allclose(w, want, atol=1e-10 * np.abs(want).max())
+    w, _, how = linear.nonnegative_solve(A.T @ A, A.T @ d, ridge=0.0, max_steps=0)  # the fallback
+    assert how == "scipy nnls"
     np.testing.assert_allclose(w, want, atol=1e-10 * np.abs(want).max())
 
 
@@ -49,7 +52,7 @@ def test_nonnegative_solve_meets_kkt_on_a_rank_deficient_gram():
     A = np.concatenate([A, A[:, :3], A[:, 3:4] + A[:, 4:5]], axis=1)
     d = A @ np.abs(rng.normal(size=14)) - 2.0 * A[:, 5] + 0.05 * rng.normal(size=60)
     G, b = A.T @ A, A.T @ d
-    w, _ = linear.nonnegative_solve(G, b)
+    w, _, _ = linear.nonnegative_solve(G, b)
     y = (G + linear.RIDGE * np.diag(np.diag(G))) @ w - b
     tol = 1e-9 * np.abs(b).max()
     assert np.all(w >= 0)
@@ -58,23 +61,52 @@ def test_nonnegative_solve_meets_kkt_on_a_rank_deficient_gram():
     assert np.sum(w == 0) >= 1  # the constraint is active somewhere
 
 
-@pytest.mark.parametrize("kind", ["pi", "preisach"])
-def test_streamed_normal_equations_equal_the_dense_design_matrix(kind):
-    """The Gram matrix made block by block (a record that is not a whole number of blocks, a
-    settled start, the symmetric product cut into chunks) equals ``A_c^T A_c`` of the centred
-    dense design matrix; the right-hand side and the means likewise."""
-    u = drive(700)
+@pytest.mark.parametrize(
+    "kind, samples, history",
+    [("pi", 700, None), ("preisach", 700, None), ("preisach", 50, [0.0, 3.6])],
+)
+def test_streamed_normal_equations_equal_the_dense_design_matrix(kind, samples, history):
+    """The Gram matrix made block by block (a record that is not a whole number of blocks, or
+    shorter than one; a settled start; a history; the symmetric product cut into chunks) equals
+    ``A_c^T A_c`` of the centred dense design matrix; the right-hand side and the means likewise."""
+    u = drive(samples)
     d = 3.0 * u + np.sin(u)
     model = initial_operator(kind, u, d, operators=7, levels=7)
-    eq = linear.normal_equations(model, u, d, settle=37, block=64)
-    A = np.asarray(model.design_matrix(jnp.asarray(u)))[37:]
-    Ac, dc = A - A.mean(0), d[37:] - d[37:].mean()
+    settle = 37 if samples > 64 else 5
+    eq = linear.normal_equations(model, u, d, history=history, settle=settle, block=64)
+    h = None if history is None else jnp.asarray(history)
+    A = np.asarray(model.design_matrix(jnp.asarray(u), h))[settle:]
+    Ac, dc = A - A.mean(0), d[settle:] - d[settle:].mean()
     scale = np.abs(Ac.T @ Ac).max()
     np.testing.assert_allclose(eq.gram, Ac.T @ Ac, atol=1e-12 * scale)
     np.testing.assert_allclose(eq.rhs, Ac.T @ dc, atol=1e-12 * np.abs(Ac.T @ dc).max())
     np.testing.assert_allclose(eq.mean_row, A.mean(0), atol=1e-14)
-    assert eq.samples == 700 - 37
+    assert eq.samples == samples - settle
     assert eq.centred_ss == pytest.approx(dc @ dc, rel=1e-12)
+    with pytest.raises(ValueError, match=f"settle={samples} samples .*record has {samples}"):
+        linear.normal_equations(model, u, d, settle=samples)
+
+
+def test_plays_that_never_move_get_no_weight_under_a_large_offset():
+    """A drive of +-0.5 V under plays up to 2 V wide (the wider ones never move) and an output
+    offset of -2.8e5 nm: the columns of the still plays are constant, so their weights are zero,
+    and the fit trains as well as scipy's ``nnls`` on the dense moving plays, up to the ridge's
+    cost at scipy's weights (its reported loss included)."""
+    u = 1.8 + 0.5 * np.sin(2 * np.pi * np.arange(800) / 100.0)
+    d = 1000.0 * u + 50.0 * np.sin(3 * u) - 2.8e5
+    start = PrandtlIshlinskii(jnp.linspace(0.0, 2.0, 12), jnp.full(12, 1.0), jnp.asarray(0.0))
+    A = np.asarray(start.design_matrix(jnp.asarray(u)))
+    still = np.ptp(A, axis=0) == 0
+    assert still.sum() >= 8
+    res = fit_operator(start, u, d, solver="jaxafm.nnls")
+    np.testing.assert_array_equal(np.asarray(res.model.weights)[still], 0.0)
+    Am = A[:, ~still] - A[:, ~still].mean(0)
+    want = nnls(Am, d - d.mean())[0]
+    rss_want = np.sum((Am @ want - (d - d.mean())) ** 2)
+    ridge_cost = linear.RIDGE * np.sum((np.linalg.norm(Am, axis=0) * want) ** 2)
+    rss = np.sum((np.asarray(res.model(jnp.asarray(u))) - d) ** 2)
+    assert rss <= rss_want + ridge_cost + 1e-9 * np.sum((d - d.mean()) ** 2)
+    assert res.loss * len(u) * np.ptp(d) ** 2 == pytest.approx(rss, abs=1e-12 * np.sum((d - d.mean()) ** 2))
 
 
 def test_preisach_fitted_to_numpy_relays_to_the_bound_the_ridge_allows():

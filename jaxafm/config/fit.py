@@ -6,8 +6,8 @@ from typing import Literal, Optional
 
 from pydantic import Field, model_validator
 
-from .common import HysteresisSpec, ModelName, RecordData, Seed, Solver, Strict
-from .names import EFFECTS, LINEAR_SOLVERS
+from .common import HysteresisSpec, ModelName, RecordData, Seed, Strict
+from .names import EFFECTS, LINEAR_SOLVERS, SOLVERS
 
 
 class SimulatedData(Strict):
@@ -45,7 +45,7 @@ class ModelSpec(HysteresisSpec):
     kind: Literal["linear", "pi", "gpi", "preisach"]
     creep: bool = Field(False, description="add a logarithmic creep stage (0.1 s to 100 s)")
     rate_dependence: bool = Field(False, description="add a first-order lag after hysteresis")
-    solver: Optional[Solver | Literal[LINEAR_SOLVERS]] = Field(  # type: ignore[valid-type]
+    solver: Optional[Literal[SOLVERS + LINEAR_SOLVERS]] = Field(  # type: ignore[valid-type]
         None,
         description="default: jaxafm.nnls for preisach alone, BFGS for preisach with creep or a lag, "
         "else LM; jaxafm.nnls fits pi and preisach alone",

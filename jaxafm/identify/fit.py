@@ -108,7 +108,7 @@ class FitResult:
 
     Attributes:
         model: the fitted model, the same structure as the start.
-        solver: the solver's name (one of ``SOLVERS``).
+        solver: the solver's name (one of ``SOLVERS`` or ``LINEAR_SOLVERS``).
         converged: whether the solver met its tolerances within ``max_steps``.
         steps: the solver's steps (or function evaluations, for scipy).
         loss: the final mean squared residual, in (fraction of the output range)^2.
@@ -184,13 +184,17 @@ def fit_operator(
 
 
 def _fit_linear(model, u, d, history, settle: int, d_range: float) -> FitResult:
-    """:func:`fit_operator` with ``jaxafm.nnls``: exact, so always converged."""
+    """:func:`fit_operator` with ``jaxafm.nnls``: converged unless its scipy fallback stopped short."""
     start = time.perf_counter()
-    fitted, steps, mean_square = linear.fit_weights(model, u, d, history=history, settle=settle)
+    fit = linear.fit_weights(model, u, d, history=history, settle=settle)
     seconds = time.perf_counter() - start
-    final = mean_square / d_range**2
-    message = f"jaxafm.nnls: solved in {steps} pivoting steps"
-    return FitResult(fitted, "jaxafm.nnls", True, steps, final, seconds, message)
+    final = fit.mean_square / d_range**2
+    message = {
+        "pivoting": f"jaxafm.nnls: solved in {fit.steps} pivoting steps",
+        "scipy nnls": f"jaxafm.nnls: pivoting did not end in {fit.steps} steps; solved by scipy's nnls",
+    }.get(fit.how, f"jaxafm.nnls: did NOT converge (pivoting, then scipy's nnls); last loss {final:.3e}")
+    ok = fit.how != "scipy nnls stopped short"
+    return FitResult(fit.model, "jaxafm.nnls", ok, fit.steps, final, seconds, message)
 
 
 def check_solver(solver: str, max_steps: int, rtol: float, atol: float) -> None:

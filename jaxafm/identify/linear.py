@@ -26,10 +26,8 @@ from ..model.hysteresis import PrandtlIshlinskii, Preisach, play
 Array = jax.Array
 
 #: Tikhonov weight on the weights scaled to unit column norms: a drive leaves some weight
-#: combinations undetermined (a 50-level plane on a 20,000-sample record: rank 856 of 1,275), and
-#: the ridge settles them on the smallest weights. At 1e-6 it raised the training rms of that fit
-#: by 1e-4 of itself (2.058579 -> 2.058779 nm, noise ~2 nm), where 1e-8 and 1e-10 let the pivoting
-#: cycle for 126 steps or more.
+#: combinations undetermined (``experiments/bench_preisach_fit.py`` reports the Gram matrix's
+#: rank), and the ridge settles them on the smallest weights.
 RIDGE = 1e-6
 
 
@@ -64,36 +62,50 @@ def normal_equations(model, u, d, *, history=None, settle: int = 0, block: int =
     """The normal equations of ``model``'s weights for the record ``(u, d)``, the first ``settle``
     samples left out. The plays (T, n) are run once; the design rows are made ``block`` samples at
     a time and reduced into the Gram matrix (only the blocks on and below its diagonal are
-    multiplied), so memory is O(T n + m^2), not O(T m)."""
+    multiplied), so memory is O(T n + m^2), not O(T m). The sums are taken of the rows and the
+    output less their values at the first sample kept, which changes no centred sum but keeps them
+    free of cancellation: a column that never moves (a play the drive never turns) sums to exactly
+    zero, not to round-off of a large offset.
+
+    Raises:
+        ValueError: ``settle`` leaves no sample (naming it and the record's length).
+    """
     u, d = jnp.asarray(u, dtype=float), jnp.asarray(d, dtype=float)
-    weight = jnp.arange(len(u)) >= settle
+    if not 0 <= settle < len(u):
+        raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(u)})")
     P = play(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
-    G, b, s, sd, sdd, n = _sums(model, P, d, weight.astype(float), block)
+    weight = (jnp.arange(len(u)) >= settle).astype(float)
+    G, b, s, sd, sdd, n = _sums(model, P, d, weight, settle, block)
     s, sd, n = np.asarray(s), float(sd), float(n)
+    first_row = np.asarray(model.design_rows(P[settle : settle + 1]))[0]
+    gram = np.array(G)  # a writable copy, centred in place
+    gram -= np.outer(s, s / n)
     return NormalEquations(
-        np.asarray(G) - np.outer(s, s) / n,
+        gram,
         np.asarray(b) - s * sd / n,
-        s / n,
-        sd / n,
-        float(sdd) - sd**2 / n,
+        first_row + s / n,
+        float(d[settle]) + sd / n,
+        max(float(sdd) - sd**2 / n, 0.0),
         int(n),
     )
 
 
 @eqx.filter_jit
-def _sums(model, P, d, weight, block: int, chunks: int = 4):
-    """``(A^T W A, A^T W d, sum W A, sum W d, sum W d^2, sum W)`` over blocks of ``block`` rows.
+def _sums(model, P, d, weight, first, block: int, chunks: int = 4):
+    """``(A^T W A, A^T W d, sum W A, sum W d, sum W d^2, sum W)`` over blocks of ``block`` rows,
+    ``A`` and ``d`` less their values at sample ``first``, ``W`` the 0/1 ``weight``.
 
     ``A^T A`` is symmetric: its columns are cut into ``chunks`` and only the products of chunks on
-    and below the diagonal are formed (10 of 16 at 4 chunks; measured at 20,000 samples and 1,275
-    columns: 0.54 s against 0.72 s for the whole product)."""
+    and below the diagonal are formed (10 of 16 at 4 chunks)."""
     T = P.shape[0]
     nb = -(-T // block)
     pad = nb * block - T
     Pb = jnp.pad(P, ((0, pad), (0, 0)), mode="edge").reshape(nb, block, -1)
     db = jnp.pad(d, (0, pad)).reshape(nb, block)
     wb = jnp.pad(weight, (0, pad)).reshape(nb, block)  # padded rows weigh nothing
-    m = model.design_rows(P[:1]).shape[1]
+    a0 = model.design_rows(lax.dynamic_slice_in_dim(P, first, 1))[0]
+    d0 = d[first]
+    m = a0.shape[0]
     edges = np.linspace(0, m, min(chunks, m) + 1).astype(int)
     cut = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
     pairs = [(i, j) for i in range(len(cut)) for j in range(i + 1)]
@@ -101,9 +113,10 @@ def _sums(model, P, d, weight, block: int, chunks: int = 4):
     def body(acc, x):
         G, b, s, sd, sdd, n = acc
         Pk, dk, wk = x
-        A = model.design_rows(Pk) * wk[:, None]  # rows of weight 0 or 1: W A = W^2 A
+        A = (model.design_rows(Pk) - a0) * wk[:, None]  # rows of weight 0 or 1: W A = W^2 A
+        dk = (dk - d0) * wk
         G = tuple(g + A[:, cut[i]].T @ A[:, cut[j]] for g, (i, j) in zip(G, pairs))
-        return (G, b + A.T @ dk, s + A.sum(0), sd + wk @ dk, sdd + wk @ dk**2, n + wk.sum()), None
+        return (G, b + A.T @ dk, s + A.sum(0), sd + dk.sum(), sdd + dk @ dk, n + wk.sum()), None
 
     zero = jnp.zeros(())
     G0 = tuple(jnp.zeros((cut[i].stop - cut[i].start, cut[j].stop - cut[j].start)) for i, j in pairs)
@@ -122,27 +135,32 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
     Block principal pivoting (Kim & Park, "Fast nonnegative matrix factorization: an active-set-like
     method and comparisons", SIAM J. Sci. Comput. 33, 2011, Alg. 2): guess the free set ``F``,
     solve ``G_FF w_F = b_F``, and exchange at once every variable that breaks the KKT conditions
-    (``w_F >= 0``, ``y = G w - b >= 0`` off ``F``), falling back to one exchange at a time when
-    the count of violations stops falling. It ends in a KKT point in tens of Cholesky solves,
-    where Lawson-Hanson (scipy's ``nnls``) adds one variable a step (measured on a 50-level plane,
-    1,275 weights: 0.15 s against 0.75-0.9 s). Should it not end in ``max_steps``, scipy's
-    ``nnls`` solves the same problem.
+    (``w_F >= 0``, ``y = G w - b >= 0`` off ``F``, each beyond round-off), falling back to one
+    exchange at a time when the count of violations stops falling. It ends in a KKT point in tens
+    of Cholesky solves, where Lawson-Hanson (scipy's ``nnls``) adds one variable a step
+    (``experiments/bench_preisach_fit.py`` times both on the same Gram matrix). Should it not end
+    in ``max_steps``, scipy's ``nnls`` solves the same problem. A column with no variance (zero
+    diagonal) keeps a zero weight.
 
     Returns:
-        ``(w, steps)``: the weights (m,) and the pivoting steps (``max_steps + 1``: scipy's).
+        ``(w, steps, how)``: the weights (m,), the pivoting steps, and how it ended: ``"pivoting"``,
+        ``"scipy nnls"``, or ``"scipy nnls stopped short"`` (its last iterate returned).
     """
     diag = np.diag(gram)
     scale = np.sqrt(np.where(diag > 0, diag, 1.0))
-    G = gram / np.outer(scale, scale) + ridge * np.eye(len(rhs))
+    G = gram / scale[:, None]  # one (m, m) copy, scaled and ridged in place
+    G /= scale[None, :]
+    G[np.diag_indices_from(G)] += ridge
     b = rhs / scale
+    tol = 1e-12 * max(np.abs(b).max(initial=0.0), 1e-300)
     free = np.zeros(len(b), bool)
     w, y = np.zeros(len(b)), -b
     best, tries = len(b) + 1, 3
     for step in range(max_steps):
-        bad = (free & (w < 0)) | (~free & (y < 0))
+        bad = (free & (w < -tol)) | (~free & (y < -tol))
         count = int(bad.sum())
         if count == 0:
-            return w / scale, step
+            return np.maximum(w, 0.0) / scale, step, "pivoting"
         if count < best:
             best, tries = count, 3
             free ^= bad
@@ -153,21 +171,50 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
             free[np.flatnonzero(bad)[-1]] ^= True
         w = np.zeros(len(b))
         if free.any():
-            w[free] = sl.cho_solve(sl.cho_factor(G[np.ix_(free, free)], check_finite=False), b[free])
+            w[free] = sl.cho_solve(_cholesky(G[np.ix_(free, free)], ridge), b[free])
         y = G @ w - b
         y[free] = 0.0
-    L = np.linalg.cholesky(G)
-    return nnls(L.T, sl.solve_triangular(L, b, lower=True), maxiter=50 * len(b))[0] / scale, max_steps + 1
+    L = np.tril(_cholesky(G, ridge)[0])  # cho_factor leaves the other triangle as it was
+    try:
+        w = nnls(L.T, sl.solve_triangular(L, b, lower=True), maxiter=50 * len(b))[0]
+    except RuntimeError:  # scipy's iteration limit
+        return np.maximum(w, 0.0) / scale, max_steps, "scipy nnls stopped short"
+    return w / scale, max_steps, "scipy nnls"
 
 
-def fit_weights(model, u, d, *, history=None, settle: int = 0) -> tuple:
+def _cholesky(G: np.ndarray, ridge: float) -> tuple:
+    """``scipy.linalg.cho_factor(G, lower=True)``, or a ValueError for a singular ``G`` (a zero
+    ``ridge`` on weights the data do not separate)."""
+    try:
+        return sl.cho_factor(G, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise ValueError(
+            f"the normal equations are singular (weights the data cannot tell apart) with ridge={ridge:g}: "
+            f"give ridge > 0 (the default is {RIDGE:g})"
+        ) from None
+
+
+@dataclasses.dataclass(frozen=True)
+class WeightFit:
+    """What :func:`fit_weights` returns.
+
+    Attributes:
+        model: the operator with its fitted weights and offset.
+        steps: the pivoting steps.
+        how: how the solve ended (:func:`nonnegative_solve`).
+        mean_square: the mean squared residual (nm^2) over the samples after ``settle``,
+            ``(|d_c|^2 - 2 b^T w + w^T G w) / n`` from the normal equations.
+    """
+
+    model: object
+    steps: int
+    how: str
+    mean_square: float
+
+
+def fit_weights(model, u, d, *, history=None, settle: int = 0) -> WeightFit:
     """``model`` (PI or Preisach) with the non-negative weights and the offset that fit ``d`` best
     in least squares (:func:`normal_equations`, :func:`nonnegative_solve`).
-
-    Returns:
-        ``(fitted, steps, mean_square)``: the operator, the pivoting steps and the mean squared
-        residual (nm^2) over the samples after ``settle``, ``(|d_c|^2 - 2 b^T w + w^T G w) / n``
-        from the normal equations.
 
     Raises:
         TypeError: for an operator whose output is not linear in all its fitted parameters.
@@ -178,7 +225,7 @@ def fit_weights(model, u, d, *, history=None, settle: int = 0) -> tuple:
             f"preisach), not a {type(model).__name__}: use a gradient solver"
         )
     eq = normal_equations(model, u, d, history=history, settle=settle)
-    w, steps = nonnegative_solve(eq.gram, eq.rhs)
+    w, steps, how = nonnegative_solve(eq.gram, eq.rhs)
     offset = eq.mean_output - eq.mean_row @ w
     mean_square = max(eq.centred_ss - 2 * eq.rhs @ w + w @ eq.gram @ w, 0.0) / eq.samples
-    return model.with_weights(jnp.asarray(w), jnp.asarray(offset)), steps, mean_square
+    return WeightFit(model.with_weights(jnp.asarray(w), jnp.asarray(offset)), steps, how, mean_square)

@@ -1115,8 +1115,10 @@ class Preisach(PlayOperator):
         """The rows of :meth:`design_matrix` for the plays ``P`` (T, n): the lower triangle's relay
         states, made from n plays a sample, so that a fit can stream them in blocks of samples
         (:func:`~jaxafm.identify.linear.normal_equations`) instead of storing all T rows."""
-        tri = self._triangle()
-        return self.relay_states(P)[:, tri[0], tri[1]]
+        i, j = self._triangle()
+        D = self._step()
+        x = (P[:, i - j] - (self.u_min + (i + j + 1) * D / 2)) / D  # relay_states on the triangle
+        return jnp.clip(2 * x, -1.0, 1.0) if self.smooth else jnp.where(x >= 0, 1.0, -1.0)
 
     def with_weights(self, weights: Array, offset: Array) -> "Preisach":
         """The lower triangle's densities (n(n+1)/2,) nm, in ``design_matrix``'s order."""
