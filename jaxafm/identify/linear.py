@@ -75,16 +75,15 @@ def normal_equations(model, u, d, *, history=None, settle: int = 0, block: int =
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(u)})")
     P = play(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
     weight = (jnp.arange(len(u)) >= settle).astype(float)
-    G, b, s, sd, sdd, n = _sums(model, P, d, weight, settle, block)
+    G, b, s, sd, sdd, n, a0, d0 = _sums(model, P, d, weight, settle, block)
     s, sd, n = np.asarray(s), float(sd), float(n)
-    first_row = np.asarray(model.design_rows(P[settle : settle + 1]))[0]
     gram = np.array(G)  # a writable copy, centred in place
     gram -= np.outer(s, s / n)
     return NormalEquations(
         gram,
         np.asarray(b) - s * sd / n,
-        first_row + s / n,
-        float(d[settle]) + sd / n,
+        np.asarray(a0) + s / n,
+        float(d0) + sd / n,
         max(float(sdd) - sd**2 / n, 0.0),
         int(n),
     )
@@ -93,7 +92,8 @@ def normal_equations(model, u, d, *, history=None, settle: int = 0, block: int =
 @eqx.filter_jit
 def _sums(model, P, d, weight, first, block: int, chunks: int = 4):
     """``(A^T W A, A^T W d, sum W A, sum W d, sum W d^2, sum W)`` over blocks of ``block`` rows,
-    ``A`` and ``d`` less their values at sample ``first``, ``W`` the 0/1 ``weight``.
+    ``A`` and ``d`` less their values ``a0``, ``d0`` at sample ``first`` (returned after them),
+    ``W`` the 0/1 ``weight``.
 
     ``A^T A`` is symmetric: its columns are cut into ``chunks`` and only the products of chunks on
     and below the diagonal are formed (10 of 16 at 4 chunks)."""
@@ -126,7 +126,7 @@ def _sums(model, P, d, weight, first, block: int, chunks: int = 4):
     full = jnp.zeros((m, m))
     for g, (i, j) in zip(G, pairs):
         full = full.at[cut[i], cut[j]].set(g).at[cut[j], cut[i]].set(g.T)
-    return full, b, s, sd, sdd, n
+    return full, b, s, sd, sdd, n, a0, d0
 
 
 def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, max_steps: int = 100) -> tuple:

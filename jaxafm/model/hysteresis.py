@@ -1050,13 +1050,17 @@ class Preisach(PlayOperator):
         O(n^2) per sample, without gathers: the design matrix of a fit, where the
         output is linear in the density once the plays are known.
         """
-        n, D = self.levels, self._step()
+        n = self.levels
         i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        k = np.where(i >= j, i - j, 0)
-        s = self.u_min + (i + j + 1) * D / 2  # relay centres (alpha + beta) / 2
-        x = (P[:, k] - s) / D
-        states = jnp.clip(2 * x, -1.0, 1.0) if self.smooth else jnp.where(x >= 0, 1.0, -1.0)
-        return jnp.where(i >= j, states, 0.0)
+        return jnp.where(i >= j, self._states(P, np.maximum(i, j), j), 0.0)
+
+    def _states(self, P: Array, i: np.ndarray, j: np.ndarray) -> Array:
+        """States in [-1, 1] of the relays ``(i, j)`` (``i >= j``, index arrays of one shape) for
+        the plays ``P`` (T, n): relay ``(i, j)`` reads play ``i - j`` against its centre
+        ``(alpha + beta) / 2 = u_min + (i + j + 1) D / 2``."""
+        D = self._step()
+        x = (P[:, i - j] - (self.u_min + (i + j + 1) * D / 2)) / D
+        return jnp.clip(2 * x, -1.0, 1.0) if self.smooth else jnp.where(x >= 0, 1.0, -1.0)
 
     def _triangle(self) -> tuple:
         """Indices of the lower triangle (alpha >= beta), where the density may be non-zero."""
@@ -1115,10 +1119,7 @@ class Preisach(PlayOperator):
         """The rows of :meth:`design_matrix` for the plays ``P`` (T, n): the lower triangle's relay
         states, made from n plays a sample, so that a fit can stream them in blocks of samples
         (:func:`~jaxafm.identify.linear.normal_equations`) instead of storing all T rows."""
-        i, j = self._triangle()
-        D = self._step()
-        x = (P[:, i - j] - (self.u_min + (i + j + 1) * D / 2)) / D  # relay_states on the triangle
-        return jnp.clip(2 * x, -1.0, 1.0) if self.smooth else jnp.where(x >= 0, 1.0, -1.0)
+        return self._states(P, *self._triangle())
 
     def with_weights(self, weights: Array, offset: Array) -> "Preisach":
         """The lower triangle's densities (n(n+1)/2,) nm, in ``design_matrix``'s order."""
