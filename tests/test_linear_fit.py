@@ -168,3 +168,16 @@ def test_the_linear_solver_refuses_models_that_are_not_linear_in_their_weights()
         ModelSpec(name="g", kind="gpi", solver="jaxafm.nnls")
     with pytest.raises(pydantic.ValidationError, match="not kind 'preisach' with creep: true"):
         ModelSpec(name="p", kind="preisach", creep=True, solver="jaxafm.nnls")
+
+
+@pytest.mark.parametrize("where", ["u", "d"])
+def test_a_non_finite_sample_is_refused_with_its_place(where):
+    """The plays run compiled, where they cannot look at their input: the normal equations check
+    the record first and name the bad sample."""
+    u = drive(300)
+    model = initial_operator("preisach", u, 2 * u, levels=6)
+    bad = {"u": u.copy(), "d": 2 * u}
+    bad[where][17] = np.nan
+    name = {"u": "input u", "d": "output d"}[where]
+    with pytest.raises(ValueError, match=rf"{name} must be finite, but element \(17,\) is"):
+        linear.normal_equations(model, bad["u"], bad["d"])

@@ -18,9 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sl
-from jax import lax
+from scipy.linalg import blas
 from scipy.optimize import nnls
 
+from .. import checks
 from ..model.hysteresis import PrandtlIshlinskii, Preisach, play
 
 Array = jax.Array
@@ -61,72 +62,65 @@ class NormalEquations:
 def normal_equations(model, u, d, *, history=None, settle: int = 0, block: int = 256) -> NormalEquations:
     """The normal equations of ``model``'s weights for the record ``(u, d)``, the first ``settle``
     samples left out. The plays (T, n) are run once; the design rows are made ``block`` samples at
-    a time and reduced into the Gram matrix (only the blocks on and below its diagonal are
-    multiplied), so memory is O(T n + m^2), not O(T m). The sums are taken of the rows and the
-    output less their values at the first sample kept, which changes no centred sum but keeps them
-    free of cancellation: a column that never moves (a play the drive never turns) sums to exactly
-    zero, not to round-off of a large offset.
+    a time (:func:`_rows`, one compiled shape) and reduced into the Gram matrix by BLAS's symmetric
+    rank-k update (``dsyrk``: one triangle, half the products of ``A^T A``), so memory is
+    O(T n + m^2 + block m), not O(T m). The sums are taken of the rows and the output less their
+    values at the first sample kept, which changes no centred sum but keeps them free of
+    cancellation: a column that never moves (a play the drive never turns) sums to exactly zero,
+    not to round-off of a large offset.
 
     Raises:
-        ValueError: ``settle`` leaves no sample (naming it and the record's length).
+        ValueError: a NaN or inf in ``u`` or ``d``, or ``settle`` leaves no sample (naming it and
+            the record's length).
     """
-    u, d = jnp.asarray(u, dtype=float), jnp.asarray(d, dtype=float)
+    u, d = jnp.asarray(u, dtype=float), np.asarray(d, dtype=float)
+    checks.finite("input u", u)  # here: the compiled plays cannot check their input
+    checks.finite("output d", d)
     if not 0 <= settle < len(u):
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(u)})")
-    P = play(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
-    weight = (jnp.arange(len(u)) >= settle).astype(float)
-    G, b, s, sd, sdd, n, a0, d0 = _sums(model, P, d, weight, settle, block)
-    s, sd, n = np.asarray(s), float(sd), float(n)
-    gram = np.array(G)  # a writable copy, centred in place
-    gram -= np.outer(s, s / n)
+    P = _plays(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
+    d0 = d[settle]
+    P, d = np.asarray(P)[settle:], d[settle:] - d0
+    T = len(d)
+    P = np.pad(P, ((0, -T % block), (0, 0)), mode="edge")  # whole blocks; the padded rows are zeroed
+    gram = b = s = a0 = None
+    for k in range(0, T, block):
+        A = np.array(_rows(model, P[k : k + block]))
+        if a0 is None:
+            a0 = A[0].copy()
+            gram, b, s = np.zeros((len(a0), len(a0)), order="F"), np.zeros(len(a0)), np.zeros(len(a0))
+        A -= a0
+        A[T - k :] = 0.0
+        gram = blas.dsyrk(1.0, A.T, beta=1.0, c=gram, lower=1, overwrite_c=1)  # += A^T A, lower
+        b += d[k : k + block] @ A[: T - k]
+        s += A.sum(0)
+    gram = blas.dsyr(-1.0 / T, s, a=gram, lower=1, overwrite_a=1)  # centred: less s s^T / T, lower
+    _mirror_lower(gram)
+    sd = float(d.sum())
     return NormalEquations(
-        gram,
-        np.asarray(b) - s * sd / n,
-        np.asarray(a0) + s / n,
-        float(d0) + sd / n,
-        max(float(sdd) - sd**2 / n, 0.0),
-        int(n),
+        gram, b - s * sd / T, a0 + s / T, float(d0 + sd / T), max(float(d @ d) - sd**2 / T, 0.0), T
     )
+
+
+def _mirror_lower(a: np.ndarray, rows: int = 256) -> None:
+    """Copy the lower triangle of the square ``a`` onto its upper one, in place, ``rows`` rows at
+    a time (no (m, m) temporary: the Gram matrix's peak is one copy)."""
+    m = len(a)
+    for i in range(0, m, rows):
+        k = np.arange(i, min(i + rows, m))[:, None]
+        a[k[:, 0]] = np.where(np.arange(m) > k, a[:, k[:, 0]].T, a[k[:, 0]])
+
+
+#: :func:`~jaxafm.model.hysteresis.play` compiled once per shape: called eagerly, its scan is
+#: traced and compiled again on every call (its step is a new closure each time), which costs
+#: time and leaves one more executable in memory per fit.
+_plays = eqx.filter_jit(play)
 
 
 @eqx.filter_jit
-def _sums(model, P, d, weight, first, block: int, chunks: int = 4):
-    """``(A^T W A, A^T W d, sum W A, sum W d, sum W d^2, sum W)`` over blocks of ``block`` rows,
-    ``A`` and ``d`` less their values ``a0``, ``d0`` at sample ``first`` (returned after them),
-    ``W`` the 0/1 ``weight``.
-
-    ``A^T A`` is symmetric: its columns are cut into ``chunks`` and only the products of chunks on
-    and below the diagonal are formed (10 of 16 at 4 chunks)."""
-    T = P.shape[0]
-    nb = -(-T // block)
-    pad = nb * block - T
-    Pb = jnp.pad(P, ((0, pad), (0, 0)), mode="edge").reshape(nb, block, -1)
-    db = jnp.pad(d, (0, pad)).reshape(nb, block)
-    wb = jnp.pad(weight, (0, pad)).reshape(nb, block)  # padded rows weigh nothing
-    a0 = model.design_rows(lax.dynamic_slice_in_dim(P, first, 1))[0]
-    d0 = d[first]
-    m = a0.shape[0]
-    edges = np.linspace(0, m, min(chunks, m) + 1).astype(int)
-    cut = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
-    pairs = [(i, j) for i in range(len(cut)) for j in range(i + 1)]
-
-    def body(acc, x):
-        G, b, s, sd, sdd, n = acc
-        Pk, dk, wk = x
-        A = (model.design_rows(Pk) - a0) * wk[:, None]  # rows of weight 0 or 1: W A = W^2 A
-        dk = (dk - d0) * wk
-        G = tuple(g + A[:, cut[i]].T @ A[:, cut[j]] for g, (i, j) in zip(G, pairs))
-        return (G, b + A.T @ dk, s + A.sum(0), sd + dk.sum(), sdd + dk @ dk, n + wk.sum()), None
-
-    zero = jnp.zeros(())
-    G0 = tuple(jnp.zeros((cut[i].stop - cut[i].start, cut[j].stop - cut[j].start)) for i, j in pairs)
-    (G, b, s, sd, sdd, n), _ = lax.scan(
-        body, (G0, jnp.zeros(m), jnp.zeros(m), zero, zero, zero), (Pb, db, wb)
-    )
-    full = jnp.zeros((m, m))
-    for g, (i, j) in zip(G, pairs):
-        full = full.at[cut[i], cut[j]].set(g).at[cut[j], cut[i]].set(g.T)
-    return full, b, s, sd, sdd, n, a0, d0
+def _rows(model, P: Array) -> Array:
+    """``model.design_rows(P)``, compiled once per operator and block shape."""
+    return model.design_rows(P)
 
 
 def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, max_steps: int = 100) -> tuple:
@@ -171,7 +165,7 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
             free[np.flatnonzero(bad)[-1]] ^= True
         w = np.zeros(len(b))
         if free.any():
-            w[free] = sl.cho_solve(_cholesky(G[np.ix_(free, free)], ridge), b[free])
+            w[free] = sl.cho_solve(_cholesky(G[np.ix_(free, free)], ridge, overwrite=True), b[free])
         y = G @ w - b
         y[free] = 0.0
     L = np.tril(_cholesky(G, ridge)[0])  # cho_factor leaves the other triangle as it was
@@ -182,11 +176,11 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
     return w / scale, max_steps, "scipy nnls"
 
 
-def _cholesky(G: np.ndarray, ridge: float) -> tuple:
-    """``scipy.linalg.cho_factor(G, lower=True)``, or a ValueError for a singular ``G`` (a zero
-    ``ridge`` on weights the data do not separate)."""
+def _cholesky(G: np.ndarray, ridge: float, overwrite: bool = False) -> tuple:
+    """``scipy.linalg.cho_factor(G, lower=True)`` (in ``G``'s memory where ``overwrite``), or a
+    ValueError for a singular ``G`` (a zero ``ridge`` on weights the data do not separate)."""
     try:
-        return sl.cho_factor(G, lower=True, check_finite=False)
+        return sl.cho_factor(G, lower=True, overwrite_a=overwrite, check_finite=False)
     except np.linalg.LinAlgError:
         raise ValueError(
             f"the normal equations are singular (weights the data cannot tell apart) with ridge={ridge:g}: "
