@@ -11,6 +11,8 @@ all Preisach planes ``N_LEVELS`` levels, so the jitted functions compile only a
 handful of times.
 """
 
+import logging
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -19,6 +21,7 @@ import pytest
 import reference
 
 from jaxafm import Deadzone, GeneralizedPI, PrandtlIshlinskii, Preisach
+from jaxafm.model.hysteresis import play
 
 T = 600  # samples in every input sequence
 N_PI = 8  # plays of every PI operator
@@ -628,3 +631,16 @@ def test_pi_weights_recovered_by_least_squares():
     assert abs(resid.std() / sigma - 1.0) < 0.15
     assert np.abs(theta[:-1] - w_true).max() < 0.02
     assert np.ptp(y) > 5.0
+
+
+def test_an_eager_play_is_compiled_once_per_shape(caplog):
+    """``play`` outside ``jit`` (a prediction, a fit's plays) reuses its compiled scan: a second
+    call with new values of the same shapes compiles nothing (a scan step made afresh each call
+    was traced and compiled every time, and kept one more executable)."""
+    u = jnp.sin(jnp.linspace(0.0, 9.0, 300))
+    play(u, jnp.linspace(0.0, 0.5, 7))
+    other, radii = jnp.cos(jnp.linspace(0.0, 5.0, 300)), jnp.linspace(0.0, 0.4, 7)
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING):
+        out = play(other, radii)
+    assert out.shape == (300, 7)
+    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]

@@ -74,11 +74,10 @@ def normal_equations(model, u, d, *, history=None, settle: int = 0, block: int =
             the record's length).
     """
     u, d = jnp.asarray(u, dtype=float), np.asarray(d, dtype=float)
-    checks.finite("input u", u)  # here: the compiled plays cannot check their input
     checks.finite("output d", d)
     if not 0 <= settle < len(u):
         raise ValueError(f"settle={settle} samples must be >= 0 and leave data to fit (record has {len(u)})")
-    P = _plays(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
+    P = play(u, model.radii(), None if history is None else jnp.asarray(history, dtype=float))
     d0 = d[settle]
     P, d = np.asarray(P)[settle:], d[settle:] - d0
     T = len(d)
@@ -109,12 +108,6 @@ def _mirror_lower(a: np.ndarray, rows: int = 256) -> None:
     for i in range(0, m, rows):
         k = np.arange(i, min(i + rows, m))[:, None]
         a[k[:, 0]] = np.where(np.arange(m) > k, a[:, k[:, 0]].T, a[k[:, 0]])
-
-
-#: :func:`~jaxafm.model.hysteresis.play` compiled once per shape: called eagerly, its scan is
-#: traced and compiled again on every call (its step is a new closure each time), which costs
-#: time and leaves one more executable in memory per fit.
-_plays = eqx.filter_jit(play)
 
 
 @eqx.filter_jit

@@ -116,6 +116,16 @@ def _play_step(radii: Array):
     return step
 
 
+def _carried_play_step(carry: tuple, ut: Array) -> tuple:
+    """:func:`_play_step` with the radii in the carry: one module-level function, so that
+    :func:`play` called outside ``jit`` finds its scan traced and compiled already (a closure is a
+    new function each call, traced and compiled again: 0.07 s against 0.004 s for 50 plays and
+    20,000 samples, and one more executable kept each time)."""
+    p, radii = carry
+    p, _ = _play_step(radii)(p, ut)
+    return (p, radii), p
+
+
 def play(u: Array, radii: Array, history=None) -> Array:
     """Outputs ``P[t, k]`` of the play operators of radius ``radii[k]``, shape ``(T, n)``.
 
@@ -127,7 +137,7 @@ def play(u: Array, radii: Array, history=None) -> Array:
     start = _start(radii, u, history)
     if time_parallel():
         return associative_plays(u, radii, start)
-    _, P = lax.scan(_play_step(radii), start, u)
+    _, P = lax.scan(_carried_play_step, (start, radii), u)
     return P
 
 
