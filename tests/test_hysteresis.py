@@ -633,14 +633,19 @@ def test_pi_weights_recovered_by_least_squares():
     assert np.ptp(y) > 5.0
 
 
-def test_an_eager_play_is_compiled_once_per_shape(caplog):
-    """``play`` outside ``jit`` (a prediction, a fit's plays) reuses its compiled scan: a second
-    call with new values of the same shapes compiles nothing (a scan step made afresh each call
-    was traced and compiled every time, and kept one more executable)."""
-    u = jnp.sin(jnp.linspace(0.0, 9.0, 300))
-    play(u, jnp.linspace(0.0, 0.5, 7))
-    other, radii = jnp.cos(jnp.linspace(0.0, 5.0, 300)), jnp.linspace(0.0, 0.4, 7)
+def test_an_eager_play_and_operator_are_compiled_once_per_shape(caplog):
+    """``play`` and an operator called outside ``jit`` (a prediction, a fit's plays) reuse their
+    compiled scans: a second call with new values of the same shapes compiles nothing (a scan
+    step or readout made afresh each call was traced and compiled every time, and kept one more
+    executable)."""
+    u = jnp.sin(jnp.linspace(0.0, 9.0, T))
+    other = jnp.cos(jnp.linspace(0.0, 5.0, T))
+    pi = PrandtlIshlinskii(jnp.linspace(0.0, 0.9, N_PI), jnp.full(N_PI, 2.0), jnp.asarray(1.0))
+    pi2 = PrandtlIshlinskii(jnp.linspace(0.0, 0.95, N_PI), jnp.full(N_PI, 3.0), jnp.asarray(0.0))
+    first = (play(u, pi.radii()), pi(u), preisach(random_density(1), False)(u))
+    compiled = (play(other, pi2.radii()), pi2(other), preisach(random_density(2), False, offset=0.1))
     with jax.log_compiles(True), caplog.at_level(logging.WARNING):
-        out = play(other, radii)
-    assert out.shape == (300, 7)
-    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
+        again = (play(other, pi2.radii()), pi2(other), compiled[2](other))
+    assert [a.shape for a in again] == [b.shape for b in first] == [(T, N_PI), (T,), (T,)]
+    np.testing.assert_array_equal(again[1], compiled[1])
+    assert not [r.getMessage()[:80] for r in caplog.records if "Compiling" in r.getMessage()]
