@@ -117,11 +117,12 @@ def _play_step(radii: Array):
 
 
 @eqx.filter_jit
-def _compiled_run(operator, u: Array, state: Array) -> tuple:
+def _compiled_run(operator, u: Array, state: Array, parallel: bool) -> tuple:
     """``operator.run(u, state)`` compiled once per operator structure and shapes: called outside
     ``jit``, a run's scans and readouts (closures made afresh each call) were traced and compiled
     again on every call (0.13 s a call for a 20-play PI at 20,000 samples). The caller checks the
-    input first: traced, ``u`` cannot be."""
+    input first: traced, ``u`` cannot be. ``parallel``: :func:`time_parallel`'s answer, a static
+    argument so that a run traced on one path is never reused for the other."""
     return operator.run(u, state)
 
 
@@ -302,7 +303,7 @@ class AbstractHysteresis(eqx.Module):
         an input far beyond :meth:`drive_span` warns (:func:`warn_beyond_span`)."""
         u = _checked_input(u)
         warn_beyond_span({"u": self}, u)
-        return _compiled_run(self, u, self.initial_state(u[0], history))[0]
+        return _compiled_run(self, u, self.initial_state(u[0], history), time_parallel())[0]
 
     def drive_span(self) -> Optional[float]:
         """The span of inputs (V) the operator covers, the drive it was built or fitted for (a
