@@ -158,7 +158,7 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
             free[np.flatnonzero(bad)[-1]] ^= True
         w = np.zeros(len(b))
         if free.any():
-            w[free] = sl.cho_solve(_cholesky(G[np.ix_(free, free)], ridge, overwrite=True), b[free])
+            w[free] = sl.cho_solve(_cholesky(G[np.ix_(free, free)], ridge), b[free])
         y = G @ w - b
         y[free] = 0.0
     L = np.tril(_cholesky(G, ridge)[0])  # cho_factor leaves the other triangle as it was
@@ -169,11 +169,11 @@ def nonnegative_solve(gram: np.ndarray, rhs: np.ndarray, ridge: float = RIDGE, m
     return w / scale, max_steps, "scipy nnls"
 
 
-def _cholesky(G: np.ndarray, ridge: float, overwrite: bool = False) -> tuple:
-    """``scipy.linalg.cho_factor(G, lower=True)`` (in ``G``'s memory where ``overwrite``), or a
-    ValueError for a singular ``G`` (a zero ``ridge`` on weights the data do not separate)."""
+def _cholesky(G: np.ndarray, ridge: float) -> tuple:
+    """``scipy.linalg.cho_factor(G, lower=True)``, or a ValueError for a singular ``G`` (a zero
+    ``ridge`` on weights the data do not separate)."""
     try:
-        return sl.cho_factor(G, lower=True, overwrite_a=overwrite, check_finite=False)
+        return sl.cho_factor(G, lower=True, check_finite=False)
     except np.linalg.LinAlgError:
         raise ValueError(
             f"the normal equations are singular (weights the data cannot tell apart) with ridge={ridge:g}: "
