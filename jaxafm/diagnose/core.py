@@ -24,7 +24,9 @@ is here, the same for all:
   the candidate says which split judged it;
 - candidates are ranked by shrink, best first; the verdict is the top significant one, or none;
   where significant candidates were judged on different splits, their shrinks are not comparable:
-  they are compared on one split, the one the others were judged on (:func:`_on_one_split`);
+  they are compared on one split, the one the others were judged on (:func:`_on_one_split`), and
+  where their gaps there come within ``Rules.min_shrink_pct`` % of the best's, the held-out part
+  cannot separate them and the lowest delta BIC decides (:func:`by_evidence`);
 - a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
 - before the effects, a kind may try richer hysteresis operators, one rung at a time
   (:attr:`DataKind.shapes`: symmetric PI -> twice the plays -> generalised PI -> Preisach for
@@ -578,8 +580,8 @@ def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nomina
     the others on its later part) cannot be ranked by their shrinks, each against another held-out
     part: those judged on the data's own split are refitted on the other one (on its base, or its
     nominal ``on_nominal``) and all compared there. Returns ``(the candidates compared there,
-    the verdict)``: the best there (:func:`rank`), or ``((), verdict)`` when the significant
-    candidates share one split."""
+    the verdict)``: the best there (:func:`rank`, then :func:`by_evidence`), or ``((), verdict)``
+    when the significant candidates share one split."""
     significant = [c for c in ranked if c.significant]
     elsewhere = [c for c in significant if c.judged_on]
     if not elsewhere or len(elsewhere) == len(significant):
@@ -591,7 +593,24 @@ def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nomina
             contest.append(split.judge(c.effect, rules, on_nominal))
             log(contest[-1].line().replace("+ ", f"+ (against {elsewhere[0].effect}) ", 1))
     contest, best = rank(contest, rules)
-    return contest, best or verdict
+    return contest, by_evidence(contest, best, rules) or verdict
+
+
+def by_evidence(ranked, verdict: Optional[str], rules: Rules = Rules()) -> Optional[str]:
+    """Where the held-out gaps cannot separate significant candidates, the training evidence
+    does: of the significant candidates whose gap is within ``rules.min_shrink_pct`` % of the
+    ``verdict``'s (the resolution the shrink rule itself takes), the one of lowest delta BIC.
+    Returns its effect, or ``None`` without a verdict."""
+    top = next((c for c in ranked if c.effect == verdict), None)
+    if top is None:
+        return None
+    tied = [
+        c
+        for c in ranked
+        if c.significant
+        and 100 * (1 - top.heldout_gap_after_nm / c.heldout_gap_after_nm) < rules.min_shrink_pct
+    ]
+    return min(tied, key=lambda c: c.delta_bic).effect
 
 
 def _on_nominal(splits: _Splits, ranked, fitted: dict, rules: Rules, log) -> tuple:
