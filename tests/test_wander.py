@@ -4,7 +4,7 @@ jaxafm.diagnose.wander: against dense Gaussian algebra and against random walks 
 import numpy as np
 import pytest
 
-from jaxafm.diagnose.wander import fit_wander
+from jaxafm.diagnose.wander import Whitener, fit_wander
 
 
 def _series(seed: int, n: int = 60, q: float = 25.0, s: float = 2.0):
@@ -98,3 +98,33 @@ def test_too_few_observed_samples_are_refused():
     observed[:5] = True
     with pytest.raises(ValueError, match="at least 10 observed samples, got 5"):
         fit_wander(np.zeros(100), t, observed)
+
+
+def test_fitting_under_the_whitener_is_generalised_least_squares_with_the_wander_covariance():
+    """The whitened one-step errors ``L r`` make least squares under ``|L r|^2`` the generalised
+    least squares of the wander's covariance, its diffuse start and rate profiled out. Truth from
+    dense linear algebra (no filter): a random walk of diffusion ``lambda`` (units of the white
+    noise's variance) from an unknown level at an unknown rate is the covariance
+    ``I + lambda min(t_i - t_0, t_j - t_0)`` with ``1`` and ``t - t_0`` as extra regressors of flat
+    prior; the coefficient of a regressor ``x`` from the dense GLS on the observed samples equals
+    the one from least squares on ``L x`` and ``L d``, held-out gaps in the record and all."""
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.005, 0.015, 300))
+    observed = (np.arange(t.size) // 30) % 2 == 0  # alternating blocks
+    lam = 40.0
+    x = np.sin(2 * np.pi * 1.3 * t) + 0.3 * t
+    walk = np.cumsum(rng.normal(0, np.sqrt(lam * np.diff(t, prepend=t[0]))))
+    d = 2.5 * x + 4.0 + 1.5 * t + walk + rng.normal(0, 1, t.size)
+
+    o = observed
+    s = t[o] - t[0]
+    cov = np.eye(o.sum()) + lam * np.minimum.outer(s, s)
+    regressors = np.stack([x[o], np.ones(o.sum()), s], 1)
+    w = np.linalg.solve(cov, regressors)
+    dense = np.linalg.solve(regressors.T @ w, w.T @ d[o])[0]
+
+    whiten = Whitener.of(t, observed, np.array([lam]))
+    lx, ld = (np.asarray(whiten(v[:, None]))[:, 0] for v in (x, d))
+    assert lx @ ld / (lx @ lx) == pytest.approx(dense, rel=1e-6)
+    # the first two observed samples set the diffuse start and rate: no error of theirs counts
+    assert np.count_nonzero(lx) == observed.sum() - 2

@@ -222,6 +222,18 @@ def _loss(raw, args) -> Array:
     return 0.5 * jnp.sum(_residuals(raw, args) ** 2)
 
 
+def _whitened_residuals(raw, args) -> Array:
+    """``L (d - model) / range``, flat: the residuals whitened by a drift's wander
+    (:class:`~jaxafm.diagnose.wander.Whitener`, which holds the training samples);
+    ``args = (plant, the axes' hysteresis evaluators, t, d, whitener, scales)``."""
+    plant, hysteresis, t, d, whiten, scales = args
+    return (whiten(d - _predict(raw, plant, hysteresis, t, d, scales)) / scales.range).ravel()
+
+
+def _whitened_loss(raw, args) -> Array:
+    return 0.5 * jnp.sum(_whitened_residuals(raw, args) ** 2)
+
+
 @eqx.filter_jit
 def _start(plant: Plant, u, t, d, history) -> tuple:
     """``(raw0, hysteresis evaluators, scales)`` of a fit of ``plant`` to the record."""
@@ -237,11 +249,13 @@ def _finish(raw, plant: Plant, hysteresis: tuple, t, d, scales: RecordScales) ->
     return fitted, _predict(raw, plant, hysteresis, t, d, scales)
 
 
-def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int) -> tuple:
+def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int, whiten=None) -> tuple:
     """Levenberg-Marquardt fit (:func:`~jaxafm.identify.fit.solve`) of ``plant`` to ``d`` where
     ``weight`` is 1 (0: not fitted).
 
-    The residuals ``(model - d) weight / range`` are scaled by the outputs' largest range.
+    The residuals ``(model - d) weight / range`` are scaled by the outputs' largest range; with
+    ``whiten`` (a :class:`~jaxafm.diagnose.wander.Whitener`, which holds the training samples in
+    place of ``weight``), ``whiten(d - model) / range``: the plant fitted under a drift's wander.
     Compiled once per plant structure and data shape; the data are arguments.
 
     Arguments:
@@ -257,8 +271,11 @@ def fit_plant(plant: Plant, u, t, d, weight, history, max_steps: int) -> tuple:
         The fitted plant, its prediction (T, k) nm and the solver's step count.
     """
     raw0, hysteresis, scales = _start(plant, u, t, d, history)
-    args = (plant, hysteresis, t, d, weight, scales)
-    raw, steps, _ = solve(SOLVER, _residuals, _loss, raw0, max_steps, RTOL, ATOL, args)
+    if whiten is None:
+        args, residuals, loss = (plant, hysteresis, t, d, weight, scales), _residuals, _loss
+    else:
+        args, residuals, loss = (plant, hysteresis, t, d, whiten, scales), _whitened_residuals, _whitened_loss
+    raw, steps, _ = solve(SOLVER, residuals, loss, raw0, max_steps, RTOL, ATOL, args)
     fitted, prediction = _finish(raw, plant, hysteresis, t, d, scales)
     return fitted, prediction, steps
 

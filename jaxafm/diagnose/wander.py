@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -112,6 +113,48 @@ def _filter(r, dt, observed, ratio, h):
     x = (r, jnp.concatenate([jnp.zeros(1), dt]), observed)
     start = (jnp.zeros(2), _DIFFUSE * jnp.eye(2), jnp.zeros((), int))
     return lax.scan(step, start, x)[1]
+
+
+class Whitener(eqx.Module):
+    """The filter of :func:`_filter` at a fixed ``lambda`` as a linear map of the residuals: its
+    gains and one-step error variances do not depend on the data, so the normalised one-step
+    errors ``e_n / sqrt(f_n)`` of residuals ``r`` (T, k) are ``L r``, ``L`` lower triangular.
+    A model fitted to minimise ``|L r|^2`` is fitted under the wander's covariance (generalised
+    least squares: Durbin & Koopman §6.2, regression effects in state space), the wander's start
+    and rate profiled out, instead of by turns with the smoothed drift. The diagnosis fits
+    by turns; ``experiments/drift_rounds.py`` measures both (``docs/diagnosis.md`` says why).
+
+    Attributes (per sample, per output): ``steps`` (T,) the transition's ``dt / h``; ``gain``
+    (T, k, 2), 0 off the observed samples; ``f`` (T, k); ``used`` (T, k) the samples in the
+    likelihood."""
+
+    steps: jax.Array
+    gain: jax.Array
+    f: jax.Array
+    used: jax.Array
+
+    @classmethod
+    def of(cls, t, observed, ratio) -> Whitener:
+        """At ``lambda = ratio`` (k,) 1/s for samples at ``t`` (T,) s, ``observed`` (T,)."""
+        dt, obs = jnp.diff(jnp.asarray(t, float)), jnp.asarray(observed, bool)
+        h = float(np.median(np.diff(t)))
+        cols = [_filter(jnp.zeros(obs.shape), dt, obs, float(q), h) for q in np.atleast_1d(ratio)]
+        gain = jnp.stack([jnp.where(obs[:, None], c[3][:, :, 0] / c[5][:, None], 0.0) for c in cols], 1)
+        steps = jnp.concatenate([jnp.zeros(1), dt]) / h
+        return cls(steps, gain, jnp.stack([c[5] for c in cols], 1), jnp.stack([c[6] for c in cols], 1))
+
+    def __call__(self, r) -> jax.Array:
+        """``L r``: the normalised one-step errors (T, k) of residuals ``r`` (T, k) nm, 0 off
+        :attr:`used`."""
+
+        def step(m, x):
+            rn, s, k = x
+            m = jnp.einsum("ij,kj->ki", _transition(s), m)
+            e = rn - m[:, 0]
+            return m + k * e[:, None], e
+
+        _, e = lax.scan(step, jnp.zeros((r.shape[1], 2)), (r, self.steps, self.gain))
+        return jnp.where(self.used, e / jnp.sqrt(self.f), 0.0)
 
 
 def _minus_two_log_l(r, dt, observed, ratio, h):
