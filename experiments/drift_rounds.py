@@ -65,19 +65,18 @@ def true_diffusion(wander: dict) -> float:
 
 
 def fitted(data: D.ActuatorRecord, nominal, rounds: int, joint: bool) -> tuple:
-    """The plant and the wander fitted ``rounds`` times, by turns (the plant to the output less
-    the smoothed drift) or ``joint`` (the plant under the wander's covariance); ``(residual less
-    the drift (T, k) nm, the wander)``."""
+    """The plant and the wander fitted ``rounds`` times, by turns (the diagnosis's own
+    ``_with_wander``) or ``joint`` (the plant under the wander's covariance); ``(residual less the
+    drift (T, k) nm, the wander)``."""
+    if not joint:
+        fit = data._with_wander(nominal, rounds=rounds)
+        return fit.residual, fit.wander
     u, t, d = jnp.asarray(data.u), jnp.asarray(data.record.t), jnp.asarray(data.d)
     weight = jnp.asarray(data.train, dtype=float)
     plant, r = nominal.plant, nominal.residual
     for _ in range(rounds):
-        wander = fit_wander(r, data.record.t, data.train)
-        if joint:
-            whiten = Whitener.of(data.record.t, data.train, wander.ratio)
-            plant, pred, _ = fit_plant(plant, u, t, d, weight, data.history, data.max_steps, whiten)
-        else:
-            plant, pred, _ = fit_plant(plant, u, t, d - wander.level, weight, data.history, data.max_steps)
+        whiten = Whitener.of(data.record.t, data.train, fit_wander(r, data.record.t, data.train).ratio)
+        plant, pred, _ = fit_plant(plant, u, t, d, weight, data.history, data.max_steps, whiten)
         r = data.d - np.asarray(pred)
     wander = fit_wander(r, data.record.t, data.train)
     return r - wander.level, wander
