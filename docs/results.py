@@ -778,6 +778,25 @@ GOALS = [
         lambda m: m["all"]["controls_flagged"] <= m["all"]["controls"] / 20,
     ),
     Goal(
+        "wandering_cases",
+        "diagnosis of drifts that wander and of creep: ≥ 100 cases at three magnitudes and ≥ 20 "
+        "controls, half with the other hysteresis class",
+        WANDERING,
+        "docs/diagnosis.md#drifts-that-wander-and-creep-python-experimentsindependent_checkpy-wandering",
+        lambda m: (
+            f"{count(m['all']['cases'] - m['all']['controls'])} cases "
+            f"({count(m['all'].get('cases_low', 0))} low, {count(m['all'].get('cases_middle', 0))} middle, "
+            f"{count(m['all'].get('cases_high', 0))} high) and {count(m['all']['controls'])} controls; "
+            f"{count(m['different']['cases'])} of {count(m['all']['cases'])} with the other class"
+        ),
+        lambda m: (
+            m["all"]["cases"] - m["all"]["controls"] >= 100
+            and m["all"]["controls"] >= 20
+            and min(m["all"].get(f"cases_{lv}", 0) for lv in ("low", "middle", "high")) > 0
+            and 2 * m["different"]["cases"] >= m["all"]["cases"]
+        ),
+    ),
+    Goal(
         "wandering_top1",
         "diagnosis of drifts that wander and of creep (independent generator, half the other "
         "hysteresis class): top-1 ≥ 95 % at the middle magnitude",

@@ -338,7 +338,9 @@ def main() -> None:
         help="run only the cases with this nominal kind (writes cases-KIND-....json beside the others)",
     )
     ap.add_argument(
-        "--shard", default="1/1", help="K/N: run every N-th case from the K-th (writes cases-K-of-N.json)"
+        "--shard",
+        default="1/1",
+        help="K/N: run every N-th case from the K-th (writes cases[-SELECTION]-K-of-N.json)",
     )
     ap.add_argument(
         "--wandering",
@@ -363,7 +365,8 @@ def main() -> None:
     if args.reported:
         return reported(args.out)
     k, n = (int(v) for v in args.shard.split("/"))
-    tag = f"-{args.nominal}" if args.nominal else ""
+    # the selection in the file's name, so that shards of different selections never overwrite each other
+    tag = "".join(f"-{v}" for v in [args.nominal, *(args.levels or []), *(args.effects or [])] if v)
     saved = args.out / (f"cases{tag}.json" if n == 1 else f"cases{tag}-{k}-of-{n}.json")
     if not args.summarise:
         rows = []  # this run's (the summary below merges every cases*.json in the folder)
