@@ -75,7 +75,8 @@ def fitted(data: D.ActuatorRecord, nominal, rounds: int, joint: bool) -> tuple:
     weight = jnp.asarray(data.train, dtype=float)
     plant, r = nominal.plant, nominal.residual
     for _ in range(rounds):
-        whiten = Whitener.of(data.record.t, data.train, fit_wander(r, data.record.t, data.train).ratio)
+        w = fit_wander(r, data.record.t, data.train)
+        whiten = Whitener.of(data.record.t, data.train, w.ratio, w.coloured_ratio, w.coloured_time_s)
         plant, pred, _ = fit_plant(plant, u, t, d, weight, data.history, data.max_steps, whiten)
         r = data.d - np.asarray(pred)
     wander = fit_wander(r, data.record.t, data.train)

@@ -45,7 +45,7 @@ from .plant import (
     with_effect,
 )
 from .report import MAX_LAG, above_floor, binned_rms, noise_floor_nm, residual_tests, rms
-from .wander import Wander, fit_wander
+from .wander import PARAMETERS_PER_OUTPUT, Wander, fit_wander
 
 Array = jax.Array
 #: Candidate effects for actuator records; the last two need two axes (asymmetry is a hysteresis
@@ -107,6 +107,8 @@ class RecordFit(Fit):
         if self.wander is not None:
             fitted["drift_nm_per_s"] = self.wander.velocity.tolist()
             fitted["drift_wander_nm2_per_s"] = self.wander.diffusion.tolist()
+            fitted["coloured_misfit_sd_nm"] = self.wander.coloured_sd.tolist()
+            fitted["coloured_misfit_time_s"] = self.wander.coloured_time_s.tolist()
         return {
             "solver_steps": self.solver_steps,
             "stopped_at_step_limit": self.at_step_limit,
@@ -354,13 +356,15 @@ class ActuatorRecord(DataKind):
         ``d - plant - drift``: on the held-out part the drift the training samples around it
         predict (interpolated across a held-out block, extrapolated across a held-out end). The
         BIC is the drift's likelihood's (:meth:`Wander.bic`, from its one-step predictions,
-        which pays for the start and the rate itself), its ratio and noise variance per output
-        two more parameters."""
+        which pays for the start and the rate itself), the wander's ratio, the coloured term's
+        variance and time constant and the noise variance per output four more parameters. The
+        coloured term stays in the residual: it is the plant's short-memory misfit, which the
+        walk would otherwise follow."""
         for _ in range(rounds):
             fit = self._fit(fit.plant, fit_wander(fit.residual, self.record.t, self.train))
         wander = fit_wander(fit.residual, self.record.t, self.train)
         r = fit.residual - wander.level
-        k = fit.parameters + 2 * r.shape[1]
+        k = fit.parameters + PARAMETERS_PER_OUTPUT * r.shape[1]
         return dataclasses.replace(
             fit,
             residual=r,
