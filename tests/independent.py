@@ -377,6 +377,20 @@ def fine_drive(u, oversample: int) -> np.ndarray:
     return np.stack([np.interp(tf, np.arange(n), u[:, i]) for i in range(u.shape[1])], axis=1)
 
 
+def case_wanders(t, wander: dict, seed: int) -> np.ndarray:
+    """The two axes' wanders (T, 2) nm of a drift case of ``seed`` (``wander``: ``kind``,
+    ``sigma``, ``tau_s``), drawn in turn from the seed's stream 3."""
+    rng = np.random.default_rng([seed, 3])
+    return np.stack(
+        [drift_wander(t, wander["kind"], wander["sigma"], wander["tau_s"], rng) for _ in range(2)], 1
+    )
+
+
+def case_noise(shape, seed: int) -> np.ndarray:
+    """A case's white noise (``NOISE_NM`` rms), drawn from the seed's stream 2."""
+    return noise(shape, np.random.default_rng([seed, 2]))
+
+
 def make_case(
     effect,
     level,
@@ -405,7 +419,7 @@ def make_case(
     uf = fine_drive(u, oversample)
     if effect is not None and magnitude is None:
         magnitude = MAGNITUDES[effect][LEVELS.index(level)]
-    r_hyst, r_eff, r_noise = (np.random.default_rng([seed, k]) for k in range(3))
+    r_hyst, r_eff = (np.random.default_rng([seed, k]) for k in range(2))
     axes = []
     h = np.empty(uf.shape)
     for i in range(2):
@@ -447,10 +461,9 @@ def make_case(
             w = wander if isinstance(wander, dict) else {"kind": wander}
             sigma = w.get("sigma", WANDERS[w["kind"]][LEVELS.index(level)] if level in LEVELS else None)
             tau = w.get("tau_s", OU_TAU_S)
-            r_wander = np.random.default_rng([seed, 3])
             params["wander"] = {"kind": w["kind"], "sigma": sigma, "tau_s": tau}
-            d = d + np.stack([drift_wander(t, w["kind"], sigma, tau, r_wander) for _ in range(2)], 1)
-    d = d + noise(d.shape, r_noise)
+            d = d + case_wanders(t, params["wander"], seed)
+    d = d + case_noise(d.shape, seed)
     truth = {
         "effect": effect,
         "level": level,
