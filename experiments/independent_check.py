@@ -51,7 +51,6 @@ from independent import (
     LEVELS,
     MAGNITUDES,
     NOISE_NM,
-    OU_TAU_S,
     REPORTED_CASES,
     REPORTED_DRIVE,
     UNITS,
@@ -61,6 +60,7 @@ from independent import (
     cases,
     make_case,
     make_drive,
+    wander_parameters,
     wandering_cases,
 )
 from scipy.linalg import cho_factor, cho_solve
@@ -119,8 +119,7 @@ def attainable_gap_nm(case: dict) -> float:
     out of the error). No model predicts a wander across a held-out block better. Dense NumPy
     algebra on the truth; jaxafm only splits the record."""
     t, u = DRIVE
-    kind = case["wander"]
-    wander = {"kind": kind, "sigma": WANDERS[kind][LEVELS.index(case["level"])], "tau_s": OU_TAU_S}
+    wander = wander_parameters(case["wander"], case["level"])
     left = case_wanders(t, wander, case["seed"]) + case_noise((t.size, 2), case["seed"])
     data = D.ActuatorRecord.split_off(
         Record(t=t, u=u, d=left, meta={}), D.Nominal(kind=case["nominal_kind"])
@@ -128,12 +127,11 @@ def attainable_gap_nm(case: dict) -> float:
     s, o, h = t - t[0], data.train, data.heldout
     line = np.stack([np.ones_like(s), s], 1)
     chol = cho_factor(wander_cov(s[o], s[o], wander) + NOISE_NM**2 * np.eye(o.sum()))
-    ko = cho_solve(chol, line[o])
+    ko, across = cho_solve(chol, line[o]), wander_cov(s[h], s[o], wander)
     errors = []
     for r in left.T:
         coef = np.linalg.solve(line[o].T @ ko, ko.T @ r[o])
-        innovation = cho_solve(chol, r[o] - line[o] @ coef)
-        errors.append(r[h] - line[h] @ coef - wander_cov(s[h], s[o], wander) @ innovation)
+        errors.append(r[h] - line[h] @ coef - across @ cho_solve(chol, r[o] - line[o] @ coef))
     return float(np.sqrt(np.mean(np.square(errors))))
 
 

@@ -377,6 +377,14 @@ def fine_drive(u, oversample: int) -> np.ndarray:
     return np.stack([np.interp(tf, np.arange(n), u[:, i]) for i in range(u.shape[1])], axis=1)
 
 
+def wander_parameters(wander, level) -> dict:
+    """A drift's wander as ``{"kind", "sigma", "tau_s"}``: ``wander`` a kind of :data:`WANDERS`
+    (its size at ``level``, :data:`OU_TAU_S`) or a dict that sets any of them."""
+    w = wander if isinstance(wander, dict) else {"kind": wander}
+    sigma = w.get("sigma", WANDERS[w["kind"]][LEVELS.index(level)] if level in LEVELS else None)
+    return {"kind": w["kind"], "sigma": sigma, "tau_s": w.get("tau_s", OU_TAU_S)}
+
+
 def case_wanders(t, wander: dict, seed: int) -> np.ndarray:
     """The two axes' wanders (T, 2) nm of a drift case of ``seed`` (``wander``: ``kind``,
     ``sigma``, ``tau_s``), drawn in turn from the seed's stream 3."""
@@ -458,10 +466,7 @@ def make_case(
         params["v_nm_per_s"] = [magnitude * jitter(), -0.7 * magnitude * jitter()]
         d = drift(d, t, params["v_nm_per_s"])
         if wander is not None:
-            w = wander if isinstance(wander, dict) else {"kind": wander}
-            sigma = w.get("sigma", WANDERS[w["kind"]][LEVELS.index(level)] if level in LEVELS else None)
-            tau = w.get("tau_s", OU_TAU_S)
-            params["wander"] = {"kind": w["kind"], "sigma": sigma, "tau_s": tau}
+            params["wander"] = wander_parameters(wander, level)
             d = d + case_wanders(t, params["wander"], seed)
     d = d + case_noise(d.shape, seed)
     truth = {

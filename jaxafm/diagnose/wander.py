@@ -202,7 +202,12 @@ class Whitener(eqx.Module):
 
 def _minus_two_log_l(r, dt, observed, ratio, tau, kappa, h):
     """``(-2 ln L with s^2 concentrated out, s^2)`` of one output at ``(lambda, tau, kappa)``."""
-    *_, e, f, used = _filter(r, dt, observed, ratio, tau, kappa, h)
+    return _concentrated(*_filter(r, dt, observed, ratio, tau, kappa, h)[-3:])
+
+
+def _concentrated(e, f, used):
+    """``(-2 ln L, s^2)`` from the one-step errors ``e``, their variances ``f`` (units of
+    ``s^2``) and the samples ``used``: ``s^2`` concentrated out (module docstring)."""
     n = jnp.sum(used)
     s2 = jnp.sum(jnp.where(used, e**2 / f, 0.0)) / n
     return n * jnp.log(2 * jnp.pi * s2) + jnp.sum(jnp.where(used, jnp.log(f), 0.0)) + n, s2
@@ -236,7 +241,7 @@ def _smooth(r, dt, observed, ratio, tau, kappa, h):
     dts = jnp.concatenate([dt, jnp.zeros(1)])
     xs = (m_f[:-1], p_f[:-1], m_p[1:], p_p[1:], dts[:-1])
     _, states = lax.scan(back, m_f[-1], xs, reverse=True)
-    m2ll, s2 = _minus_two_log_l(r, dt, observed, ratio, tau, kappa, h)
+    m2ll, s2 = _concentrated(e, f, used)
     return jnp.concatenate([states, m_f[-1:]]), e, m2ll, s2, used
 
 
