@@ -180,3 +180,60 @@ def test_fitting_under_the_whitener_is_generalised_least_squares_with_the_wander
     assert lx @ ld / (lx @ lx) == pytest.approx(dense, rel=1e-6)
     # the first two observed samples set the diffuse start and rate: no error of theirs counts
     assert np.count_nonzero(lx) == observed.sum() - 2
+
+
+def test_without_the_drift_the_likelihood_is_that_of_the_samples_less_the_first():
+    """``drift=False``: no wander and a rate known to be 0, the level still diffuse, so the
+    likelihood (over the same samples as the drift's, all observed but the first two) is that
+    of the differences ``c_n = r_n - r_1`` (the level cancels), covariance ``A S A^T``, ``S =
+    s^2 (C + I)``, given the first of them: ``-2 ln L = -2 ln N(c; A S A^T) + 2 ln N(c_2;
+    (A S A^T)_22)``, at the fitted ``kappa``, ``tau_c`` and ``s^2``."""
+    t, _, _ = _series(2)
+    rng = np.random.default_rng(12)
+    r = 30.0 + _ar1(rng, t, 5.0, 3e-3) + 2.0 * rng.standard_normal(t.size)
+    observed = np.ones(t.size, bool)
+    observed[20:30] = False
+    noise = fit_wander(r, t, observed, drift=False)
+    assert noise.ratio[0] == 0 and noise.velocity[0] == 0 and noise.coloured_ratio[0] > 0
+    to, ro = t[observed], r[observed]
+    a = np.eye(to.size)[1:]
+    a[:, 0] = -1.0
+    cov = a @ (noise.noise_var[0] * (_coloured_cov(noise, to) + np.eye(to.size))) @ a.T
+    c = a @ ro
+    m2ll = lambda x, s: np.linalg.slogdet(2 * np.pi * s)[1] + x @ np.linalg.solve(s, x)
+    dense = m2ll(c, cov) - m2ll(c[:1], cov[:1, :1])
+    assert noise.minus_two_log_l[0] == pytest.approx(dense, rel=1e-6)
+    assert noise.used[:, 0].sum() == observed.sum() - 2
+    # the smoother's level is the GLS mean of the observed samples under that covariance
+    s = _coloured_cov(noise, t) + np.eye(t.size)
+    weights = np.linalg.solve(s[np.ix_(observed, observed)], np.ones(observed.sum()))
+    gls = weights @ ro / weights.sum()
+    np.testing.assert_allclose(noise.level[:, 0], gls, atol=1e-3 * np.ptp(r))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_colour_is_not_drift_but_a_walk_is(seed):
+    """6 s at 1 kHz of a 6 nm autoregression of 10 ms in 2 nm of white noise, no drift: scored
+    under the same noise model, the drift's BIC (walk, rate, 4 parameters) is above the
+    coloured term's alone (3 parameters): the data do not pay for the rate (about ``3 ln n``
+    through the diffuse likelihood) and the walk. A least-squares BIC, which takes the colour
+    for white, is far above both: weighed against it a drift would be named for the colour.
+    The same record with a walk of 25 nm^2/s added (its spread over 6 s, 12 nm, twice the
+    coloured term's): the drift's BIC is below the coloured term's by more than the diagnosis's
+    10 (:class:`~jaxafm.diagnose.core.Rules`: "very strong" evidence)."""
+    from jaxafm.diagnose.core import Rules
+    from jaxafm.identify.fit import bic
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(6000) / 1000.0
+    observed = np.ones(t.size, bool)
+    coloured = _ar1(rng, t, 6.0, 0.01) + 2.0 * rng.standard_normal(t.size)
+    drift, noise = fit_wander(coloured, t, observed), fit_wander(coloured, t, observed, drift=False)
+    assert drift.bic(W.PARAMETERS_PER_OUTPUT) > noise.bic(W.NOISE_PARAMETERS_PER_OUTPUT)
+    white = bic(np.sum((coloured - coloured.mean()) ** 2), t.size, 1)
+    assert white - drift.bic(W.PARAMETERS_PER_OUTPUT) > 1000
+    walk = np.r_[0.0, np.cumsum(np.sqrt(25.0 * np.diff(t)) * rng.standard_normal(t.size - 1))]
+    wandering = coloured + walk
+    drift, noise = fit_wander(wandering, t, observed), fit_wander(wandering, t, observed, drift=False)
+    gain = noise.bic(W.NOISE_PARAMETERS_PER_OUTPUT) - drift.bic(W.PARAMETERS_PER_OUTPUT)
+    assert gain > Rules().min_delta_bic

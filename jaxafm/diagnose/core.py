@@ -26,7 +26,8 @@ is here, the same for all:
   where significant candidates were judged on different splits, their shrinks are not comparable:
   they are compared on one split, the one the others were judged on (:func:`_on_one_split`), and
   where their gaps there come within ``Rules.min_shrink_pct`` % of the best's, the held-out part
-  cannot separate them and the lowest delta BIC decides (:func:`by_evidence`);
+  cannot separate them and the lowest delta BIC decides, every fit's scored under the same
+  noise model (:func:`by_evidence`, :attr:`Fit.evidence`);
 - a candidate that cannot be tried on the data is skipped with its reason (:data:`NOT_TRIED`);
 - before the effects, a kind may try richer hysteresis operators, one rung at a time
   (:attr:`DataKind.shapes`: symmetric PI -> twice the plays -> generalised PI -> Preisach for
@@ -136,6 +137,13 @@ class Fit:
         residual sum of squares ``rss`` (nm^2) and ``k`` free parameters."""
         return {"parameters": k, "train_rms_nm": float(np.sqrt(rss / n)), "bic": bic(rss, n, k)}
 
+    @property
+    def evidence(self) -> Optional[float]:
+        """The training BIC under a noise model every fit of the kind shares, where the kind's
+        fits score their BICs under different ones (a record's drift models the residual's
+        colour); ``None``: :attr:`bic` is that already. :func:`by_evidence` weighs it."""
+        return None
+
     def shown(self) -> dict:
         """What a candidate row of ``diagnosis.json`` shows of this fit beside the common numbers."""
         return {}
@@ -170,6 +178,8 @@ class Candidate:
         judged_on: the split it was judged on, where it is not the data's own
             (:meth:`DataKind.judged_on`), else ``""``.
         nominal_gap_nm: the nominal model's held-out gap on that split (nm).
+        delta_evidence: the training :attr:`Fit.evidence` with the candidate minus the
+            nominal's, where the kind has one, else ``None`` (:attr:`delta_bic` is that).
     """
 
     effect: str
@@ -184,6 +194,12 @@ class Candidate:
     trains_worse: bool = False
     judged_on: str = ""
     nominal_gap_nm: Optional[float] = None
+    delta_evidence: Optional[float] = None
+
+    @property
+    def evidence(self) -> float:
+        """The delta BIC :func:`by_evidence` weighs: :attr:`delta_evidence`, else :attr:`delta_bic`."""
+        return self.delta_bic if self.delta_evidence is None else self.delta_evidence
 
     @classmethod
     def compare(
@@ -195,6 +211,7 @@ class Candidate:
         on where that is not the data's own."""
         before, after = nominal.heldout_gap_nm, fit.heldout_gap_nm
         shrink, dbic = 100 * (1 - after / before), float(fit.bic - nominal.bic)
+        shared = None if fit.evidence is None else float(fit.evidence - nominal.evidence)
         return cls(
             effect,
             before,
@@ -208,6 +225,7 @@ class Candidate:
             nested and bool(fit.train_rms_nm > (1 + NESTING_TOLERANCE) * nominal.train_rms_nm),
             split.data.split_label if split else "",
             split.nominal.heldout_gap_nm if split else None,
+            shared,
         )
 
     def to_json(self) -> dict:
@@ -223,7 +241,8 @@ class Candidate:
         )
         flags = {"significant": self.significant, "trains_worse_than_without": self.trains_worse}
         split = {"judged_on": self.judged_on} if self.judged_on else {}
-        return {k: getattr(self, k) for k in common} | split | self.fit.shown() | flags
+        shared = {} if self.delta_evidence is None else {"delta_bic_coloured_noise": self.delta_evidence}
+        return {k: getattr(self, k) for k in common} | shared | split | self.fit.shown() | flags
 
     def line(self) -> str:
         """The candidate's result, for the log."""
@@ -400,6 +419,14 @@ class Diagnosis:
     def final(self) -> Fit:
         """The diagnosis's final model: the verdict's fit, else the rung found, else the nominal."""
         return self.top.fit if self.top else (self.base or self.nominal)
+
+    @property
+    def evidence_decided(self) -> tuple:
+        """The candidates compared on one split whose held-out gaps could not separate them
+        (:func:`tied`), where there are several: the training evidence chose between them
+        (:func:`by_evidence`); else empty."""
+        found = tied(self.contest, rank(self.contest, self.rules)[1], self.rules) if self.contest else []
+        return tuple(found) if len(found) > 1 else ()
 
     def verdict_json(self) -> dict:
         """The ``verdict`` section of ``diagnosis.json``: effect, shape, text and, if any, the
@@ -596,21 +623,28 @@ def _on_one_split(splits: _Splits, ranked, verdict, rules: Rules, log, on_nomina
     return contest, by_evidence(contest, best, rules) or verdict
 
 
-def by_evidence(ranked, verdict: Optional[str], rules: Rules = Rules()) -> Optional[str]:
-    """Where the held-out gaps cannot separate significant candidates, the training evidence
-    does: of the significant candidates whose gap is within ``rules.min_shrink_pct`` % of the
-    ``verdict``'s (the resolution the shrink rule itself takes), the one of lowest delta BIC.
-    Returns its effect, or ``None`` without a verdict."""
+def tied(ranked, verdict: Optional[str], rules: Rules = Rules()) -> list:
+    """The significant candidates of ``ranked`` whose held-out gap is within
+    ``rules.min_shrink_pct`` % of the ``verdict``'s (the resolution the shrink rule itself takes,
+    so that the held-out part cannot separate them), the verdict's own among them; empty without
+    a verdict."""
     top = next((c for c in ranked if c.effect == verdict), None)
     if top is None:
-        return None
-    tied = [
+        return []
+    return [
         c
         for c in ranked
         if c.significant
         and 100 * (1 - top.heldout_gap_after_nm / c.heldout_gap_after_nm) < rules.min_shrink_pct
     ]
-    return min(tied, key=lambda c: c.delta_bic).effect
+
+
+def by_evidence(ranked, verdict: Optional[str], rules: Rules = Rules()) -> Optional[str]:
+    """Where the held-out gaps cannot separate significant candidates (:func:`tied`), the
+    training evidence does: of those, the one of lowest delta BIC under the noise model they
+    share (:attr:`Candidate.evidence`). Returns its effect, or ``None`` without a verdict."""
+    candidates = tied(ranked, verdict, rules)
+    return min(candidates, key=lambda c: c.evidence).effect if candidates else None
 
 
 def _on_nominal(splits: _Splits, ranked, fitted: dict, rules: Rules, log) -> tuple:

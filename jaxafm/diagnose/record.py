@@ -45,7 +45,7 @@ from .plant import (
     with_effect,
 )
 from .report import MAX_LAG, above_floor, binned_rms, noise_floor_nm, residual_tests, rms
-from .wander import PARAMETERS_PER_OUTPUT, Wander, fit_wander
+from .wander import NOISE_PARAMETERS_PER_OUTPUT, PARAMETERS_PER_OUTPUT, Wander, fit_wander
 
 Array = jax.Array
 #: Candidate effects for actuator records; the last two need two axes (asymmetry is a hysteresis
@@ -90,12 +90,23 @@ class RecordFit(Fit):
         solver_steps: the Levenberg-Marquardt steps it took.
         step_limit: the steps it was allowed (reaching them: stopped before converging).
         wander: a drift's wander on top of the plant (:mod:`~jaxafm.diagnose.wander`), or ``None``.
+        evidence_bic: the training BIC with the residual's colour modelled (:attr:`evidence`).
     """
 
     plant: Plant
     solver_steps: int
     step_limit: int
     wander: Optional[Wander] = None
+    evidence_bic: Optional[float] = None
+
+    @property
+    def evidence(self) -> Optional[float]:
+        """The training BIC under one noise model for every fit of a record: a coloured term
+        beside white noise (:func:`~jaxafm.diagnose.wander.fit_wander` with ``drift=False``),
+        the drift's walk and rate on top for a fit with a drift (its own BIC). A drift's BIC
+        models the residual's colour and a least-squares BIC does not, so between the two the
+        colour would count as drift."""
+        return self.evidence_bic
 
     @property
     def at_step_limit(self) -> bool:
@@ -339,14 +350,16 @@ class ActuatorRecord(DataKind):
             self.max_steps,
         )
         r = d - np.asarray(pred)
-        rss = float(np.sum(r[self.train] ** 2))
+        rss, k = float(np.sum(r[self.train] ** 2)), n_parameters(plant, u, t, d)
+        noise = fit_wander(r, t, self.train, drift=False)
         return RecordFit(
             residual=r,
             heldout_gap_nm=float(np.sqrt(np.mean(r[self.heldout] ** 2))),
             plant=fitted,
             solver_steps=int(steps),
             step_limit=self.max_steps,
-            **Fit.scores(rss, int(self.train.sum()) * d.shape[1], n_parameters(plant, u, t, d)),
+            evidence_bic=noise.bic(k + NOISE_PARAMETERS_PER_OUTPUT * d.shape[1]),
+            **Fit.scores(rss, int(self.train.sum()) * d.shape[1], k),
         )
 
     def _with_wander(self, fit: RecordFit, rounds: int = WANDER_ROUNDS) -> RecordFit:
@@ -373,6 +386,7 @@ class ActuatorRecord(DataKind):
             parameters=k,
             train_rms_nm=float(np.sqrt(np.mean(r[self.train] ** 2))),
             bic=wander.bic(k),
+            evidence_bic=wander.bic(k),
         )
 
     def fit_nominal(self) -> RecordFit:

@@ -224,6 +224,15 @@ def markdown(doc: dict, notes: list) -> str:
             "do not rank them: each was refitted on the split below and the verdict is the best there:",
             "",
         ] + _table(doc["compared_on_one_split"], {})
+    if doc.get("decided_by_evidence"):
+        lines += [
+            "",
+            f"Their held-out gaps lie within {doc['rules']['min_shrink_pct']:g} % of each other, so the held-out "
+            "part cannot separate them: the lowest training delta BIC decides, every fit's residual scored "
+            "under the same noise model (a coloured misfit beside white noise, a drift's walk and rate on top): "
+            + ", ".join(f"{e} {b:.1f}" for e, b in doc["decided_by_evidence"].items())
+            + ".",
+        ]
     lines += ["", "## Where the nominal model misses", ""] + [f"- {s}" for s in doc["where"]]
     return "\n".join(lines + list(notes) + ["", "![residuals](residuals.png)", ""])
 
@@ -253,6 +262,11 @@ def write(diagnosis: Diagnosis, save: Callable, log=print) -> dict:
         "candidates": [c.to_json() for c in diagnosis.candidates],
         "skipped": dict(diagnosis.skipped),
         **({"compared_on_one_split": [c.to_json() for c in diagnosis.contest]} if diagnosis.contest else {}),
+        **(
+            {"decided_by_evidence": {c.effect: c.evidence for c in diagnosis.evidence_decided}}
+            if diagnosis.evidence_decided
+            else {}
+        ),
         "rules": dataclasses.asdict(diagnosis.rules),
         "where": found.where,
     }

@@ -34,7 +34,14 @@ rate), with one-step prediction errors ``e_n`` of variance ``s^2 f_n``,
     -2 ln L = n ln(2 pi s^2) + sum ln f_n + sum e_n^2 / (s^2 f_n),   s^2 = sum (e_n^2 / f_n) / n,
 
 found on a grid (every output at once), ``lambda`` refined by a parabola through the best grid
-point and its neighbours. Units: nm, s.
+point and its neighbours.
+
+The same model without the drift (no wander, ``lambda = 0``, and a rate known to be 0: the
+coloured term beside white noise, :func:`fit_wander` with ``drift=False``) is the noise model a
+record's fits without a drift are scored under when their evidence is weighed against a drift's
+(:attr:`~jaxafm.diagnose.record.RecordFit.evidence`): the drift's likelihood models the
+residual's colour, a least-squares BIC does not, and colour is not drift. Its likelihood runs
+over the same samples (all observed but the first two), so the two are on one scale. Units: nm, s.
 """
 
 from __future__ import annotations
@@ -61,6 +68,8 @@ _DIFFUSE = 1e8
 _OBSERVED = jnp.array([1.0, 0.0, 1.0])  # r = w + a (+ e): the state (w, v h, a) seen
 #: Free parameters per output beyond the start and the rate: ``lambda``, ``tau``, ``kappa``, ``s^2``.
 PARAMETERS_PER_OUTPUT = 4
+#: The same without the drift (``drift=False``): ``tau``, ``kappa``, ``s^2``.
+NOISE_PARAMETERS_PER_OUTPUT = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,12 +135,13 @@ def _noise(dt, phi, ratio, kappa):
     return jnp.diag(jnp.array([ratio * dt, 0.0, kappa * (1.0 - phi**2)]))
 
 
-def _filter(r, dt, observed, ratio, tau, kappa, h):
+def _filter(r, dt, observed, ratio, tau, kappa, h, rate_var=_DIFFUSE):
     """The Kalman filter of ``r`` (T,) for the state ``(w, v h, a)`` at ``(lambda, tau, kappa) =
     (ratio, tau, kappa)``, covariances in units of ``s^2``: per sample the filtered and predicted
     means (3,) and covariances (3, 3), the one-step error ``e_n``, its variance ``f_n`` and
     ``used``: the samples in the likelihood (observed, after the first two observed, which set
-    the diffuse level and rate)."""
+    the diffuse level and rate). ``rate_var``: the rate's variance before any sample (0: known
+    to be 0)."""
 
     def step(carry, x):
         m, p, seen = carry
@@ -147,7 +157,7 @@ def _filter(r, dt, observed, ratio, tau, kappa, h):
         return (m_f, p_f, seen + obs), (m_f, p_f, m, p, jnp.where(used, e, 0.0), f, used)
 
     x = (r, jnp.concatenate([jnp.zeros(1), dt]), observed)
-    start = (jnp.zeros(3), jnp.diag(jnp.array([_DIFFUSE, _DIFFUSE, kappa])), jnp.zeros((), int))
+    start = (jnp.zeros(3), jnp.diag(jnp.array([_DIFFUSE, rate_var, kappa])), jnp.zeros((), int))
     return lax.scan(step, start, x)[1]
 
 
@@ -200,9 +210,9 @@ class Whitener(eqx.Module):
         return jnp.where(self.used, e / jnp.sqrt(self.f), 0.0)
 
 
-def _minus_two_log_l(r, dt, observed, ratio, tau, kappa, h):
+def _minus_two_log_l(r, dt, observed, ratio, tau, kappa, h, rate_var):
     """``(-2 ln L with s^2 concentrated out, s^2)`` of one output at ``(lambda, tau, kappa)``."""
-    return _concentrated(*_filter(r, dt, observed, ratio, tau, kappa, h)[-3:])
+    return _concentrated(*_filter(r, dt, observed, ratio, tau, kappa, h, rate_var)[-3:])
 
 
 def _concentrated(e, f, used):
@@ -214,23 +224,23 @@ def _concentrated(e, f, used):
 
 
 @jax.jit
-def _grid(r, dt, observed, ratios, taus, kappas, h):
+def _grid(r, dt, observed, ratios, taus, kappas, h, rate_var):
     """``-2 ln L`` (len(ratios), len(taus), len(kappas), k) over the grid, every output of ``r``
     (T, k) at once."""
-    per_output = jax.vmap(_minus_two_log_l, in_axes=(1, None, None, None, None, None, None))
-    at = lambda q, tau, kappa: per_output(r, dt, observed, q, tau, kappa, h)[0]
+    per_output = jax.vmap(_minus_two_log_l, in_axes=(1, None, None, None, None, None, None, None))
+    at = lambda q, tau, kappa: per_output(r, dt, observed, q, tau, kappa, h, rate_var)[0]
     return jax.vmap(lambda q: jax.vmap(lambda tau: jax.vmap(lambda kappa: at(q, tau, kappa))(kappas))(taus))(
         ratios
     )
 
 
 @jax.jit
-def _smooth(r, dt, observed, ratio, tau, kappa, h):
+def _smooth(r, dt, observed, ratio, tau, kappa, h, rate_var):
     """The Rauch-Tung-Striebel smoother of one output: ``(states (T, 3), e, -2 ln L, s^2, used)``.
-    Without a coloured term (``kappa = 0``) its row and column of the covariances are zero: a
-    unit there keeps the smoother's solve regular and leaves ``a = 0``."""
-    m_f, p_f, m_p, p_p, e, f, used = _filter(r, dt, observed, ratio, tau, kappa, h)
-    none = jnp.diag(jnp.array([0.0, 0.0, 1.0])) * (kappa == 0)
+    Without a coloured term (``kappa = 0``) or a rate (``rate_var = 0``) their rows and columns
+    of the covariances are zero: a unit there keeps the smoother's solve regular and leaves them 0."""
+    m_f, p_f, m_p, p_p, e, f, used = _filter(r, dt, observed, ratio, tau, kappa, h, rate_var)
+    none = jnp.diag(jnp.array([0.0, rate_var == 0, kappa == 0], float))
 
     def back(m_next, x):
         m, p, m_pred, p_pred, dtn = x
@@ -249,8 +259,8 @@ def _refined(grid: np.ndarray, m2ll: np.ndarray) -> float:
     """The minimum of ``m2ll`` over ``log(grid)``: the best grid point, moved to the vertex of
     the parabola through it and its neighbours where that lies between them."""
     i = int(np.nanargmin(m2ll))
-    x = np.log(grid)
     if 0 < i < len(grid) - 1:
+        x = np.log(grid)
         y0, y1, y2 = m2ll[i - 1 : i + 2]
         curv = y0 - 2 * y1 + y2
         if curv > 0:
@@ -258,9 +268,10 @@ def _refined(grid: np.ndarray, m2ll: np.ndarray) -> float:
     return float(grid[i])
 
 
-def fit_wander(r, t, observed) -> Wander:
+def fit_wander(r, t, observed, drift: bool = True) -> Wander:
     """The drift, a rate and a wander, beside a coloured term, in the residuals ``r`` (T,) or
-    (T, k) nm at times ``t`` (T,) s, trained on the ``observed`` (T,) samples (module docstring).
+    (T, k) nm at times ``t`` (T,) s, trained on the ``observed`` (T,) samples (module docstring);
+    ``drift=False``: the coloured term alone (no wander, the rate 0).
 
     Raises:
         ValueError: when fewer than 10 samples are observed.
@@ -271,13 +282,14 @@ def fit_wander(r, t, observed) -> Wander:
         raise ValueError(f"a drift's wander needs at least 10 observed samples, got {int(observed.sum())}")
     rj, dt, obs = jnp.asarray(r), jnp.diff(jnp.asarray(t, float)), jnp.asarray(observed)
     h = float(np.median(np.diff(t)))
-    grids = (LAMBDA_GRID, COLOURED_TIMES_S, COLOURED_RATIOS)
-    m2ll = np.asarray(_grid(rj, dt, obs, *map(jnp.asarray, grids), h))
+    ratios, rate_var = (LAMBDA_GRID, _DIFFUSE) if drift else (np.zeros(1), 0.0)
+    grids = (ratios, COLOURED_TIMES_S, COLOURED_RATIOS)
+    m2ll = np.asarray(_grid(rj, dt, obs, *map(jnp.asarray, grids), h, rate_var))
     hyper = []
     for k in range(r.shape[1]):
         _, j, i = np.unravel_index(np.nanargmin(m2ll[..., k]), m2ll.shape[:3])
-        hyper.append((_refined(LAMBDA_GRID, m2ll[:, j, i, k]), COLOURED_TIMES_S[j], COLOURED_RATIOS[i]))
-    cols = [_smooth(rj[:, k], dt, obs, *q, h) for k, q in enumerate(hyper)]
+        hyper.append((_refined(ratios, m2ll[:, j, i, k]), COLOURED_TIMES_S[j], COLOURED_RATIOS[i]))
+    cols = [_smooth(rj[:, k], dt, obs, *q, h, rate_var) for k, q in enumerate(hyper)]
     states, e, m2, s2, used = (np.stack([np.asarray(c[i]) for c in cols], -1) for i in range(5))
     ratio, tau, kappa = np.array(hyper).T
     return Wander(states[:, 0], states[0, 1] / h, ratio, s2, states[:, 2], kappa, tau, e, m2, used)
