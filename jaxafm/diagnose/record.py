@@ -378,6 +378,7 @@ class ActuatorRecord(DataKind):
         wander = fit_wander(fit.residual, self.record.t, self.train)
         r = fit.residual - wander.level
         k = fit.parameters + PARAMETERS_PER_OUTPUT * r.shape[1]
+        bic = wander.bic(k)  # its likelihood models the colour: its own BIC is its evidence too
         return dataclasses.replace(
             fit,
             residual=r,
@@ -385,8 +386,8 @@ class ActuatorRecord(DataKind):
             wander=wander,
             parameters=k,
             train_rms_nm=float(np.sqrt(np.mean(r[self.train] ** 2))),
-            bic=wander.bic(k),
-            evidence_bic=wander.bic(k),
+            bic=bic,
+            evidence_bic=bic,
         )
 
     def fit_nominal(self) -> RecordFit:
