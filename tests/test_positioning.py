@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -262,10 +263,10 @@ def test_local_scan_rejects_a_radius_that_is_not_positive(drifting):
         local_scan(pos, Plane(), stand, jnp.zeros(2), jnp.asarray(-5.0), jax.random.key(0))
 
 
-def stretched(scanner, k: float):
-    """``scanner`` whose outputs are ``k`` times as large about each axis's dead-zone centre: a model
-    with a scale error of ``k - 1``."""
-    for a in ("x", "y"):
+def stretched(scanner, k: float, k_y: Optional[float] = None):
+    """``scanner`` whose outputs are ``k`` times as large about each axis's dead-zone centre (y's
+    ``k_y`` times where given): a model with a scale error of ``k - 1``."""
+    for a, factor in (("x", k), ("y", k if k_y is None else k_y)):
         scanner = eqx.tree_at(
             lambda s: (
                 getattr(s, a).hysteresis.deadzone.slope,
@@ -273,7 +274,7 @@ def stretched(scanner, k: float):
                 getattr(s, a).hysteresis.deadzone.lower_weights,
             ),
             scanner,
-            replace_fn=lambda w: k * w,
+            replace_fn=lambda w, factor=factor: factor * w,
         )
     return scanner
 
@@ -304,6 +305,30 @@ def test_local_scan_under_a_scale_error_verifies_the_true_centre(scale):
     assert np.all(without_c > 10.0)  # the stretch alone misplaces the tip
     assert np.asarray(res.found).all()
     assert np.all(after < 0.1 * np.asarray(radii)), after
+
+
+@pytest.mark.parametrize("scale, radius", [((1.7, 1.7), 45.0), ((0.3, 1.4), 10.0)])
+def test_local_scan_verifies_through_a_frame_far_off_in_scale(scale, radius):
+    # step A's model believes the scanner moves 1.7 times as far as it does (0.3 times along x,
+    # 1.4 along y), the scale errors of the study's worst-identified scanner on a 260 nm push
+    # (on a short line): a line through the estimate really covers 1/1.7 of its length, so a
+    # particle of R = 45 nm lies on most of it (its median on the particle's flank, not the
+    # substrate), and every width reads 1.7 (0.3 along x) times the truth. The middle of a chord
+    # and the z signal's height do not depend on the frame: the centre is found, verified, and
+    # reached
+    afm = default_afm(drift_nm_per_min=(0.0, 0.0))
+    model = stretched(afm.scanner.without("drift", "noise"), *scale)
+    state = run_cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
+    pos = Positioner(afm, model)
+    stand = pos.start(state, twin_after_cycle(afm, model))
+    p = jnp.array([60.0, -40.0])
+    guess = jnp.asarray(scale) * p + jnp.array([8.0, -6.0])  # where the survey would show it, a few nm off
+    k1, k2 = jax.random.split(jax.random.key(3))
+    sample = Particles(p[None], jnp.array([radius]))
+    res, stand = local_scan(pos, sample, stand, guess, radius, k1, LocalScan(margin=120.0))
+    xy, _, _ = goto(pos, sample, stand, res.centre, k2)
+    assert bool(res.found)
+    assert float(jnp.linalg.norm(xy - p)) < 0.1 * radius
 
 
 def test_local_scan_verifies_on_lines_through_its_estimate_alone():

@@ -366,6 +366,19 @@ def test_a_check_teaches_a_push_only_when_it_saw_the_particle_moved():
     np.testing.assert_array_equal(seen.offsets, np.ones((2, 2)))
 
 
+def test_noise_ceiling_against_drawn_noise():
+    # the share of trials whose white position noise alone ends them beyond 0.1 R, against
+    # 400,000 draws of a Gaussian per axis (radii 5-12 nm, sigma 0.1-0.5 nm: from under 0.001 % to
+    # 46 % of a trial beyond)
+    rng = np.random.default_rng(0)
+    R = np.array([5.0, 5.0, 8.0, 12.0, 6.0])
+    sigma = np.array([0.4, 0.1, 0.3, 0.5, 0.2])
+    n = rng.normal(size=(400_000, R.size, 2)) * sigma[:, None]
+    within = np.mean(np.linalg.norm(n, axis=-1) <= 0.1 * R)
+    assert study.noise_ceiling_pct(R, sigma) == pytest.approx(100 * within, abs=0.2)
+    assert study.noise_ceiling_pct(R, np.zeros_like(R)) == 100.0
+
+
 def test_learning_rounds_by_hand():
     # three scanners of four trials in rounds of two; the learnt side is trials with >= 10
     # finds; scanner 2 never reaches 10 and is left out of both sides of the ratio

@@ -103,12 +103,11 @@ class LocalScanSpec(Strict):
         "particles: its pulse is taken from the first to the last sample above half height)",
     )
     max_lines: int = Field(24, ge=3, le=1000)
-    width_tolerance: float = Field(
-        0.5,
+    height_tolerance: float = Field(
+        0.25,
         gt=0,
-        lt=1,
-        description="pulse width of a centred line, fraction from the expected: a check that the particle "
-        "is the one sought, loose enough for the frame's scale error",
+        description="a centred line's pulse rises within a factor 1 + this of 2R, either way: a check "
+        "that the particle is the one sought (the z signal's, which no lateral frame distorts)",
     )
     centre_tolerance: float = Field(
         0.1, gt=0, le=1, description="a line is centred when its pulse's middle lies this close, in R"

@@ -67,7 +67,7 @@ def local_scan_settings(spec: LocalScanSpec) -> LocalScan:
         spec.line_time_s,
         margin=spec.margin_nm,
         max_lines=spec.max_lines,
-        width_tolerance=spec.width_tolerance,
+        height_tolerance=spec.height_tolerance,
         centre_tolerance=spec.centre_tolerance,
         centre_floor=spec.centre_floor_nm,
     )

@@ -54,6 +54,7 @@ from ..study.monte_carlo import (
     TrialSettings,
     Unsurveyed,
     failure_modes,
+    noise_ceiling_pct,
     predicted_push_success,
     run_chunk,
     stage_summary,
@@ -399,6 +400,9 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
             "ABC_lines_mean": float(np.mean(r["ABC_lines"])),
         }
+        sigma = np.array([info.get(str(s), {}).get("noise_std", np.nan) for s in r["scanner"]])
+        if np.all(np.isfinite(sigma)):  # each scanner's noise as drawn (scanners.json)
+            metrics["ABC_noise_ceiling_pct"] = noise_ceiling_pct(r["radius_nm"], sigma)
     learnt = learning_rounds(r, cfg.learning.round_trials) if "AB_learnt_from" in r else None
     if learnt:
         metrics["AB_learning"] = learnt
@@ -426,6 +430,11 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         log(learning_table(learnt))
     if modes:
         log(failure_table(modes, cfg.trials))
+    if "ABC_noise_ceiling_pct" in metrics:
+        log(
+            f"A+B+C: the tip's white position noise alone (each scanner's noise_std per axis) allows at most "
+            f"{metrics['ABC_noise_ceiling_pct']:.1f} % of the trials within 0.1 R at the dwell's last sample"
+        )
     return metrics
 
 

@@ -498,6 +498,18 @@ def stage_summary(errors: np.ndarray, success: np.ndarray, scan_s: float) -> dic
     }
 
 
+def noise_ceiling_pct(radius_nm: np.ndarray, noise_std_nm: np.ndarray, within_radii: float = 0.1) -> float:
+    """The highest share of trials (%) that can end within ``within_radii`` R when the tip's
+    position carries white noise of ``noise_std_nm`` per axis (each trial's scanner's): an error
+    read at one sample carries that noise, whose length over two axes is Rayleigh, so even a tip
+    whose mean position is exact ends beyond ``rho = within_radii R`` with probability
+    ``exp(-rho^2 / (2 sigma^2))``; 100 less the trials' mean of it."""
+    rho = within_radii * np.asarray(radius_nm, dtype=float)
+    sigma = np.asarray(noise_std_nm, dtype=float)
+    beyond = np.where(sigma > 0, np.exp(-(rho**2) / (2 * np.maximum(sigma, 1e-300) ** 2)), 0.0)
+    return 100 * (1 - float(np.mean(beyond)))
+
+
 def failure_modes(r: dict, margin_nm: float, max_lines: int, tolerance_radii: float) -> dict:
     """Why trials failed, stage by stage (counts of trials; the reasons of a stage exclude each other).
 
