@@ -1684,16 +1684,6 @@ def run_summary(run: Run) -> Callable[[Results], Table]:
                 f"{q(m['ABC_error_over_radius_median'], '', 3)}, {q(m['ABC_error_over_radius_max'], '', 3)}",
             ),
             ("local scans verified", q(m["ABC_found_pct"], "%")),
-            *(
-                [
-                    (
-                        "A+B+C within 0.1 R that the tip's position noise allows",
-                        q(m["ABC_noise_ceiling_pct"], "%"),
-                    )
-                ]
-                if "ABC_noise_ceiling_pct" in m
-                else []
-            ),
             ("local scan lines, mean", q(m["ABC_lines_mean"], "", 2)),
             ("local scan time, mean", q(m["ABC_local_scan_s_mean"], "s")),
             ("push success (within 1 R of the goal)", q(m["push_success_pct"], "%")),
