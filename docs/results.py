@@ -210,6 +210,7 @@ PUSH_0_90 = Run(
 MINOR_LOOPS = Run("minor_loops.json", "python experiments/minor_loops.py")
 STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
 STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yaml")
+STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_classes.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
 PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
@@ -554,6 +555,20 @@ GOALS = [
             f"ran {q(m['ABC_ran_pct'], '%')}"
         ),
         lambda m: min(m["ABC_success_pct"], m["push_success_pct"], m["ABC_ran_pct"]) >= 95,
+    ),
+    Goal(
+        "study_classes",
+        "true scanners of classes the fitted model cannot describe (study_classes.yaml): A+B+C and push ≥ 98 %",
+        STUDY_CLASSES,
+        "docs/study.md#true-scanners-of-other-model-classes",
+        lambda m: (
+            f"A+B+C {q(m['ABC_success_pct'], '%')}, push {q(m['push_success_pct'], '%')}; per class "
+            + ", ".join(
+                f"{c} {q(v['ABC_success_pct'], '%')} / {q(v['push_success_pct'], '%')}"
+                for c, v in m["truth_classes"].items()
+            )
+        ),
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
     ),
     Goal(
         "study_rate",
@@ -1867,9 +1882,27 @@ def study_learning(run: Run) -> Callable[[Results], Table]:
     return make
 
 
+def study_truth_classes(run: Run) -> Callable[[Results], Table]:
+    """A study's success per stage on the scanners of each truth class."""
+
+    def make(results: Results) -> Table:
+        m = results(run)["truth_classes"]
+        rows = [
+            [c, count(v["trials"])] + [q(v[f"{k}_success_pct"], "%") for k in ("AB", "ABC", "push")]
+            for c, v in m.items()
+        ]
+        return Table(
+            ["truth class", "trials", "A+B", "A+B+C", "push"], rows, [run], "Success over every trial."
+        )
+
+    return make
+
+
+TABLES["study_classes_per_class"] = study_truth_classes(STUDY_CLASSES)
 for _name, _run, _wall in (
     ("study", STUDY, False),
     ("study_wide", STUDY_WIDE, True),
+    ("study_classes", STUDY_CLASSES, True),
     ("study_speed", STUDY_SPEED, True),
 ):
     TABLES[f"{_name}_stages"] = study_stages(_run)

@@ -2,6 +2,7 @@
 on chunk size or device count, resuming after a kill, and a small study through step C."""
 
 import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -63,6 +64,10 @@ SMALL = {
 }
 
 
+# the baseline study's scanners: the fitted model's class, then a Preisach plane
+CLASSES = ["generalised_pi", "preisach"]
+
+
 def write(tmp_path: Path, name: str = "study.yaml", **changes) -> Path:
     """SMALL with ``changes`` as ``tmp_path / name``, and step A's model (``MODEL``) beside it."""
     save_model(default_afm(loop_width=0.12).scanner.without("drift", "noise"), tmp_path / MODEL)
@@ -108,6 +113,12 @@ def chunk_files(out: Path) -> list:
         ({"scanner": {"creep": {"gamma": {"normal": [0.01, 0.01]}}}}, "scanner.creep.gamma"),
         ({"scanner": {"noise": {"sigma": 1.0}}}, "scanner.noise.sigma"),
         ({"stages": ["push"]}, "'push' goes on from 'A+B+C'"),
+        ({"truth_classes": ["presiach"]}, "truth_classes"),
+        ({"truth_classes": ["preisach", "preisach"]}, "names a class twice"),
+        (
+            {"scanner": {"vibration": {"frequency_hz": {"uniform": [100, 200]}}}},
+            "scanner.vibration: only scanners of the truth class 'resonant'",
+        ),
         ({"learning": {"round_trials": 8}}, "learning: step C's finds"),
         ({"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 0}}, "learning.round_trials"),
         ({"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 3}}, "chunk: 2 is not a whole number"),
@@ -179,7 +190,7 @@ def baseline(tmp_path_factory):
     the study that test_killed_two_device_study_resumes_to_the_same_results resumes starts in
     its own process, to run while the tests after this one do (a thread kills it)."""
     tmp = tmp_path_factory.mktemp("baseline")
-    path = write(tmp)
+    path = write(tmp, truth_classes=CLASSES)
     cfg = load_config(path, StudyConfig)
     metrics = job.run(cfg, path, Output(tmp / "out"), log=lambda m: None)
     killed = start_killed(tmp_path_factory.mktemp("killed"))
@@ -192,7 +203,7 @@ def baseline(tmp_path_factory):
 def start_killed(tmp: Path) -> tuple:
     """``jaxafm study`` in chunks of 3 (two chunks, a scanner each) in a process with two host
     devices, and a thread that kills it (SIGKILL) as soon as its first chunk is written."""
-    path, out = write(tmp, chunk=3), tmp / "out"
+    path, out = write(tmp, chunk=3, truth_classes=CLASSES), tmp / "out"
     proc = cli(path, "--out", out, devices=2)
 
     def kill_after_the_first_chunk():
@@ -215,6 +226,32 @@ def test_outputs_and_trial_file(baseline):
     np.testing.assert_allclose(table["AB_error_nm"], results(out)["AB_error_nm"], rtol=1e-9)
     assert metrics["trials"] == 6 and metrics["AB_error_median_nm"] > 0 and metrics["AB_error_p99_nm"] > 0
     assert 0 < metrics["AB_ran_pct"] <= 100  # one of the two drawn scanners may miss landmarks
+    scanners = json.loads((out / "scanners.json").read_text())
+    assert [scanners[s]["truth_class"] for s in ("0", "1")] == CLASSES
+    for s, truth in enumerate(CLASSES):  # each class's success from its scanner's trials
+        mine = table["scanner"] == s
+        ok = table["AB_error_nm"][mine] <= 0.1 * table["radius_nm"][mine]
+        assert metrics["truth_classes"][truth] == {
+            "trials": 3,
+            "AB_success_pct": pytest.approx(100 * ok.mean()),
+        }
+
+
+def test_scanners_take_the_truth_classes_in_turn(tmp_path):
+    """Scanner s is of class s mod 4 and holds only its class's parameters; the family's draws
+    are those of a study of one class (another class draws the same loops, creep, ...)."""
+    scanner = SMALL["scanner"] | {
+        "rate_dependence": {"tau_s": {"uniform": [0.001, 0.005]}},
+        "vibration": {"frequency_hz": {"uniform": [100, 400]}},
+    }
+    classes = ["generalised_pi", "preisach", "rate_dependent", "resonant"]
+    cfg = load_config(write(tmp_path, trials=24, truth_classes=classes, scanner=scanner), StudyConfig)
+    one = load_config(write(tmp_path, "one.yaml", trials=24), StudyConfig)
+    for s, (d, base) in enumerate(zip(job.scanner_draws(cfg), job.scanner_draws(one))):
+        assert d["truth_class"] == classes[s % 4]
+        assert ("rate_tau" in d) == (d["truth_class"] == "rate_dependent")
+        assert ("vibration_hz" in d) == ("vibration_damping" in d) == (d["truth_class"] == "resonant")
+        assert {k: v for k, v in d.items() if k in base} == base | {"truth_class": d["truth_class"]}
 
 
 def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):

@@ -25,6 +25,11 @@ EFFECTS = (
     "tip",
 )
 
+#: The model classes the simulated scanner's truth can take (``default_scanner``'s
+#: ``truth_class``): the fitted model's own, a Preisach plane, a lag after the hysteresis, a
+#: mechanical mode after it.
+TRUTH_CLASSES = ("generalised_pi", "preisach", "rate_dependent", "resonant")
+
 #: The effects besides hysteresis that step A can fit from a grating's trace/retrace images.
 MODEL_EFFECTS = ("asymmetry", "rate_dependence", "creep", "coupling", "bow", "drift", "feedback_lag")
 

@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from .common import Strict
-from .names import check_effect_names
+from .names import TRUTH_CLASSES, check_effect_names
 from .run import Positioning, check_layout
 
 
@@ -76,7 +76,15 @@ STUDY_PARAMETERS = {
     "noise": {"std_nm": ("noise_std", (0.0, 20.0), 0.2)},
     "feedback_lag": {"tau_s": ("feedback_tau", (0.0, 0.05), 1e-3)},
     "tip": {"radius_nm": ("tip_radius", (0.5, 100.0), 10.0)},
+    "rate_dependence": {"tau_s": ("rate_tau", (1e-5, 0.1), 2e-3)},
+    "vibration": {
+        "frequency_hz": ("vibration_hz", (1.0, 1e5), 150.0),
+        "damping": ("vibration_damping", (1e-3, 0.99), 0.05),
+    },
 }
+
+#: the effect whose parameters only scanners of a truth class hold (the others hold none of it)
+CLASS_EFFECTS = {"rate_dependence": "rate_dependent", "vibration": "resonant"}
 
 
 class Learning(Strict):
@@ -113,6 +121,12 @@ class StudyConfig(Positioning):
     scanner: dict[str, dict[str, Distribution]] = Field(
         default_factory=dict, description="effect -> parameter -> distribution (see STUDY_PARAMETERS)"
     )
+    truth_classes: list[Literal[TRUTH_CLASSES]] = Field(
+        ["generalised_pi"],
+        min_length=1,
+        description="the true scanners' model classes, given in turn to scanner 0, 1, 2, ... (default_scanner's "
+        "truth_class): the fitted model's own (generalised_pi) or one it cannot describe",
+    )
     particle_radius_nm: Distribution = Distribution(uniform=[5.0, 50.0])
     learning: Optional[Learning] = Field(
         None, description="step C's finds teach the following A+B moves (needs A+B+C); null: they do not"
@@ -134,6 +148,13 @@ class StudyConfig(Positioning):
                         f"{', '.join(STUDY_PARAMETERS[effect])}"
                     )
                 _inside(f"scanner.{effect}.{name}", dist, *STUDY_PARAMETERS[effect][name][1])
+            if effect in CLASS_EFFECTS and CLASS_EFFECTS[effect] not in self.truth_classes:
+                raise ValueError(
+                    f"scanner.{effect}: only scanners of the truth class {CLASS_EFFECTS[effect]!r} hold it; "
+                    f"add it to truth_classes ({', '.join(self.truth_classes)}) or remove scanner.{effect}"
+                )
+        if len(set(self.truth_classes)) < len(self.truth_classes):
+            raise ValueError(f"truth_classes: {self.truth_classes} names a class twice; name each once")
         _inside("particle_radius_nm", self.particle_radius_nm, 1.0, 200.0)
         check_layout(self)
         lm = self.landmarks

@@ -37,6 +37,7 @@ from jax.sharding import Mesh
 
 from .. import plots
 from ..config import STUDY_PARAMETERS, StudyConfig
+from ..config.study import CLASS_EFFECTS
 from ..identify.step_a import twin_state
 from ..instrument.afm import default_afm, run_cycle
 from ..instrument.records import write_columns
@@ -75,7 +76,8 @@ from .run import (
 
 
 def scanner_draws(cfg: StudyConfig) -> list:
-    """``default_afm`` arguments for each of the study's scanners (drawn before any trial)."""
+    """``default_afm`` arguments for each of the study's scanners (drawn before any trial): the
+    truth classes in turn, each scanner with the parameters of the effects its class holds."""
     rng = np.random.default_rng([cfg.seed, 1])
     columns = {}
     for effect, params in STUDY_PARAMETERS.items():
@@ -86,9 +88,16 @@ def scanner_draws(cfg: StudyConfig) -> list:
             )
     draws = []
     for s in range(cfg.scanners):
-        d = {k: float(v[s]) for k, v in columns.items()}
+        truth = cfg.truth_classes[s % len(cfg.truth_classes)]
+        held = {
+            arg
+            for effect, params in STUDY_PARAMETERS.items()
+            if CLASS_EFFECTS.get(effect, truth) == truth
+            for arg, _, _ in params.values()
+        }
+        d = {k: float(v[s]) for k, v in columns.items() if k in held}
         d["drift_nm_per_min"] = (d.pop("drift_x"), d.pop("drift_y"))
-        draws.append(d)
+        draws.append(d | {"truth_class": truth})
     return draws
 
 
@@ -362,7 +371,7 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     r = load_results(cfg, out, draws)
     calib_s = sum(cfg.calibration.simulate.pixels / rate for _, rate in cfg.calibration.simulate.scans)
     tol = cfg.push.tolerance_radii
-    rows = {}
+    rows, successes = {}, {}
     for key, label in STAGE_LABELS.items():
         if f"{key}_error_nm" not in r:
             continue
@@ -378,6 +387,7 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             (r["push_contact"] & (e <= tol * r["radius_nm"])) if key == "push" else e <= 0.1 * r["radius_nm"]
         )
         rows[label] = stage_summary(e, success, scan_s)
+        successes[key] = success
     metrics = {
         "trials": cfg.trials,
         "scanners": cfg.scanners,
@@ -406,6 +416,13 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
     learnt = learning_rounds(r, cfg.learning.round_trials) if "AB_learnt_from" in r else None
     if learnt:
         metrics["AB_learning"] = learnt
+    if len(cfg.truth_classes) > 1:
+        truth = np.array([info[str(s)]["truth_class"] for s in r["scanner"]])
+        metrics["truth_classes"] = {
+            c: {"trials": int(np.sum(truth == c))}
+            | {f"{key}_success_pct": 100 * float(np.mean(ok[truth == c])) for key, ok in successes.items()}
+            for c in cfg.truth_classes
+        }
     modes = failure_modes(r, cfg.local_scan.margin_nm, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
     out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
@@ -428,6 +445,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         log(odds_table(odds, cfg.trials))
     if learnt:
         log(learning_table(learnt))
+    if "truth_classes" in metrics:
+        log(class_table(metrics["truth_classes"]))
     if modes:
         log(failure_table(modes, cfg.trials))
     if "ABC_noise_ceiling_pct" in metrics:
@@ -480,6 +499,15 @@ def learning_table(learnt: dict) -> str:
     for s, e in learnt["per_scanner"].items():
         lines.append(f"{s:8d} {e[0]:10.1f}nm {learnt['per_scanner_learnt'][s]:11.1f}nm")
     return "\n".join(lines) + f"\n(rounds of {learnt['round_trials']} trials)"
+
+
+def class_table(classes: dict) -> str:
+    """Each stage's success per truth class (the true scanners' model class)."""
+    keys = [k for k in STAGE_LABELS if f"{k}_success_pct" in next(iter(classes.values()))]
+    lines = [f"{'truth class':16s} {'trials':>7s}" + "".join(f" {STAGE_LABELS[k]:>9s}" for k in keys)]
+    for c, v in classes.items():
+        lines.append(f"{c:16s} {v['trials']:7d}" + "".join(f" {v[f'{k}_success_pct']:8.1f}%" for k in keys))
+    return "\n".join(lines) + "\n(success per stage, over the trials on the scanners of each truth class)"
 
 
 def failure_table(modes: dict, trials: int) -> str:

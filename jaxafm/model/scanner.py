@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checks
-from ..config.names import check_effect_names
+from ..config.names import TRUTH_CLASSES, check_effect_names
 from .effects import (
     Bow,
     Coupling,
@@ -26,7 +26,14 @@ from .effects import (
     RateDependence,
     Vibration,
 )
-from .hysteresis import AbstractHysteresis, Deadzone, GeneralizedPI, PrandtlIshlinskii, warn_beyond_span
+from .hysteresis import (
+    AbstractHysteresis,
+    Deadzone,
+    GeneralizedPI,
+    PrandtlIshlinskii,
+    Preisach,
+    warn_beyond_span,
+)
 
 Array = jax.Array
 
@@ -324,6 +331,10 @@ def default_scanner(
     drift_sigma: float = 0.05,
     noise_std: float = 0.2,
     n_operators: int = 16,
+    truth_class: str = "generalised_pi",
+    rate_tau: float = 2e-3,
+    vibration_hz: float = 150.0,
+    vibration_damping: float = 0.05,
 ) -> Scanner:
     """The default simulated tube scanner (figures from docs/conventions.md).
 
@@ -336,9 +347,20 @@ def default_scanner(
     position noise ``noise_std`` nm. From a virgin state at 0 V (``history=[[0, 0]]``), ``u = 0``
     is ``x = y = 0``.
 
+    ``truth_class`` (:data:`TRUTH_CLASSES`) chooses the hysteresis's model class, to try a
+    fitted model on a truth of another shape: ``generalised_pi`` (the above: ``n_operators``
+    plays and dead zones), ``preisach`` (a smooth Preisach plane of ``2 n_operators`` levels
+    whose loop is as wide, its asymmetry from an off-centre density instead of dead zones:
+    :meth:`~jaxafm.model.hysteresis.Preisach.with_loop_width`; more of its relays lie below
+    the middle, so from the virgin state ``u = 0`` is about 3 % of the travel above 0),
+    ``rate_dependent`` (the generalised PI then a lag of ``rate_tau`` s: loops that widen with
+    the drive's rate) or
+    ``resonant`` (the generalised PI then a mechanical mode of ``vibration_hz`` Hz and damping
+    ``vibration_damping``).
+
     Raises:
         ValueError: naming the argument, for a value that is not finite, a range or travel that
-            is not > 0, or a width, creep rate, wander or noise below 0.
+            is not > 0, a width, creep rate, wander or noise below 0, or an unknown class.
     """
     for name, value in (("u_range (V)", u_range), ("travel (nm)", travel)):
         checks.positive(f"default_scanner: {name}", value)
@@ -354,21 +376,35 @@ def default_scanner(
     if not (isinstance(n_operators, (int, np.integer)) and n_operators >= 2):
         raise ValueError(f"default_scanner: n_operators must be a whole number >= 2, got {n_operators!r}")
 
-    def axis(upper_w: tuple, lower_w: tuple) -> Axis:
-        pi = pi_with_loop_width(n_operators, 2 * u_range, travel, loop_width)
-        half = travel / 2
-        asym = Deadzone(
-            jnp.ones(()),
-            jnp.array([0.2, 0.6]) * half,
-            jnp.array(upper_w),
-            jnp.array([-0.2, -0.6]) * half,
-            jnp.array(lower_w),
+    if truth_class not in TRUTH_CLASSES:
+        raise ValueError(f"default_scanner: truth_class must be one of {TRUTH_CLASSES}, got {truth_class!r}")
+
+    def axis(upper_w: tuple, lower_w: tuple, centre: float) -> Axis:
+        if truth_class == "preisach":
+            h = Preisach.with_loop_width(2 * n_operators, u_range, travel, loop_width, centre, 1.2)
+        else:
+            pi = pi_with_loop_width(n_operators, 2 * u_range, travel, loop_width)
+            half = travel / 2
+            asym = Deadzone(
+                jnp.ones(()),
+                jnp.array([0.2, 0.6]) * half,
+                jnp.array(upper_w),
+                jnp.array([-0.2, -0.6]) * half,
+                jnp.array(lower_w),
+            )
+            h = GeneralizedPI(pi, asym)
+        return Axis(
+            h,
+            RateDependence(jnp.asarray(rate_tau)) if truth_class == "rate_dependent" else None,
+            Creep.logarithmic(creep_gamma),
+            Vibration(jnp.asarray(vibration_hz), jnp.asarray(vibration_damping))
+            if truth_class == "resonant"
+            else None,
         )
-        return Axis(GeneralizedPI(pi, asym), creep=Creep.logarithmic(creep_gamma))
 
     return Scanner(
-        axis((-0.08, -0.12), (0.06, 0.08)),
-        axis((-0.06, -0.10), (0.04, 0.06)),
+        axis((-0.08, -0.12), (0.06, 0.08), -0.2),
+        axis((-0.06, -0.10), (0.04, 0.06), -0.15),
         coupling=Coupling(jnp.asarray(coupling), jnp.asarray(-0.6 * coupling)),
         bow=Bow(jnp.asarray(bow), jnp.asarray(-0.5 * bow)),
         drift=Drift(

@@ -506,7 +506,7 @@ def noise_ceiling_pct(radius_nm: np.ndarray, noise_std_nm: np.ndarray, within_ra
     ``exp(-rho^2 / (2 sigma^2))``; 100 less the trials' mean of it."""
     rho = within_radii * np.asarray(radius_nm, dtype=float)
     sigma = np.asarray(noise_std_nm, dtype=float)
-    beyond = np.where(sigma > 0, np.exp(-(rho**2) / (2 * np.maximum(sigma, 1e-300) ** 2)), 0.0)
+    beyond = np.where(sigma > 0, np.exp(-(rho**2) / (2 * np.where(sigma > 0, sigma, 1.0) ** 2)), 0.0)
     return 100 * (1 - float(np.mean(beyond)))
 
 
