@@ -82,9 +82,9 @@ def main() -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     for s in a.scanners:
         r = step_a(cfg, s, a.chord_steps, rates, a.effects)
-        name = f"scanner_{s:02d}" + (f"_chords{a.chord_steps}" if a.chord_steps else "")
-        name += "_rates" + "_".join(f"{v:g}" for v in rates) if a.rates else ""
-        name += "_" + "_".join(a.effects) if a.effects else ""
+        changes = [f"chords{a.chord_steps}"] if a.chord_steps else []
+        changes += ["rates" + "_".join(f"{v:g}" for v in rates)] if a.rates else []
+        name = "_".join([f"scanner_{s:02d}", *changes, *(a.effects or [])])
         (a.out / f"{name}.json").write_text(json.dumps(r, indent=1))
         print(
             f"scanner {s} ({r['truth']['truth_class']}): step A {r['seconds']:.0f} s, stages kept {r['stages_kept']}, "
