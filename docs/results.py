@@ -208,6 +208,7 @@ PUSH_0_90 = Run(
     "--out experiments/results/push_study_0_90",
 )
 MINOR_LOOPS = Run("minor_loops.json", "python experiments/minor_loops.py")
+DRIFT_TRACKING = Run("drift_tracking/results.json", "python experiments/drift_tracking.py")
 STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
 STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yaml")
 STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_classes.yaml")
@@ -1784,6 +1785,46 @@ def minor_loops(results: Results) -> Table:
         for r in results(MINOR_LOOPS)
     ]
     return Table(["sweep", "x: true / fitted (ratio)", "y: true / fitted (ratio)"], rows, [MINOR_LOOPS])
+
+
+@table("drift_tracking")
+def drift_tracking(results: Results) -> Table:
+    r = results(DRIFT_TRACKING)
+    methods = ("none", "static field", "tracker with drift")
+    rows = []
+    for truth in ("generalised_pi", "preisach"):
+        for method in methods:
+            m = r[truth][method]
+            miss = m["miss_nm"]
+            rows.append(
+                [
+                    truth,
+                    method,
+                    q(statistics.median(miss[:10]), "nm"),
+                    q(statistics.median(miss[10:]), "nm"),
+                    q(max(miss[10:]), "nm"),
+                    q(m.get("miss_over_sd_rms_after_10"), "", 2) if method != "none" else "–",
+                    ", ".join(q(v, "", 3) for v in m["velocity_nm_s"]) + " nm/s"
+                    if "velocity_nm_s" in m
+                    else "–",
+                ]
+            )
+    header = [
+        "true scanner",
+        "refinement",
+        "moves 1–10",
+        "moves 11–100",
+        "worst 11–100",
+        "rms miss / sd",
+        "drift found",
+    ]
+    note = (
+        f"Median and worst miss of the true tip over {r['moves']} moves; the truth drifts at "
+        f"({q(r['velocity_truth_nm_s'][0], '', 1)}, {q(r['velocity_truth_nm_s'][1], '', 1)}) nm/s, in the "
+        f"commands' units ({q(r['velocity_commands_need_nm_s'][0], '', 2)}, "
+        f"{q(r['velocity_commands_need_nm_s'][1], '', 2)}) nm/s for the model's x gain {r['gain']}."
+    )
+    return Table(header, rows, [DRIFT_TRACKING], note)
 
 
 # --- studies (docs/study.md) -----------------------------------------------------------------

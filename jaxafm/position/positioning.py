@@ -390,15 +390,17 @@ class Push(eqx.Module):
     """The pushing task's settings: start ``gap`` nm behind the contact, push at ``speed``
     nm/s in ``samples`` steps; then up to ``corrections`` checks (:func:`push_and_check`), each
     a local scan at the goal and, when the particle lies more than ``correct_beyond`` R from
-    it, a corrective push. The particle model: the tip touches a particle of radius R
-    when their centres come within ``R + tip radius``; from then on the particle moves
-    with the tip (rigidly), and it stays where it is when the tip retracts."""
+    it, a corrective push. A push whose predicted success (:mod:`~jaxafm.position.push_odds`) is
+    below ``min_odds`` is withheld (0: every push is made). The particle model: the tip touches
+    a particle of radius R when their centres come within ``R + tip radius``; from then on the
+    particle moves with the tip (rigidly), and it stays where it is when the tip retracts."""
 
     gap: float = eqx.field(static=True, default=20.0)
     speed: float = eqx.field(static=True, default=200.0)
     samples: int = eqx.field(static=True, default=512)
     corrections: int = eqx.field(static=True, default=1)
     correct_beyond: float = eqx.field(static=True, default=0.25)
+    min_odds: float = eqx.field(static=True, default=0.0)
 
 
 class PushResult(eqx.Module):
@@ -458,13 +460,15 @@ class PushCheck(eqx.Module):
     corrective pushes made (``corrections``); what the software knows of the first push: its
     ``command`` (2,) nm (the tip's travel it asked for, in the wanted frame) and the particle's
     move that the first check saw, ``seen_moved`` (2,) nm (NaN where it found nothing or made
-    no check)."""
+    no check); ``withheld``: no push was made, its predicted success being below
+    :attr:`Push.min_odds` (then nothing moved and ``first`` is the particle left in place)."""
 
     first: PushResult
     final: Array
     corrections: Array
     command: Array
     seen_moved: Array
+    withheld: Array = False
 
 
 def push_and_check(
@@ -482,6 +486,7 @@ def push_and_check(
     approach: float = 0.0,
     home: Array = None,
     learnt: PushField = NO_PUSH_FIELD,
+    odds: Array = 1.0,
 ) -> tuple:
     """The push (:func:`push`), then up to ``spec.corrections`` rounds of: a move that arrives
     at the goal ``centre + distance * direction`` as the tip arrived at the particle, a local
@@ -493,11 +498,14 @@ def push_and_check(
     error, and a scan there finds the particle at the goal however short it fell; arriving
     alike gives the check the frame the particle was seen in. Every push is commanded through
     ``learnt`` (:meth:`~jaxafm.position.online.PushField.command`: what the checked pushes before
-    taught of this scanner's pushes; the default commands what is wanted). Returns
-    ``(PushCheck, stand)``: what the pushes did, and the next stand."""
+    taught of this scanner's pushes; the default commands what is wanted). With ``odds``, the
+    push's predicted success, below ``spec.min_odds`` nothing is done: the tip stays where it
+    is and the particle where it was. Returns ``(PushCheck, stand)``: what the pushes did, and
+    the next stand."""
     direction = direction / jnp.linalg.norm(direction)
     goal = centre + distance * direction
     home = stand.wanted if home is None else home
+    particle0, stand0 = particle, stand
     keys = jax.random.split(key, 1 + 3 * spec.corrections)
     command = learnt.command(distance * direction)
     first, stand = _push_by(pos, sample, stand, centre, particle, radius, command, keys[0], spec)
@@ -520,7 +528,20 @@ def push_and_check(
         final = jnp.where(again, pushed.final, final)
         stand = jax.tree_util.tree_map(lambda a, b: jnp.where(again, a, b), after, stand)
         made = made + again
-    return PushCheck(first, final, made, command, seen_moved), stand
+    checked = PushCheck(first, final, made, command, seen_moved, jnp.asarray(False))
+    if spec.min_odds <= 0:
+        return checked, stand
+    withheld = jnp.asarray(odds) < spec.min_odds
+    untouched = PushCheck(
+        PushResult(particle0, jnp.asarray(False), jnp.zeros_like(first.path)),
+        particle0,
+        jnp.asarray(0),
+        command,
+        jnp.full(2, jnp.nan),
+        jnp.asarray(True),
+    )
+    pick = lambda a, b: jnp.where(withheld, a, b)
+    return jax.tree_util.tree_map(pick, (untouched, stand0), (checked, stand))
 
 
 def _push_by(pos, sample, stand, centre, particle, radius, command, key, spec) -> tuple:

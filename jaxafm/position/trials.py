@@ -70,16 +70,20 @@ def trials(
     push_spec: Optional[Push] = None,
     approach: float = 0.0,
     learnt: PushField = NO_PUSH_FIELD,
+    odds=None,
 ) -> TrialResults:
     """Go to every target (K, 2) nm from ``stand``, one independent trial each (``vmap``), with
     ``seen`` (batched over the trials) the particles each trial's tip meets; with ``local``,
     then step C, and with ``push_spec`` the push of each particle by ``distances`` (K,) nm along
     the unit ``directions`` (K, 2). The move to the target makes ``approach``
     (:func:`~jaxafm.position.positioning.goto`); every push is commanded through ``learnt``
-    (:func:`~jaxafm.position.positioning.push_and_check`). Errors against the true centres ``truth``
-    (K, 2) nm of particles of ``radii`` (K,) nm; trial k draws from ``keys[k]``."""
+    (:func:`~jaxafm.position.positioning.push_and_check`), a push whose predicted success ``odds``
+    (K,) is below ``push_spec.min_odds`` withheld (``None``: every push is made). Errors against
+    the true centres ``truth`` (K, 2) nm of particles of ``radii`` (K,) nm; trial k draws from
+    ``keys[k]``."""
+    odds = jnp.ones(targets.shape[0]) if odds is None else jnp.asarray(odds, dtype=float)
 
-    def one(near, target, p, R, d, dist, key):
+    def one(near, target, p, R, d, dist, key, chance):
         k = jax.random.split(key, 4)
         xy, _, s = goto(pos, near, stand, target, k[0], approach=approach)
         error = jnp.linalg.norm(xy - p)
@@ -91,9 +95,23 @@ def trials(
         if push_spec is None:
             return TrialResults(xy, error, step_c)
         checked, s = push_and_check(
-            pos, near, s, res.centre, p, R, d, dist, k[3], push_spec, local, approach, stand.wanted, learnt
+            pos,
+            near,
+            s,
+            res.centre,
+            p,
+            R,
+            d,
+            dist,
+            k[3],
+            push_spec,
+            local,
+            approach,
+            stand.wanted,
+            learnt,
+            chance,
         )
         checked = eqx.tree_at(lambda c: c.first.path, checked, checked.first.path[::PUSH_PATH_STRIDE])
         return TrialResults(xy, error, step_c, checked, p + dist * d)
 
-    return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys)
+    return jax.vmap(one)(seen, targets, truth, radii, directions, distances, keys, odds)

@@ -226,33 +226,34 @@ def learning_trials(
 ) -> dict:
     """:func:`stage_trials` with step C for the trials ``x``, run in order in rounds of
     ``settings.learning.round_trials``: each round aims at its targets plus the offset field
-    (:func:`~jaxafm.position.online.learn_field`) that step C's verified finds on the scanner so
-    far support, each find observing ``centre found - target`` at its target (the particle's
-    place in the survey image) in the local scan's frame; with ``settings.learning.pushes``, it
+    that step C's verified finds on the scanner so far support (a
+    :class:`~jaxafm.position.online.Tracker` without drift, updated after each round: the trials
+    of a study all start where its survey left the instrument, at one time), each find observing
+    ``centre found - target`` at its target (the particle's place in the survey image) in the
+    local scan's frame; with ``settings.learning.pushes``, it
     commands its pushes through the :class:`~jaxafm.position.online.PushField` that the checked
     first pushes so far support (:func:`~jaxafm.position.online.learn_push`, :func:`observed`).
     ``earlier``: what was observed before these trials. Returns the columns, with
     ``learnt_from`` (the finds each trial's offset was learnt from) and ``push_learnt_from``
     (the pushes its push was learnt from; 0 without learning pushes)."""
     learn, work = settings.learning, settings.work
-    centre, half = np.asarray(work.centre), max(work.size) / 2
+    tracker = online.Tracker.start(work.centre, max(work.size) / 2, learn.prior_nm, learn.noise_nm)
+    tracker = tracker.observe(earlier.targets, earlier.offsets)
     seen = [earlier]
     rounds = []
     for a in range(0, len(x["trial"]), learn.round_trials):
         so_far = Observed(*(np.concatenate(v) for v in zip(*seen)))
-        field = online.learn_field(
-            so_far.targets, so_far.offsets, centre, half, learn.prior_nm, learn.noise_nm
-        )
         push_field = online.NO_PUSH_FIELD
         if learn.pushes:
             push_field = online.learn_push(so_far.commands, so_far.moved, learn.prior_nm, learn.noise_nm)
         rows = {k: v[a : a + learn.round_trials] for k, v in x.items()}
-        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field, push_field)
+        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, tracker.field(), push_field)
         seen.append(
             observed(
                 r["target"], r["c_centre"], r["c_found"], r.get("push_command"), r.get("push_seen_moved")
             )
         )
+        tracker = tracker.observe(seen[-1].targets, seen[-1].offsets)
         learnt = {"learnt_from": len(so_far.targets), "push_learnt_from": len(so_far.commands) * learn.pushes}
         rounds.append(r | {k: np.full(len(r["target"]), n) for k, n in learnt.items()})
     return {k: np.concatenate([r[k] for r in rounds]) for k in rounds[0]}
