@@ -214,6 +214,7 @@ STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yam
 STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_classes.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
+STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
 PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
 BENCH_STUDY = Run("bench_study/bench.json", "python experiments/bench_study.py")
 GPU_STUDY = Run(
@@ -397,6 +398,12 @@ def _raw_to(m: dict, raw: str, corrected: str, unit: str, digits: int = 1) -> st
     return f"{q(m[raw], unit, digits)} → {q(m[corrected], unit, digits)}"
 
 
+def _covered(m: dict, which: str, level: float) -> float:
+    """A study's true A+B errors within the predicted radius of ``level`` (%), over ``which`` trials."""
+    c = m["AB_position_coverage"]
+    return c["true"][which]["covered_pct"][c["levels"].index(level)]
+
+
 def noise_ceiling(m: dict) -> str:
     """A study's A+B+C ceiling that its scanners' white position noise sets, where it says."""
     if "ABC_noise_ceiling_pct" not in m:
@@ -556,6 +563,22 @@ GOALS = [
             f"ran {q(m['ABC_ran_pct'], '%')}"
         ),
         lambda m: min(m["ABC_success_pct"], m["push_success_pct"], m["ABC_ran_pct"]) >= 95,
+    ),
+    Goal(
+        "study_position_coverage",
+        "positions after A+B (study.yaml, ≥ 4096 trials): the predicted 90 % radius holds 85–95 % of the true errors",
+        STUDY,
+        "docs/study.md#the-spread-the-tracker-predicts-for-an-ab-move",
+        lambda m: (
+            f"{q(_covered(m, 'all', 0.9), '%')} within the 90 % radius, {q(_covered(m, 'all', 0.5), '%')} within "
+            f"the 50 % over {count(m['AB_position_coverage']['true']['all']['trials'])} trials; "
+            "aimed by 10 finds or more "
+            f"{q(_covered(m, 'learnt', 0.9), '%')} and {q(_covered(m, 'learnt', 0.5), '%')} "
+            "(after A alone: no prediction)"
+        ),
+        lambda m: (
+            m["AB_position_coverage"]["true"]["all"]["trials"] >= 4096 and 85 <= _covered(m, "all", 0.9) <= 95
+        ),
     ),
     Goal(
         "study_classes",
@@ -1966,8 +1989,84 @@ def study_push_learning(results: Results) -> Table:
         ["push error, median"] + [q(f["push_error_median_nm"], "nm") for f in m],
         ["push error, p95"] + [q(f["push_error_p95_nm"], "nm") for f in m],
     ]
-    rows += [[f"failed: {k}"] + [count(f[k]) for f in fails] for k in fails[0] if any(f[k] for f in fails)]
+    rows += [
+        [f"failed: {k}"] + [count(f.get(k, 0)) for f in fails]
+        for k in fails[0]
+        if any(f.get(k) for f in fails)
+    ]
     return Table(["", "pushes as commanded (study.yaml)", "pushes that learn"], rows, list(runs))
+
+
+def position_coverage(run: Run) -> Callable[[Results], Table]:
+    """A study's A+B misses against the spread its tracker predicted: coverage at 50 and 90 %."""
+
+    def make(results: Results) -> Table:
+        c = results(run)["AB_position_coverage"]
+        at = {level: i for i, level in enumerate(c["levels"])}
+        what = {"true": "the true A+B error", "find": "step C's find about the aim (software's frame)"}
+        trials = {"all": "every trial", "learnt": "aimed by 10 finds or more"}
+        rows = [
+            [
+                what[kind],
+                trials[name],
+                count(v["trials"]),
+                q(v["sd_median_nm"], "nm"),
+                q(v["miss_over_sd_median"], "", 2),
+                q(v["covered_pct"][at[0.5]], "%"),
+                q(v["covered_pct"][at[0.9]], "%"),
+            ]
+            for kind in what
+            for name in trials
+            for v in [c[kind][name]]
+        ]
+        header = [
+            "miss",
+            "trials",
+            "n",
+            "predicted sd, median",
+            "miss / sd, median",
+            "within 50 %",
+            "within 90 %",
+        ]
+        return Table(header, rows, [run], "Calibrated: 50 % and 90 %; miss / sd 1.18 at the median.")
+
+    return make
+
+
+TABLES["study_position_coverage"] = position_coverage(STUDY)
+
+
+@table("study_push_gate")
+def study_push_gate(results: Results) -> Table:
+    """The pushes gated by their odds: read from study.yaml's pushes (all made), and the gated run."""
+    plain, gated = results(STUDY), results(STUDY_GATE)
+    rows = [
+        [
+            f"study.yaml's pushes, withheld below {q(100 * g['min_odds'], '%', 0)}",
+            q(g["made_pct"], "%"),
+            q(g["success_of_made_pct"], "%"),
+            "–",
+        ]
+        for g in plain["push_gate"]
+    ]
+    rows.append(
+        [
+            "study.yaml, every push made",
+            "100.0 %",
+            q(plain["push_success_pct"], "%"),
+            q(plain["push_success_pct"], "%"),
+        ]
+    )
+    rows.append(
+        [
+            f"study_push_gate.yaml: withheld below {q(100 * gated['push_gate_min_odds'], '%', 0)} in the study",
+            q(100 - gated["push_withheld_pct"], "%"),
+            q(gated["push_success_of_made_pct"], "%"),
+            q(gated["push_success_pct"], "%"),
+        ]
+    )
+    header = ["pushes", "made", "success of those made", "success over every trial"]
+    return Table(header, rows, [STUDY, STUDY_GATE])
 
 
 @table("push_shortfall")

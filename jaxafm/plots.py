@@ -603,6 +603,34 @@ def _validation_held_out(ax, view) -> None:
     )
 
 
+def position_coverage(coverage: dict, path, title: str = "") -> None:
+    """The share of trials whose miss (the true A+B error; step C's find about the aim) fell within
+    the radius their predicted spread gives at each nominal level, against the level
+    (``coverage``: :func:`~jaxafm.study.learning.position_coverage`); on the diagonal a
+    calibrated prediction."""
+    fig, ax = subplots(figsize=(6, 5))
+    levels = 100 * np.asarray(coverage["levels"])
+    ax.plot([0, 100], [0, 100], color="0.6", lw=1, label="calibrated")
+    what = {"true": ("true A+B error", "o-"), "find": ("step C's find about the aim", "s--")}
+    for kind, (label, style) in what.items():
+        for name, colour in (("all", "C0"), ("learnt", "C1")):
+            v = coverage[kind][name]
+            ax.plot(
+                levels, v["covered_pct"], style, color=colour, label=f"{label}, {name}: {v['trials']} trials"
+            )
+    ax.set(
+        xlim=(0, 100),
+        ylim=(0, 100),
+        xlabel="nominal level of the predicted radius [%]",
+        ylabel="misses within it [%]",
+        title=title or "A+B moves against the tracker's predicted spread",
+    )
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def learning_curve(rounds: dict, path, title: str = "") -> None:
     """The A+B error of a scanner's trials against their place in its sequence, as step C's finds
     teach the moves (``rounds``: :func:`~jaxafm.study.learning.learning_rounds`): each scanner's

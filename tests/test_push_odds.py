@@ -8,7 +8,7 @@ from scipy import stats
 from jaxafm import plots
 from jaxafm.position import push_odds
 from jaxafm.study.monte_carlo import predicted_push_success
-from jaxafm.study.reliability import reliability
+from jaxafm.study.reliability import gate, reliability
 
 
 @pytest.mark.parametrize("mean, sd, tolerance", [(0.0, 2.0, 3.0), (4.0, 1.5, 5.0), (6.0, 3.0, 2.0)])
@@ -130,3 +130,15 @@ def test_a_study_learns_each_scanners_odds_from_its_own_earlier_pushes(tmp_path)
     assert np.nanmean(p[n:]) < 0.5 < np.nanmean(p[:n])
     plots.push_reliability(reliability(p, ok), p, tmp_path / "odds.png")
     assert (tmp_path / "odds.png").stat().st_size > 10_000
+
+
+def test_the_gate_counts_the_pushes_made_and_their_success_by_hand():
+    # six tried pushes (one not tried), odds 0.2-1 and one without odds (made at every threshold)
+    p = np.array([0.2, 0.6, 0.95, 0.995, np.nan, 0.999, 0.1])
+    ok = np.array([False, True, False, True, True, True, True])
+    tried = np.array([True, True, True, True, True, True, False])
+    rows = gate(p, ok, tried)
+    assert [g["min_odds"] for g in rows] == [0.5, 0.9, 0.99]
+    # >= 0.5: pushes 1, 2, 3, 4, 5 (4 of 5 succeeded); >= 0.9: 2, 3, 4, 5; >= 0.99: 3, 4, 5
+    np.testing.assert_allclose([g["made_pct"] for g in rows], [500 / 6, 400 / 6, 300 / 6])
+    np.testing.assert_allclose([g["success_of_made_pct"] for g in rows], [80.0, 75.0, 100.0])

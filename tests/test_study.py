@@ -27,9 +27,9 @@ from jaxafm.jobs import study as job
 from jaxafm.jobs.run import workspace_layout
 from jaxafm.model.io import save_model
 from jaxafm.position import survey
-from jaxafm.position.online import learn_field, learn_push
+from jaxafm.position.online import learn_field, learn_push, quadratic
 from jaxafm.study import monte_carlo as study
-from jaxafm.study.learning import learning_rounds
+from jaxafm.study.learning import learning_rounds, position_coverage, rayleigh_radius
 from jaxafm.study.monte_carlo import Unsurveyed, image_position, nearest_pixel
 
 # step A's model, written beside each config by write() (no committed result is read): the
@@ -130,6 +130,14 @@ def chunk_files(out: Path) -> list:
                 "learning": {"round_trials": 2, "pushes": True},
             },
             "push.corrections >= 1",
+        ),
+        (
+            {"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 2, "min_push_odds": 0.99}},
+            "learning.min_push_odds: 0.99 gates the pushes",
+        ),
+        (
+            {"stages": ["A+B", "A+B+C"], "learning": {"round_trials": 2, "min_push_odds": 1.5}},
+            "min_push_odds",
         ),
     ],
 )
@@ -345,6 +353,18 @@ def test_learning_aims_later_rounds_by_the_finds_of_earlier_ones(tmp_path):
         5.0,
     )
     np.testing.assert_allclose(offset[2:], field(xy("AB_target", slice(2, 4))), rtol=1e-9)
+    # the predicted spread, by hand: the field's sd at the target (the prior's, 100 nm per
+    # coefficient, in the first round; the ridge posterior's after it) and a find's 5 nm in
+    # quadrature, times the variance factor: the first round's innovations (its offsets, against
+    # the prior's zero) in units of their covariance S = 100^2 Q Q^T + 5^2 I, with 4 pseudo-axes
+    Q = lambda rows: quadratic(xy("AB_target", rows), np.asarray(work.centre), max(work.size) / 2)
+    q1, q2 = Q(slice(0, 2)), Q(slice(2, 4))
+    nu = xy("ABC_centre", slice(0, 2)) - xy("AB_target", slice(0, 2))
+    chi2 = np.sum(nu * np.linalg.solve(100.0**2 * q1 @ q1.T + 25.0 * np.eye(2), nu))
+    post = 25.0 * np.linalg.inv(q1.T @ q1 + (5.0 / 100.0) ** 2 * np.eye(6))
+    sd2 = np.sqrt((chi2 + 4) / (4 + 4)) * np.sqrt(np.einsum("ki,ij,kj->k", q2, post, q2) + 25.0)
+    sd1 = np.sqrt(100.0**2 * np.sum(q1**2, -1) + 25.0)
+    np.testing.assert_allclose(r["AB_predicted_sd_nm"], np.r_[sd1, sd2], rtol=1e-9)
     for k in r:  # the first round is the study without learning
         if k in without:
             np.testing.assert_allclose(r[k][:2], without[k][:2], rtol=1e-9, err_msg=k)
@@ -435,6 +455,55 @@ def test_learning_rounds_by_hand():
     assert got["learnt_scanners"] == [0, 1] and got["unlearnt_scanners"] == [2]
     assert got["first_round_median_nm"] == 60.0 and got["learnt_median_nm"] == 35.0  # (40, 60, 80); (20, 50)
     assert got["learnt_ratio"] == pytest.approx(35.0 / 60.0)
+
+
+def test_a_rounds_push_odds_come_from_the_scanners_earlier_pushes():
+    # eight earlier first pushes of 200-400 nm, all made and touching: falling 12 nm short (beyond
+    # the 5 nm tolerance of R = 5 nm at 1 R) gives the next round's pushes odds near 0; landing
+    # within 0.3 nm gives odds near 1 (the contact rule's 9/10 times the landing's ~1); withheld
+    # earlier pushes do not count, and with fewer than five made the pushes get 1 (no odds: made)
+    rng = np.random.default_rng(6)
+    distance = rng.uniform(200, 400, 8)
+    rows = {"distance": np.array([250.0, 350.0]), "radius": np.array([5.0, 5.0])}
+
+    def history(short, made=np.ones(8, bool)):
+        along, across = short + rng.normal(0, 0.3, 8), rng.normal(0, 0.3, 8)
+        return study.push_rows(distance, along, across, np.ones(8, bool), ~made)
+
+    assert np.all(study._round_odds(history(-12.0), rows, 1.0) < 1e-6)
+    np.testing.assert_allclose(study._round_odds(history(0.0), rows, 1.0), 0.9, atol=1e-3)
+    np.testing.assert_array_equal(study._round_odds(history(-12.0, np.arange(8) < 4), rows, 1.0), 1.0)
+
+
+def test_position_coverage_of_gaussian_errors_is_the_nominal_level():
+    # A+B miss vectors drawn from isotropic 2-D Gaussians of known per-axis sd (1-30 nm): the
+    # share within each level's Rayleigh radius is that level, to the binomial error of 20,000
+    # trials (at most 0.35 points sd; 1.5 points allowed); the same errors against half their sd
+    # are covered far less (90 % nominal: P(|e| <= 1.07 s) = 44 %); learnt trials are those aimed
+    # by 10 finds or more. The find's miss, step C's centre less the aim (target + offset), drawn
+    # the same way with half the sd, over the verified finds (every other trial) alone
+    rng = np.random.default_rng(5)
+    n = 20_000
+    sd = rng.uniform(1.0, 30.0, n)
+    e = np.linalg.norm(sd[:, None] * rng.normal(size=(n, 2)), axis=-1)
+    target, offset = rng.uniform(-1000, 1000, (n, 2)), rng.normal(0, 50, (n, 2))
+    centre = target + offset + sd[:, None] / 2 * rng.normal(size=(n, 2))
+    xy = lambda name, v: {f"{name}_x_nm": v[:, 0], f"{name}_y_nm": v[:, 1]}
+    r = (
+        {"AB_error_nm": e, "AB_predicted_sd_nm": sd, "AB_learnt_from": np.arange(n) % 20}
+        | {"ABC_found": np.arange(n) % 2 == 0}
+        | xy("ABC_centre", centre)
+        | xy("AB_target", target)
+        | xy("AB_offset", offset)
+    )
+    got = position_coverage(r)
+    np.testing.assert_allclose(got["true"]["all"]["covered_pct"], 100 * np.asarray(got["levels"]), atol=1.5)
+    assert got["true"]["learnt"]["trials"] == n // 2 and got["find"]["all"]["trials"] == n // 2
+    within = 100 * (1 - np.exp(-((2 * rayleigh_radius(np.asarray(got["levels"]))) ** 2) / 2))
+    np.testing.assert_allclose(got["find"]["all"]["covered_pct"], within, atol=2.0)
+    assert rayleigh_radius(0.9) == pytest.approx(2.146, abs=1e-3)
+    narrow = position_coverage(r | {"AB_predicted_sd_nm": sd / 2})
+    assert narrow["true"]["all"]["covered_pct"][-2] < 60.0
 
 
 def test_killed_two_device_study_resumes_to_the_same_results(baseline):

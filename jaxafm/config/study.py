@@ -91,7 +91,9 @@ class Learning(Strict):
     """Step C's finds teach the A+B moves after them on the same scanner: a smooth offset field
     (a quadratic over the workspace, Bayesian ridge regression) learnt from every verified find
     so far, the trials run in rounds in their order (docs/study.md). With ``pushes``, the first
-    pushes' checks teach the pushes after them too (the same prior and scatter)."""
+    pushes' checks teach the pushes after them too (the same prior and scatter); with
+    ``min_push_odds``, a push whose odds from the scanner's earlier rounds are below it is
+    withheld."""
 
     round_trials: int = Field(
         8, ge=1, le=100_000, description="trials per round; each learns from the rounds before"
@@ -103,6 +105,13 @@ class Learning(Strict):
     pushes: bool = Field(
         False,
         description="the checked first pushes teach the pushes after them (needs the push and a check)",
+    )
+    min_push_odds: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="withhold a push whose predicted success (from the scanner's earlier pushes) is below "
+        "this probability; 0: every push is made (needs the push)",
     )
 
 
@@ -182,6 +191,11 @@ class StudyConfig(Positioning):
             raise ValueError(
                 "learning.pushes: the pushes learn from the checks after them; add 'push' to stages "
                 "and set push.corrections >= 1, or set learning.pushes: false"
+            )
+        if self.learning is not None and self.learning.min_push_odds > 0 and "push" not in self.stages:
+            raise ValueError(
+                f"learning.min_push_odds: {self.learning.min_push_odds:g} gates the pushes; add 'push' to "
+                "stages or set learning.min_push_odds: 0"
             )
         needs = {"A+B+C": "A+B", "push": "A+B+C"}
         for stage, before in needs.items():

@@ -46,7 +46,7 @@ from ..model.io import load_model, save_model
 from ..position import survey
 from ..position.positioning import Positioner
 from ..position.survey import STAGES, stage_key
-from ..study.learning import LEARNT_FINDS, learning_rounds
+from ..study.learning import LEARNT_FINDS, learning_rounds, position_coverage
 from ..study.monte_carlo import (
     NOTHING_OBSERVED,
     Learning,
@@ -62,7 +62,7 @@ from ..study.monte_carlo import (
     with_chunk_observed,
 )
 from ..study.processes import check_same, from_process_0
-from ..study.reliability import reliability
+from ..study.reliability import gate, reliability
 from .calibrate import calibration_scans
 from .folder import Output
 from .run import (
@@ -136,8 +136,12 @@ def trial_settings(cfg: StudyConfig) -> TrialSettings:
         workspace_layout(cfg)[0],
         cfg.landmarks.approach_nm,
         local_scan_settings(cfg.local_scan) if "A+B+C" in cfg.stages else None,
-        push_settings(cfg.push) if "push" in cfg.stages else None,
-        None if cfg.learning is None else Learning(**cfg.learning.model_dump()),
+        push_settings(cfg.push, cfg.learning.min_push_odds if cfg.learning else 0.0)
+        if "push" in cfg.stages
+        else None,
+        None
+        if cfg.learning is None
+        else Learning(**cfg.learning.model_dump(), push_tolerance_radii=cfg.push.tolerance_radii),
     )
 
 
@@ -293,23 +297,25 @@ def run(
             _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             mine = [c for c in todo if c[0] == s]
-            earlier = _kept_observed(cfg, out, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
+            earlier = _kept_observed(cfg, out, draws, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
-                earlier = with_chunk_observed(earlier, r) if cfg.learning else NOTHING_OBSERVED
+                distance = draws["push_distance_nm"][a:b]
+                earlier = with_chunk_observed(earlier, r, distance) if cfg.learning else NOTHING_OBSERVED
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
 
 
-def _kept_observed(cfg: StudyConfig, out: Output, s: int, a: int) -> Observed:
+def _kept_observed(cfg: StudyConfig, out: Output, draws: dict, s: int, a: int) -> Observed:
     """What scanner ``s``'s trials before trial ``a`` observed (step C's finds, the checked
     pushes), from the chunk files that a resumed study kept (all written before the run began,
-    so every process reads them alike)."""
+    so every process reads them alike) and the trials' ``draws``."""
     seen = NOTHING_OBSERVED
     for t, c, b in _chunks(cfg):
         if t == s and b <= a:
-            seen = with_chunk_observed(seen, np.load(out.path / chunk_file(c, b)))
+            columns = np.load(out.path / chunk_file(c, b))
+            seen = with_chunk_observed(seen, columns, draws["push_distance_nm"][c:b])
     return seen
 
 
@@ -404,7 +410,19 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             "push_first_success_pct": 100 * float(np.mean(first)),
             "push_corrections_mean": float(np.mean(r["push_corrections"])),
         }
+        if cfg.learning and cfg.learning.min_push_odds > 0:
+            ran = np.isfinite(r["push_error_nm"])  # a withheld push leaves its particle where it was
+            made = ran & ~r["push_withheld"]
+            metrics |= {
+                "push_gate_min_odds": cfg.learning.min_push_odds,
+                "push_withheld_pct": 100 * float(np.mean(r["push_withheld"][ran])),
+                "push_success_of_made_pct": 100 * float(np.mean(successes["push"][made]))
+                if made.any()
+                else None,
+            }
         odds = _push_odds(r, first, tol, metrics)
+        tried = np.isfinite(r["push_error_nm"]) & ~r.get("push_withheld", np.zeros(len(first), bool))
+        metrics["push_gate"] = gate(r["push_first_predicted"], successes["push"], tried)
     if "ABC_found" in r:
         metrics |= {
             "ABC_found_pct": 100 * float(np.mean(r["ABC_found"])),
@@ -414,8 +432,11 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         if np.all(np.isfinite(sigma)):  # each scanner's noise as drawn (scanners.json)
             metrics["ABC_noise_ceiling_pct"] = noise_ceiling_pct(r["radius_nm"], sigma)
     learnt = learning_rounds(r, cfg.learning.round_trials) if "AB_learnt_from" in r else None
+    coverage = position_coverage(r) if "AB_predicted_sd_nm" in r else None
     if learnt:
         metrics["AB_learning"] = learnt
+    if coverage:
+        metrics["AB_position_coverage"] = coverage
     if len(cfg.truth_classes) > 1:
         truth = np.array([info[str(s)]["truth_class"] for s in r["scanner"]])
         metrics["truth_classes"] = {
@@ -434,6 +455,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         out.write("push_odds.png", lambda f: plots.push_reliability(odds, r["push_first_predicted"], f))
     if learnt:
         out.write("learning.png", lambda f: plots.learning_curve(learnt, f))
+    if coverage:
+        out.write("position_coverage.png", lambda f: plots.position_coverage(coverage, f))
     log(table(rows, tol))
     if "push_first_success_pct" in metrics:
         log(
@@ -441,10 +464,20 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             f"{metrics['push_success_pct']:.1f} % after the checks ({metrics['push_corrections_mean']:.2f} "
             "corrective pushes per trial)"
         )
+    if "push_withheld_pct" in metrics:
+        log(
+            f"push: {metrics['push_withheld_pct']:.1f} % withheld (predicted success below "
+            f"{100 * cfg.learning.min_push_odds:g} %); of the pushes made, {metrics['push_success_of_made_pct']:.1f} % "
+            "succeeded"
+        )
     if odds:
         log(odds_table(odds, cfg.trials))
+    if "push_gate" in metrics:
+        log(gate_line(metrics["push_gate"]))
     if learnt:
         log(learning_table(learnt))
+    if coverage:
+        log(coverage_line(coverage))
     if "truth_classes" in metrics:
         log(class_table(metrics["truth_classes"]))
     if modes:
@@ -499,6 +532,32 @@ def learning_table(learnt: dict) -> str:
     for s, e in learnt["per_scanner"].items():
         lines.append(f"{s:8d} {e[0]:10.1f}nm {learnt['per_scanner_learnt'][s]:11.1f}nm")
     return "\n".join(lines) + f"\n(rounds of {learnt['round_trials']} trials)"
+
+
+def gate_line(rows: list) -> str:
+    """What a gate on the first push's odds would have done, per threshold."""
+    parts = [
+        f"at {100 * g['min_odds']:g} %: {g['made_pct']:.1f} % made, {g['success_of_made_pct']:.1f} % of them succeeded"
+        for g in rows
+    ]
+    return "push withheld below its odds (read from these pushes): " + "; ".join(parts)
+
+
+def coverage_line(coverage: dict) -> str:
+    """The predicted A+B spread's coverage at 50 and 90 %: of the true A+B errors and of step C's
+    finds about the aims, over all trials and the learnt ones."""
+    at = {level: i for i, level in enumerate(coverage["levels"])}
+    what = {"true": "true A+B errors", "find": "step C's finds about the aim"}
+    lines = ["the spread the tracker predicted for each A+B move, against"]
+    for kind, label in what.items():
+        for name in ("all", "learnt"):
+            v = coverage[kind][name]
+            lines.append(
+                f"  {label}, {name} ({v['trials']} trials, median sd {v['sd_median_nm']:.1f} nm): "
+                f"{v['covered_pct'][at[0.5]]:.1f} % within the 50 % radius, {v['covered_pct'][at[0.9]]:.1f} % "
+                "within the 90 %"
+            )
+    return "\n".join(lines)
 
 
 def class_table(classes: dict) -> str:

@@ -98,3 +98,15 @@ def contact_odds(contact: np.ndarray, pushed: np.ndarray) -> np.ndarray:
     made = np.asarray(pushed, bool)
     hit = np.asarray(contact, bool) & made
     return (np.cumsum(hit) - hit + 1.0) / (np.cumsum(made) - made + 2.0)
+
+
+def odds_from_earlier(distance, along, across, contact, made, tolerance) -> np.ndarray:
+    """Each push's predicted success, the chance of touching (:func:`contact_odds`) times that of
+    ending within ``tolerance`` (k,) nm of its goal (:func:`success_probability` of
+    :func:`online_misses`), from the pushes before it (in the given order) that were ``made``
+    (k,) bool; their ``distance``, miss ``along`` and ``across`` (k,) nm and ``contact`` (k,) bool.
+    NaN for a push with fewer than :data:`MIN_PUSHES` touching pushes before it."""
+    made = np.asarray(made, bool) & np.isfinite(along) & np.isfinite(across)
+    touched = made & np.asarray(contact, bool)
+    miss = online_misses(distance, along, across, touched)
+    return contact_odds(touched, made) * success_probability(miss, tolerance)

@@ -46,3 +46,43 @@ def learning_rounds(r: dict, round_trials: int) -> dict:
         "learnt_median_nm": after,
         "learnt_ratio": after / first if first > 0 else float("nan"),
     }
+
+
+#: the nominal levels (probability) of the predicted A+B radius a study scores
+COVERAGE_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
+
+
+def rayleigh_radius(level) -> np.ndarray:
+    """The radius, in units of the per-axis sd ``s``, inside which a 2-D isotropic Gaussian error
+    lies with probability ``level``: its length is Rayleigh, ``P(|e| <= s r) = 1 - exp(-r^2 / 2)``,
+    so ``r = sqrt(-2 ln(1 - level))`` (1.18 at 50 %, 2.15 at 90 %)."""
+    return np.sqrt(-2 * np.log1p(-np.asarray(level, float)))
+
+
+def position_coverage(r: dict) -> dict:
+    """How often a miss fell within the radius that the predicted spread ``AB_predicted_sd_nm``
+    gives at each of :data:`COVERAGE_LEVELS` (:func:`rayleigh_radius`), for two misses: the A+B
+    tip's true distance from its particle (``true``, ``AB_error_nm``), and where step C found the
+    particle, in the software's frame, from where the move was aimed (``find``,
+    ``ABC_centre - AB_target - AB_offset``, over the verified finds): what the tracker learns
+    from. Each for all trials with both (``all``) and for those aimed by at least
+    :data:`LEARNT_FINDS` finds (``learnt``): ``trials``, ``covered_pct`` per level, the median
+    predicted sd and the median of miss / sd. A calibrated prediction covers each level's share."""
+    xy = lambda name: np.stack([r[f"{name}_x_nm"], r[f"{name}_y_nm"]], -1)
+    find = np.linalg.norm(xy("ABC_centre") - xy("AB_target") - xy("AB_offset"), axis=-1)
+    misses = {"true": r["AB_error_nm"], "find": np.where(r["ABC_found"], find, np.nan)}
+    sd, finds = r["AB_predicted_sd_nm"], r["AB_learnt_from"]
+    radius = rayleigh_radius(COVERAGE_LEVELS)
+    out = {"levels": list(COVERAGE_LEVELS)}
+    for kind, e in misses.items():
+        out[kind] = {}
+        for name, keep in (("all", np.ones(e.shape, bool)), ("learnt", finds >= LEARNT_FINDS)):
+            m = keep & np.isfinite(e) & np.isfinite(sd)
+            z = e[m] / sd[m]
+            out[kind][name] = {
+                "trials": int(m.sum()),
+                "covered_pct": [100 * float(np.mean(z <= k)) if m.any() else float("nan") for k in radius],
+                "sd_median_nm": float(np.median(sd[m])) if m.any() else float("nan"),
+                "miss_over_sd_median": float(np.median(z)) if m.any() else float("nan"),
+            }
+    return out

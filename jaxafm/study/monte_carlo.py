@@ -112,12 +112,18 @@ class Learning:
         noise_nm: the scatter of one find about the field, nm.
         pushes: the checked first pushes teach the pushes after them
             (:func:`~jaxafm.position.online.learn_push`, with the same prior and scatter).
+        min_push_odds: a push whose predicted success from the scanner's earlier rounds is below
+            it is withheld (0: every push is made; the gate itself is ``TrialSettings.push``'s
+            ``min_odds``).
+        push_tolerance_radii: the push succeeds within this many R of its goal (the odds' tolerance).
     """
 
     round_trials: int
     prior_nm: float
     noise_nm: float
     pushes: bool = False
+    min_push_odds: float = 0.0
+    push_tolerance_radii: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,12 +163,14 @@ def stage_trials(
     local=None,
     field=None,
     push_field: online.PushField = online.NO_PUSH_FIELD,
+    odds=None,
 ) -> dict:
     """:func:`~jaxafm.position.trials.trials` for the trials ``x`` (NumPy columns ``trial``,
     ``centre``, ``radius``, ``direction``, ``distance``) on one stage's ``survey``, split over the
     mesh. Each trial aims at its particle's place in the survey image (``target``) plus the
     learnt offset ``field`` there (an :class:`~jaxafm.position.online.OffsetField`; ``None``: no
-    offset); every push is commanded through ``push_field``. With ``local``, in two passes
+    offset); every push is commanded through ``push_field``, and withheld where its predicted
+    success ``odds`` (K,) is below ``settings.push.min_odds`` (``None``: made). With ``local``, in two passes
     (:data:`FIRST_PASS_LINES`); each trial's key is ``fold_in(fold_in(root, trial), stage)``, so
     the second pass gives what one pass with every line would. Returns the trials' NumPy columns
     (:func:`_columns`), ``target``, the ``offset`` aimed by and ``outside_grid``."""
@@ -174,7 +182,7 @@ def stage_trials(
     )
     target = np.asarray(target)
     offset = np.zeros_like(target) if field is None else field(target)
-    x = x | {"target": target + offset}
+    x = x | {"target": target + offset} | ({} if odds is None else {"odds": np.asarray(odds, float)})
     frame = survey.positioner.frame
     box = (np.asarray(frame.measured).min(0), np.asarray(frame.measured).max(0)) if frame else None
     root = jax.random.fold_in(jax.random.key(settings.seed), 0)
@@ -199,6 +207,7 @@ def stage_trials(
             settings.push if spec else None,
             settings.approach if pos.frame is not None else 0.0,
             push_field,
+            a.get("odds"),
         )
         return _columns(gather(r, len(idx)))
 
@@ -234,8 +243,11 @@ def learning_trials(
     commands its pushes through the :class:`~jaxafm.position.online.PushField` that the checked
     first pushes so far support (:func:`~jaxafm.position.online.learn_push`, :func:`observed`).
     ``earlier``: what was observed before these trials. Returns the columns, with
-    ``learnt_from`` (the finds each trial's offset was learnt from) and ``push_learnt_from``
-    (the pushes its push was learnt from; 0 without learning pushes)."""
+    ``learnt_from`` (the finds each trial's offset was learnt from), ``push_learnt_from``
+    (the pushes its push was learnt from; 0 without learning pushes) and ``predicted_sd`` (nm):
+    the spread per axis of the trial's find about where it was aimed that the tracker predicted,
+    its variance factor times the field's sd at the target and one find's scatter
+    (``learning.noise_nm``) in quadrature."""
     learn, work = settings.learning, settings.work
     tracker = online.Tracker.start(work.centre, max(work.size) / 2, learn.prior_nm, learn.noise_nm)
     tracker = tracker.observe(earlier.targets, earlier.offsets)
@@ -247,16 +259,46 @@ def learning_trials(
         if learn.pushes:
             push_field = online.learn_push(so_far.commands, so_far.moved, learn.prior_nm, learn.noise_nm)
         rows = {k: v[a : a + learn.round_trials] for k, v in x.items()}
-        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, tracker.field(), push_field)
+        odds = None
+        if learn.min_push_odds > 0:
+            odds = _round_odds(so_far.pushes, rows, learn.push_tolerance_radii)
+        field = tracker.field()
+        r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field, push_field, odds)
+        r["predicted_sd"] = tracker.factor * np.hypot(field.sd(r["target"]), learn.noise_nm)
+        pushes = None
+        if "push_first" in r:
+            along, across = push_odds.components(r["push_first"] - r["push_goal"], rows["direction"])
+            tried = ~r["push_withheld"] & np.isfinite(r["error_nm"])  # unseen: no target, no push
+            pushes = push_rows(rows["distance"], along, across, r["push_contact"], ~tried)
         seen.append(
             observed(
-                r["target"], r["c_centre"], r["c_found"], r.get("push_command"), r.get("push_seen_moved")
+                r["target"],
+                r["c_centre"],
+                r["c_found"],
+                r.get("push_command"),
+                r.get("push_seen_moved"),
+                pushes,
             )
         )
         tracker = tracker.observe(seen[-1].targets, seen[-1].offsets)
         learnt = {"learnt_from": len(so_far.targets), "push_learnt_from": len(so_far.commands) * learn.pushes}
         rounds.append(r | {k: np.full(len(r["target"]), n) for k, n in learnt.items()})
     return {k: np.concatenate([r[k] for r in rounds]) for k in rounds[0]}
+
+
+def _round_odds(pushes: np.ndarray, rows: dict, tolerance_radii: float) -> np.ndarray:
+    """Each of a round's pushes' predicted success from the scanner's earlier first pushes
+    ``pushes`` (:class:`Observed`), :func:`~jaxafm.position.push_odds.odds_from_earlier`; 1 (no
+    odds: the push is made) while fewer than :data:`~jaxafm.position.push_odds.MIN_PUSHES`
+    touching pushes came before."""
+    k = len(rows["distance"])
+    blank = np.full(k, np.nan)
+    distance, along, across, contact, made = np.concatenate(
+        [pushes, np.stack([rows["distance"]] + [blank] * 4, -1)]
+    ).T
+    tolerance = tolerance_radii * np.concatenate([np.ones(len(pushes)), rows["radius"]])
+    odds = push_odds.odds_from_earlier(distance, along, across, contact == 1, made == 1, tolerance)[-k:]
+    return np.where(np.isfinite(odds), odds, 1.0)
 
 
 def _columns(r: TrialResults) -> dict:
@@ -285,6 +327,7 @@ def _columns(r: TrialResults) -> dict:
             "push_contact": r.push.first.contact,
             "push_command": r.push.command,
             "push_seen_moved": r.push.seen_moved,
+            "push_withheld": r.push.withheld,
         }
     return columns
 
@@ -305,40 +348,62 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
 
 
 class Observed(NamedTuple):
-    """What a scanner's trials observed, for :func:`learning_trials` (each (k, 2) nm): step C's
-    verified finds, their ``targets`` and ``offsets`` (``centre found - target``), and the checked
-    first pushes, their ``commands`` and the particle's moves the checks saw (``moved``)."""
+    """What a scanner's trials observed, for :func:`learning_trials`: step C's verified finds,
+    their ``targets`` and ``offsets`` (``centre found - target``), the checked first pushes, their
+    ``commands`` and the particle's moves the checks saw (``moved``), each (k, 2) nm; and every
+    first push tried, ``pushes`` (k, 5): its distance (nm), its miss along and across it (nm,
+    against the truth, as a reference outside the frame measures it; NaN where none was made),
+    whether it touched its particle and whether it was made (1 or 0; not: withheld)."""
 
     targets: np.ndarray
     offsets: np.ndarray
     commands: np.ndarray
     moved: np.ndarray
+    pushes: np.ndarray
 
 
 #: no observation: the ``earlier`` of a scanner's first trials
-NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4)
+NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4, np.zeros((0, 5)))
 
 #: a checked push teaches only when its particle moved at least this share of the command along
 #: it: one whose tip missed the particle left it where it was, which is no shortfall of the drive
 MOVED_AT_LEAST = 0.5
 
 
-def observed(target, centre, found, command=None, moved=None) -> Observed:
+def observed(target, centre, found, command=None, moved=None, pushes=None) -> Observed:
     """What one round's trials observed: step C's verified finds (``found``; ``target``,
-    ``centre`` found) and, with ``command`` and ``moved``, the first pushes whose check found the
-    particle moved by at least :data:`MOVED_AT_LEAST` of the command along it."""
+    ``centre`` found); with ``command`` and ``moved``, the first pushes whose check found the
+    particle moved by at least :data:`MOVED_AT_LEAST` of the command along it; and the first
+    pushes tried, ``pushes`` (k, 5) (:class:`Observed`; ``None``: none)."""
     found = np.asarray(found, bool)
     if command is None:
         command = moved = np.zeros((0, 2))
     along = np.sum(np.nan_to_num(moved) * command, -1) / np.maximum(np.sum(command**2, -1), 1e-12)
     pushed = np.isfinite(moved).all(-1) & (along >= MOVED_AT_LEAST)
-    return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed])
+    pushes = np.zeros((0, 5)) if pushes is None else pushes
+    return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed], pushes)
 
 
-def with_chunk_observed(earlier: Observed, columns) -> Observed:
+def push_rows(distance, along, across, contact, withheld) -> np.ndarray:
+    """The first pushes tried, as :class:`Observed` keeps them (k, 5): a withheld push was not made."""
+    withheld = np.asarray(withheld, bool)
+    return np.stack([distance, along, across, contact, ~withheld], -1).astype(float)
+
+
+def _withheld(columns) -> np.ndarray:
+    """A chunk's ``push_withheld`` column; none withheld in a chunk written without it."""
+    return (
+        columns["push_withheld"]
+        if "push_withheld" in columns
+        else np.zeros(len(columns["push_contact"]), bool)
+    )
+
+
+def with_chunk_observed(earlier: Observed, columns, distance=None) -> Observed:
     """``earlier`` observations and, after them, those of a chunk's written ``columns``
     (:func:`run_chunk`'s ``AB_target``, ``ABC_centre``, ``ABC_found``, and ``push_command``,
-    ``push_seen_moved`` where the push ran; :func:`observed`)."""
+    ``push_seen_moved``, ``push_first_along_nm``, ``push_first_across_nm``, ``push_contact``,
+    ``push_withheld`` where the push ran, its trials' push ``distance`` (k,) nm; :func:`observed`)."""
     xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
     pushed = "push_command_x_nm" in columns
     new = observed(
@@ -347,6 +412,15 @@ def with_chunk_observed(earlier: Observed, columns) -> Observed:
         columns["ABC_found"],
         xy("push_command") if pushed else None,
         xy("push_seen_moved") if pushed else None,
+        push_rows(
+            distance,
+            columns["push_first_along_nm"],
+            columns["push_first_across_nm"],
+            columns["push_contact"],
+            _withheld(columns) | ~columns["AB_seen"],
+        )
+        if pushed
+        else None,
     )
     return Observed(*(np.concatenate([e, n]) for e, n in zip(earlier, new)))
 
@@ -386,7 +460,7 @@ def run_chunk(
             }
             if with_c and settings.push:
                 miss = r["push_final"] - r["push_goal"]
-                first = r["push_first"] - r["push_goal"]
+                first = np.where(r["push_withheld"][:, None], np.nan, r["push_first"] - r["push_goal"])
                 along, across = push_odds.components(first, x["direction"])
                 r |= {
                     "push_error_nm": np.linalg.norm(miss, axis=-1),
@@ -402,6 +476,7 @@ def run_chunk(
             out |= {f"AB_{k}": r[k] for k in ("modelled", "surveyed", "seen", "outside_grid")}
         if with_c and settings.learning:
             out |= _xy("AB_offset", r["offset"]) | {"AB_learnt_from": r["learnt_from"]}
+            out["AB_predicted_sd_nm"] = r["predicted_sd"]
             if settings.learning.pushes:
                 out["push_learnt_from"] = r["push_learnt_from"]
         if with_c:
@@ -420,6 +495,7 @@ def run_chunk(
                 "push_first_across_nm",
                 "push_corrections",
                 "push_contact",
+                "push_withheld",
             )
             out |= {k: r[k] for k in push} | _xy("push_command", r["push_command"])
             out |= _xy("push_seen_moved", r["push_seen_moved"])
@@ -436,6 +512,7 @@ def _failed(n: int, modelled: bool) -> dict:
     return {
         "target": np.full((n, 2), np.nan),
         "offset": np.full((n, 2), np.nan),
+        "predicted_sd": np.full(n, np.nan),
         "learnt_from": np.zeros(n, int),
         "push_learnt_from": np.zeros(n, int),
         "tip": np.full((n, 2), np.nan),
@@ -458,6 +535,7 @@ def _failed(n: int, modelled: bool) -> dict:
         "push_contact": np.zeros(n, bool),
         "push_command": np.full((n, 2), np.nan),
         "push_seen_moved": np.full((n, 2), np.nan),
+        "push_withheld": np.zeros(n, bool),
     }
 
 
@@ -474,11 +552,14 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
     for s in np.unique(r["scanner"]):
         idx = np.flatnonzero(r["scanner"] == s)
         along, across = r["push_first_along_nm"][idx], r["push_first_across_nm"][idx]
-        pushed = np.isfinite(along) & np.isfinite(across)
-        touched = pushed & r["push_contact"][idx]
-        miss = push_odds.online_misses(r["push_distance_nm"][idx], along, across, touched)
-        within = push_odds.success_probability(miss, tolerance_radii * r["radius_nm"][idx])
-        p[idx] = push_odds.contact_odds(touched, pushed) * within
+        p[idx] = push_odds.odds_from_earlier(
+            r["push_distance_nm"][idx],
+            along,
+            across,
+            r["push_contact"][idx],
+            np.ones(len(idx), bool),
+            tolerance_radii * r["radius_nm"][idx],
+        )
     return np.where(np.isfinite(r["push_first_error_nm"]), p, np.nan)
 
 
@@ -519,8 +600,9 @@ def failure_modes(r: dict, margin_nm: float, max_lines: int, tolerance_radii: fl
     the target lay outside the landmarks found (the map extrapolated), or the error left is beyond
     the local scan's search margin (``margin_nm``). A+B+C: the search found no particle, the
     verification did not pass within ``max_lines``, or it passed on a centre more than 0.1 R off.
-    Push: the tip missed the particle, or the particle ended more than ``tolerance_radii`` R from
-    its goal: short or long (along the push) or off the line (across it more than along).
+    Push: withheld (its odds below ``learning.min_push_odds``), the tip missed the particle, or
+    the particle ended more than ``tolerance_radii`` R from its goal: short or long (along the
+    push) or off the line (across it more than along).
     """
     if "AB_surveyed" not in r:
         return {}
@@ -546,11 +628,13 @@ def failure_modes(r: dict, margin_nm: float, max_lines: int, tolerance_radii: fl
         }
     if "push_error_nm" in r:
         tol = tolerance_radii * R
-        missed = ran & ~r["push_contact"]
+        withheld = ran & r.get("push_withheld", np.zeros(R.shape, bool))
+        missed = ran & ~withheld & ~r["push_contact"]
         off = ran & r["push_contact"] & ~(r["push_error_nm"] <= tol)
         along = r["push_along_nm"]
         across = np.sqrt(np.maximum(r["push_error_nm"] ** 2 - along**2, 0))
         modes["push"] = not_run | {
+            "withheld (odds too low)": withheld,
             "tip missed the particle": missed,
             "short": off & (along < 0) & (-along >= across),
             "long": off & (along > 0) & (along >= across),

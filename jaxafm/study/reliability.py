@@ -37,3 +37,29 @@ def reliability(predicted: np.ndarray, happened: np.ndarray) -> dict:
             }
         )
     return out
+
+
+#: the odds below which :func:`gate` withholds a push, each scored
+GATE_ODDS = (0.5, 0.9, 0.99)
+
+
+def gate(predicted: np.ndarray, succeeded: np.ndarray, tried: np.ndarray) -> list:
+    """What withholding every push whose ``predicted`` (k,) success is below each of
+    :data:`GATE_ODDS` would have done, over the pushes ``tried`` (k,) bool, ``succeeded`` (k,)
+    bool: per threshold ``min_odds``, the share of the tried pushes made (``made_pct``; a push
+    without odds is made) and the success of those made (``success_of_made_pct``). Read from
+    pushes that were all made, so the odds of each came from every push before it; a gate in the
+    study itself learns only from the pushes it made (``learning.min_push_odds``)."""
+    p = np.asarray(predicted, float)
+    tried, ok = np.asarray(tried, bool), np.asarray(succeeded, bool)
+    rows = []
+    for th in GATE_ODDS:
+        made = tried & ~(p < th)
+        rows.append(
+            {
+                "min_odds": th,
+                "made_pct": 100 * float(made.sum() / max(tried.sum(), 1)),
+                "success_of_made_pct": 100 * float(ok[made].mean()) if made.any() else float("nan"),
+            }
+        )
+    return rows
