@@ -468,7 +468,7 @@ def test_a_rounds_push_odds_come_from_the_scanners_earlier_pushes():
 
     def history(short, made=np.ones(8, bool)):
         along, across = short + rng.normal(0, 0.3, 8), rng.normal(0, 0.3, 8)
-        return study.push_rows(distance, along, across, np.ones(8, bool), ~made)
+        return study.push_rows(distance, along, across, np.ones(8, bool), made)
 
     assert np.all(study._round_odds(history(-12.0), rows, 1.0) < 1e-6)
     np.testing.assert_allclose(study._round_odds(history(0.0), rows, 1.0), 0.9, atol=1e-3)

@@ -421,7 +421,7 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
                 else None,
             }
         odds = _push_odds(r, first, tol, metrics)
-        tried = np.isfinite(r["push_error_nm"]) & ~r.get("push_withheld", np.zeros(len(first), bool))
+        tried = np.isfinite(r["push_error_nm"]) & ~r["push_withheld"]
         metrics["push_gate"] = gate(r["push_first_predicted"], successes["push"], tried)
     if "ABC_found" in r:
         metrics |= {

@@ -267,9 +267,9 @@ def learning_trials(
         r["predicted_sd"] = tracker.factor * np.hypot(field.sd(r["target"]), learn.noise_nm)
         pushes = None
         if "push_first" in r:
-            along, across = push_odds.components(r["push_first"] - r["push_goal"], rows["direction"])
-            tried = ~r["push_withheld"] & np.isfinite(r["error_nm"])  # unseen: no target, no push
-            pushes = push_rows(rows["distance"], along, across, r["push_contact"], ~tried)
+            along, across = push_odds.components(first_push_miss(r), rows["direction"])
+            made = ~r["push_withheld"] & np.isfinite(r["error_nm"])  # unseen: no target, no push
+            pushes = push_rows(rows["distance"], along, across, r["push_contact"], made)
         seen.append(
             observed(
                 r["target"],
@@ -353,7 +353,8 @@ class Observed(NamedTuple):
     ``commands`` and the particle's moves the checks saw (``moved``), each (k, 2) nm; and every
     first push tried, ``pushes`` (k, 5): its distance (nm), its miss along and across it (nm,
     against the truth, as a reference outside the frame measures it; NaN where none was made),
-    whether it touched its particle and whether it was made (1 or 0; not: withheld)."""
+    whether it touched its particle and whether it was made (1 or 0: not withheld, and aimed at a
+    particle the survey saw)."""
 
     targets: np.ndarray
     offsets: np.ndarray
@@ -384,19 +385,16 @@ def observed(target, centre, found, command=None, moved=None, pushes=None) -> Ob
     return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed], pushes)
 
 
-def push_rows(distance, along, across, contact, withheld) -> np.ndarray:
-    """The first pushes tried, as :class:`Observed` keeps them (k, 5): a withheld push was not made."""
-    withheld = np.asarray(withheld, bool)
-    return np.stack([distance, along, across, contact, ~withheld], -1).astype(float)
+def push_rows(distance, along, across, contact, made) -> np.ndarray:
+    """The first pushes tried, as :class:`Observed` keeps them (k, 5); ``made`` (k,) bool: not
+    withheld, and aimed at a particle the survey saw."""
+    return np.stack([distance, along, across, contact, made], -1).astype(float)
 
 
-def _withheld(columns) -> np.ndarray:
-    """A chunk's ``push_withheld`` column; none withheld in a chunk written without it."""
-    return (
-        columns["push_withheld"]
-        if "push_withheld" in columns
-        else np.zeros(len(columns["push_contact"]), bool)
-    )
+def first_push_miss(r: dict) -> np.ndarray:
+    """The first push's true miss (k, 2) nm, its particle's centre after it less its goal, from
+    trials' columns ``r`` (:func:`_columns`); NaN where the push was withheld."""
+    return np.where(r["push_withheld"][:, None], np.nan, r["push_first"] - r["push_goal"])
 
 
 def with_chunk_observed(earlier: Observed, columns, distance=None) -> Observed:
@@ -417,7 +415,7 @@ def with_chunk_observed(earlier: Observed, columns, distance=None) -> Observed:
             columns["push_first_along_nm"],
             columns["push_first_across_nm"],
             columns["push_contact"],
-            _withheld(columns) | ~columns["AB_seen"],
+            ~columns["push_withheld"] & columns["AB_seen"],
         )
         if pushed
         else None,
@@ -460,7 +458,7 @@ def run_chunk(
             }
             if with_c and settings.push:
                 miss = r["push_final"] - r["push_goal"]
-                first = np.where(r["push_withheld"][:, None], np.nan, r["push_first"] - r["push_goal"])
+                first = first_push_miss(r)
                 along, across = push_odds.components(first, x["direction"])
                 r |= {
                     "push_error_nm": np.linalg.norm(miss, axis=-1),
@@ -628,7 +626,7 @@ def failure_modes(r: dict, margin_nm: float, max_lines: int, tolerance_radii: fl
         }
     if "push_error_nm" in r:
         tol = tolerance_radii * R
-        withheld = ran & r.get("push_withheld", np.zeros(R.shape, bool))
+        withheld = ran & r["push_withheld"]
         missed = ran & ~withheld & ~r["push_contact"]
         off = ran & r["push_contact"] & ~(r["push_error_nm"] <= tol)
         along = r["push_along_nm"]
