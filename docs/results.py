@@ -213,10 +213,6 @@ STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
 STUDY_WIDE = Run("study_wide/metrics.json", "jaxafm study configs/study_wide.yaml")
 STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_classes.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
-STUDY_PATHS = Run(
-    "step_a_study_paths/study.json", "python experiments/step_a_study_paths.py experiments/results/study"
-)
-STUDY_SCANNERS = Run("study/scanners.json", "jaxafm study configs/study.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
 STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
 PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
@@ -2040,25 +2036,37 @@ def position_coverage(run: Run) -> Callable[[Results], Table]:
 TABLES["study_position_coverage"] = position_coverage(STUDY)
 
 
-@table("study_step_a_paths")
-def study_step_a_paths(results: Results) -> Table:
-    """Each study.yaml scanner's step A model against the simulated true tip path."""
-    scanners = results(STUDY_SCANNERS)
-    rows = [
-        [
-            str(row["scanner"]),
-            q(100 * scanners[str(row["scanner"])]["loop_width"], "%"),
-            q(100 * scanners[str(row["scanner"])]["coupling"], "%", 2),
-        ]
-        + [q(v, "nm", 2) for v in row["path_rms_nm"]]
-        for row in results(STUDY_PATHS)["scanners"]
-    ]
-    note = (
-        "Tip path of step A's model less the simulator's true one over the calibration scan (trace and "
-        "retrace), rms after the one rigid shift no image sees. Loop width: % of the range; coupling: x "
-        "from y (y from x is −0.6 of it)."
+def step_a_paths(folder: str, config: str) -> Callable[[Results], Table]:
+    """Each scanner's step A model in the study ``folder`` against the simulated true tip path."""
+    paths = Run(
+        f"step_a_study_paths/{folder}.json",
+        f"python experiments/step_a_study_paths.py experiments/results/{folder}",
     )
-    return Table(["scanner", "loop width", "coupling", "x", "y"], rows, [STUDY_PATHS, STUDY_SCANNERS], note)
+    info = Run(f"{folder}/scanners.json", f"jaxafm study configs/{config}")
+
+    def make(results: Results) -> Table:
+        scanners = results(info)
+        rows = [
+            [
+                str(row["scanner"]),
+                q(100 * scanners[str(row["scanner"])]["loop_width"], "%"),
+                q(100 * scanners[str(row["scanner"])]["coupling"], "%", 2),
+            ]
+            + [q(v, "nm", 2) for v in row["path_rms_nm"]]
+            for row in results(paths)["scanners"]
+        ]
+        note = (
+            "Tip path of step A's model less the simulator's true one over the calibration scan (trace and "
+            "retrace), rms after the one rigid shift no image sees. Loop width: % of the range; coupling: x "
+            "from y (y from x is −0.6 of it)."
+        )
+        return Table(["scanner", "loop width", "coupling", "x", "y"], rows, [paths, info], note)
+
+    return make
+
+
+TABLES["study_step_a_paths"] = step_a_paths("study", "study.yaml")
+TABLES["study_wide_step_a_paths"] = step_a_paths("study_wide", "study_wide.yaml")
 
 
 @table("study_push_gate")
