@@ -55,6 +55,7 @@ def path_error(model: ScanModel, scan, truth: RasterScan) -> dict:
     return {
         "path_x_rms_nm": float(np.sqrt(np.mean(e[..., 0] ** 2))),
         "path_x_max_nm": float(np.abs(e[..., 0]).max()),
+        "path_y_rms_nm": float(np.sqrt(np.mean(e[..., 1] ** 2))),
     }
 
 

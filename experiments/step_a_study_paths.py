@@ -15,18 +15,18 @@ writes ``experiments/results/step_a_study_paths/study.json`` (named after the st
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 from pathlib import Path
 
 import equinox as eqx
-import numpy as np
+from bench_step_a import path_error
 
 from jaxafm.config import StudyConfig
 from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import study as job
 from jaxafm.jobs.calibrate import calibration_scans
+from jaxafm.jobs.folder import read_manifest
 from jaxafm.model.io import load_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,12 +34,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def path_rms(scanner, scan, truth) -> list:
     """x and y rms (nm) of ``scanner``'s tip path along ``scan`` less the true one, over trace and
-    retrace, after their mean difference (the rigid shift) is taken out."""
+    retrace, after their mean difference (the rigid shift) is taken out
+    (``bench_step_a.path_error`` through a scan model carrying ``scanner``)."""
     model = eqx.tree_at(lambda m: m.scanner, nominal_scan_model(scan, ScanModelSpec()), scanner)
-    paths = zip(model.paths(scan), (truth.path_trace, truth.path_retrace))
-    e = np.concatenate([np.asarray(p).reshape(-1, 2) - np.asarray(t).reshape(-1, 2) for p, t in paths])
-    e -= e.mean(axis=0)
-    return np.sqrt(np.mean(e**2, axis=0)).tolist()
+    e = path_error(model, scan, truth)
+    return [e["path_x_rms_nm"], e["path_y_rms_nm"]]
 
 
 def main() -> None:
@@ -47,9 +46,10 @@ def main() -> None:
     ap.add_argument("study", type=Path, help="a finished study's output folder")
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "step_a_study_paths")
     a = ap.parse_args()
-    manifest = json.loads((a.study / "jaxafm-run.json").read_text())
-    config = manifest["config"]
-    cfg = StudyConfig.model_validate(ast.literal_eval(config) if isinstance(config, str) else config)
+    manifest = read_manifest(a.study)
+    if manifest is None:
+        raise SystemExit(f"{a.study}: no run manifest: not a study's output folder")
+    cfg = StudyConfig.model_validate(manifest["config"])
     spec = cfg.calibration
     rows = []
     for s, params in enumerate(job.scanner_draws(cfg)):
