@@ -2052,15 +2052,19 @@ def step_a_paths(folder: str, config: str) -> Callable[[Results], Table]:
                 q(100 * scanners[str(row["scanner"])]["loop_width"], "%"),
                 q(100 * scanners[str(row["scanner"])]["coupling"], "%", 2),
             ]
-            + [q(v, "nm", 2) for v in row["path_rms_nm"]]
+            + ([q(v, "nm", 2) for v in row["path_rms_nm"]] if row["path_rms_nm"] else ["refused", "refused"])
+            + [row["right_matching"]]
             for row in results(paths)["scanners"]
         ]
         note = (
             "Tip path of step A's model less the simulator's true one over the calibration scan (trace and "
             "retrace), rms after the one rigid shift no image sees. Loop width: % of the range; coupling: x "
-            "from y (y from x is −0.6 of it)."
+            "from y (y from x is −0.6 of it). Right matching: which of the matchings of the retrace's lattice "
+            "indices that step A tries at the line reversal, in its order, puts trace and retrace on the same "
+            "true sites (none: none of them)."
         )
-        return Table(["scanner", "loop width", "coupling", "x", "y"], rows, [paths, info], note)
+        head = ["scanner", "loop width", "coupling", "x", "y", "right matching"]
+        return Table(head, rows, [paths, info], note)
 
     return make
 

@@ -1,11 +1,15 @@
 """Step A's tip path against the simulated truth, for each scanner of a finished study.
 
-Each model the study saved in ``scanners/`` is driven along its scanner's calibration scan (the
-study's own: ``jaxafm.jobs.study.scanner_draws`` and ``calibration.simulate`` of the config the
-study's run manifest records) and compared with the simulator's true tip path, trace and
-retrace, x and y rms after the one rigid shift no image sees. A model that fits the calibration
-images yet misplaces the tip by hundreds of nm shows here, where the study's own figures show
-only what the landmarks and the local scans made of it.
+Each model the study saved in ``scanners/`` is driven along its scanner's first calibration scan
+(the study's own: ``jaxafm.jobs.study.scanner_draws`` and the first angle and line rate of
+``calibration.simulate`` of the config the study's run manifest records, the same scan whatever
+else the study scans) and compared with the simulator's true tip path, trace and retrace, x and
+y rms after the one rigid shift no image sees. A model that fits the calibration images yet
+misplaces the tip by hundreds of nm shows here, where the study's own figures show only what
+the landmarks and the local scans made of it. Beside it, which of the matchings of the
+retrace's lattice indices that step A tries at the line reversal is the right one
+(``CalibrationScan.feature_matches``, one or two: the one whose trace and retrace features lie
+on the same true lattice sites through the simulator's scanner), or none.
 
     python experiments/step_a_study_paths.py experiments/results/study
 
@@ -19,10 +23,11 @@ import json
 from pathlib import Path
 
 import equinox as eqx
+import numpy as np
 from bench_step_a import path_error
 
 from jaxafm.config import StudyConfig
-from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model
+from jaxafm.identify.scan_model import ScanModel, ScanModelSpec, nominal_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import study as job
 from jaxafm.jobs.calibrate import calibration_scans
@@ -41,6 +46,18 @@ def path_rms(scanner, scan, truth) -> list:
     return [e["path_x_rms_nm"], e["path_y_rms_nm"]]
 
 
+def right_matching(scan, sim) -> str:
+    """Which retrace matching of ``scan`` that step A tries (``"first"``, ``"second"``, or ``"none"``)
+    puts its trace and retrace features on the same lattice sites through the true scanner of ``sim``."""
+    true = ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
+    trace, retraces = scan.feature_matches()
+    for name, retrace in zip(("first", "second"), retraces):
+        e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])
+        if len({tuple(np.round(np.median(np.asarray(x), axis=0))) for x in e}) == 1:
+            return name
+    return "none"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("study", type=Path, help="a finished study's output folder")
@@ -51,18 +68,21 @@ def main() -> None:
         raise SystemExit(f"{a.study}: no run manifest: not a study's output folder")
     cfg = StudyConfig.model_validate(manifest["config"])
     spec = cfg.calibration
+    first = spec.simulate.model_copy(
+        update={"angles_deg": spec.simulate.angles_deg[:1], "line_rate_hz": spec.simulate.line_rates_hz[0]}
+    )
     rows = []
     for s, params in enumerate(job.scanner_draws(cfg)):
         saved = a.study / "scanners" / f"model_{s:05d}.json"
+        scans, sim = calibration_scans(first, spec.grating, default_afm(**params))
+        right = right_matching(scans[0], sim)
         if not saved.is_file():
-            rows.append({"scanner": s, "path_rms_nm": None})
+            rows.append({"scanner": s, "path_rms_nm": None, "right_matching": right})
+            print(f"scanner {s:2d}: no model saved; right matching {right}", flush=True)
             continue
-        scans, sim = calibration_scans(spec.simulate, spec.grating, default_afm(**params))
-        rows.append({"scanner": s, "path_rms_nm": path_rms(load_model(saved), scans[0], sim.measured)})
-        print(
-            f"scanner {s:2d}: x {rows[-1]['path_rms_nm'][0]:9.2f} nm  y {rows[-1]['path_rms_nm'][1]:9.2f} nm rms",
-            flush=True,
-        )
+        x, y = path_rms(load_model(saved), scans[0], sim.measured)
+        rows.append({"scanner": s, "path_rms_nm": [x, y], "right_matching": right})
+        print(f"scanner {s:2d}: x {x:9.2f} nm  y {y:9.2f} nm rms; right matching {right}", flush=True)
     a.out.mkdir(parents=True, exist_ok=True)
     out = a.out / f"{a.study.resolve().name}.json"
     out.write_text(json.dumps({"study": a.study.resolve().name, "scanners": rows}, indent=1))
