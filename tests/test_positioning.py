@@ -14,6 +14,7 @@ import pytest
 from jaxafm.config import RunConfig
 from jaxafm.instrument.afm import AFM, Raster, default_afm, run_cycle
 from jaxafm.instrument.samples import Indented, Particles, Plane, Tip, surface
+from jaxafm.jobs.run import _push_goals
 from jaxafm.position.landmarks import (
     LandmarkGrid,
     LandmarkMap,
@@ -26,6 +27,7 @@ from jaxafm.position.positioning import (
     Positioner,
     goto,
     local_scan,
+    pulse,
     push,
     push_and_check,
     search_spacing,
@@ -241,6 +243,57 @@ def test_search_lines_see_a_particle_within_their_band(R):
     )
     assert peak(0.98 * band) > R > peak(1.02 * band)
     assert float(search_spacing(jnp.asarray(R), tip)) == pytest.approx(0.75 * 2 * band)
+
+
+def neighbour_line(offset: float, neighbour: bool = True, radius: float = 45.0, points: int = 192):
+    """The heights (nm) of a line through the estimate of a particle of ``radius`` nm lying
+    ``offset`` nm from the line's middle, with (``neighbour``) a neighbour of R = 49 nm 197 nm
+    behind it along the line and 8 nm beside it (imaged by the default tip): the line's
+    positions and heights."""
+    tip = Tip()
+    half = 2 * (radius + tip.radius) + LocalScan().line_margin
+    s = np.linspace(-half, half, points)
+    sample = Particles(jnp.array([[offset, 0.0], [offset - 197.0, 8.0]]), jnp.array([radius, 49.0]))
+    sample = sample if neighbour else Particles(sample.centres[:1], sample.radii[:1])
+    h = surface(sample, tip)(jnp.stack([s, np.zeros_like(s)], -1))
+    return jnp.asarray(s), h
+
+
+@pytest.mark.parametrize("offset", [0.0, 6.0, -9.0])
+def test_a_line_finds_its_particle_beside_a_neighbour_it_reaches(offset):
+    # the neighbour's image reaches past the line's start (its reach 197 - 155 = 42 < 49 + 10 nm):
+    # the pulse nearest the middle is the particle's, whole inside the line; a particle's image
+    # is symmetric about its centre, so the middle of its half-height crossings is the centre
+    # (to the linear interpolation of a crossing, a small part of a 1.6 nm sample on a flank
+    # straight over that sample), and a line through the centre rises 2R
+    s, h = neighbour_line(offset)
+    found, middle, height = pulse(h, s, jnp.asarray(45.0))
+    assert bool(found)
+    assert float(middle) == pytest.approx(offset, abs=0.1)
+    assert float(height) == pytest.approx(90.0, rel=1e-3)
+
+
+def test_a_pulse_cut_by_the_line_end_is_not_found():
+    # the particle's image reaches past the line's end (130 + 55 > 155 nm): its half height
+    # cannot be read on that side
+    s, h = neighbour_line(130.0, neighbour=False)
+    found, _, _ = pulse(h, s, jnp.asarray(45.0))
+    assert not bool(found)
+
+
+def test_local_scan_verifies_a_particle_whose_neighbour_its_lines_reach(drifting):
+    # particles as a survey finds them: a neighbour of R = 49 nm 218 nm below a particle of
+    # R = 45 nm, so every line along y through the particle reaches it; the third, 500 nm off,
+    # is there to give `found`'s shapes (its compiled program runs this)
+    pos, stand = drifting
+    centres = jnp.array([[100.0, 150.0], [108.0, -68.0], [-400.0, -300.0]])
+    radii = jnp.array([45.0, 49.0, 20.0])
+    guesses = centres + jnp.array([[7.0, -8.0], [7.0, -8.0], [7.0, -8.0]])
+    res, xy = jax.vmap(lambda g, r, k: find_and_go(pos, Particles(centres, radii), stand, g, r, k))(
+        guesses, radii, jax.random.split(jax.random.key(11), 3)
+    )
+    assert bool(res.found[0])
+    assert float(jnp.linalg.norm(xy[0] - centres[0])) < 0.1 * 45.0
 
 
 def test_local_scan_gives_up_cleanly_without_a_particle(drifting):
@@ -462,6 +515,37 @@ def _scan_push_and_check(pos, stand, centres, directions, R, distance, approach,
 def test_run_config_rejects_impossible_settings(patch, match):
     with pytest.raises(ValueError, match=match):
         RunConfig.model_validate(patch)
+
+
+def test_the_runs_pushes_keep_each_particle_apart_from_the_others():
+    # a field like the run's (a jittered grid, 375 nm apart, radii 5-50 nm): every push the run
+    # asks for, sampled at 1 nm along its path, keeps R + R' from every other particle, and its
+    # goal R + R' + 2 r (the two images' reach), inside the landmark grid; a particle whose drawn
+    # push runs through a neighbour gets another direction, the rest keep the drawn one
+    rng = np.random.default_rng(5)
+    g = np.arange(8) * 375.0
+    centres = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) + rng.uniform(-90, 90, (64, 2))
+    radii = rng.uniform(5.0, 50.0, 64)
+    cfg = RunConfig.model_validate({"push": {"distance_nm": [100, 300]}, "seed": 4})
+    which = np.arange(64)
+    box = np.array([[-200.0, -200.0], [2800.0, 2800.0]])
+    r_tip = Tip().radius
+    directions, distances = _push_goals(
+        cfg, centres, centres, which, Particles(jnp.asarray(centres), jnp.asarray(radii)), r_tip, box
+    )
+    drawn = np.random.default_rng(cfg.seed + 1)
+    angle = drawn.uniform(0, 2 * np.pi, 64)
+    np.testing.assert_allclose(distances, drawn.uniform(100, 300, 64))
+    turned = 0
+    for i in which:
+        others = np.delete(np.arange(64), i)
+        path = centres[i] + np.linspace(0, distances[i], int(distances[i]) + 1)[:, None] * directions[i]
+        gap = np.linalg.norm(path[:, None] - centres[others], axis=-1)
+        assert np.all(gap >= radii[i] + radii[others] - 0.5)  # 1 nm samples: within half of one
+        assert np.all(gap[-1] >= radii[i] + radii[others] + 2 * r_tip)
+        assert np.all((path[-1] >= box[0]) & (path[-1] <= box[1]))
+        turned += not np.allclose(directions[i], [np.cos(angle[i]), np.sin(angle[i])])
+    assert 0 < turned < 64
 
 
 # ---------------------------------------------------------------------------------------------

@@ -258,7 +258,13 @@ def _stage(cfg: RunConfig, i: int, stage: Stage, start: _Start, layout: _Layout,
     particles, D = layout.particles, layout.D
     truth, radii = particles.centres[which], particles.radii[which]
     directions, distances = _push_goals(
-        cfg, targets, which, len(particles.radii), np.stack([D.min(0), D.max(0)])
+        cfg,
+        targets,
+        np.asarray(truth),
+        which,
+        particles,
+        start.afm.tip.radius,
+        np.stack([D.min(0), D.max(0)]),
     )
     keys = jax.random.split(key_trials, len(targets))
     near = jax.vmap(lambda p: nearby(seen.sample, p))(truth)
@@ -353,16 +359,40 @@ def _survey(cfg: RunConfig, stage: Stage, start: _Start, layout: _Layout, key, d
     return seen, targets, which, maps
 
 
-def _push_goals(cfg: RunConfig, targets: np.ndarray, which: np.ndarray, n: int, box: np.ndarray) -> tuple:
-    """A random direction and distance per particle (the same for every stage); directions whose
-    goal would leave the landmark grid (``box``: its lower and upper corner) are reversed."""
+#: the push directions tried for a particle, in turns of 15 degrees from the drawn one: the drawn,
+#: its reverse, then each turned on by another 15 degrees
+_PUSH_TURNS = np.stack([np.arange(12), np.arange(12) + 12], -1).ravel() * np.pi / 12
+
+
+def _push_goals(cfg: RunConfig, targets, truth, which, particles: Particles, tip_radius: float, box) -> tuple:
+    """A random direction and distance per particle (the same for every stage), for the
+    particles ``which`` seen at ``targets`` (T, 2) nm and truly at ``truth``. A push must end
+    inside the landmark grid (``box``: its lower and upper corner, nm) and keep the particle
+    apart from every other: along the push its centre stays ``R + R'`` from another's (R, R'
+    their radii: they never touch, as the pushes move one particle and two that touched would
+    pass through each other), and at the goal ``(R + r) + (R' + r)`` (r the tip's radius: their
+    images' reach), so that a local scan there sees it alone. A direction that breaks either rule
+    is turned (:data:`_PUSH_TURNS`: its reverse first) to the first that keeps both; the drawn
+    one stays where none does."""
     rng = np.random.default_rng(cfg.seed + 1)
+    n = len(particles.radii)
     angle = rng.uniform(0, 2 * np.pi, n)[which]
     distances = rng.uniform(*cfg.push.distance_nm, n)[which]
-    directions = np.stack([np.cos(angle), np.sin(angle)], -1)
-    goal = targets + distances[:, None] * directions
-    directions[np.any((goal < box[0]) | (goal > box[1]), axis=1)] *= -1
-    return directions, distances
+    turned = angle[:, None] + _PUSH_TURNS  # (T, K)
+    directions = np.stack([np.cos(turned), np.sin(turned)], -1)  # (T, K, 2)
+    goal = targets[:, None] + distances[:, None, None] * directions
+    inside = np.all((goal >= box[0]) & (goal <= box[1]), axis=-1)
+    centres, radii = np.asarray(particles.centres), np.asarray(particles.radii)
+    rel = centres[None, :] - truth[:, None]  # (T, N, 2): the others from the pushed one
+    d = distances[:, None, None]
+    along = np.einsum("tnd,tkd->tkn", rel, directions)  # (T, K, N)
+    path = np.linalg.norm(rel[:, None] - np.clip(along, 0.0, d)[..., None] * directions[:, :, None], axis=-1)
+    end = np.linalg.norm(rel[:, None] - d[..., None] * directions[:, :, None], axis=-1)
+    touch = radii[which][:, None, None] + radii[None, None, :]
+    itself = (np.arange(n)[None, :] == which[:, None])[:, None]
+    apart = np.all(itself | ((path >= touch) & (end >= touch + 2 * tip_radius)), axis=-1)
+    first = np.argmax(inside & apart, axis=1)  # 0 (the drawn direction) where none keeps both
+    return directions[np.arange(len(which)), first], distances
 
 
 def _columns(label: str, r: TrialResults) -> dict:

@@ -199,20 +199,29 @@ SUBSTRATE_QUANTILE = 0.1
 
 
 def pulse(h: Array, s: Array, min_height: Array) -> tuple:
-    """The pulse of a line's heights ``h`` (P,) nm at positions ``s`` (P,) nm: present when it
-    rises ``min_height`` above the substrate and lies wholly inside the line; its middle at half
-    height (linear interpolation between samples) and its height above the substrate. Returns
-    ``(found, middle, height)``. The substrate is the heights' lowest tenth
-    (:data:`SUBSTRATE_QUANTILE`), not their median: through a frame that step A's model shrinks,
-    a line is shorter than it was asked to be and a particle can cover most of it (on
-    ``configs/study.yaml``'s scanner 9, whose model sends a 260 nm push 40 % short, a line
-    through the estimate of a particle of R = 50 nm lay two thirds to three quarters on it, and
-    its median on the particle's flank, 55-69 nm above the substrate)."""
+    """The pulse of a line's heights ``h`` (P,) nm at positions ``s`` (P,) nm nearest the line's
+    middle (``s = 0``): present when it rises ``min_height`` above the substrate and lies wholly
+    inside the line; its middle at half height (linear interpolation between samples) and its
+    height above the substrate. Returns ``(found, middle, height)``.
+
+    A line may cross a neighbour too (particles 200 nm apart: a line through a particle of
+    R = 45 nm reaches 155 nm either side). The pulses are the runs of samples rising more than
+    ``min_height / 2`` above the substrate; the one with the sample nearest the middle is the
+    particle's, and its half height lies inside its run whenever it rises ``min_height``. The
+    substrate is the heights' lowest tenth (:data:`SUBSTRATE_QUANTILE`), not their median:
+    through a frame that step A's model shrinks, a line is shorter than it was asked to be and
+    a particle can cover most of it (on ``configs/study.yaml``'s scanner 9, whose model sends a
+    260 nm push 40 % short, a line through the estimate of a particle of R = 50 nm lay two
+    thirds to three quarters on it, and its median on the particle's flank, 55-69 nm above the
+    substrate)."""
     P = h.shape[0]
     base = jnp.quantile(h, SUBSTRATE_QUANTILE)
-    peak = jnp.max(h)
+    raised = h - base > min_height / 2
+    run = jnp.cumsum(raised & ~jnp.concatenate([jnp.zeros(1, bool), raised[:-1]]))
+    own = raised & (run == run[jnp.argmin(jnp.where(raised, jnp.abs(s), jnp.inf))])
+    peak = jnp.max(jnp.where(own, h, base))
     level = base + (peak - base) / 2
-    above = h > level
+    above = own & (h > level)
     first = jnp.argmax(above)
     last = P - 1 - jnp.argmax(above[::-1])
 
