@@ -119,7 +119,8 @@ class LocalScanSpec(Strict):
 
 class PushSpec(Strict):
     """The pushing task: each particle pushed by a distance uniform in ``distance_nm`` in a
-    random direction; success when it ends within ``tolerance_radii`` x R of the goal."""
+    random direction clear of the other particles (``jaxafm run``); success when it ends within
+    ``tolerance_radii`` x R of the goal."""
 
     distance_nm: list[float] = Field([100.0, 300.0], min_length=2, max_length=2)
     speed_nm_per_s: float = Field(200.0, gt=0)
