@@ -261,7 +261,8 @@ def neighbour_line(offset: float, neighbour: bool = True, radius: float = 45.0, 
 
 @pytest.mark.parametrize("offset", [0.0, 6.0, -9.0])
 def test_a_line_finds_its_particle_beside_a_neighbour_it_reaches(offset):
-    # the neighbour's image reaches past the line's start (its reach 197 - 155 = 42 < 49 + 10 nm):
+    # the neighbour's image, 197 nm behind, reaches to 197 - (49 + 10) = 138 nm from the middle,
+    # inside the line's 155 nm:
     # the pulse nearest the middle is the particle's, whole inside the line; a particle's image
     # is symmetric about its centre, so the middle of its half-height crossings is the centre
     # (to the linear interpolation of a crossing, a small part of a 1.6 nm sample on a flank
@@ -519,7 +520,7 @@ def test_run_config_rejects_impossible_settings(patch, match):
 
 def test_the_runs_pushes_keep_each_particle_apart_from_the_others():
     # a field like the run's (a jittered grid, 375 nm apart, radii 5-50 nm): every push the run
-    # asks for, sampled at 1 nm along its path, keeps R + R' from every other particle, and its
+    # asks for, at points 1 nm apart along its path, keeps R + R' from every other particle, and its
     # goal R + R' + 2 r (the two images' reach), inside the landmark grid; a particle whose drawn
     # push runs through a neighbour gets another direction, the rest keep the drawn one
     rng = np.random.default_rng(5)
@@ -541,7 +542,7 @@ def test_the_runs_pushes_keep_each_particle_apart_from_the_others():
         others = np.delete(np.arange(64), i)
         path = centres[i] + np.linspace(0, distances[i], int(distances[i]) + 1)[:, None] * directions[i]
         gap = np.linalg.norm(path[:, None] - centres[others], axis=-1)
-        assert np.all(gap >= radii[i] + radii[others] - 0.5)  # 1 nm samples: within half of one
+        assert np.all(gap >= radii[i] + radii[others] - 1e-9)
         assert np.all(gap[-1] >= radii[i] + radii[others] + 2 * r_tip)
         assert np.all((path[-1] >= box[0]) & (path[-1] <= box[1]))
         turned += not np.allclose(directions[i], [np.cos(angle[i]), np.sin(angle[i])])
