@@ -207,6 +207,11 @@ PUSH_0_90 = Run(
     "python experiments/push_study.py --fields 1 --model experiments/results/step_a_simulated/model_gpi.json "
     "--out experiments/results/push_study_0_90",
 )
+PUSH_TRUE = Run(
+    "push_study_true_model/metrics.json",
+    "python experiments/push_study.py --fields 4 --model experiments/results/paper_true_model/true_scanner.json "
+    "--out experiments/results/push_study_true_model",
+)
 MINOR_LOOPS = Run("minor_loops.json", "python experiments/minor_loops.py")
 DRIFT_TRACKING = Run("drift_tracking/results.json", "python experiments/drift_tracking.py")
 STUDY = Run("study/metrics.json", "jaxafm study configs/study.yaml")
@@ -1795,6 +1800,7 @@ def push_fields(run: Run, folder: str) -> Callable[[Results], Table]:
 
 TABLES["push_study"] = push_fields(PUSH_STUDY, "push_study")
 TABLES["push_study_0_90"] = push_fields(PUSH_0_90, "push_study_0_90")
+TABLES["push_study_true_model"] = push_fields(PUSH_TRUE, "push_study_true_model")
 
 
 @table("minor_loops")
