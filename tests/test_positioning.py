@@ -532,7 +532,7 @@ def test_the_runs_pushes_keep_each_particle_apart_from_the_others():
     box = np.array([[-200.0, -200.0], [2800.0, 2800.0]])
     r_tip = Tip().radius
     directions, distances = _push_goals(
-        cfg, centres, centres, which, Particles(jnp.asarray(centres), jnp.asarray(radii)), r_tip, box
+        cfg, centres, which, Particles(jnp.asarray(centres), jnp.asarray(radii)), r_tip, box
     )
     drawn = np.random.default_rng(cfg.seed + 1)
     angle = drawn.uniform(0, 2 * np.pi, 64)

@@ -258,13 +258,7 @@ def _stage(cfg: RunConfig, i: int, stage: Stage, start: _Start, layout: _Layout,
     particles, D = layout.particles, layout.D
     truth, radii = particles.centres[which], particles.radii[which]
     directions, distances = _push_goals(
-        cfg,
-        targets,
-        np.asarray(truth),
-        which,
-        particles,
-        start.afm.tip.radius,
-        np.stack([D.min(0), D.max(0)]),
+        cfg, targets, which, particles, start.afm.tip.radius, np.stack([D.min(0), D.max(0)])
     )
     keys = jax.random.split(key_trials, len(targets))
     near = jax.vmap(lambda p: nearby(seen.sample, p))(truth)
@@ -364,9 +358,9 @@ def _survey(cfg: RunConfig, stage: Stage, start: _Start, layout: _Layout, key, d
 _PUSH_TURNS = np.stack([np.arange(12), np.arange(12) + 12], -1).ravel() * np.pi / 12
 
 
-def _push_goals(cfg: RunConfig, targets, truth, which, particles: Particles, tip_radius: float, box) -> tuple:
+def _push_goals(cfg: RunConfig, targets, which, particles: Particles, tip_radius: float, box) -> tuple:
     """A random direction and distance per particle (the same for every stage), for the
-    particles ``which`` seen at ``targets`` (T, 2) nm and truly at ``truth``. A push must end
+    ``particles`` numbered ``which`` and seen at ``targets`` (T, 2) nm. A push must end
     inside the landmark grid (``box``: its lower and upper corner, nm) and keep the particle
     apart from every other: along the push its centre stays ``R + R'`` from another's (R, R'
     their radii: they never touch, as the pushes move one particle and two that touched would
@@ -383,7 +377,7 @@ def _push_goals(cfg: RunConfig, targets, truth, which, particles: Particles, tip
     goal = targets[:, None] + distances[:, None, None] * directions
     inside = np.all((goal >= box[0]) & (goal <= box[1]), axis=-1)
     centres, radii = np.asarray(particles.centres), np.asarray(particles.radii)
-    rel = centres[None, :] - truth[:, None]  # (T, N, 2): the others from the pushed one
+    rel = centres[None, :] - centres[which][:, None]  # (T, N, 2): the others from the pushed one
     d = distances[:, None, None]
     along = np.einsum("tnd,tkd->tkn", rel, directions)  # (T, K, N)
     path = np.linalg.norm(rel[:, None] - np.clip(along, 0.0, d)[..., None] * directions[:, :, None], axis=-1)
