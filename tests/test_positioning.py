@@ -180,9 +180,9 @@ def drifting():
 
 
 @eqx.filter_jit
-def find_and_go(pos, sample, stand, guess, radius, key):
+def find_and_go(pos, sample, stand, guess, radius, key, spec=LocalScan()):
     k1, k2 = jax.random.split(key)
-    res, stand = local_scan(pos, sample, stand, guess, radius, k1, LocalScan())
+    res, stand = local_scan(pos, sample, stand, guess, radius, k1, spec)
     xy, _, _ = goto(pos, sample, stand, res.centre, k2)
     return res, xy
 
@@ -390,18 +390,35 @@ def test_local_scan_verifies_on_lines_through_its_estimate_alone():
     # search line (along x through the guess) is centred, and a line along y through the
     # estimate confirms y; the search line must not count as the x line of the verification,
     # so a third line, along x through the estimate, verifies (phases: 0 search, 1 y, 2 x)
+    res, xy = _centred_guesses(LocalScan())
+    assert np.asarray(res.found).all()
+    np.testing.assert_array_equal(res.lines, 3)
+    np.testing.assert_array_equal(np.asarray(res.phases)[:, :3], [[0, 1, 2]] * 3)
+    assert np.all(np.linalg.norm(np.asarray(xy - CENTRES), axis=1) < 0.1 * np.asarray(RADII))
+
+
+def test_a_conditioning_line_along_y_moves_the_estimate_but_never_confirms_it():
+    # as above, with condition_y: the first line along y through the estimate, centred as it
+    # is, does not confirm y, so the x line after it cannot verify; a second line along y does
+    # (phases: 0 search, 1 y, 2 x, 1 y), and the centre it verifies is as close
+    res, xy = _centred_guesses(LocalScan(condition_y=True))
+    assert np.asarray(res.found).all()
+    np.testing.assert_array_equal(res.lines, 4)
+    np.testing.assert_array_equal(np.asarray(res.phases)[:, :4], [[0, 1, 2, 1]] * 3)
+    assert np.all(np.linalg.norm(np.asarray(xy - CENTRES), axis=1) < 0.1 * np.asarray(RADII))
+
+
+def _centred_guesses(spec: LocalScan) -> tuple:
+    """``find_and_go`` with ``spec`` from a guess on each particle's centre, step A's model the
+    true scanner (no drift)."""
     afm = default_afm(drift_nm_per_min=(0.0, 0.0))
     model = afm.scanner.without("drift", "noise")
     state = run_cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
     pos = Positioner(afm, model)
     stand = pos.start(state, twin_after_cycle(afm, model))
-    res, xy = jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k))(
+    return jax.vmap(lambda g, r, k: find_and_go(pos, Particles(CENTRES, RADII), stand, g, r, k, spec))(
         CENTRES, RADII, jax.random.split(jax.random.key(9), 3)
     )
-    assert np.asarray(res.found).all()
-    np.testing.assert_array_equal(res.lines, 3)
-    np.testing.assert_array_equal(np.asarray(res.phases)[:, :3], [[0, 1, 2]] * 3)
-    assert np.all(np.linalg.norm(np.asarray(xy - CENTRES), axis=1) < 0.1 * np.asarray(RADII))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -305,6 +305,7 @@ def test_study_through_step_c_and_the_push(tmp_path, monkeypatch):
     np.testing.assert_allclose(
         np.hypot(r["push_first_along_nm"], r["push_first_across_nm"]), r["push_first_error_nm"]
     )
+    np.testing.assert_allclose(np.hypot(r["ABC_miss_x_nm"], r["ABC_miss_y_nm"]), r["ABC_error_nm"])
     # the two passes give what one pass with every line gives: each trial alone, in one pass
     # (measured: the same to the last bit)
     monkeypatch.setattr(study, "FIRST_PASS_LINES", cfg.local_scan.max_lines)

@@ -115,6 +115,12 @@ class LocalScanSpec(Strict):
     centre_floor_nm: float = Field(
         1.0, ge=0, description="... or this close, nm, if more: the frame's repeatability from line to line"
     )
+    condition_y: bool = Field(
+        False,
+        description="the first line along y through the estimate moves it but never confirms it: its trace "
+        "passes where the move before the local scan turned y, and there sets plays moving whose weights "
+        "the model may have wrong; a second line along y, below the first one's top, confirms",
+    )
 
 
 class PushSpec(Strict):

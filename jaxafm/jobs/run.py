@@ -70,6 +70,7 @@ def local_scan_settings(spec: LocalScanSpec) -> LocalScan:
         height_tolerance=spec.height_tolerance,
         centre_tolerance=spec.centre_tolerance,
         centre_floor=spec.centre_floor_nm,
+        condition_y=spec.condition_y,
     )
 
 

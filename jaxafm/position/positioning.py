@@ -162,7 +162,14 @@ class LocalScan(eqx.Module):
     along x and 1.4 times along y). Two centred lines through the estimate in a row, one along
     each axis, verify the centre. The floor is the frame's repeatability from line to line:
     with step A's model, successive lines along the slow axis measured the same particle
-    0.4-1 nm apart (``jaxafm run configs/paper.yaml``)."""
+    0.4-1 nm apart (``jaxafm run configs/paper.yaml``).
+
+    ``condition_y``: the first line along y through the estimate (after each search) moves the
+    estimate but never confirms it; a second line along y does. The move to the target ends
+    rising on each axis; the first line's trace passes that turning point and sets moving again
+    the plays the move left standing, so its middle carries the model's error in their weights,
+    while the second line runs below the first one's top, where they stand still. Along x the
+    search line, which never confirms, does this."""
 
     points: int = eqx.field(static=True, default=192)
     line_time: float = eqx.field(static=True, default=0.5)
@@ -173,6 +180,7 @@ class LocalScan(eqx.Module):
     height_tolerance: float = eqx.field(static=True, default=0.25)
     centre_tolerance: float = eqx.field(static=True, default=0.1)
     centre_floor: float = eqx.field(static=True, default=1.0)
+    condition_y: bool = eqx.field(static=True, default=False)
 
     def half_length(self, radius: Array, tip: Tip, search: bool = True) -> Array:
         """Half the length of a line, nm: the imaged particle's reach plus the search margin
@@ -287,7 +295,7 @@ def local_scan(
     t0 = stand.afm.scanner.t
     empty = jnp.zeros((spec.max_lines, 2))
     start = _Search(
-        stand, key, 0, 0, guess, guess, 0, False, False, False, empty, empty, jnp.full(spec.max_lines, -1)
+        stand, key, 0, 0, guess, guess, 0, False, False, False, 0, empty, empty, jnp.full(spec.max_lines, -1)
     )
     end = lax.while_loop(lambda c: ~c.done, line.next, start)
     result = ScanResult(
@@ -300,8 +308,8 @@ class _Search(NamedTuple):
     """The local scan's state from line to line: where things stand, the key, the ``phase`` (0
     search, 1 along y, 2 along x through the estimate), the search line ``k`` from ``origin``,
     the ``estimate``, the ``lines`` scanned, whether it is ``done`` (and ``verified``), whether
-    the last line was a centred one through the estimate (``confirmed``), and each line's
-    ``starts``, ``ends``, ``phases``."""
+    the last line confirmed the estimate (``confirmed``), the lines along y since the last
+    search line (``y_lines``), and each line's ``starts``, ``ends``, ``phases``."""
 
     stand: Stand
     key: Array
@@ -313,6 +321,7 @@ class _Search(NamedTuple):
     done: Array
     verified: Array
     confirmed: Array
+    y_lines: Array
     starts: Array
     ends: Array
     phases: Array
@@ -369,7 +378,9 @@ class _Line(NamedTuple):
             & (jnp.abs(mid) <= jnp.maximum(spec.centre_tolerance * radius, spec.centre_floor))
             & (jnp.abs(jnp.log(height / (2 * radius))) <= jnp.log1p(spec.height_tolerance))
         )
-        verified = centred & c.confirmed & (c.phase > 0)
+        # a search line never confirms; with condition_y, neither does the first line along y
+        confirms = centred & (c.phase > 0) & ~(spec.condition_y & (c.phase == 1) & (c.y_lines == 0))
+        verified = confirms & c.confirmed
         # seen: on to a line along the other axis (after the search: along y); lost: search from the estimate
         n_search = 2 * jnp.ceil(spec.margin / self.spacing) + 1
         exhausted = (c.phase == 0) & ~seen & (c.k + 1 >= n_search)
@@ -384,7 +395,8 @@ class _Line(NamedTuple):
             n,
             verified | exhausted | (n >= spec.max_lines),
             verified,
-            centred & (c.phase > 0),
+            confirms,
+            jnp.where(c.phase == 0, 0, c.y_lines + (c.phase == 1)),
             c.starts.at[c.lines].set(start),
             c.ends.at[c.lines].set(end),
             c.phases.at[c.lines].set(c.phase),

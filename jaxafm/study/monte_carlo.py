@@ -304,7 +304,8 @@ def _round_odds(pushes: np.ndarray, rows: dict, tolerance_radii: float) -> np.nd
 def _columns(r: TrialResults) -> dict:
     """The study's columns of the trials' results: ``error_nm`` and the true ``tip`` (2,) nm;
     step C's ``c_error_nm``, ``c_found``, ``c_lines``, ``c_seconds``, ``c_centre`` (2,) nm (the
-    centre it found, in the wanted frame); the push's ``push_final``, ``push_first`` (the
+    centre it found, in the wanted frame), ``c_tip`` (2,) nm (the true tip after the move
+    there); the push's ``push_final``, ``push_first`` (the
     particle's true centre after the first push), ``push_goal``, ``push_corrections``,
     ``push_contact``, ``push_command`` and ``push_seen_moved`` (what the software asked of the
     first push and saw it do, :class:`~jaxafm.position.positioning.PushCheck`)."""
@@ -317,6 +318,7 @@ def _columns(r: TrialResults) -> dict:
             "c_lines": scan.lines,
             "c_seconds": scan.seconds,
             "c_centre": scan.centre,
+            "c_tip": r.step_c.tip,
         }
     if r.push is not None:
         columns |= {
@@ -341,7 +343,7 @@ def _unseen(r: dict, seen: np.ndarray) -> dict:
         elif (
             k.endswith("error_nm")
             or k.startswith("push_final")
-            or k in ("tip", "c_centre", "push_seen_moved")
+            or k in ("tip", "c_centre", "c_tip", "push_seen_moved")
         ):
             v[~seen] = np.nan
     return r
@@ -478,12 +480,16 @@ def run_chunk(
             if settings.learning.pushes:
                 out["push_learnt_from"] = r["push_learnt_from"]
         if with_c:
-            out |= {
-                "ABC_error_nm": r["c_error_nm"],
-                "ABC_found": r["c_found"],
-                "ABC_lines": r["c_lines"],
-                "ABC_local_scan_s": r["c_seconds"],
-            } | _xy("ABC_centre", r["c_centre"])
+            out |= (
+                {
+                    "ABC_error_nm": r["c_error_nm"],
+                    "ABC_found": r["c_found"],
+                    "ABC_lines": r["c_lines"],
+                    "ABC_local_scan_s": r["c_seconds"],
+                }
+                | _xy("ABC_centre", r["c_centre"])
+                | _xy("ABC_miss", r["c_tip"] - x["centre"])
+            )
         if with_c and settings.push:
             push = (
                 "push_error_nm",
@@ -515,6 +521,7 @@ def _failed(n: int, modelled: bool) -> dict:
         "push_learnt_from": np.zeros(n, int),
         "tip": np.full((n, 2), np.nan),
         "c_centre": np.full((n, 2), np.nan),
+        "c_tip": np.full((n, 2), np.nan),
         "modelled": np.full(n, modelled),
         "surveyed": np.zeros(n, bool),
         "seen": np.zeros(n, bool),
