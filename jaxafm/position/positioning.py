@@ -165,11 +165,11 @@ class LocalScan(eqx.Module):
     0.4-1 nm apart (``jaxafm run configs/paper.yaml``).
 
     ``condition_y``: the first line along y through the estimate (after each search) moves the
-    estimate but never confirms it; a second line along y does. The move to the target ends
-    rising on each axis; the first line's trace passes that turning point and sets moving again
-    the plays the move left standing, so its middle carries the model's error in their weights,
-    while the second line runs below the first one's top, where they stand still. Along x the
-    search line, which never confirms, does this."""
+    estimate but never confirms it; a second line along y does. A move to the target with an
+    approach (:func:`goto`) ends rising on each axis; the first line's trace passes that turning
+    point and sets moving again the plays the move left standing, so its middle carries the
+    model's error in their weights, while the second line runs below the first one's top, where
+    they stand still. Along x the search line, which never confirms, does this."""
 
     points: int = eqx.field(static=True, default=192)
     line_time: float = eqx.field(static=True, default=0.5)
