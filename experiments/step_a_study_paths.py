@@ -58,15 +58,20 @@ def right_matching(scan, sim) -> str:
     return "none"
 
 
+def finished_study_config(folder: Path) -> StudyConfig:
+    """The config a finished study in ``folder`` ran with, from its run manifest."""
+    manifest = read_manifest(folder)
+    if manifest is None:
+        raise SystemExit(f"{folder}: no run manifest: not a study's output folder")
+    return StudyConfig.model_validate(manifest["config"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("study", type=Path, help="a finished study's output folder")
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "step_a_study_paths")
     a = ap.parse_args()
-    manifest = read_manifest(a.study)
-    if manifest is None:
-        raise SystemExit(f"{a.study}: no run manifest: not a study's output folder")
-    cfg = StudyConfig.model_validate(manifest["config"])
+    cfg = finished_study_config(a.study)
     spec = cfg.calibration
     first = spec.simulate.model_copy(
         update={"angles_deg": spec.simulate.angles_deg[:1], "line_rate_hz": spec.simulate.line_rates_hz[0]}

@@ -27,11 +27,11 @@ import equinox as eqx
 import jax
 import numpy as np
 from jax.sharding import Mesh
+from step_a_study_paths import finished_study_config
 
-from jaxafm.config import StudyConfig
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import study as job
-from jaxafm.jobs.folder import Output, read_manifest
+from jaxafm.jobs.folder import Output
 from jaxafm.jobs.run import workspace_layout
 from jaxafm.model.io import load_model, save_model
 from jaxafm.study.monte_carlo import run_chunk
@@ -87,10 +87,7 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "step_c_conditioning")
     a = ap.parse_args()
-    manifest = read_manifest(a.study)
-    if manifest is None:
-        raise SystemExit(f"{a.study}: no run manifest: not a study's output folder")
-    cfg = StudyConfig.model_validate(manifest["config"])
+    cfg = finished_study_config(a.study)
     s = a.scanner
     params = job.scanner_draws(cfg)[s]
     truth = default_afm(**params).scanner.without("drift", "noise")
