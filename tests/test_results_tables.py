@@ -110,3 +110,14 @@ def test_numbers_print_with_their_units():
     assert results.q(None, "nm") == "–"
     assert results.span([8.9, 7.97], "%") == "8.0–8.9 %"
     assert results.span([-900.0, -536.0], "nm", 0) == "−900 to −536 nm"
+
+
+def test_every_shipped_config_is_in_the_configs_table_and_every_row_is_shipped():
+    """docs/cli.md's table of the shipped configs lists exactly the files in ``configs/``."""
+    text = (ROOT / "docs" / "cli.md").read_text()
+    table = text.split("## The shipped configs", 1)[1].split("\n## ", 1)[0]
+    rows = {line.split("`")[1] for line in table.splitlines() if line.startswith("| `configs/")}
+    shipped = {f"configs/{p.name}" for p in (ROOT / "configs").glob("*.yaml")}
+    assert rows == shipped, (
+        f"only in the table: {sorted(rows - shipped)}; not in it: {sorted(shipped - rows)}"
+    )
