@@ -8,7 +8,7 @@ y rms after the one rigid shift no image sees. A model that fits the calibration
 misplaces the tip by hundreds of nm shows here, where the study's own figures show only what
 the landmarks and the local scans made of it. Beside it, which of the matchings of the
 retrace's lattice indices that step A tries at the line reversal is the right one
-(``CalibrationScan.feature_matches``, one or two: the one whose trace and retrace features lie
+(``CalibrationScan.feature_matches``, one to three: the one whose trace and retrace features lie
 on the same true lattice sites through the simulator's scanner), or none.
 
     python experiments/step_a_study_paths.py experiments/results/study
@@ -46,12 +46,13 @@ def path_rms(scanner, scan, truth) -> list:
     return [e["path_x_rms_nm"], e["path_y_rms_nm"]]
 
 
-def right_matching(scan, sim) -> str:
-    """Which retrace matching of ``scan`` that step A tries (``"first"``, ``"second"``, or ``"none"``)
-    puts its trace and retrace features on the same lattice sites through the true scanner of ``sim``."""
+def right_matching(scan, sim, wide_loop: bool = False) -> str:
+    """Which retrace matching of ``scan`` that step A tries (``"first"``, ``"second"``, with
+    ``wide_loop`` also ``"third"``, or ``"none"``) puts its trace and retrace features on the same
+    lattice sites through the true scanner of ``sim``."""
     true = ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
-    trace, retraces = scan.feature_matches()
-    for name, retrace in zip(("first", "second"), retraces):
+    trace, retraces = scan.feature_matches(wide_loop)
+    for name, retrace in zip(("first", "second", "third"), retraces):
         e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])
         if len({tuple(np.round(np.median(np.asarray(x), axis=0))) for x in e}) == 1:
             return name
@@ -80,7 +81,7 @@ def main() -> None:
     for s, params in enumerate(job.scanner_draws(cfg)):
         saved = a.study / "scanners" / f"model_{s:05d}.json"
         scans, sim = calibration_scans(first, spec.grating, default_afm(**params))
-        right = right_matching(scans[0], sim)
+        right = right_matching(scans[0], sim, spec.solver.wide_loop)
         if not saved.is_file():
             rows.append({"scanner": s, "path_rms_nm": None, "right_matching": right})
             print(f"scanner {s:2d}: no model saved; right matching {right}", flush=True)

@@ -1,10 +1,15 @@
 """Step A on a scanner whose hysteresis loop is wide: the retrace indexed by the feature fit.
 Its own module so that ``--dist loadfile`` can hand it to whichever worker is free at the end."""
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from jaxafm.config import CalibrationLattice, SimulatedCalibration
-from jaxafm.identify.scan_model import ScanModel
+from jaxafm.identify.calibration_scan import _retrace_matches, one_pitch_back, reversal_lag
+from jaxafm.identify.features import LatticeFeatures
+from jaxafm.identify.scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, start_loop
 from jaxafm.identify.staged_fit import identify
 from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import default_afm
@@ -49,3 +54,99 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     )
     e = e - e.reshape(-1, 2).mean(axis=0)  # the lattice's absolute place is not observable
     assert np.sqrt(np.mean(e[..., 0] ** 2)) < 100.0  # nm; a pitch is 1000
+
+
+def _grid(columns, first_index):
+    """Features at ``columns`` (px) on 7 rows 16 px apart, indexed from ``first_index`` along the line."""
+    rows = 8.0 + 16.0 * np.arange(7)
+    rc = np.array([(r, c) for r in rows for c in columns])
+    ij = np.array([(first_index + k, i) for i in range(7) for k in range(len(columns))])
+    return LatticeFeatures(rc, ij)
+
+
+@pytest.mark.parametrize("displacement", [3.0, 12.0, 26.0])  # px; a pitch is 16
+def test_a_retrace_more_than_a_pitch_behind_is_matched_only_with_wide_loop(displacement):
+    """Pillars J = 0, 1, ... 16 px apart; the trace sees J = 0-6 at columns 10 + 16 J, the retrace
+    each pillar ``displacement`` px earlier (those inside columns 0-111), each image indexing its
+    own features from 0. The retrace feature of pillar J must get the trace's index J under one
+    of the matchings: within a pitch (3, 12 px) under the two the line reversal gives; 1.6
+    pitches behind (26 px: the nearest retrace feature to the last trace column is pillar J + 1's,
+    and none lies beyond it) only under ``wide_loop``'s pitch-back matching, whose
+    ``reversal_lag`` is then the displacement."""
+    pillars = np.arange(9)
+    trace = _grid(10.0 + 16.0 * pillars[:7], 0)
+    seen = [j for j in pillars if 0 <= 10.0 + 16.0 * j - displacement <= 111]
+    retrace = _grid(10.0 + 16.0 * np.array(seen) - displacement, 0)
+    true_shift = (seen[0], 0)  # trace index minus the retrace's own, for the same pillar
+    plain = [tuple(m.ij[0] - retrace.ij[0]) for m in _retrace_matches(trace, retrace, (16.0, 16.0))]
+    back = one_pitch_back(trace, _retrace_matches(trace, retrace, (16.0, 16.0))[0], (16.0, 16.0))
+    assert (true_shift in plain) == (displacement < 16.0)
+    if displacement > 16.0:
+        assert tuple(back.ij[0] - retrace.ij[0]) == true_shift
+        assert reversal_lag(trace, back, (16.0, 16.0)) == pytest.approx(displacement / 16.0)
+
+
+def test_wide_loop_puts_a_25_percent_loop_on_its_lattice_in_both_scans_of_a_0_90_pair():
+    """A 25 % loop (configs/study_wide.yaml's widest) imaged at 0° and 90° with 10 % overscan: near
+    the reversal each retrace sees the pillars about 1.7 pitches behind the trace, beyond every
+    matching the reversal alone gives. With ``wide_loop`` each scan's retrace is matched the
+    way whose trace and retrace features lie on the same true lattice sites (one shift for both,
+    through the true scanner), the later scan's in the chord stage over both scans, and the tip
+    path over the 0° scan is within a tenth of a pitch of the truth on both axes; without it the
+    first scan's retrace stays indexed a pitch off and the path along x is not (295 nm rms)."""
+    afm = default_afm(loop_width=0.25, creep_gamma=0.01, coupling=0.02, noise_std=0.2)
+    spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, angles_deg=[0, 90], seed=0)
+    scans, sims = [], []
+    for angle in (0, 90):
+        (scan,), sim = calibrate.calibration_scans(
+            spec.model_copy(update={"angles_deg": [angle]}),
+            CalibrationLattice(pitch_nm=1000, rotation_deg=0),
+            afm,
+        )
+        scans.append(scan)
+        sims.append(sim)
+    true = _true_model(sims[0])
+
+    def on_true_sites(scan, trace, retrace):
+        e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])
+        return len({tuple(np.round(np.median(np.asarray(x), axis=0))) for x in e}) == 1
+
+    plan = FitPlan(max_steps=(30, 30), blur_px=(), coarsen="auto", hold_out=False, select=False)
+    for wide in (False, True):
+        matches = [scan.feature_matches(wide) for scan in scans]
+        right = [[on_true_sites(s, t, r) for r in rs] for s, (t, rs) in zip(scans, matches)]
+        assert (True in right[0]) is wide  # the first scan's right matching is the pitch-back one
+        ident = identify(scans, plan=dataclasses.replace(plan, wide_loop=wide), log=lambda m: None)
+        paths = zip(ident.model.paths(scans[0]), ("path_trace", "path_retrace"))
+        e = np.stack([np.asarray(p) - np.asarray(getattr(sims[0].measured, k)) for p, k in paths])
+        e = e - e.reshape(-1, 2).mean(axis=0)  # the lattice's absolute place is not observable
+        rms = np.sqrt(np.mean(e.reshape(-1, 2) ** 2, axis=0))
+        if wide:
+            assert "matched the pitch-back way" in ident.stages[0].message
+            assert "90 degree scan" in ident.stages[1].message and "matched the" in ident.stages[1].message
+            assert np.all(rms < 100.0), rms  # nm; a pitch is 1000
+        else:
+            assert rms[0] > 100.0, rms  # the first scan's retrace a pitch off: no model fits both
+
+
+def test_the_loop_start_puts_a_wide_loops_tip_path_within_a_quarter_pitch():
+    """A 25 % loop imaged at 0°: the nominal model (a narrow loop) on the right (pitch-back)
+    matching puts the tip path more than half a pitch from the truth along x, outside the chord
+    fit's valley (half a pitch either way); a uniform loop scaled to that matching's features
+    (``start_loop``) starts it well inside: within a quarter pitch rms."""
+    afm = default_afm(loop_width=0.25, creep_gamma=0.01, coupling=0.02, noise_std=0.2)
+    spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
+    (scan,), sim = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000, rotation_deg=0), afm)
+    trace, retraces = scan.feature_matches(wide_loop=True)
+    right = retraces[-1]  # the pitch-back matching (the test above: the right one on this scanner)
+    assert reversal_lag(trace, right, scan.pitch_px) > 1.0
+    nominal = start_lattice(nominal_scan_model(scan, ScanModelSpec()).as_float64(), scan, (trace, right))
+
+    def x_rms(model) -> float:
+        paths = zip(model.paths(scan), ("path_trace", "path_retrace"))
+        e = np.stack([np.asarray(p) - np.asarray(getattr(sim.measured, k)) for p, k in paths])
+        e = e - e.reshape(-1, 2).mean(axis=0)
+        return float(np.sqrt(np.mean(e[..., 0] ** 2)))
+
+    assert x_rms(nominal) > 500.0  # nm; a pitch is 1000
+    assert x_rms(start_loop(nominal, scan, trace, right)) < 250.0

@@ -258,6 +258,12 @@ class CalibrationSolver(Strict):
         description="climb a ladder of models from straight axes towards the configured model and "
         "keep the one the data support (docs/step_a.md); false: fit the configured model as it is",
     )
+    wide_loop: bool = Field(
+        False,
+        description="the scanner's loop may hold the retrace more than a pitch behind the trace at the "
+        "line reversal (loops over about 18 % of the range at 10 % overscan): every scan's retrace is "
+        "also tried indexed a pitch further back, and the best-fitting matching is kept (docs/step_a.md)",
+    )
 
 
 class Compensation(Strict):

@@ -124,10 +124,12 @@ class CalibrationScan(eqx.Module):
         trace, retraces = self.feature_matches()
         return trace, retraces[0]
 
-    def feature_matches(self) -> tuple:
+    def feature_matches(self, wide_loop: bool = False) -> tuple:
         """The trace's features and the retrace's (with their chords,
         :func:`~jaxafm.identify.chords.find_chords`), the latter indexed in each way the line
-        reversal allows (:func:`_retrace_matches`): ``(trace, [retrace, ...])``.
+        reversal allows (:func:`_retrace_matches`): ``(trace, [retrace, ...])``. With
+        ``wide_loop``, one more way last: the first's a pitch further back
+        (:func:`one_pitch_back`), for a loop that holds the retrace more than a pitch behind.
 
         Raises:
             ValueError: naming the image, when it shows fewer than 3 x 3 complete features or
@@ -153,7 +155,38 @@ class CalibrationScan(eqx.Module):
             _check_coverage(rc, self.pitch_px, (self.raster.lines, self.raster.pixels), name)
             ij, angle = index_lattice(self.raster.nominal(rc), self.pitch, name, "nm")
             found.append(LatticeFeatures(rc, ij, angle, chords))
-        return found[0], _retrace_matches(*found, self.pitch_px)
+        retraces = _retrace_matches(*found, self.pitch_px)
+        if wide_loop:
+            back = one_pitch_back(found[0], retraces[0], self.pitch_px)
+            retraces += [back] if all(np.any(r.ij != back.ij) for r in retraces) else []
+        return found[0], retraces
+
+
+def one_pitch_back(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: tuple) -> LatticeFeatures:
+    """The retrace ``fr`` indexed as if it saw every pillar one pitch further back along the line
+    than ``fr``'s indices say: each index plus the trace's step to the next pillar along its
+    line (the change of indices most neighbour pairs of ``ft`` agree on). A loop wide enough
+    holds the retrace more than a pitch behind the trace at the line reversal (1.5-1.8 pitches
+    for configs/study_wide.yaml's five widest at 10 % overscan): the nearest retrace feature
+    to a trace feature there is then the next pillar's, and none of
+    :func:`_retrace_matches`' ways is right."""
+    d = ft.rc[None, :, :] - ft.rc[:, None, :]  # (feature, other, (row, col))
+    ahead = (np.abs(d[..., 0]) < 0.5 * pitch_px[1]) & (d[..., 1] > 0.5 * pitch_px[0])
+    dist = np.where(ahead, d[..., 1], np.inf)
+    has = np.isfinite(dist.min(axis=1))
+    steps, counts = np.unique(ft.ij[np.argmin(dist[has], axis=1)] - ft.ij[has], axis=0, return_counts=True)
+    return dataclasses.replace(fr, ij=fr.ij + steps[np.argmax(counts)])
+
+
+def reversal_lag(trace: LatticeFeatures, retrace: LatticeFeatures, pitch_px: tuple) -> float:
+    """How much earlier along the line the retrace sees the pillars of the trace's last half
+    pitch, under the matching of ``retrace``'s indices (:meth:`CalibrationScan.feature_matches`):
+    the median over the pillars both show of the trace's column less the retrace's, in pitches
+    (nan where the retrace shows none of them)."""
+    turn = trace.rc[:, 1] > trace.rc[:, 1].max() - 0.5 * pitch_px[0]
+    col = {tuple(ij): c for ij, c in zip(retrace.ij, retrace.rc[:, 1])}
+    lags = [c - col[tuple(ij)] for ij, c in zip(trace.ij[turn], trace.rc[turn, 1]) if tuple(ij) in col]
+    return float(np.median(lags) / pitch_px[0]) if lags else float("nan")
 
 
 def coarse_pixels(rc: np.ndarray, factor: int) -> np.ndarray:

@@ -18,6 +18,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from ..config.names import MODEL_EFFECTS
 from ..instrument.afm import AFM, RasterScan, raster_scan
@@ -426,3 +427,41 @@ def start_lattice(model: ScanModel, scan: CalibrationScan, features: tuple) -> S
     return eqx.tree_at(
         lambda m: (m.lattice.phase, m.lattice.radius), model, (jnp.asarray(phase), jnp.asarray(radius))
     )
+
+
+def start_loop(model: ScanModel, scan: CalibrationScan, trace, retrace) -> ScanModel:
+    """``model`` with the plays of the stage axis nearest ``scan``'s fast axis started as a
+    uniform loop scaled to the scan's matched features: the first play's weight ``a``, a common
+    weight ``c`` of the others (an even density, the least a start should assume of the loop's
+    shape: a sparse least-squares fit of every weight puts the loop on a few plays, whose small
+    loops no full-range raster sees and a positioning move then gets wrong) and a phase ``p``,
+    ``a, c >= 0``, fitted so that every trace and retrace feature centre of one lattice index lies
+    at one place along that axis: ``x0 + A (a, c) - p = s`` in least squares
+    (``scipy.optimize.lsq_linear``), ``s`` the sites' offsets from the lattice's phase, ``x0`` the
+    model's positions at the centres with no play weighing and ``A`` what each of ``a`` and ``c``
+    adds per unit, exact: a play operator's output is linear in its weights. A start for the chord stage
+    on a wide loop, whose branches at the line reversal lie far from the nominal model's narrow
+    loop (:func:`nominal_scan_model`); its dead zones, creep and coupling stay as they are."""
+    angle = np.deg2rad(scan.raster.angle_deg)
+    k = 0 if abs(np.cos(angle)) >= abs(np.sin(angle)) else 1
+    h = getattr(model.scanner, "xy"[k]).hysteresis
+    if not isinstance(h, (PrandtlIshlinskii, GeneralizedPI)):
+        return model
+
+    def where(m):
+        h = getattr(m.scanner, "xy"[k]).hysteresis
+        return h.pi.weights if isinstance(h, GeneralizedPI) else h.weights
+
+    def at_features(w) -> np.ndarray:
+        path = eqx.tree_at(where, model, w).paths(scan)
+        return np.concatenate([sample_at(p, f.rc)[:, k] for p, f in zip(path, (trace, retrace))])
+
+    w0 = jnp.asarray(where(model))
+    first, others = jnp.eye(w0.size, dtype=w0.dtype)[0], jnp.ones(w0.size, dtype=w0.dtype).at[0].set(0.0)
+    x0 = at_features(jnp.zeros_like(w0))  # the rest of the model: no play weighs
+    A = np.stack([at_features(d) - x0 for d in (first, others)], axis=1)
+    ij = np.concatenate([trace.ij, retrace.ij])
+    s = np.asarray(model.lattice.sites(ij))[:, k] - float(model.lattice.phase[k])
+    fit = lsq_linear(np.c_[A, -np.ones(len(s))], s - x0, bounds=([0.0, 0.0, -np.inf], np.inf))
+    a, c = fit.x[:2]
+    return eqx.tree_at(where, model, a * first + c * others)

@@ -28,7 +28,7 @@ from typing import Optional
 import jax.numpy as jnp
 import numpy as np
 
-from .calibration_scan import CalibrationScan, check_scan_set, drive_range
+from .calibration_scan import CalibrationScan, check_scan_set, drive_range, one_pitch_back, reversal_lag
 from .fit import FitResult
 from .held_out import (
     fitted_parameters,
@@ -42,7 +42,7 @@ from .held_out import (
 )
 from .identifiability import identifiability, position_check
 from .plausibility import implausible, undetermined, unvalidated
-from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, transplant
+from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, start_loop, transplant
 from .selection import RungFit, aicc, matching_spec, select, supported_dead_zones
 from .stages import (
     FitPlan,
@@ -129,7 +129,7 @@ def identify(
 
     Several scans (e.g. at scan angles 0 and 90 degrees, or one angle at several line rates)
     are fitted together; the first one's chord fit fixes how the others' lattice indices line
-    up with its own (:func:`_align`). Half the lattice's sites are held out
+    up with its own (:meth:`_StagedFit.align`). Half the lattice's sites are held out
     (``plan.hold_out``, :mod:`~jaxafm.identify.held_out`), and an image stage is kept only if it
     does not worsen the held-out features' residual beyond its uncertainty: a slip by a pitch
     shows there first. The chord stages fit scans with up to ``plan.coarsen`` pixels of a line
@@ -161,8 +161,8 @@ def identify(
     limits = check_plan(plan, stages)
     factor = coarse_factor(scans, plan.coarsen)
     began = time.perf_counter()
-    trace, retraces = scans[0].feature_matches()
-    found = [(trace, retraces[0])] + [scan.features() for scan in scans[1:]]
+    matches = [scan.feature_matches(plan.wide_loop) for scan in scans]
+    found = [(trace, retraces[0]) for trace, retraces in matches]
     nominal_scan_model(
         scans[0], spec, scans
     )  # the configured kind, effects and plays: refused before any work
@@ -174,10 +174,10 @@ def identify(
     model = nominal_scan_model(scans[0], first, scans) if start is None else start
     model = start_lattice(model.as_float64(), scans[0], found[0])  # float64 leaves: one compilation each
     train, test = split_chords(found, plan.hold_out)  # the first stage may change the first retrace
-    fit = _StagedFit(scans, plan, factor, retraces, log, model, found, train, test, spec)
+    fit = _StagedFit(scans, plan, factor, [r for _, r in matches], log, model, found, train, test, spec)
     for i, (stage, limit) in enumerate(zip(stages, limits)):
         if i == 1 and len(scans) > 1:
-            fit.train, fit.test = _align(fit.model, scans, fit.found, fit.train, fit.test)
+            fit.align()
         fit.run(stage, limit, i, len(stages))
     failures = fit.fall_back()
     validation = validate(fit.model, scans, fit.train, fit.test)
@@ -204,21 +204,23 @@ def identify(
 
 @dataclasses.dataclass
 class _StagedFit:
-    """:func:`identify`'s stages as they run: the scans, the plan, the coarse factor and the
-    first scan's retrace matches; the model so far (the last kept stage's), the features (the
-    first stage may re-match the first scan's retrace) and their split, the image masks (made
-    at the first image stage), and per stage its result, acceptance and held-out residual."""
+    """:func:`identify`'s stages as they run: the scans, the plan, the coarse factor and each
+    scan's retrace matches; the model so far (the last kept stage's), the features (a chord
+    stage may re-match a scan's retrace) and their split, each scan's lattice index shift onto
+    the first's (:meth:`align`), the image masks (made at the first image stage), and per stage
+    its result, acceptance and held-out residual."""
 
     scans: tuple
     plan: FitPlan
     factor: int
-    retraces: list
+    retraces: list  # per scan, its retrace's matchings (CalibrationScan.feature_matches)
     log: Callable
     model: ScanModel
     found: list
     train: list
     test: list
     spec: ScanModelSpec
+    shifts: Optional[list] = None
     masks: Optional[tuple] = None
     rungs: list = dataclasses.field(default_factory=list)
     results: list = dataclasses.field(default_factory=list)
@@ -237,7 +239,9 @@ class _StagedFit:
         self.log(f"  stage {i + 1}/{total} {name} ...")
         began = time.perf_counter()
         last = stage.kind is StageKind.CHORDS and not stage.first_scan_only
-        fit, kernel, matched = self._fit(stage, level, limit, first=i == 0, ladder=last and self.plan.select)
+        rematch = range(1, len(self.scans)) if i == 1 and last and self.plan.wide_loop else ()
+        matching = range(1) if i == 0 else rematch
+        fit, kernel, matched = self._fit(stage, level, limit, matching, ladder=last and self.plan.select)
         if last and k > 1 and not self.plan.blur_px:  # no image stage will fit the whole scans
             level = fitted
             fit = fit_stage(stage, fit.model, level, chord_data(self.train, self.scans, 1), self.plan, limit)
@@ -298,23 +302,25 @@ class _StagedFit:
                 return []
         return failures
 
-    def _fit(self, stage: Stage, level: tuple, limit: int, first: bool, ladder: bool) -> tuple:
+    def _fit(self, stage: Stage, level: tuple, limit: int, matching: range, ladder: bool) -> tuple:
         """``(fit, kernel, note)``: the stage fitted on the scans ``level`` (an image stage's
-        blur kernel, else ``None``; a note for its message); with ``ladder``, the model ladder
-        climbed from there (:meth:`_ladder`)."""
+        blur kernel, else ``None``; a note for its message), its retrace matchings chosen first
+        for the scans ``matching`` (:meth:`_matched`); with ``ladder``, the model ladder climbed
+        from there (:meth:`_ladder`)."""
         if stage.kind is StageKind.IMAGES:
             self.masks = self.masks or self._masks(level)
             kernel = jnp.asarray(stage.kernel())
             return fit_stage(stage, self.model, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
-        note = ""
-        if first:
-            fit, note = self._first_features(stage, level, limit)
-            if not ladder:
-                return fit, None, note
+        notes = []
+        for k in matching:
+            fit, note = self._matched(stage, level, limit, k)
+            notes.append(note)
             self.model = fit.model
+        if matching and not ladder:
+            return fit, None, "".join(notes)
         data = chord_data(self.train, self.scans, self.factor)
         if ladder:
-            return self._ladder(stage, level, data, limit), None, note
+            return self._ladder(stage, level, data, limit), None, "".join(notes)
         return fit_stage(stage, self.model, level, data, self.plan, limit), None, ""
 
     def _masks(self, level: tuple) -> tuple:
@@ -350,48 +356,88 @@ class _StagedFit:
         fit, self.spec, self.rungs = select(self.spec, fit_rung, rates, self.log)
         return fit
 
-    def _first_features(self, stage: Stage, level: tuple, limit: int) -> tuple:
-        """The first scan's chord stage, fitted once for each way of matching its retrace's
-        indices to its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`); the
-        best fit (lowest loss) says which is right, and its features and their split are kept:
-        a retrace indexed a pitch off asks the hysteresis loop for a branch separation a pitch
-        off near the reversal, where the loop closes, which no scanner model fits (on scanner 3
-        of configs/study.yaml its loss is 150 times the right match's). Returns the fit and a
-        note for the stage's message (empty with one match)."""
+    def _matched(self, stage: Stage, level: tuple, limit: int, k: int) -> tuple:
+        """Scan ``k``'s chord stage, fitted once for each way of matching its retrace's indices
+        to its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`);
+        the first matching is kept unless another fits ``MATCH_RATIO`` times better, and its
+        features and their split with it: a retrace indexed a pitch off asks the hysteresis loop
+        for a branch separation a pitch off near the reversal, where the loop closes, which no
+        scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the right
+        match's). Scan 0 is fitted alone (the first stage), a later scan with the others, its
+        indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` a
+        matching whose retrace sees the pillars at the reversal more than ``WIDE_LAG`` pitches
+        earlier than the trace starts from a uniform loop scaled to its features
+        (:func:`~jaxafm.identify.scan_model.start_loop`): from the nominal model's narrow loop
+        the chord fit does not reach it. Returns the fit and a note for the stage's message
+        (empty with one match)."""
+        trace, scan = self.found[k][0], self.scans[k]
+        shift = 0 if self.shifts is None else self.shifts[k]
         tried = []
-        for retrace in self.retraces:
-            features = [(self.found[0][0], retrace)] + list(self.found[1:])
-            split = split_chords(features, self.plan.hold_out)
-            data = chord_data(split[0][:1], self.scans, self.factor)
-            tried.append((fit_stage(stage, self.model, level, data, self.plan, limit), features, split))
-        losses = [fit.loss for fit, _, _ in tried]
+        for retrace in self.retraces[k]:
+            start = self.model
+            if self.plan.wide_loop and reversal_lag(trace, retrace, scan.pitch_px) > WIDE_LAG:
+                start = start_loop(
+                    start, scan, *(dataclasses.replace(f, ij=f.ij + shift) for f in (trace, retrace))
+                )
+            train, test = (
+                _shifted(part[0], shift) for part in split_chords([(trace, retrace)], self.plan.hold_out)
+            )
+            fitted = [*self.train[:k], train, *self.train[k + 1 :]]
+            data = chord_data(fitted[:1] if k == 0 else fitted, self.scans, self.factor)
+            tried.append((fit_stage(stage, start, level, data, self.plan, limit), retrace, train, test))
+        losses = [t[0].loss for t in tried]
         best = int(np.argmin(losses))
-        if losses[best] * MATCH_RATIO > losses[0]:  # the nearer matching unless another fits far better
+        if losses[best] * MATCH_RATIO > losses[0]:  # the first matching unless another fits far better
             best = 0
         others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
+        which = ("nearer", "other")[min(best, 1)]
+        if self.plan.wide_loop and np.array_equal(
+            tried[best][1].ij, one_pitch_back(trace, self.retraces[k][0], scan.pitch_px).ij
+        ):
+            which = "pitch-back"
+        name = "retrace" if k == 0 else f"{scan.name}'s retrace"
         note = (
-            f"; retrace indices matched the {'nearer' if best == 0 else 'other'} way at the line reversal "
-            f"(loss {losses[best]:.3e}; {others} the other way)"
+            f"; {name} indices matched the {which} way at the line reversal "
+            f"(loss {losses[best]:.3e}; {others} the other way{'s' if len(tried) > 2 else ''})"
             if len(tried) > 1
             else ""
         )
-        fit, self.found, (self.train, self.test) = tried[best]
+        fit, retrace, self.train[k], self.test[k] = tried[best]
+        self.found[k] = (trace, retrace)
         return fit, note
 
+    def align(self) -> None:
+        """Shift each later scan's lattice indices onto the first scan's, through the model
+        fitted to the first scan's features (:func:`_lattice_shifts`)."""
+        self.shifts = _lattice_shifts(self.model, self.scans, self.found)
+        self.train = [_shifted(part, shift) for part, shift in zip(self.train, self.shifts)]
+        self.test = [_shifted(part, shift) for part, shift in zip(self.test, self.shifts)]
 
-#: how many times better another retrace matching must fit than the nearer one to be taken
+
+def _shifted(part: list, shift) -> list:
+    """One scan's chords ``[(ends, ij, along_lines), ...]`` with their lattice indices shifted."""
+    return [(ends, ij + np.asarray(shift).astype(int), along) for ends, ij, along in part]
+
+
+#: how many times better another retrace matching must fit than the first one to be taken
 MATCH_RATIO = 2.0
+#: the displacement at the line reversal (pitches) beyond which, with ``FitPlan.wide_loop``, a
+#: matching's chord fit starts from a loop fitted to its features (``start_loop``): past a pitch
+#: the retrace shows the next pillar at a column nearer each trace pillar's than its own, and
+#: from the nominal start's narrow loop the chord fit ends hundreds of nm off
+WIDE_LAG = 1.0
 
 
-def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list) -> tuple:
-    """Shift each later scan's lattice indices onto the first scan's. Through ``model`` (fitted
-    to the first scan's features) the later scan's trace features land near whole lattice
-    coordinates: its rising fast axis follows the branch that the first scan's slow axis
-    traced, while its retrace follows a branch no earlier image showed (its retrace indices
-    follow the trace's, :meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`). The shift
-    is the nearest whole number of their median (:func:`_index_shift`); unless four in five trace
+def _lattice_shifts(model: ScanModel, scans: tuple, found: list) -> list:
+    """Each scan's whole lattice index shift onto the first scan's (zero for the first). Through
+    ``model`` (fitted to the first scan's features) a later scan's trace features land near
+    whole lattice coordinates: its rising fast axis follows the branch that the first scan's
+    slow axis traced, while its retrace follows a branch no earlier image showed (its retrace
+    indices follow the trace's,
+    :meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`). The shift is the
+    nearest whole number of their median (:func:`_index_shift`); unless four in five trace
     features round to that same shift, the scans are unmatchable (an error naming the scan)."""
-    train, test = list(train), list(test)
+    shifts = [np.zeros(2, int)]
     for k in range(1, len(scans)):
         trace = found[k][0]
         d = np.asarray(model.site_errors(scans[k], [(trace.rc, trace.ij)])[0])
@@ -403,12 +449,8 @@ def _align(model: ScanModel, scans: tuple, found: list, train: list, test: list)
                 "lattice with one scanner (check the scan angles, sizes and centres), or that fit is too "
                 "loose (raise solver.max_steps)"
             )
-
-        def move(part):
-            return [(ends, ij + shift.astype(int), along) for ends, ij, along in part]
-
-        train[k], test[k] = move(train[k]), move(test[k])
-    return train, test
+        shifts.append(shift.astype(int))
+    return shifts
 
 
 def _index_shift(d: np.ndarray, ij: np.ndarray) -> tuple:

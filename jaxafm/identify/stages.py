@@ -53,6 +53,11 @@ class FitPlan:
         hold_out: hold out the odd sites of a checkerboard of the lattice for validation.
         select: climb the model ladder (:func:`~jaxafm.identify.selection.select`) in the last
             chord stage, to the model the data support; else fit the configured model as it is.
+        wide_loop: the loop may hold the retrace more than a pitch behind the trace at the line
+            reversal: every scan's retrace matchings are tried, one a pitch further back among
+            them (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`),
+            a later scan's in the first chord stage over all scans
+            (:meth:`~jaxafm.identify.staged_fit._StagedFit._matched`).
     """
 
     solver: str = "jaxafm.geodesic_levenberg_marquardt"
@@ -63,6 +68,7 @@ class FitPlan:
     atol: float = 1e-8
     hold_out: bool = True
     select: bool = True
+    wide_loop: bool = False
 
 
 class StageKind(enum.Enum):

@@ -179,6 +179,7 @@ def identify_model(
         max_steps,
         hold_out=solver.hold_out,
         select=solver.select,
+        wide_loop=solver.wide_loop,
     )
     return identify(scans, spec, plan, log=log)
 
