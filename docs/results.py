@@ -208,7 +208,7 @@ PAPER_TRUE = Run(
 PUSH_STUDY = Run("push_study/metrics.json", "python experiments/push_study.py --fields 4")
 PUSH_0_90 = Run(
     "push_study_0_90/metrics.json",
-    "python experiments/push_study.py --fields 1 --model experiments/results/step_a_simulated/model_gpi.json "
+    "python experiments/push_study.py --fields 4 --model experiments/results/step_a_simulated/model_gpi.json "
     "--out experiments/results/push_study_0_90",
 )
 PUSH_TRUE = Run(
@@ -229,6 +229,9 @@ STUDY_WIDE_LOOP = Run(
     "study_wide_0_90_wide_loop/metrics.json", "jaxafm study configs/study_wide_0_90_wide_loop.yaml"
 )
 STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_classes.yaml")
+STUDY_CLASSES_0_90_CY = Run(
+    "study_classes_0_90_condition_y/metrics.json", "jaxafm study configs/study_classes_0_90_condition_y.yaml"
+)
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
 STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
@@ -440,6 +443,19 @@ def study_result(m: dict, misses: bool = True) -> str:
     return text + noise_ceiling(m)
 
 
+def classes_result(m: dict) -> str:
+    """A truth-class study's goal cell: A+B+C and push success over all trials and per class, and
+    the A+B+C ceiling its position noise sets."""
+    per_class = ", ".join(
+        f"{c} {q(v['ABC_success_pct'], '%')} / {q(v['push_success_pct'], '%')}"
+        for c, v in m["truth_classes"].items()
+    )
+    text = (
+        f"A+B+C {q(m['ABC_success_pct'], '%')}, push {q(m['push_success_pct'], '%')}; per class {per_class}"
+    )
+    return text + noise_ceiling(m)
+
+
 GOALS = [
     Goal(
         "step_a_linearity",
@@ -571,6 +587,19 @@ GOALS = [
         lambda m: m["push_success_pct"] >= 99,
     ),
     Goal(
+        "fields_0_90",
+        "over the four particle fields with step A from a 0° + 90° pair: A+B+C within 0.1 R ≥ 99.5 % and "
+        "push success ≥ 99.5 %",
+        PUSH_0_90,
+        "docs/positioning.md",
+        lambda m: (
+            f"A+B+C {q(m['ABC_within_0p1R_pct'], '%')} of {count(m['push_trials'])} "
+            f"(worst {q(m['ABC_error_over_radius_max'], 'R', 3)}), push {q(m['push_success_pct'], '%')} "
+            f"({count(m['push_successes'])} of {count(m['push_trials'])})"
+        ),
+        lambda m: m["push_trials"] >= 256 and min(m["ABC_within_0p1R_pct"], m["push_success_pct"]) >= 99.5,
+    ),
+    Goal(
         "study",
         "study across 16 scanners (4096 trials): A+B+C within 0.1 R ≥ 99 %, push ≥ 99 %, ran 100 %",
         STUDY,
@@ -628,13 +657,16 @@ GOALS = [
         "true scanners of classes the fitted model cannot describe (study_classes.yaml): A+B+C and push ≥ 98 %",
         STUDY_CLASSES,
         "docs/study.md#true-scanners-of-other-model-classes",
-        lambda m: (
-            f"A+B+C {q(m['ABC_success_pct'], '%')}, push {q(m['push_success_pct'], '%')}; per class "
-            + ", ".join(
-                f"{c} {q(v['ABC_success_pct'], '%')} / {q(v['push_success_pct'], '%')}"
-                for c, v in m["truth_classes"].items()
-            )
-        ),
+        classes_result,
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
+    ),
+    Goal(
+        "study_classes_0_90_condition_y",
+        "the same with step A from a 0° + 90° pair and the local scan's conditioning line along y "
+        "(study_classes_0_90_condition_y.yaml): A+B+C and push ≥ 98 %",
+        STUDY_CLASSES_0_90_CY,
+        "docs/study.md#step-a-from-a-0-90-pair-on-the-other-classes",
+        classes_result,
         lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
     ),
     Goal(
@@ -2008,10 +2040,12 @@ def study_truth_classes(run: Run) -> Callable[[Results], Table]:
 
 
 TABLES["study_classes_per_class"] = study_truth_classes(STUDY_CLASSES)
+TABLES["study_classes_0_90_condition_y_per_class"] = study_truth_classes(STUDY_CLASSES_0_90_CY)
 for _name, _run, _wall in (
     ("study", STUDY, False),
     ("study_wide", STUDY_WIDE, True),
     ("study_classes", STUDY_CLASSES, True),
+    ("study_classes_0_90_condition_y", STUDY_CLASSES_0_90_CY, True),
     ("study_speed", STUDY_SPEED, True),
 ):
     TABLES[f"{_name}_stages"] = study_stages(_run)
@@ -2081,11 +2115,17 @@ def position_coverage(run: Run) -> Callable[[Results], Table]:
 TABLES["study_position_coverage"] = position_coverage(STUDY)
 
 
-def _paths_run(folder: str) -> Run:
-    """``experiments/step_a_study_paths.py``'s file for the study ``folder``."""
+def _paths_run(folder: str, line_rate: Optional[float] = None) -> Run:
+    """``experiments/step_a_study_paths.py``'s file for the study ``folder`` (at ``line_rate`` Hz on
+    the 0° scan instead of the study's own first scan)."""
+    if line_rate is None:
+        return Run(
+            f"step_a_study_paths/{folder}.json",
+            f"python experiments/step_a_study_paths.py experiments/results/{folder}",
+        )
     return Run(
-        f"step_a_study_paths/{folder}.json",
-        f"python experiments/step_a_study_paths.py experiments/results/{folder}",
+        f"step_a_study_paths/{folder}_0deg_{line_rate:g}Hz.json",
+        f"python experiments/step_a_study_paths.py experiments/results/{folder} --line-rate {line_rate:g}",
     )
 
 
@@ -2148,15 +2188,21 @@ def _scanner_success(rows: list, scanner: str, tolerance_radii: float) -> tuple:
     return within("ABC_error_nm", 0.1), within("push_error_nm", tolerance_radii)
 
 
-def per_scanner_0_90(runs: tuple, names: tuple, path_folders: tuple) -> Callable[[Results], Table]:
+def per_scanner_0_90(
+    runs: tuple, names: tuple, path_folders: tuple, classes: bool = False, path_names: Optional[tuple] = None
+) -> Callable[[Results], Table]:
     """Studies of one scanner family side by side, scanner by scanner: each of ``path_folders``'
-    step A tip path (``experiments/step_a_study_paths.py``) and each of ``runs``' A+B+C and push
-    success, the columns named by ``names`` (the first of each group with its stage's name)."""
-    path_runs = [_paths_run(f) for f in path_folders]
+    step A tip path (``experiments/step_a_study_paths.py``; a folder's name, or its file's
+    ``Run``) and each of ``runs``' A+B+C and push success, the columns named by ``names`` (the
+    paths' by ``path_names`` if given; the first of each group with its stage's name); with
+    ``classes``, each scanner's truth class (the first run's ``scanners.json``)."""
+    path_runs = [f if isinstance(f, Run) else _paths_run(f) for f in path_folders]
+    info = Run(runs[0].path.replace("metrics.json", "scanners.json"), runs[0].command)
 
     def make(results: Results) -> Table:
         rows = [results(_trials(r)) for r in runs]
         paths = [{str(p["scanner"]): p["path_rms_nm"] for p in results(r)["scanners"]} for r in path_runs]
+        truth = {s: v["truth_class"] for s, v in results(info).items()} if classes else {}
         out = []
         for s in sorted({r["scanner"] for r in rows[0]}, key=int):
             success = [
@@ -2164,6 +2210,7 @@ def per_scanner_0_90(runs: tuple, names: tuple, path_folders: tuple) -> Callable
             ]
             out.append(
                 [s]
+                + ([truth[s]] if classes else [])
                 + [q(max(p[s]), "nm") if p[s] else "refused" for p in paths]
                 + [q(v[0], "%") for v in success]
                 + [q(v[1], "%") for v in success]
@@ -2171,7 +2218,8 @@ def per_scanner_0_90(runs: tuple, names: tuple, path_folders: tuple) -> Callable
         group = lambda stage, labels: [f"{stage}, {labels[0]}", *labels[1:]]
         head = [
             "scanner",
-            *group("step A path", names[: len(path_runs)]),
+            *(["truth class"] if classes else []),
+            *group("step A path", path_names or names[: len(path_runs)]),
             *group("A+B+C", names),
             *group("push", names),
         ]
@@ -2194,6 +2242,18 @@ TABLES["study_wide_0_90_per_scanner"] = per_scanner_0_90(
     (STUDY_WIDE, STUDY_WIDE_0_90_CY, STUDY_WIDE_LOOP),
     ("0°", "0° + 90°", "+ wide_loop"),
     ("study_wide", "study_wide_0_90_condition_y", "study_wide_0_90_wide_loop"),
+)
+TABLES["study_classes_0_90_per_scanner"] = per_scanner_0_90(
+    (STUDY_CLASSES, STUDY_CLASSES_0_90_CY),
+    ("0°", "0° + 90°, condition_y"),
+    (
+        "study_classes",
+        _paths_run("study_classes", 2.0),
+        "study_classes_0_90_condition_y",
+        _paths_run("study_classes_0_90_condition_y", 2.0),
+    ),
+    classes=True,
+    path_names=("0°, 1 Hz", "2 Hz", "0° + 90°, 1 Hz", "2 Hz"),
 )
 
 

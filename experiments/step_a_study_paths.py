@@ -14,6 +14,9 @@ on the same true lattice sites through the simulator's scanner), or none.
     python experiments/step_a_study_paths.py experiments/results/study
 
 writes ``experiments/results/step_a_study_paths/study.json`` (named after the study's folder).
+``--angle`` and ``--line-rate`` drive the models along a scan at another angle or line rate (the
+file then named ``study_90deg_2Hz.json``, say): a model fitted at one rate can misplace the tip at
+another.
 """
 
 from __future__ import annotations
@@ -71,12 +74,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("study", type=Path, help="a finished study's output folder")
     ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "step_a_study_paths")
+    ap.add_argument("--angle", type=float, help="scan angle (degrees); default: the study's first")
+    ap.add_argument("--line-rate", type=float, help="line rate (Hz); default: the study's first")
     a = ap.parse_args()
     cfg = finished_study_config(a.study)
     spec = cfg.calibration
-    first = spec.simulate.model_copy(
-        update={"angles_deg": spec.simulate.angles_deg[:1], "line_rate_hz": spec.simulate.line_rates_hz[0]}
-    )
+    angle = spec.simulate.angles_deg[0] if a.angle is None else a.angle
+    rate = spec.simulate.line_rates_hz[0] if a.line_rate is None else a.line_rate
+    first = spec.simulate.model_copy(update={"angles_deg": [angle], "line_rate_hz": rate})
     rows = []
     for s, params in enumerate(job.scanner_draws(cfg)):
         saved = a.study / "scanners" / f"model_{s:05d}.json"
@@ -90,8 +95,10 @@ def main() -> None:
         rows.append({"scanner": s, "path_rms_nm": [x, y], "right_matching": right})
         print(f"scanner {s:2d}: x {x:9.2f} nm  y {y:9.2f} nm rms; right matching {right}", flush=True)
     a.out.mkdir(parents=True, exist_ok=True)
-    out = a.out / f"{a.study.resolve().name}.json"
-    out.write_text(json.dumps({"study": a.study.resolve().name, "scanners": rows}, indent=1))
+    suffix = "" if a.angle is None and a.line_rate is None else f"_{angle:g}deg_{rate:g}Hz"
+    out = a.out / f"{a.study.resolve().name}{suffix}.json"
+    scan = {"angle_deg": angle, "line_rate_hz": rate}
+    out.write_text(json.dumps({"study": a.study.resolve().name, "scan": scan, "scanners": rows}, indent=1))
     print(f"wrote {out}")
 
 
