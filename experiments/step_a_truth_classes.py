@@ -1,5 +1,6 @@
 """Step A alone on a study's scanners: the stages it ran and its tip path against the simulated
-truth, on the calibration scan it fitted and on one at a quarter of the line rate.
+truth, on the first calibration scan it fitted (the first angle at the first line rate) and on
+the same scan at a quarter of that rate.
 
 Each scanner is the study's (``jaxafm.jobs.study.scanner_draws``: its truth class and drawn
 parameters); step A is the study's (``calibration`` of the config), with the chord stage's step
@@ -47,8 +48,14 @@ def step_a(cfg: StudyConfig, s: int, chord_steps, rates, effects) -> dict:
     began = time.perf_counter()
     ident = identify_model(scans, model, solver, spec.grating, lines.append)
     seconds = time.perf_counter() - began
+    first = spec.simulate.angles_deg[:1]  # the paths along the first angle's scan, whatever else step A saw
+    scans, sim = calibration_scans(
+        spec.simulate.model_copy(update={"angles_deg": first, "line_rate_hz": rates[0]}), spec.grating, afm
+    )
     slow_scans, slow = calibration_scans(
-        spec.simulate.model_copy(update={"line_rate_hz": rates[0] / 4, "seed": 5}), spec.grating, afm
+        spec.simulate.model_copy(update={"angles_deg": first, "line_rate_hz": rates[0] / 4, "seed": 5}),
+        spec.grating,
+        afm,
     )
     lag = ident.model.scanner.x.rate_dependence
     return {
