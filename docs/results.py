@@ -232,6 +232,9 @@ STUDY_CLASSES = Run("study_classes/metrics.json", "jaxafm study configs/study_cl
 STUDY_CLASSES_0_90_CY = Run(
     "study_classes_0_90_condition_y/metrics.json", "jaxafm study configs/study_classes_0_90_condition_y.yaml"
 )
+STUDY_CLASSES_WIDE_LOOP = Run(
+    "study_classes_0_90_wide_loop/metrics.json", "jaxafm study configs/study_classes_0_90_wide_loop.yaml"
+)
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
 STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
@@ -665,6 +668,14 @@ GOALS = [
         "the same with step A from a 0° + 90° pair and the local scan's conditioning line along y "
         "(study_classes_0_90_condition_y.yaml): A+B+C and push ≥ 98 %",
         STUDY_CLASSES_0_90_CY,
+        "docs/study.md#step-a-from-a-0-90-pair-on-the-other-classes",
+        classes_result,
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
+    ),
+    Goal(
+        "study_classes_0_90_wide_loop",
+        "the same with step A also told of wide loops (study_classes_0_90_wide_loop.yaml): A+B+C and push ≥ 98 %",
+        STUDY_CLASSES_WIDE_LOOP,
         "docs/study.md#step-a-from-a-0-90-pair-on-the-other-classes",
         classes_result,
         lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
@@ -2041,11 +2052,13 @@ def study_truth_classes(run: Run) -> Callable[[Results], Table]:
 
 TABLES["study_classes_per_class"] = study_truth_classes(STUDY_CLASSES)
 TABLES["study_classes_0_90_condition_y_per_class"] = study_truth_classes(STUDY_CLASSES_0_90_CY)
+TABLES["study_classes_0_90_wide_loop_per_class"] = study_truth_classes(STUDY_CLASSES_WIDE_LOOP)
 for _name, _run, _wall in (
     ("study", STUDY, False),
     ("study_wide", STUDY_WIDE, True),
     ("study_classes", STUDY_CLASSES, True),
     ("study_classes_0_90_condition_y", STUDY_CLASSES_0_90_CY, True),
+    ("study_classes_0_90_wide_loop", STUDY_CLASSES_WIDE_LOOP, True),
     ("study_speed", STUDY_SPEED, True),
 ):
     TABLES[f"{_name}_stages"] = study_stages(_run)
@@ -2244,16 +2257,18 @@ TABLES["study_wide_0_90_per_scanner"] = per_scanner_0_90(
     ("study_wide", "study_wide_0_90_condition_y", "study_wide_0_90_wide_loop"),
 )
 TABLES["study_classes_0_90_per_scanner"] = per_scanner_0_90(
-    (STUDY_CLASSES, STUDY_CLASSES_0_90_CY),
-    ("0°", "0° + 90°, condition_y"),
+    (STUDY_CLASSES, STUDY_CLASSES_0_90_CY, STUDY_CLASSES_WIDE_LOOP),
+    ("0°", "0° + 90°", "+ wide_loop"),
     (
         "study_classes",
         _paths_run("study_classes", 2.0),
         "study_classes_0_90_condition_y",
         _paths_run("study_classes_0_90_condition_y", 2.0),
+        "study_classes_0_90_wide_loop",
+        _paths_run("study_classes_0_90_wide_loop", 2.0),
     ),
     classes=True,
-    path_names=("0°, 1 Hz", "2 Hz", "0° + 90°, 1 Hz", "2 Hz"),
+    path_names=("0°, 1 Hz", "2 Hz", "0° + 90°, 1 Hz", "2 Hz", "+ wide_loop, 1 Hz", "2 Hz"),
 )
 
 
