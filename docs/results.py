@@ -2131,14 +2131,12 @@ TABLES["study_position_coverage"] = position_coverage(STUDY)
 def _paths_run(folder: str, line_rate: Optional[float] = None) -> Run:
     """``experiments/step_a_study_paths.py``'s file for the study ``folder`` (at ``line_rate`` Hz on
     the 0° scan instead of the study's own first scan)."""
-    if line_rate is None:
-        return Run(
-            f"step_a_study_paths/{folder}.json",
-            f"python experiments/step_a_study_paths.py experiments/results/{folder}",
-        )
+    suffix, option = (
+        ("", "") if line_rate is None else (f"_0deg_{line_rate:g}Hz", f" --line-rate {line_rate:g}")
+    )
     return Run(
-        f"step_a_study_paths/{folder}_0deg_{line_rate:g}Hz.json",
-        f"python experiments/step_a_study_paths.py experiments/results/{folder} --line-rate {line_rate:g}",
+        f"step_a_study_paths/{folder}{suffix}.json",
+        f"python experiments/step_a_study_paths.py experiments/results/{folder}{option}",
     )
 
 
