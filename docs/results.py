@@ -1311,6 +1311,57 @@ def step_a_independent(results: Results) -> Table:
     return Table(["", "median (worst) over the saved cases"], facts(rows), [STEP_A_INDEPENDENT])
 
 
+STEP_A_FEW = Run("step_a_few_features/seed7.json", "python experiments/step_a_few_features.py")
+
+
+@table("step_a_few_features")
+def step_a_few_features(results: Results) -> Table:
+    r = results(STEP_A_FEW)
+    m, px = r["metrics"], lambda v: q(v, "px", 2)
+    nm_px = lambda key: f"{q(m[key], 'nm', 0)} ({px(m[key] / r['pixel_nm'])})"
+    rates = ", ".join(f"{v:g}" for v in r["rates_hz"])
+    rows = [
+        (
+            "images",
+            f"3 × 3 square pits, 0° at {rates} Hz, {r['pixels']} px ({q(r['pixel_nm'], 'nm', 0)} a pixel), "
+            "trace and retrace, TIFF",
+        ),
+        ("image stages (the default on measured images)", ", ".join(map(str, r["image_blurs_px"])) or "none"),
+        ("model the ladder kept", r["kept"]),
+        (
+            "held-out features, raw → corrected",
+            f"{nm_px('held_out_raw_rms_nm')} → {nm_px('held_out_rms_nm')}",
+        ),
+        (
+            "their local pitch spread, raw → corrected",
+            _raw_to(m, "held_out_pitch_std_raw_pct", "held_out_pitch_std_corrected_pct", "%", 3),
+        ),
+        (
+            "largest held-out distance error, raw → corrected",
+            _raw_to(
+                m, "held_out_distance_error_max_raw_pct", "held_out_distance_error_max_corrected_pct", "%", 2
+            ),
+        ),
+        ("outcome", "saved" if r["plausible"] else "refused: " + "; ".join(r["failures"])),
+        (
+            "true tip path, rms: all pixels (x / y)",
+            f"{px(r['tip_path_rms_px'])} ({' / '.join(map(px, r['tip_path_xy_rms_px']))})",
+        ),
+        (
+            "true tip path, rms: inside / outside the features' reach",
+            f"{px(r['tip_path_inside_reach_rms_px'])} / {px(r['tip_path_outside_reach_rms_px'])} "
+            f"({q(100 * r['inside_reach_share'], '%', 0)} of the pixels inside)",
+        ),
+        (
+            "its sd as the fit predicts it: inside / outside the reach",
+            f"{px(r['path_sd_inside_reach_px'])} / {px(r['path_sd_outside_reach_px'])}",
+        ),
+        ("step A's time on 2 cores", q(r["seconds"], "s", 0)),
+    ]
+    note = "Seed 7 of the independent generator; the tip path after the rigid motion no image can see."
+    return Table(["", "step A as `jaxafm calibrate` runs it"], facts(rows), [STEP_A_FEW], note)
+
+
 STEP_A_FLOOR = Run(
     "step_a_independent/floor.json", "python experiments/step_a_floor.py --seeds 100 106 111 114 116"
 )

@@ -882,6 +882,7 @@ def draw_case(
     magnitudes: Optional[dict] = None,
     artefacts=True,
     unidentifiable: Optional[str] = None,
+    few_features: bool = False,
 ) -> dict:
     """One case: a scanner and a lattice drawn from ``seed``, scanned at every angle and line rate.
 
@@ -898,6 +899,7 @@ def draw_case(
         artefacts: True (drawn, :func:`make_artefacts`), False (none) or an :class:`Artefacts`.
         unidentifiable: "one_speed" (one scan: 1 Hz, 0 degrees) or "few_features" (an image 3
             pitches wide, a 3 x 3 lattice, one scan): :data:`UNIDENTIFIABLE`.
+        few_features: the 3 x 3 lattice at every angle and line rate given.
 
     Returns:
         ``{"scans", "meta", "truth", "scanner", "lattice"}``: the :class:`Scan` list; ``meta`` what
@@ -920,14 +922,15 @@ def draw_case(
     if feature not in FEATURES:
         raise ValueError(f"feature must be one of {FEATURES}, got {feature!r}")
     k = KINDS[kind]
-    size = size_nm or (3 * k["pitch_nm"] if unidentifiable == "few_features" else k["size_nm"])
+    few_features = few_features or unidentifiable == "few_features"
+    size = size_nm or (3 * k["pitch_nm"] if few_features else k["size_nm"])
     n_px = pixels or k["pixels"]
     if unidentifiable is not None:
         line_rates_hz, angles_deg = (1.0,), (0.0,)
     travel = size * (1 + 2 * round(overscan * n_px) / n_px)
     sensitivity = travel / 2 / (DRIVE_FRACTION * U_MAX_V)
     scanner = make_scanner(rng[1], sensitivity, drift_range=k["drift_nm_per_s"], **(magnitudes or {}))
-    lattice = make_lattice(rng[2], kind, feature, unidentifiable == "few_features")
+    lattice = make_lattice(rng[2], kind, feature, few_features)
     art = (
         artefacts
         if isinstance(artefacts, Artefacts)

@@ -328,6 +328,27 @@ def test_tiff_pair_with_size_from_the_calibrate_config(tmp_path):
     assert scan.raster.line_rate == 2.0
 
 
+def test_measured_images_are_fitted_by_their_chords_unless_image_stages_are_asked_for(tmp_path):
+    """On measured images step A's default is the chord stage alone (one for one scan): a list of
+    step limits is counted against it; on the simulated AFM the two image stages follow; stages
+    the user lists are fitted as listed."""
+    _tiff(tmp_path / "t.tif")
+    image = {"size_nm": [8000, 6000], "z_unit": "um"}
+    pair = {
+        "trace": {"path": "t.tif", **image},
+        "retrace": {"path": "t.tif", "direction": "retrace", **image},
+    }
+    data = pair | {"sensitivity_nm_per_v": [500.0, 500.0], "line_rate_hz": 2.0}
+    cfg, _ = _config(tmp_path, {"data": data, "solver": {"max_steps": [50]}}, CalibrateConfig)
+    assert cfg.solver.image_blurs(measured=True) == ()
+    with pytest.raises(ConfigError, match=r"solver.max_steps[\s\S]*1 stages here \(chords\)"):
+        _config(tmp_path, {"data": data, "solver": {"max_steps": [50, 20, 10]}}, CalibrateConfig)
+    asked = {"data": data, "solver": {"max_steps": [50, 20], "blur_px": [1.0]}}
+    assert _config(tmp_path, asked, CalibrateConfig)[0].solver.image_blurs(measured=True) == (1.0,)
+    simulated, _ = _config(tmp_path, {"simulate": {}, "solver": {"max_steps": [50, 20, 10]}}, CalibrateConfig)
+    assert simulated.solver.image_blurs(measured=False) == (2.0, 1.0)
+
+
 @pytest.mark.parametrize("fast_axis", ["x", "y"])
 def test_tiff_grating_with_size_from_the_diagnose_config(tmp_path, fast_axis):
     """A 1-D grating of 16 px pitch over 128 px of 4096 nm: the diagnosis fits a 512 nm pitch.

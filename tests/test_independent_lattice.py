@@ -312,6 +312,9 @@ def test_unidentifiable_cases_say_why():
     assert (
         draw_case(23, pixels=32, line_rates_hz=(1.0,), angles_deg=(0.0,))["truth"]["unidentifiable"] is None
     )
+    series = draw_case(23, pixels=32, line_rates_hz=(1.0, 2.0), angles_deg=(0.0,), few_features=True)
+    assert [s.meta["line_rate_hz"] for s in series["scans"]] == [1.0, 2.0]
+    assert len(series["truth"]["sites_nm"]) == 9 and series["truth"]["unidentifiable"] is None
     with pytest.raises(ValueError, match="unidentifiable"):
         draw_case(23, unidentifiable="blurry")
 

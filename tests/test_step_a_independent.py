@@ -14,6 +14,7 @@ import numpy as np
 from jaxafm.config import CalibrateConfig
 from jaxafm.identify.scan_model import ScanModelSpec, feature_reach, nominal_scan_model
 from jaxafm.identify.selection import supported_dead_zones
+from jaxafm.identify.stages import StageKind
 from jaxafm.jobs.calibrate import identify_model, read_calibration
 
 MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
@@ -26,14 +27,14 @@ def _identify(case: dict, folder: Path, effects: list, select: bool = True, oper
         data=given["data"],
         grating=given["grating"],
         models=[MODEL | {"effects": effects, "operators": operators}],
-        solver={"blur_px": [], "coarsen": "auto", "max_steps": 100, "select": select},
+        solver={"coarsen": "auto", "max_steps": 100, "select": select},
         compensate=None,
     )
     scans = read_calibration(cfg.data, cfg.grating, folder / "c.yaml", log=lambda *_: None)
     said = []
     return (
         scans,
-        (lambda: identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)),
+        (lambda: identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, said.append, measured=True)),
         said,
     )
 
@@ -69,6 +70,7 @@ def test_a_drawn_scanner_is_recovered_from_one_scan(tmp_path):
     ident = run()
     v = ident.validation
     pixel = scans[0].raster.pixel_size[0]
+    assert StageKind.IMAGES not in ident.kinds, "measured images: the chord stages alone by default"
     assert ident.plausible, (ident.failures, said[-5:])
     assert v["held_out_rms_nm"] <= min(v["held_out_raw_rms_nm"] / 3, 0.3 * pixel), said[-3:]
     nominal = nominal_scan_model(scans[0], ident.spec, scans)

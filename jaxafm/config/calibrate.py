@@ -229,6 +229,11 @@ class CalibrationModel(HysteresisSpec):
 
 StepLimit = Annotated[int, Field(ge=1, le=10_000)]
 
+#: step A's image stages on the simulated AFM unless ``solver.blur_px`` says otherwise: on measured
+#: images none (on a 3 x 3 pit lattice of the independent generator at four line rates, 256 px,
+#: both were fitted for 19 minutes on 2 cores and both rejected: docs/step_a.md)
+SIMULATED_BLURS_PX = (2.0, 1.0)
+
 
 class CalibrationSolver(Strict):
     """The solver of step A's staged image fit."""
@@ -239,8 +244,11 @@ class CalibrationSolver(Strict):
         description="per stage: one number for every stage, or a list, one per stage in order (the "
         "chord stages, then each blur)",
     )
-    blur_px: list[Annotated[float, Field(ge=0, le=64)]] = Field(
-        [2.0, 1.0], description="image stages, coarse to fine: Gaussian sigma (px), 0 for none"
+    blur_px: Optional[list[Annotated[float, Field(ge=0, le=64)]]] = Field(
+        None,
+        description="image stages, coarse to fine: Gaussian sigma (px), 0 for none; default "
+        "[2, 1] on the simulated AFM, none on measured images (the chords alone: a real image's "
+        "background and feature shapes are the sample's, docs/step_a.md)",
     )
     coarsen: Union[Annotated[int, Field(ge=1, le=64)], Literal["auto"]] = Field(
         1,
@@ -264,6 +272,13 @@ class CalibrationSolver(Strict):
         "line reversal (loops over about 18 % of the range at 10 % overscan): every scan's retrace is "
         "also tried indexed a pitch further back, and the best-fitting matching is kept (docs/step_a.md)",
     )
+
+    def image_blurs(self, measured: bool) -> tuple:
+        """The image stages' blurs (px): ``blur_px`` as given, else :data:`SIMULATED_BLURS_PX` on
+        the simulated AFM and none on ``measured`` images."""
+        if self.blur_px is not None:
+            return tuple(self.blur_px)
+        return () if measured else SIMULATED_BLURS_PX
 
 
 class Compensation(Strict):
@@ -293,13 +308,14 @@ def coarsen_fits(factor, pixels: list, per_pitch: float) -> bool:
     return power and not any(p % factor for p in pixels) and per_pitch / factor >= 2
 
 
-def check_stage_steps(solver: CalibrationSolver, scans: int) -> None:
+def check_stage_steps(solver: CalibrationSolver, scans: int, measured: bool = False) -> None:
     """Refuse a list ``solver.max_steps`` that does not give one step limit per stage of step A
-    on ``scans`` scans: one feature stage (two for several scans), then one per blur."""
+    on ``scans`` scans (``measured`` images or simulated ones): one feature stage (two for
+    several scans), then one per blur."""
     if isinstance(solver.max_steps, int):
         return
     stages = ["chords"] + (["chords, all scans"] if scans > 1 else [])
-    stages += [f"images, blur {b:g} px" for b in solver.blur_px]
+    stages += [f"images, blur {b:g} px" for b in solver.image_blurs(measured)]
     if len(solver.max_steps) != len(stages):
         raise ValueError(
             f"solver.max_steps: {solver.max_steps} gives {len(solver.max_steps)} step limits, but step A "
@@ -344,6 +360,8 @@ class CalibrateConfig(Strict):
         if self.simulate is not None:
             check_coarsen(self.solver, self.simulate, self.grating)
         check_stage_steps(
-            self.solver, len(self.simulate.angles_deg if self.data is None else self.data.pairs)
+            self.solver,
+            len(self.simulate.angles_deg if self.data is None else self.data.pairs),
+            measured=self.data is not None,
         )
         return self

@@ -164,17 +164,24 @@ def nominal_sensitivity(spec: CalibrationImages, rasters: list, log=print) -> tu
 
 
 def identify_model(
-    scans: tuple, model: CalibrationModel, solver: CalibrationSolver, grating: CalibrationLattice, log=print
+    scans: tuple,
+    model: CalibrationModel,
+    solver: CalibrationSolver,
+    grating: CalibrationLattice,
+    log=print,
+    measured: bool = False,
 ) -> Identification:
     """Step A's identification (:func:`~jaxafm.identify.staged_fit.identify`) of the configured
-    ``model`` from ``scans`` of ``grating`` with the configured ``solver``."""
+    ``model`` from ``scans`` of ``grating`` (``measured`` images or simulated ones, which decides
+    the default image stages, :meth:`~jaxafm.config.CalibrationSolver.image_blurs`) with the
+    configured ``solver``."""
     spec = ScanModelSpec(
         model.kind, tuple(model.effects), model.operators, model.deadzones, model.levels, grating.rotation_rad
     )
     max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
     plan = FitPlan(
         solver.name,
-        tuple(solver.blur_px),
+        solver.image_blurs(measured),
         solver.coarsen,
         max_steps,
         hold_out=solver.hold_out,
@@ -301,7 +308,7 @@ def _identify(
     plausibility checks with the failures), its metrics (and, simulated, its parameters against
     the truth) added to ``metrics`` and its validation figure written."""
     log(f"identifying {spec.name} ({spec.kind}, {', '.join(spec.effects) or 'no other effects'}) ...")
-    ident = identify_model(scans, spec, cfg.solver, cfg.grating, log)
+    ident = identify_model(scans, spec, cfg.solver, cfg.grating, log, measured=cfg.data is not None)
     if not ident.converged:
         n = sum(not s.converged for s in ident.stages)
         log(

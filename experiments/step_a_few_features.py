@@ -1,0 +1,135 @@
+"""Step A as a new user would run it on a small real lattice: a 3 x 3 pit lattice at four line
+rates, trace and retrace TIFF files, a config that gives only the files and the lattice.
+
+The images come from the independent generator (tests/independent_lattice.py, NumPy and SciPy,
+sharing no code with jaxafm): a Preisach scanner with drive lag, creep, coupling, bow and drift;
+square pits of a 10 um pitch in a 30 um image (117 nm a pixel at 256 px) with sloped walls under
+a broadened tip; a plane, a bow, line offsets, spikes, clipped pixels and noise. Each image is
+written as float32 TIFF (heights in nm) with a ``data`` section a user would write for it; the
+configuration is that section and the lattice's pitch, nothing else, so every solver setting is
+``jaxafm calibrate``'s default for measured images. Step A runs as ``jaxafm calibrate`` runs it
+(reading, identification, plausibility checks); the result is scored against the generator's
+truth: the tip path at every pixel of every scan after the one rigid motion no image can see,
+inside and outside the features' reach, and per axis.
+
+    python experiments/step_a_few_features.py [--seed 7] [--pixels 256] [--rates 0.5 1 2 4]
+    python experiments/step_a_few_features.py --blur-px 2 1   # with the simulated AFM's image stages
+
+writes experiments/results/step_a_few_features/seed<seed>[_blur<...>].json (with its log).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import benchutil  # noqa: F401  (puts tests/ on sys.path)
+import independent_lattice as G
+import numpy as np
+import step_a_independent as S
+
+from jaxafm.config import CalibrateConfig
+from jaxafm.identify.identifiability import path_sd
+from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
+
+OUT = Path(__file__).parent / "results" / "step_a_few_features"
+
+
+def user_config(given: dict, blur_px: list | None = None) -> CalibrateConfig:
+    """What a user writes for the files: the ``data`` section and the lattice's pitch and kind
+    (and ``solver.blur_px`` when given)."""
+    solver = {} if blur_px is None else {"blur_px": blur_px}
+    grating = {k: given["grating"][k] for k in ("pitch_nm", "pits")}
+    return CalibrateConfig(data=given["data"], grating=grating, solver=solver, compensate=None)
+
+
+def axis_errors_px(model, scans, case) -> list:
+    """rms (px) of the tip path's error along x and along y over every pixel of every scan, after
+    the rigid motion (:func:`step_a_independent._rigid`)."""
+    fitted, true, _ = S._paths(model, scans, case)
+    e = S._rigid(fitted, true)[0] / scans[0].raster.pixel_size[0]
+    return [float(v) for v in np.sqrt(np.mean(e**2, axis=0))]
+
+
+def predicted_sd_by_reach(ident, scans) -> dict:
+    """The tip path's standard deviation as the fit predicts it from its parameters' covariance
+    (:func:`~jaxafm.identify.identifiability.path_sd`), rms (px) over the pixels inside the
+    features' reach and outside it."""
+    sd = np.concatenate([v.reshape(-1) for v in path_sd(ident.model, scans, ident.chords)])
+    rc = [
+        np.stack(np.meshgrid(*map(np.arange, s.trace.shape), indexing="ij"), -1).reshape(-1, 2) for s in scans
+    ]
+    nominal = np.concatenate(
+        [np.tile(np.asarray(s.raster.nominal(c.astype(float))), (2, 1)) for s, c in zip(scans, rc)]
+    )
+    within = np.all(S._inside_reach(scans, nominal), axis=0)
+    rms = lambda m: float(np.sqrt(np.mean(sd[m] ** 2))) / scans[0].raster.pixel_size[0] if m.any() else None
+    return {"path_sd_inside_reach_px": rms(within), "path_sd_outside_reach_px": rms(~within)}
+
+
+def run(seed: int, pixels: int, rates: tuple, blur_px: list | None = None, log=print) -> dict:
+    """Draw, write and identify the case; score it."""
+    case = G.draw_case(
+        seed,
+        "coarse",
+        feature="square_pits",
+        line_rates_hz=rates,
+        angles_deg=(0.0,),
+        pixels=pixels,
+        few_features=True,
+    )
+    with tempfile.TemporaryDirectory() as folder:
+        files = G.write_case(case, folder, fmt="tiff")
+        cfg = user_config(json.loads(Path(files["data"]).read_text()), blur_px)
+        scans = read_calibration(cfg.data, cfg.grating, Path(folder) / "c.yaml", log=lambda *_: None)
+    began = time.perf_counter()
+    ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log, measured=True)
+    out = {
+        "seed": seed,
+        "rates_hz": list(rates),
+        "pixels": pixels,
+        "pixel_nm": scans[0].raster.pixel_size[0],
+        "seconds": time.perf_counter() - began,
+        "image_blurs_px": list(cfg.solver.image_blurs(True)),
+        "kept": ident.spec.kind + f" {ident.spec.operators} plays + " + ", ".join(ident.spec.effects),
+        "plausible": ident.plausible,
+        "failures": list(ident.failures),
+        "metrics": identification_metrics(ident),
+        "tip_path_rms_px": S.path_error(ident.model, scans, case),
+        "tip_path_xy_rms_px": axis_errors_px(ident.model, scans, case),
+        "truth": case["truth"]["scanner"],
+    }
+    out |= S.path_coverage(ident, scans, case) | predicted_sd_by_reach(ident, scans)
+    inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
+    out |= {"tip_path_inside_reach_rms_px": inside, "tip_path_outside_reach_rms_px": outside}
+    out["inside_reach_share"] = share
+    return out
+
+
+def main() -> None:
+    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--seed", type=int, default=7)
+    a.add_argument("--pixels", type=int, default=256)
+    a.add_argument("--rates", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0])
+    a.add_argument("--blur-px", type=float, nargs="*", help="solver.blur_px (default: unset)")
+    args = a.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    said = []
+
+    def log(line):
+        said.append(line)
+        print(line, flush=True)
+
+    row = run(args.seed, args.pixels, tuple(args.rates), args.blur_px, log)
+    row["log"] = said
+    blurs = "" if args.blur_px is None else "_blur" + "_".join(f"{b:g}" for b in args.blur_px)
+    (OUT / f"seed{args.seed}{blurs}.json").write_text(json.dumps(row, indent=1, default=float))
+    keys = ("plausible", "failures", "kept", "tip_path_rms_px", "tip_path_xy_rms_px", "seconds")
+    print(json.dumps({k: row[k] for k in keys}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
