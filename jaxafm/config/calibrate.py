@@ -229,9 +229,9 @@ class CalibrationModel(HysteresisSpec):
 
 StepLimit = Annotated[int, Field(ge=1, le=10_000)]
 
-#: step A's image stages on the simulated AFM unless ``solver.blur_px`` says otherwise: on measured
+#: step A's image stages on the simulated AFM unless ``solver.blur_px`` says otherwise; on measured
 #: images none (on a 3 x 3 pit lattice of the independent generator at four line rates, 256 px,
-#: both were fitted for 19 minutes on 2 cores and both rejected: docs/step_a.md)
+#: both took longer than the chord stages and both were rejected: docs/step_a.md)
 SIMULATED_BLURS_PX = (2.0, 1.0)
 
 
