@@ -1351,6 +1351,11 @@ def step_a_few_features(results: Results) -> Table:
                 m, "held_out_distance_error_max_raw_pct", "held_out_distance_error_max_corrected_pct", "%", 2
             ),
         ),
+        (
+            "the tip path's sd over the images (step A's check) against a held-out feature's predicted error",
+            f"{nm_px('path_sd_rms_nm')} against {nm_px('held_out_predicted_rms_nm')}; knowing "
+            f"`{m['path_settled_most_by']}` would settle {q(m['path_settled_most_pct'], '%', 0)} of it",
+        ),
         ("outcome", "saved" if r["plausible"] else "refused: " + "; ".join(r["failures"])),
         (
             "true tip path, rms: all pixels (x / y)",

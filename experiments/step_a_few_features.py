@@ -54,18 +54,12 @@ def axis_errors_px(model, scans, case) -> list:
     return [float(v) for v in np.sqrt(np.mean(e**2, axis=0))]
 
 
-def predicted_sd_by_reach(ident, scans) -> dict:
+def predicted_sd_by_reach(ident, scans, case) -> dict:
     """The tip path's standard deviation as the fit predicts it from its parameters' covariance
     (:func:`~jaxafm.identify.identifiability.path_sd`), rms (px) over the pixels inside the
-    features' reach and outside it."""
+    features' reach and outside it (the pixels in :func:`step_a_independent._paths`' order)."""
     sd = np.concatenate([v.reshape(-1) for v in path_sd(ident.model, scans, ident.chords)])
-    rc = [
-        np.stack(np.meshgrid(*map(np.arange, s.trace.shape), indexing="ij"), -1).reshape(-1, 2) for s in scans
-    ]
-    nominal = np.concatenate(
-        [np.tile(np.asarray(s.raster.nominal(c.astype(float))), (2, 1)) for s, c in zip(scans, rc)]
-    )
-    within = np.all(S._inside_reach(scans, nominal), axis=0)
+    within = np.all(S._inside_reach(scans, S._paths(ident.model, scans, case)[2]), axis=0)
     rms = lambda m: float(np.sqrt(np.mean(sd[m] ** 2))) / scans[0].raster.pixel_size[0] if m.any() else None
     return {"path_sd_inside_reach_px": rms(within), "path_sd_outside_reach_px": rms(~within)}
 
@@ -102,7 +96,7 @@ def run(seed: int, pixels: int, rates: tuple, blur_px: list | None = None, log=p
         "tip_path_xy_rms_px": axis_errors_px(ident.model, scans, case),
         "truth": case["truth"]["scanner"],
     }
-    out |= S.path_coverage(ident, scans, case) | predicted_sd_by_reach(ident, scans)
+    out |= S.path_coverage(ident, scans, case) | predicted_sd_by_reach(ident, scans, case)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
     out |= {"tip_path_inside_reach_rms_px": inside, "tip_path_outside_reach_rms_px": outside}
     out["inside_reach_share"] = share

@@ -219,6 +219,94 @@ def test_path_sd_is_the_spread_of_paths_drawn_from_the_covariance():
     assert abs(np.sqrt(np.mean(spread**2)) / np.sqrt(np.mean(sd**2)) - 1) < 0.07
 
 
+def test_the_share_of_the_path_variance_a_quantity_settles_is_its_gaussian_conditioning():
+    """``settles`` against the Gaussian conditioning written out: knowing a quantity ``q`` with
+    gradient ``g`` turns the parameters' covariance ``C`` into ``C - C g g^T C / g^T C g``; the
+    path variance lost is the share, never negative nor above 100 %."""
+    from jax.flatten_util import ravel_pytree
+
+    from jaxafm.identify.calibration_scan import drive_range
+    from jaxafm.identify.identifiability import (
+        PATH_SAMPLES,
+        _path_gradients,
+        _quantities,
+        chord_covariance,
+        identifiability,
+    )
+
+    scans, ident = _small_fit()
+    model = ident.model.as_float64()
+    found = identifiability(model, scans, ident.chords, drive_range(scans))
+    C = chord_covariance(model, scans, ident.chords)
+    raw, _ = model.free_parameters(scans[0])
+    flat, unravel = ravel_pytree(raw)
+    keys, _, _, q = _quantities(model, scans, drive_range(scans))
+    G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
+    P = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in _path_gradients(model, scans, PATH_SAMPLES)])
+    total = np.einsum("nij,jk,nik->", P, C, P)
+    np.testing.assert_allclose(found.path_rms_nm, np.sqrt(total / len(P)), rtol=1e-10)
+    for key, g in zip(keys, G):
+        conditioned = C - np.outer(C @ g, C @ g) / (g @ C @ g)
+        expected = 100 * (1 - np.einsum("nij,jk,nik->", P, conditioned, P) / total)
+        assert abs(found.settles[key] - expected) < 1e-6 * 100, key
+        assert -1e-9 <= found.settles[key] <= 100 + 1e-9, key
+
+
+def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_is_refused_naming_the_quantity():
+    """Refused when the path's sd (rms over the images) exceeds the held-out features' predicted
+    error, naming the quantity that would settle most of it; not refused at or below it, nor
+    without held-out features to compare with."""
+    from jaxafm.identify.identifiability import Determination, Quantity
+    from jaxafm.identify.plausibility import unsettled
+
+    loops = [
+        Quantity("y_loop_pct_of_travel", "y loop at mid-drive", 41.2, 0.6, "% of travel"),
+        Quantity("x_gain_nm_per_v", "x gain", 1855.0, 25.0, "nm/V"),
+    ]
+    wide = Determination(
+        loops, np.array([300.0, 400.0]), {"y_loop_pct_of_travel": 80.0, "x_gain_nm_per_v": 15.0}
+    )
+    said = unsettled(wide, {"held_out_predicted_rms_nm": 110.0})
+    assert len(said) == 1 and "500 nm" in said[0] and "y loop at mid-drive" in said[0] and "80 %" in said[0]
+    assert unsettled(wide, {"held_out_predicted_rms_nm": 500.0}) == []
+    assert unsettled(wide, {}) == []
+
+
+@pytest.mark.parametrize(
+    "angles, expected", [((0.0,), "1, 0"), ((90.0,), "0, 1"), ((45.0,), "a/(a+b)"), ((0.0, 90.0), "1, 1")]
+)
+def test_line_strokes_are_the_lines_reach_against_the_axis_range(angles, expected):
+    """Closed form: a line spans ``a = dx (pixels + 2 m - 1)`` along the fast axis, the lines
+    ``b = dy (lines - 1)`` along the slow one. At 0 degrees a line sweeps all of x and none of y;
+    at 45 degrees both axes' ranges are ``(a + b) / sqrt 2`` and a line's ``a / sqrt 2`` of it."""
+    from types import SimpleNamespace
+
+    from jaxafm.identify.calibration_scan import line_strokes
+    from jaxafm.instrument.afm import Raster
+
+    scans = tuple(
+        SimpleNamespace(
+            raster=Raster((1000.0, 1000.0), 20, 12, overscan=0.1, angle_deg=a), sensitivity=(50.0, 50.0)
+        )
+        for a in angles
+    )
+    r = scans[0].raster
+    a, b = r.pixel_size[0] * (r.pixels + 2 * r.margin - 1), r.pixel_size[1] * (r.lines - 1)
+    want = {"1, 0": [1, 0], "0, 1": [0, 1], "a/(a+b)": [a / (a + b)] * 2, "1, 1": [1, 1]}[expected]
+    np.testing.assert_allclose(line_strokes(scans), want, atol=1e-12)
+
+
+def test_a_loop_no_line_traces_is_not_determined_whatever_its_sd():
+    """One 0-degree scan drives the y piezo one way within an image: the y loop the fit reports
+    is the model class's extrapolation from one branch, not determined, and says why; the x loop,
+    swept by every line, keeps the verdict of its sd."""
+    _, ident = _small_fit()
+    q = {q.key: q for q in ident.quantities}
+    assert not q["y_loop_pct_of_travel"].determined and "y piezo" in q["y_loop_pct_of_travel"].unmeasured
+    assert q["x_loop_pct_of_travel"].unmeasured == ""
+    assert "extrapolates" in q["y_loop_pct_of_travel"].line()
+
+
 def test_held_out_features_fall_in_their_predicted_ellipses_as_often_as_stated():
     """The held-out features sit between the training ones (a checkerboard), so their offsets
     are drawn like the training features' (the chords' noise, the features' irregularity, the

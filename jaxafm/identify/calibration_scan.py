@@ -202,6 +202,20 @@ def drive_range(scans: tuple) -> np.ndarray:
     return np.stack([u.min(axis=0), u.max(axis=0)], axis=-1)
 
 
+def line_strokes(scans: tuple) -> np.ndarray:
+    """Per piezo axis (2,), the largest stroke any scan's line drives it back and forth over, a
+    fraction of the axis's drive range over the scans (:func:`drive_range`): 1 along a 0-degree
+    scan's fast axis and 0 along its slow axis, which steps but never reverses within an image;
+    about a half on both axes at 45 degrees."""
+    strokes = [
+        np.ptp(s.raster.wanted().reshape(s.raster.lines, -1, 2) / np.asarray(s.sensitivity), axis=1).max(
+            axis=0
+        )
+        for s in scans
+    ]
+    return np.max(strokes, axis=0) / np.ptp(drive_range(scans), axis=1)
+
+
 def check_scan_set(scans: Sequence[CalibrationScan]) -> None:
     """Refuse a set of scans that are not of one lattice on one instrument, or repeat a scan.
 

@@ -19,19 +19,23 @@ The loops are given twice: as each scan shows it (the model's retrace less its t
 fast axis, mid-line: what the data measure) and per axis over the whole drive range the scans
 reach (a major loop the scans may never have traced: a scan turned against the piezo axes, or
 a small one, drives each piezo over part of its range in each line, so the full loop is
-extrapolated and may well be undetermined).
+extrapolated and may well be undetermined). An axis that no line drives back and forth
+(:data:`MIN_STROKE`: a 0-degree scan's slow axis) shows one branch and no loop: its loop is
+*not determined* whatever its sd, which measures only how well the model class's extrapolation
+is pinned.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import warnings
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .calibration_scan import line_strokes
 from .held_out import hat_trace
 from .scan_model import ScanModel
 from .stages import chord_linearisation, feature_groups, feature_keys
@@ -61,14 +65,34 @@ class Quantity:
     value: float
     sd: float
     unit: str
+    unmeasured: str = ""  # why the scans cannot show it at all, whatever its sd says
 
     @property
     def determined(self) -> bool:
-        return bool(self.sd <= max(abs(self.value), 3 * RESOLUTION.get(self.unit, 0.0)) / 3)
+        small = self.sd <= max(abs(self.value), 3 * RESOLUTION.get(self.unit, 0.0)) / 3
+        return bool(small and not self.unmeasured)
 
     def line(self) -> str:
         state = "determined" if self.determined else "NOT determined"
-        return f"{self.name:42s} {self.value:12.4g} +- {self.sd:10.3g} {self.unit:12s} {state}"
+        why = f" ({self.unmeasured})" if self.unmeasured else ""
+        return f"{self.name:42s} {self.value:12.4g} +- {self.sd:10.3g} {self.unit:12s} {state}{why}"
+
+
+#: the least stroke (a fraction of an axis's drive range) some line must drive a piezo back and
+#: forth over for the scans to show that axis's loop: below it only the model class says how wide
+#: the loop is, from the one branch the scans trace (a generalised PI's loop follows from its
+#: branch's curvature; a real scanner's need not)
+MIN_STROKE = 0.1
+
+
+def _unmeasured_loops(scans: tuple) -> dict:
+    """Per axis loop quantity the scans never trace, why (:func:`line_strokes`)."""
+    return {
+        f"{a}_loop_pct_of_travel": f"no line drives the {a} piezo back and forth over more than "
+        f"{100 * MIN_STROKE:.0f} % of its range ({100 * stroke:.0f} %): the model class extrapolates it"
+        for a, stroke in zip("xy", line_strokes(scans))
+        if stroke < MIN_STROKE
+    }
 
 
 def _quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
@@ -176,11 +200,44 @@ def _covariance(chords: tuple, linearised: tuple) -> np.ndarray:
     return covariance(J[real], r[real], groups[real], prior)
 
 
-def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.ndarray) -> list:
+#: the tip path's uncertainty in :func:`identifiability` is taken on at most about this many
+#: lines of an image and pixels of a line (a smooth field: every pixel adds nothing but time)
+PATH_SAMPLES = 64
+
+
+class Determination(NamedTuple):
+    """What the calibration scans determine of a fitted model (:func:`identifiability`): its
+    ``quantities`` (:class:`Quantity`), ``path_sd_nm`` (2,) the rms over the images of how far
+    the parameters the data leave open move the tip path along x and y
+    (:func:`path_covariance`), and ``settles``, per quantity key the share (%) of that path
+    variance which knowing the quantity exactly would remove."""
+
+    quantities: list
+    path_sd_nm: np.ndarray
+    settles: dict
+
+    @property
+    def path_rms_nm(self) -> float:
+        """The path's sd (nm), rms over the pixels, both axes together."""
+        return float(np.sqrt(np.sum(self.path_sd_nm**2)))
+
+    @property
+    def settled_most(self) -> tuple:
+        """``(quantity, share %)``: the :class:`Quantity` whose knowledge would settle most of
+        the path's variance."""
+        key, share = max(self.settles.items(), key=lambda item: item[1])
+        return next(q for q in self.quantities if q.key == key), share
+
+
+def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.ndarray) -> Determination:
     """The model's :class:`Quantity` list, each with its standard deviation from the chord
-    stage's data ``chords`` on ``scans`` (module docstring)."""
+    stage's data ``chords`` on ``scans`` (module docstring), and the tip path's uncertainty on
+    a grid of about :data:`PATH_SAMPLES` squared pixels an image: with ``P_p`` a pixel's
+    position gradient and ``g`` a quantity's, knowing the quantity removes
+    ``|P_p C g|^2 / g^T C g`` of the pixel's variance ``tr P_p C P_p^T`` (a Gaussian's
+    conditional variance): ``settles`` is its sum over the pixels against the variance's."""
     model = model.as_float64()
-    raw = model.free_parameters(scans[0])[0]
+    raw, rebuild = model.free_parameters(scans[0])
     C = chord_covariance(model, scans, chords)
     keys, names, units, q = _quantities(model, scans, drive)
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
@@ -191,25 +248,37 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
         value = np.asarray(q(unravel(flat)))
         G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-    return [Quantity(k, n, float(v), float(d), u) for k, n, v, d, u in zip(keys, names, value, sd, units)]
+    unmeasured = _unmeasured_loops(scans)
+    quantities = [
+        Quantity(*row, unmeasured.get(row[0], ""))
+        for row in zip(keys, names, value.tolist(), sd.tolist(), units)
+    ]
+    P = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in _path_gradients(model, scans, PATH_SAMPLES)])
+    variance = np.einsum("nij,jk,nik->ni", P, C, P)  # (N, 2) nm^2
+    cross = np.einsum("nij,jk,qk->qni", P, C, G)  # the path's covariance with each quantity
+    removed = np.sum(cross**2, axis=(1, 2)) / np.maximum(sd**2, 1e-300)
+    shares = 100 * removed / max(float(np.sum(variance)), 1e-300)
+    return Determination(quantities, np.sqrt(np.mean(variance, axis=0)), dict(zip(keys, shares.tolist())))
 
 
-def path_covariance(model: ScanModel, scans: tuple, chords: tuple) -> list:
-    """How uncertain the fitted tip path is at every pixel, beyond the one rigid motion of the
-    whole path that no image can see (a translation is the lattice's phase, a turn its angle):
-    per scan an array (2, lines, pixels, 2, 2) nm^2, trace and retrace, of ``G_p C G_p^T``,
-    ``G_p`` the pixel's tip position's gradient (2, k) in the raw parameters with the rigid
-    motions projected out of every column, and ``C`` :func:`chord_covariance` (the delta
-    method, as for the quantities). Where the chords hold the path it is about their
-    precision; where the model alone carries it (between the features and beyond their reach)
-    it says how far the parameters the data leave open can move it."""
-    model = model.as_float64()
+def _path_gradients(model: ScanModel, scans: tuple, samples: Optional[int] = None) -> list:
+    """Per scan the tip path's gradient (2, lines, pixels, 2, k) in the model's raw parameters,
+    trace and retrace, with the one rigid motion of the whole path that no image can see
+    projected out of every column (a translation is the lattice's phase, a turn its angle); on
+    about ``samples`` lines and pixels a line of each image (every one when None)."""
     raw, rebuild = model.free_parameters(scans[0])
-    C = chord_covariance(model, scans, chords)
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
-    paths = lambda x, scan: jnp.stack(rebuild(unravel(x)).paths(scan))
+
+    def paths(x, scan):
+        step = (
+            [1, 1]
+            if samples is None
+            else [max(1, n // samples) for n in (scan.raster.lines, scan.raster.pixels)]
+        )
+        return jnp.stack(rebuild(unravel(x)).paths(scan))[:, :: step[0], :: step[1]]
+
     G = [np.asarray(jax.jacfwd(paths)(flat, scan)) for scan in scans]  # (2, lines, pixels, 2, k)
-    shapes = [g.shape[:3] for g in G]
+    shapes = [g.shape for g in G]
     G = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in G])  # (N, 2, k)
     p = np.concatenate([np.asarray(paths(flat, scan)).reshape(-1, 2) for scan in scans])
     p = p - p.mean(axis=0)
@@ -219,11 +288,24 @@ def path_covariance(model: ScanModel, scans: tuple, chords: tuple) -> list:
     q, _ = np.linalg.qr(rigid.reshape(3, -1).T)  # (2N, 3) orthonormal rigid motions
     flatG = G.reshape(-1, G.shape[-1])
     G = (flatG - q @ (q.T @ flatG)).reshape(G.shape)
-    cov = np.einsum("nij,jk,nlk->nil", G, C, G)
     return [
-        a.reshape(shape + (2, 2))
-        for a, shape in zip(np.split(cov, np.cumsum([np.prod(s) for s in shapes])[:-1]), shapes)
+        g.reshape(shape)
+        for g, shape in zip(np.split(G, np.cumsum([np.prod(s[:3]) for s in shapes])[:-1]), shapes)
     ]
+
+
+def path_covariance(model: ScanModel, scans: tuple, chords: tuple) -> list:
+    """How uncertain the fitted tip path is at every pixel, beyond the one rigid motion of the
+    whole path that no image can see: per scan an array (2, lines, pixels, 2, 2) nm^2, trace and
+    retrace, of ``G_p C G_p^T``, ``G_p`` the pixel's tip position's gradient (2, k) in the raw
+    parameters with the rigid motions projected out (:func:`_path_gradients`), and ``C``
+    :func:`chord_covariance` (the delta method, as for the quantities). Where the chords hold
+    the path it is about their precision; where the model alone carries it (between the
+    features and beyond their reach) it says how far the parameters the data leave open can
+    move it."""
+    model = model.as_float64()
+    C = chord_covariance(model, scans, chords)
+    return [np.einsum("...ij,jk,...lk->...il", g, C, g) for g in _path_gradients(model, scans)]
 
 
 def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:

@@ -5,7 +5,8 @@ branch, creep against the move, a loop wider than its travel. :func:`unvalidated
 features misplaced by more than :data:`MAX_HELD_OUT_PITCH` of the pitch, or placed worse by the
 correction than by the raw image (their rms residual or the spread of their local pitch).
 :func:`undetermined`: an axis's loop the data leave open
-(:class:`~jaxafm.identify.identifiability.Quantity`).
+(:class:`~jaxafm.identify.identifiability.Quantity`). :func:`unsettled`: a tip path the data
+leave more open than a held-out feature's place.
 """
 
 from __future__ import annotations
@@ -100,6 +101,29 @@ def undetermined(quantities: list) -> list:
         "line rates or angles, or a lattice with more features along each line"
         for q in quantities
         if q.key.startswith("loop_scan") and not q.determined
+    ]
+
+
+def unsettled(determination, validation: dict) -> list:
+    """A tip path the scans leave open, in words: the parameters the data do not fix move the
+    path (rms over the images, :class:`~jaxafm.identify.identifiability.Determination`) by
+    more than the error the fit predicts for a held-out feature (``held_out_predicted_rms_nm``,
+    :func:`~jaxafm.identify.identifiability.position_check`). The held-out features check the
+    model where they are; between and beyond them it is the model alone that places the tip,
+    and a path less certain there than a feature is placed has not been checked at all. Names
+    the quantity whose knowledge would settle most of it."""
+    expected = validation.get("held_out_predicted_rms_nm")
+    path = determination.path_rms_nm
+    if expected is None or path <= expected:
+        return []
+    q, share = determination.settled_most
+    x, y = determination.path_sd_nm
+    return [
+        f"the scans leave the tip path open: the parameters they do not fix move it by {path:.4g} nm "
+        f"rms over the images (x {x:.4g}, y {y:.4g} nm), more than the {expected:.4g} nm a held-out "
+        f"feature is predicted to be placed to; knowing the {q.name} ({q.value:.4g} +- {q.sd:.3g} "
+        f"{q.unit}) would settle {share:.0f} % of it: scan at more line rates or angles, or a lattice "
+        "with more features"
     ]
 
 

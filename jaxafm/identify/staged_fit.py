@@ -41,7 +41,7 @@ from .held_out import (
     validate,
 )
 from .identifiability import identifiability, position_check
-from .plausibility import implausible, undetermined, unvalidated
+from .plausibility import implausible, undetermined, unsettled, unvalidated
 from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, start_loop, transplant
 from .selection import RungFit, aicc, matching_spec, select, supported_dead_zones
 from .stages import (
@@ -184,8 +184,10 @@ def identify(
     chords = chord_data(fit.train, scans, 1)
     if validation.get("held_out_features"):
         validation |= position_check(fit.model, scans, chords, chord_data(fit.test, scans, 1))
-    quantities = identifiability(fit.model, scans, chords, drive_range(scans))
-    failures = failures + unvalidated(validation, min(scans[0].pitch))
+    determination = identifiability(fit.model, scans, chords, drive_range(scans))
+    quantities = determination.quantities
+    validation |= _path_summary(determination)
+    failures = failures + unvalidated(validation, min(scans[0].pitch)) + unsettled(determination, validation)
     return Identification(
         fit.model,
         tuple(fit.results),
@@ -200,6 +202,21 @@ def identify(
         tuple(fit.kinds),
         chords,
     )
+
+
+def _path_summary(determination) -> dict:
+    """The tip path's uncertainty for ``metrics.json``: its sd (nm, rms over the images) in
+    all and along x and y, and the quantity whose knowledge would settle most of it, with that
+    share (%) (:class:`~jaxafm.identify.identifiability.Determination`)."""
+    q, share = determination.settled_most
+    x, y = determination.path_sd_nm
+    return {
+        "path_sd_rms_nm": determination.path_rms_nm,
+        "path_sd_x_rms_nm": float(x),
+        "path_sd_y_rms_nm": float(y),
+        "path_settled_most_by": q.key,
+        "path_settled_most_pct": share,
+    }
 
 
 @dataclasses.dataclass

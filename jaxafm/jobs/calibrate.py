@@ -322,6 +322,7 @@ def _identify(
     log(f"  {spec.name}: what the scans determine (value +- standard deviation):")
     for q in ident.quantities:
         log(f"    {q.line()}")
+    log(_path_line(spec.name, ident))
     log(_validation_line(spec.name, ident))
     view = validation_view(scans, ident.model, cfg.solver.hold_out, ident.chords)
     title = f"Step A, {spec.name}, on {source} ({scans[0].name})"
@@ -341,8 +342,9 @@ def _identify(
 
 def identification_metrics(ident: Identification) -> dict:
     """What ``metrics.json`` keeps of one identification: time, convergence, each stage's
-    message, acceptance and held-out residual (nm), the held-out validation, the fitted lattice
-    rotation, and the plausibility checks."""
+    message, acceptance and held-out residual (nm), the held-out validation and the tip path's
+    sd, the fitted lattice rotation, each quantity with its sd (and ``<key>_unmeasured``, why,
+    for one the scans cannot show), and the plausibility checks."""
     lattice, spec = ident.model.lattice, ident.spec
     out = {
         "fit_s": ident.seconds,
@@ -362,6 +364,8 @@ def identification_metrics(ident: Identification) -> dict:
         out["image_rms_pct"] = ident.image_rms_pct
     for q in ident.quantities:
         out |= {q.key: q.value, f"{q.key}_sd": q.sd if np.isfinite(q.sd) else None}
+        if q.unmeasured:
+            out[f"{q.key}_unmeasured"] = q.unmeasured
     return out | ident.validation
 
 
@@ -377,6 +381,18 @@ def _validation_line(name: str, ident: Identification) -> str:
         f"{v['held_out_distance_error_max_corrected_pct']:.2f} % corrected at most; lattice rotation "
         f"{float(np.rad2deg(ident.model.lattice.angle)):.3f} deg"
     ) + _coverage_words(v)
+
+
+def _path_line(name: str, ident: Identification) -> str:
+    """How far the parameters the scans leave open move the tip path, and which quantity
+    would settle most of it (:class:`~jaxafm.identify.identifiability.Determination`)."""
+    v = ident.validation
+    q = next(q for q in ident.quantities if q.key == v["path_settled_most_by"])
+    return (
+        f"  {name}: the tip path's sd over the images {v['path_sd_rms_nm']:.1f} nm rms (x "
+        f"{v['path_sd_x_rms_nm']:.1f}, y {v['path_sd_y_rms_nm']:.1f} nm); knowing the {q.name} would "
+        f"settle {v['path_settled_most_pct']:.0f} % of its variance"
+    )
 
 
 def _coverage_words(v: dict) -> str:
