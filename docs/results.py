@@ -364,11 +364,30 @@ def _coverage_goal(m: dict) -> str:
 STEP_A_INDEPENDENT = Run(
     "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 20 --pixels 64"
 )
-#: the generator's cases run again with the tip path's coverage (``--seeds``)
-STEP_A_COVERAGE = Run(
-    STEP_A_INDEPENDENT.path,
-    "python experiments/step_a_independent.py --pixels 64 --seeds 102 103 107 109 110 112 113 115 116 118 119",
-)
+#: the generator's cases run again (``--seeds``), each with the tip path's coverage: per run its seeds
+STEP_A_RERUNS = {
+    Run(
+        STEP_A_INDEPENDENT.path, "python experiments/step_a_independent.py --pixels 64 --seeds " + seeds
+    ): seeds
+    for seeds in ("102 103 107 109 110 112 113 115 116 118 119", "114 105 900 901")
+}
+#: both, one after the other: what the summary's coverage medians come from
+STEP_A_COVERAGE = Run(STEP_A_INDEPENDENT.path, " && ".join(run.command for run in STEP_A_RERUNS))
+
+
+def _rerun_of(seed: int) -> Run:
+    """The ``--seeds`` run that last wrote the generator's case ``seed``."""
+    return next(run for run, seeds in STEP_A_RERUNS.items() if str(seed) in seeds.split())
+
+
+def _scans_label(r: dict) -> str:
+    """A generator case's scans in words: a speed series, a 0° + 90° pair, one 0° scan of a
+    3 × 3 lattice, or one 0° scan."""
+    if len(r["rates_hz"]) > 1:
+        return "speed series"
+    if len(r["angles_deg"]) > 1:
+        return "0° + 90°"
+    return "3 × 3 lattice" if r.get("unidentifiable") and "3 x 3" in r["unidentifiable"] else "one 0° scan"
 
 
 NANOSURF = tuple(
@@ -1403,7 +1422,7 @@ def step_a_floor(results: Results) -> Table:
     rows = []
     for r in results(STEP_A_FLOOR):
         a, floor, alone = r["step_a"], r["floor"], r["floor_hysteresis_only"]
-        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        scans = _scans_label(r)
         rows.append(
             [f"{r['seed']} ({scans})", q(100 * a["inside_share"], "%", 0)]
             + [px(a[k]) for k in ("all_px", "inside_px", "outside_px")]
@@ -1447,7 +1466,7 @@ def step_a_floor_preisach(results: Results) -> Table:
         gpi, pre = r["step_a"], r["step_a_preisach"]
         case, run = study[r["seed"]]
         runs += [run] if run not in runs else []
-        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        scans = _scans_label(r)
         rows.append(
             [f"{r['seed']} ({scans})"]
             + [f"{px(gpi['all_px'])} ({px(gpi['inside_px'])} / {px(gpi['outside_px'])})"]
@@ -1480,8 +1499,7 @@ def step_a_independent_preisach(results: Results) -> Table:
     for p in results(STEP_A_PREISACH):
         g, run = gpi[p["seed"]]
         runs += [run] if run not in runs else []
-        scans = "speed series" if len(p["rates_hz"]) > 1 else "0° + 90°"
-        scans = "3 × 3 lattice" if p["unidentifiable"] and "3 x 3" in p["unidentifiable"] else scans
+        scans = _scans_label(p)
         cells = [f"{p['seed']} ({scans}, {p['feature'].replace('_', ' ')})"]
         for r, name in ((g, "gpi"), (p, "preisach")):
             if not saved(r, name):
@@ -1543,9 +1561,9 @@ def step_a_coverage(results: Results) -> Table:
     runs = [run for _, run in lattices]
     cases = [(r, run) for run in STEP_A_CASES for r in results(run) if "tip_path_coverage_90_pct" in r]
     for r, run in sorted(cases, key=lambda c: c[0]["seed"]):
-        rerun = Run(run.path, STEP_A_COVERAGE.command)
+        rerun = Run(run.path, _rerun_of(r["seed"]).command)
         runs += [rerun] if rerun not in runs else []
-        scans = "speed series" if len(r["rates_hz"]) > 1 else "0° + 90°"
+        scans = _scans_label(r)
         px = r["pixel_nm"]
         rows.append(
             [f"{r['seed']} ({scans}, generator)", count(r["gpi_held_out_points"])]
