@@ -1402,9 +1402,8 @@ def step_a_few_features(results: Results) -> Table:
         ("the same: outcome", "saved" if b["plausible"] else "refused: " + "; ".join(b["failures"])),
     ]
     note = (
-        "Seed 7 of the independent generator; the tip path after the rigid motion no image can see. The "
-        "run with image stages shared its 2 cores with another job until its last stage: its times are "
-        "not a benchmark."
+        "Seed 7 of the independent generator; the tip path after the rigid motion no image can see. "
+        "Times from one run of each on 2 cores."
     )
     return Table(
         ["", "step A as `jaxafm calibrate` runs it"], facts(rows), [STEP_A_FEW, STEP_A_FEW_IMAGES], note
