@@ -364,20 +364,27 @@ def _coverage_goal(m: dict) -> str:
 STEP_A_INDEPENDENT = Run(
     "step_a_independent/summary.json", "python experiments/step_a_independent.py --cases 20 --pixels 64"
 )
-#: the generator's cases run again (``--seeds``), each with the tip path's coverage: per run its seeds
+#: the generator's cases run again (``--seeds``), each with the tip path's coverage: per run its
+#: seeds, the latest run first
 STEP_A_RERUNS = {
     Run(
         STEP_A_INDEPENDENT.path, "python experiments/step_a_independent.py --pixels 64 --seeds " + seeds
     ): seeds
-    for seeds in ("102 103 107 109 110 112 113 115 116 118 119", "114 105 900 901")
+    for seeds in (
+        "100 101 103 104 106 107 109 110 112 113 115 116 118 119 901",
+        "114 105 900 901",
+        "102 103 107 109 110 112 113 115 116 118 119",
+    )
 }
-#: both, one after the other: what the summary's coverage medians come from
-STEP_A_COVERAGE = Run(STEP_A_INDEPENDENT.path, " && ".join(run.command for run in STEP_A_RERUNS))
+#: all, one after the other: what the summary's coverage medians come from
+STEP_A_COVERAGE = Run(STEP_A_INDEPENDENT.path, " && ".join(run.command for run in reversed(STEP_A_RERUNS)))
 
 
-def _rerun_of(seed: int) -> Run:
-    """The ``--seeds`` run that last wrote the generator's case ``seed``."""
-    return next(run for run, seeds in STEP_A_RERUNS.items() if str(seed) in seeds.split())
+def _run_of(seed: int, run: Run) -> Run:
+    """``run``'s file with the command that last wrote the generator's case ``seed`` into it: the
+    latest ``--seeds`` run that had it, else the study's own."""
+    latest = next((r for r, seeds in STEP_A_RERUNS.items() if str(seed) in seeds.split()), STEP_A_INDEPENDENT)
+    return Run(run.path, latest.command)
 
 
 def _scans_label(r: dict) -> str:
@@ -1457,7 +1464,7 @@ STEP_A_CASES = tuple(
 @table("step_a_floor_preisach")
 def step_a_floor_preisach(results: Results) -> Table:
     px = lambda v: "–" if v is None else q(v, "px", 2)
-    study = {r["seed"]: (r, run) for run in STEP_A_CASES for r in results(run)}
+    study = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
     rows, runs = [], [STEP_A_FLOOR_PREISACH]
     for r in results(STEP_A_FLOOR_PREISACH):
         if "step_a_preisach" not in r:
@@ -1493,7 +1500,7 @@ def step_a_independent_preisach(results: Results) -> Table:
     plane kept, its lag."""
     px = lambda v: "–" if v is None else q(v, "px", 2)
     saved = lambda r, name: "refused" not in r and r.get(f"{name}_plausible")
-    gpi = {r["seed"]: (r, run) for run in STEP_A_CASES for r in results(run)}
+    gpi = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
     rows, runs, pairs = [], [STEP_A_PREISACH], []
     for p in results(STEP_A_PREISACH):
         g, run = gpi[p["seed"]]
@@ -1560,7 +1567,7 @@ def step_a_coverage(results: Results) -> Table:
     runs = [run for _, run in lattices]
     cases = [(r, run) for run in STEP_A_CASES for r in results(run) if "tip_path_coverage_90_pct" in r]
     for r, run in sorted(cases, key=lambda c: c[0]["seed"]):
-        rerun = Run(run.path, _rerun_of(r["seed"]).command)
+        rerun = _run_of(r["seed"], run)
         runs += [rerun] if rerun not in runs else []
         scans = _scans_label(r)
         px = r["pixel_nm"]

@@ -16,7 +16,7 @@ from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.image_ops import gaussian_kernel
 from jaxafm.identify.inverse import Compensator, train_neural_inverse
 from jaxafm.identify.polynomial_baseline import BranchPolynomials, fit_polynomials
-from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model
+from jaxafm.identify.scan_model import DELAY_RESTART_S, ScanModelSpec, nominal_scan_model, transplant
 from jaxafm.identify.staged_fit import identify
 from jaxafm.identify.stages import FitPlan
 from jaxafm.instrument.afm import Raster, RasterScan, default_afm, raster_scan
@@ -245,6 +245,23 @@ def test_padded_chords_leave_the_chord_loss_unchanged():
     offsets = np.concatenate([np.asarray(o) for o in offsets]) / 1000.0  # pitches
     loss = stages.chord_loss(raw, (model, (scan,), (padded,)))
     np.testing.assert_allclose(float(loss), 0.5 * np.mean(offsets**2), rtol=1e-12)
+
+
+def test_the_edge_delay_is_kept_non_negative():
+    """A z signal cannot show an edge before the tip reaches it: step A's edge delay comes back
+    unchanged from its raw parameter, stays >= 0 whatever the solver does to that parameter, and
+    a richer model started from a fit that left it at 0 starts it where its fit can move it."""
+    scan = _simulated_scan()[0]
+    model = nominal_scan_model(scan, ScanModelSpec(effects=("feedback_lag",), operators=4))
+    model = eqx.tree_at(lambda m: m.edge_delay, model, jnp.asarray(7e-4))
+    raw, rebuild = model.free_parameters(scan)
+    np.testing.assert_allclose(float(rebuild(raw).edge_delay), float(model.edge_delay), rtol=1e-9)
+    for push in (-60.0, -30.0, 30.0):
+        delay = float(rebuild(jax.tree.map(lambda r: r + push, raw)).edge_delay)
+        assert delay >= 0.0 and np.isfinite(delay), (push, delay)
+    at_zero = eqx.tree_at(lambda m: m.edge_delay, model, jnp.zeros(()))
+    richer = nominal_scan_model(scan, ScanModelSpec(effects=("feedback_lag",), operators=8))
+    assert float(transplant(at_zero, richer).edge_delay) == DELAY_RESTART_S > 0
 
 
 def test_held_out_image_residual_is_the_rms_over_the_held_out_pixels():

@@ -47,6 +47,9 @@ DRIFT_SCALE_NM_S = 0.05
 LAG_SCALE_S = 1e-3
 CREEP_SCALE = 0.01
 SLOPE_SCALE = 0.01
+#: the least edge delay a richer model's fit starts from (a tenth of LAG_SCALE_S): above the
+#: bound 0, where the fit can move it either way
+DELAY_RESTART_S = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,10 +97,11 @@ class ScanModel(eqx.Module):
     ``edge_delay`` (s): how late an edge the tip crosses shows in the image, at half its height:
     the z signal's lag and latency (a first-order feedback lag of time constant tau delays a
     sharp edge's half-height crossing by tau ln 2, a latency by itself). The chords see it; the
-    image stages render the lag itself (``feedback``). Fitted with the effect ``feedback_lag``.
-    At one line rate it trades against the loop's width: both set trace and retrace edges apart
-    by a constant where the tip's speed is, so a fit may settle on a wider loop and a negative
-    delay (docs/step_a.md)."""
+    image stages render the lag itself (``feedback``). Fitted with the effect ``feedback_lag``,
+    kept >= 0: a z signal cannot show an edge before the tip reaches it. At one line rate it
+    trades against the loop's width (both set trace and retrace edges apart by a constant where
+    the tip's speed is); unbounded, a fit settles on a wider loop and a negative delay
+    (docs/step_a.md)."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
@@ -211,7 +215,7 @@ class ScanModel(eqx.Module):
             parts.append((lambda m: m.scanner.drift, s.drift.free_parameters(DRIFT_SCALE_NM_S)))
         if self.feedback is not None:
             parts.append((lambda m: m.feedback, self.feedback.free_parameters(LAG_SCALE_S)))
-            parts.append((lambda m: m.edge_delay, _scaled(self.edge_delay, LAG_SCALE_S)))
+            parts.append((lambda m: m.edge_delay, _nonnegative(self.edge_delay, LAG_SCALE_S)))
         for a in ("x", "y"):
             axis = getattr(s, a)
             if axis.creep is not None:  # one rate per axis, its lags as configured, >= 0
@@ -246,6 +250,13 @@ def _travel(scan: CalibrationScan) -> float:
 def _scaled(value: Array, scale: float) -> tuple:
     """A free array at order one: ``(value / scale, raw -> raw * scale)``."""
     return value / scale, lambda raw: raw * scale
+
+
+def _nonnegative(value: Array, scale: float) -> tuple:
+    """A free value >= 0 at order one: ``(value / scale, raw -> max(raw, 0) scale)``. Where the
+    data want it below 0 the raw value goes there and the value stays at 0 (the bound active,
+    its gradient 0); above 0, and at 0 itself, it is fitted as a free value is."""
+    return value / scale, lambda raw: jnp.where(raw >= 0.0, raw, 0.0) * scale
 
 
 def _zero_offset(h: AbstractHysteresis, start: AbstractHysteresis) -> AbstractHysteresis:
@@ -367,13 +378,15 @@ def transplant(fitted: ScanModel, into: ScanModel) -> ScanModel:
     chord slopes, every effect both have, and the hysteresis where ``into``'s is of the same
     shape, or a PI operator on a grid that holds ``fitted``'s thresholds (the plays doubled:
     the new plays start at ``into``'s small weight), or a generalised PI around ``fitted``'s PI
-    operator (its dead zones at identity)."""
+    operator (its dead zones at identity). An edge delay at its bound 0 restarts at
+    :data:`DELAY_RESTART_S`, where the richer model's fit can still move it."""
     out = eqx.tree_at(lambda m: (m.lattice, m.chord_slope), into, (fitted.lattice, fitted.chord_slope))
     for name in ("coupling", "bow", "drift"):
         if getattr(fitted.scanner, name) is not None and getattr(into.scanner, name) is not None:
             out = eqx.tree_at(lambda m: getattr(m.scanner, name), out, getattr(fitted.scanner, name))
     if fitted.feedback is not None and into.feedback is not None:
-        out = eqx.tree_at(lambda m: (m.feedback, m.edge_delay), out, (fitted.feedback, fitted.edge_delay))
+        delay = jnp.maximum(fitted.edge_delay, DELAY_RESTART_S)
+        out = eqx.tree_at(lambda m: (m.feedback, m.edge_delay), out, (fitted.feedback, delay))
     for a in ("x", "y"):
         old, new = getattr(fitted.scanner, a), getattr(into.scanner, a)
         for name in ("creep", "rate_dependence"):

@@ -202,8 +202,9 @@ def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -
     ``chord_slope``) refitted to the training ``chords`` (:func:`chord_data`), the scanner held:
     an image stage moves the scanner and the feedback lag but cannot see these two (the model
     images the lattice itself), so its held-out features are placed with the edges it implies.
-    Gauss-Newton on :func:`chord_residuals`' terms; ``steps`` iterations of a problem linear in
-    the slopes and nearly linear in the delay."""
+    Gauss-Newton on :func:`chord_residuals`' terms, the delay projected onto >= 0 as step A
+    keeps it (:class:`ScanModel`); ``steps`` iterations of a problem linear in the slopes and
+    nearly linear in the delay."""
     free_delay = model.feedback is not None
     paths = [model.paths(scan) for scan in scans]
 
@@ -220,6 +221,7 @@ def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -
         r = res(p)
         H = J.T @ J + 1e-12 * jnp.trace(J.T @ J) * jnp.eye(3) + jnp.diag(1.0 - keep)
         p = p - jnp.linalg.solve(H, J.T @ r)
+        p = p.at[0].max(0.0)
     return eqx.tree_at(lambda m: (m.edge_delay, m.chord_slope), model, (p[0], p[1:]))
 
 
