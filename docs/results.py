@@ -380,10 +380,10 @@ STEP_A_RERUNS = {
 STEP_A_COVERAGE = Run(STEP_A_INDEPENDENT.path, " && ".join(run.command for run in reversed(STEP_A_RERUNS)))
 
 
-def _run_of(seed: int, run: Run) -> Run:
+def _run_of(seed: int, run: Run, reruns: dict = STEP_A_RERUNS, study: Run = STEP_A_INDEPENDENT) -> Run:
     """``run``'s file with the command that last wrote the generator's case ``seed`` into it: the
-    latest ``--seeds`` run that had it, else the study's own."""
-    latest = next((r for r, seeds in STEP_A_RERUNS.items() if str(seed) in seeds.split()), STEP_A_INDEPENDENT)
+    latest of ``reruns`` (``--seeds`` runs) that had it, else the ``study``'s own."""
+    latest = next((r for r, seeds in reruns.items() if str(seed) in seeds.split()), study)
     return Run(run.path, latest.command)
 
 
@@ -1454,6 +1454,14 @@ STEP_A_FLOOR_PREISACH = Run(
     "step_a_independent/floor.json",
     "python experiments/step_a_floor.py --seeds 100 111 114 --classes preisach",
 )
+#: step A's Preisach fits re-run without their floors (``--no-floor``): the run and its seeds
+STEP_A_FLOOR_PREISACH_RERUNS = {
+    Run(
+        STEP_A_FLOOR_PREISACH.path,
+        f"python experiments/step_a_floor.py --seeds {seeds} --classes preisach --no-floor",
+    ): seeds
+    for seeds in ("100",)
+}
 #: the study's cases, per shard file (each seed in one): step A's generalised PI held-out features
 STEP_A_CASES = tuple(
     Run(f"step_a_independent/cases-{part}.json", STEP_A_INDEPENDENT.command)
@@ -1464,6 +1472,9 @@ STEP_A_CASES = tuple(
 @table("step_a_floor_preisach")
 def step_a_floor_preisach(results: Results) -> Table:
     px = lambda v: "–" if v is None else q(v, "px", 2)
+    path = lambda a, saved: (
+        ("" if saved else "refused: ") + f"{px(a['all_px'])} ({px(a['inside_px'])} / {px(a['outside_px'])})"
+    )
     study = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
     rows, runs = [], [STEP_A_FLOOR_PREISACH]
     for r in results(STEP_A_FLOOR_PREISACH):
@@ -1471,20 +1482,23 @@ def step_a_floor_preisach(results: Results) -> Table:
             continue
         gpi, pre = r["step_a"], r["step_a_preisach"]
         case, run = study[r["seed"]]
-        runs += [run] if run not in runs else []
+        own = _run_of(r["seed"], STEP_A_FLOOR_PREISACH, STEP_A_FLOOR_PREISACH_RERUNS, STEP_A_FLOOR_PREISACH)
+        runs += [x for x in (run, own) if x not in runs]
         scans = _scans_label(r)
         rows.append(
-            [f"{r['seed']} ({scans})"]
-            + [f"{px(gpi['all_px'])} ({px(gpi['inside_px'])} / {px(gpi['outside_px'])})"]
+            [f"{r['seed']} ({scans})", path(gpi, "refused" not in case and case["gpi_plausible"])]
             + [px(case["gpi_held_out_rms_nm"] / case["pixel_nm"]), px(r["floor"]["all_px"])]
-            + [f"{px(pre['all_px'])} ({px(pre['inside_px'])} / {px(pre['outside_px'])})"]
+            + [path(pre, pre["plausible"])]
             + [px(pre["held_out_px"]), px(r["floor_preisach"]["all_px"]), pre["model"]]
             + [_lags(r, "_preisach")]
         )
     header = ["case", "generalised PI: step A (inside / outside the reach)", "held-out features", "floor"]
     header += ["Preisach: step A (inside / outside the reach)", "held-out features", "floor"]
     header += ["Preisach model the ladder kept", "x lag: generator / Preisach step A / floor"]
-    note = "Tip path rms against the truth after the rigid motion; held-out features as `jaxafm calibrate` gives them."
+    note = (
+        "Tip path rms against the truth after the rigid motion; held-out features as `jaxafm calibrate` "
+        "gives them; refused: the fit step A refused or judged not plausible."
+    )
     return Table(header, rows, runs, note)
 
 
@@ -1492,6 +1506,14 @@ STEP_A_PREISACH = Run(
     "step_a_independent_preisach/cases-1-of-1.json",
     "python experiments/step_a_independent.py --cases 20 --pixels 64 --model preisach",
 )
+#: the Preisach study's cases run again, as :data:`STEP_A_RERUNS`
+STEP_A_PREISACH_RERUNS = {
+    Run(
+        STEP_A_PREISACH.path,
+        f"{STEP_A_PREISACH.command.split(' --cases')[0]} --pixels 64 --model preisach --seeds {seeds}",
+    ): seeds
+    for seeds in ("100 110 113 116 901",)
+}
 
 
 @table("step_a_independent_preisach")
@@ -1501,19 +1523,24 @@ def step_a_independent_preisach(results: Results) -> Table:
     px = lambda v: "–" if v is None else q(v, "px", 2)
     saved = lambda r, name: "refused" not in r and r.get(f"{name}_plausible")
     gpi = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
-    rows, runs, pairs = [], [STEP_A_PREISACH], []
+    rows, runs, pairs = [], [], []
     for p in results(STEP_A_PREISACH):
         g, run = gpi[p["seed"]]
-        runs += [run] if run not in runs else []
+        own = _run_of(p["seed"], STEP_A_PREISACH, STEP_A_PREISACH_RERUNS, STEP_A_PREISACH)
+        runs += [r for r in (own, run) if r not in runs]
         scans = _scans_label(p)
         cells = [f"{p['seed']} ({scans}, {p['feature'].replace('_', ' ')})"]
         for r, name in ((g, "gpi"), (p, "preisach")):
-            if not saved(r, name):
+            if r.get("tip_path_rms_px") is None:
                 cells += ["not saved", "–"]
                 continue
             inside, outside = r.get("tip_path_inside_reach_rms_px"), r.get("tip_path_outside_reach_rms_px")
             split = "" if inside is None else f" ({px(inside)} / {px(outside)})"
-            cells += [px(r["tip_path_rms_px"]) + split, px(r[f"{name}_held_out_rms_nm"] / r["pixel_nm"])]
+            refused = "" if saved(r, name) else "refused: "
+            cells += [
+                refused + px(r["tip_path_rms_px"]) + split,
+                px(r[f"{name}_held_out_rms_nm"] / r["pixel_nm"]),
+            ]
         kept = "–"
         if saved(p, "preisach"):
             kept = f"{p['preisach_model_operators']} levels + " + ", ".join(p["preisach_model_effects"])
@@ -1534,8 +1561,8 @@ def step_a_independent_preisach(results: Results) -> Table:
     header += ["Preisach model the ladder kept", "x lag against the generator's"]
     note = (
         "Tip path rms against the truth after the rigid motion (inside / outside the features' reach where "
-        "the run split it); held-out features as `jaxafm calibrate` gives them; not saved: refused, or "
-        "judged not plausible."
+        "the run split it); held-out features as `jaxafm calibrate` gives them; refused: the fit step A "
+        "refused or judged not plausible; not saved: none scored."
     )
     return Table(header, rows, runs, note)
 
@@ -1671,8 +1698,15 @@ def preisach_levels(seed: int) -> Callable[[Results], Table]:
         m = results(run)
         px = lambda v: q(v, "px", 2)
         spread = lambda v: "none" if v is None else q(v, "mean relay weights", 2)
+        refused = lambda r: (
+            [count(r["levels"]), spread(r["prior_spread"])]
+            + ["refused: " + ": ".join(r["refused"].split(": ")[:2])]
+            + ["–"] * 8
+        )
         rows = [
-            [count(r["levels"]), spread(r["prior_spread"]), px(r["held_out_px"]), px(r["all_px"])]
+            refused(r)
+            if "refused" in r
+            else [count(r["levels"]), spread(r["prior_spread"]), px(r["held_out_px"]), px(r["all_px"])]
             + [px(r["inside_px"]), px(r["x_margins_px"]), px(r["y_margins_px"])]
             + [f"{px(r['sd_inside_px'])} / {px(r['sd_outside_px'])}", q(r["plausible"])]
             + [f"{q(r['aicc'], '', 1)} ({q(r['fitted_parameters'], '', 1)})"]

@@ -325,7 +325,11 @@ def _figure(drawn: list, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     rows = sorted((r for r in drawn if "refused" not in r), key=lambda r: r["seed"])
-    labels = [f"{r['seed']}\n{'speeds' if len(r['rates_hz']) > 1 else '0+90°'}" for r in rows]
+    saved = [bool(r.get(_key(r, "plausible"))) for r in rows]
+    labels = [
+        f"{r['seed']}\n{'speeds' if len(r['rates_hz']) > 1 else '0+90°'}" + ("" if ok else "\nrefused")
+        for r, ok in zip(rows, saved)
+    ]
     x = np.arange(len(rows))
     fig, (a, b) = plt.subplots(2, 1, figsize=(max(6, 0.55 * len(rows)), 6.5), sharex=True)
     a.bar(x - 0.2, [r["tip_path_rms_px"] for r in rows], 0.4, label="tip path, every pixel")
@@ -354,8 +358,11 @@ def _figure(drawn: list, out: Path) -> None:
     b.set_ylim(bottom=0.1)
     b.set_ylabel("largest held-out distance error (%)")
     b.set_xticks(x, labels, fontsize=7)
-    b.set_xlabel("case (seed, scans)")
+    b.set_xlabel("case (seed, scans; hatched: the fit step A refused or judged not plausible)")
     b.legend(fontsize=8)
+    for bars in a.containers + b.containers:  # a fit step A did not save: hatched, faded
+        for bar, ok in zip(bars, saved):
+            bar.set(alpha=1 if ok else 0.4, hatch=None if ok else "//")
     richest = (
         {"gpi": "generalised PI", "preisach": "Preisach"}[rows[0].get("model_class", "gpi")] if rows else ""
     )

@@ -12,7 +12,8 @@ beside it, inside the reach and outside it, the path's own standard deviation as
 it from its training chords (:func:`jaxafm.identify.identifiability.path_sd`, rms over the
 pixels): whether the model knows where its path is uncertain. And what a ladder could score the
 plane by from its training features alone (:func:`scores`): the information criterion it uses,
-and the features' centres with each of them, or half of them, left out of the fit.
+and the features' centres with each of them, or half of them, left out of the fit. A plane step A
+refuses (its error, e.g. scans it cannot align through it) is recorded with the reason.
 
 Each run is ``LEVELS`` or ``LEVELS:SPREAD``: the plane's levels and the spread of step A's
 smoothness prior on its density (:data:`jaxafm.identify.stages.DENSITY_CURVATURE`, mean relay
@@ -153,7 +154,12 @@ def main() -> None:
     for run in args.runs:
         levels, _, spread = run.partition(":")
         spread = stages.DENSITY_CURVATURE if not spread else None if spread == "none" else float(spread)
-        rows.append(scored(args.seed, int(levels), spread, args.effects))
+        try:
+            rows.append(scored(args.seed, int(levels), spread, args.effects))
+        except ValueError as refused:  # step A's own refusal (e.g. scans it cannot align)
+            rows.append({"levels": int(levels), "prior_spread": spread, "refused": str(refused)})
+            print(f"{levels} levels, prior spread {spread}: refused: {refused}", flush=True)
+            continue
         r = rows[-1]
         print(
             f"{levels} levels, prior spread {spread}: held-out features {r['held_out_px']:.2f} px; "
