@@ -660,6 +660,8 @@ CALIBRATE = [
     ),
     nan_case("calibrate-solver.blur_px-.nan", "calibrate", "solver.blur_px", NAN, [2.0, NAN]),
     nan_case("calibrate-solver.blur_px-too-wide", "calibrate", "solver.blur_px", 100, [100.0]),
+    nan_case("calibrate-solver.path_tolerance_nm-zero", "calibrate", "solver.path_tolerance_nm", 0.0),
+    nan_case("calibrate-solver.path_tolerance_nm-.inf", "calibrate", "solver.path_tolerance_nm", INF),
     case(
         "calibrate-solver.coarsen-not-dividing",
         "calibrate",
@@ -1684,6 +1686,16 @@ PYTHON = [
     ("identify-blur_px-negative", lambda: _identify(blur_px=(-3.0,)), r"blur_px"),
     ("identify-blur_px-nan", lambda: _identify(blur_px=(2.0, NAN)), r"blur_px"),
     ("identify-max_steps-zero", lambda: _identify(max_steps=0), r"max_steps"),
+    (
+        "identify-path_tolerance_nm-negative",
+        lambda: _identify(path_tolerance_nm=-2.0),
+        r"path_tolerance_nm[\s\S]*-2",
+    ),
+    (
+        "identify-path_tolerance_nm-nan",
+        lambda: _identify(path_tolerance_nm=NAN),
+        r"path_tolerance_nm[\s\S]*nan",
+    ),
     ("identify-unknown-solver", lambda: _identify(solver="newton"), r"newton"),
     ("identify-unknown-kind", lambda: _identify(kind="bouc-wen"), r"bouc-wen"),
     ("identify-unknown-effect", lambda: _identify(effects=("wobble",)), r"wobble"),

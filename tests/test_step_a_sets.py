@@ -252,10 +252,11 @@ def test_the_share_of_the_path_variance_a_quantity_settles_is_its_gaussian_condi
         assert -1e-9 <= found.settles[key] <= 100 + 1e-9, key
 
 
-def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_is_refused_naming_the_quantity():
-    """Refused when the path's sd (rms over the images) exceeds the held-out features' predicted
-    error, naming the quantity that would settle most of it; not refused at or below it, nor
-    without held-out features to compare with."""
+def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_and_the_task_allows_is_refused():
+    """Refused when the path's sd (rms over the images, here sqrt((300² + 400²) / 1) = 500 nm)
+    exceeds both the held-out features' predicted error and the path tolerance, naming the
+    quantity that would settle most of it; not refused at or below either, nor without held-out
+    features to compare with."""
     from jaxafm.identify.identifiability import Determination, Quantity
     from jaxafm.identify.plausibility import unsettled
 
@@ -266,10 +267,24 @@ def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_is_refused_na
     wide = Determination(
         loops, np.array([300.0, 400.0]), {"y_loop_pct_of_travel": 80.0, "x_gain_nm_per_v": 15.0}
     )
-    said = unsettled(wide, {"held_out_predicted_rms_nm": 110.0})
+    said = unsettled(wide, {"held_out_predicted_rms_nm": 110.0}, 50.0)
     assert len(said) == 1 and "500 nm" in said[0] and "y loop at mid-drive" in said[0] and "80 %" in said[0]
-    assert unsettled(wide, {"held_out_predicted_rms_nm": 500.0}) == []
-    assert unsettled(wide, {}) == []
+    assert "50 nm the path may be open" in said[0]
+    assert unsettled(wide, {"held_out_predicted_rms_nm": 500.0}, 50.0) == []
+    assert unsettled(wide, {"held_out_predicted_rms_nm": 110.0}, 500.0) == []
+    assert unsettled(wide, {}, 50.0) == []
+
+
+def test_the_default_path_tolerance_is_a_tenth_of_the_finest_pixel():
+    """Closed form: images of 64 and 32 px over 5 µm (78.125 and 156.25 nm pixels) tolerate
+    7.8125 nm; a stated tolerance is kept as given."""
+    from types import SimpleNamespace
+
+    from jaxafm.identify.plausibility import path_tolerance_nm
+
+    scans = [SimpleNamespace(raster=SimpleNamespace(pixel_size=(5000 / n, 5000 / n))) for n in (64, 32)]
+    assert path_tolerance_nm(scans) == pytest.approx(7.8125)
+    assert path_tolerance_nm(scans, 3.0) == 3.0
 
 
 @pytest.mark.parametrize(

@@ -272,6 +272,13 @@ class CalibrationSolver(Strict):
         "line reversal (loops over about 18 % of the range at 10 % overscan): every scan's retrace is "
         "also tried indexed a pitch further back, and the best-fitting matching is kept (docs/step_a.md)",
     )
+    path_tolerance_nm: Optional[Annotated[float, Field(gt=0)]] = Field(
+        None,
+        description="how open (nm, sd rms over the images) the fitted tip path may be: the fit is "
+        "refused when the parameters the scans do not fix move the path by more than this and more "
+        "than a held-out feature's predicted error; default a tenth of the scans' finest pixel "
+        "(docs/step_a.md)",
+    )
 
     def image_blurs(self, measured: bool) -> tuple:
         """The image stages' blurs (px): ``blur_px`` as given, else :data:`SIMULATED_BLURS_PX` on

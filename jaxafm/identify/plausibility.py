@@ -6,7 +6,7 @@ features misplaced by more than :data:`MAX_HELD_OUT_PITCH` of the pitch, or plac
 correction than by the raw image (their rms residual or the spread of their local pitch).
 :func:`undetermined`: an axis's loop the data leave open
 (:class:`~jaxafm.identify.identifiability.Quantity`). :func:`unsettled`: a tip path the data
-leave more open than a held-out feature's place.
+leave more open than both a held-out feature's place and the precision the task asks for.
 """
 
 from __future__ import annotations
@@ -104,26 +104,54 @@ def undetermined(quantities: list) -> list:
     ]
 
 
-def unsettled(determination, validation: dict) -> list:
+#: the tip path's uncertainty (rms over the images, a fraction of the scans' finest pixel) step A
+#: tolerates unless told (``solver.path_tolerance_nm``): a tenth of a pixel, the precision the
+#: images can place a feature to and the tip path goal of docs/step_a.md
+PATH_TOLERANCE_PX = 0.1
+
+
+def path_tolerance_nm(scans: tuple, tolerance_nm=None) -> float:
+    """The tip path uncertainty (nm) step A tolerates: ``tolerance_nm`` when given, else
+    :data:`PATH_TOLERANCE_PX` of the finest pixel of ``scans``."""
+    if tolerance_nm is not None:
+        return float(tolerance_nm)
+    return PATH_TOLERANCE_PX * min(min(s.raster.pixel_size) for s in scans)
+
+
+#: how :func:`unsettled`'s reason begins
+PATH_OPEN = "the scans leave the tip path open"
+
+
+def path_open(path_nm: float, expected_nm: float, tolerance_nm: float) -> bool:
+    """:func:`unsettled`'s rule: the path's sd ``path_nm`` exceeds both a held-out feature's
+    predicted error ``expected_nm`` and the tolerance ``tolerance_nm`` (all nm rms)."""
+    return path_nm > max(expected_nm, tolerance_nm)
+
+
+def unsettled(determination, validation: dict, tolerance_nm: float) -> list:
     """A tip path the scans leave open, in words: the parameters the data do not fix move the
     path (rms over the images, :class:`~jaxafm.identify.identifiability.Determination`) by
-    more than the error the fit predicts for a held-out feature (``held_out_predicted_rms_nm``,
-    :func:`~jaxafm.identify.identifiability.position_check`). The held-out features check the
-    model where they are; between and beyond them it is the model alone that places the tip,
-    and a path less certain there than a feature is placed has not been checked at all. Names
-    the quantity whose knowledge would settle most of it."""
+    more than both the error the fit predicts for a held-out feature
+    (``held_out_predicted_rms_nm``, :func:`~jaxafm.identify.identifiability.position_check`)
+    and ``tolerance_nm``, the precision the task asks for (:func:`path_tolerance_nm`). The
+    held-out features check the model where they are; between and beyond them it is the model
+    alone that places the tip, and a path less certain there than a feature is placed has not
+    been checked, unless it is still as certain as the task needs (a fit whose features sit to
+    a nanometre need not fix its path to one). Names the quantity whose knowledge would settle
+    most of it."""
     expected = validation.get("held_out_predicted_rms_nm")
     path = determination.path_rms_nm
-    if expected is None or path <= expected:
+    if expected is None or not path_open(path, expected, tolerance_nm):
         return []
     q, share = determination.settled_most
     x, y = determination.path_sd_nm
     return [
-        f"the scans leave the tip path open: the parameters they do not fix move it by {path:.4g} nm "
+        f"{PATH_OPEN}: the parameters they do not fix move it by {path:.4g} nm "
         f"rms over the images (x {x:.4g}, y {y:.4g} nm), more than the {expected:.4g} nm a held-out "
-        f"feature is predicted to be placed to; knowing the {q.name} ({q.value:.4g} +- {q.sd:.3g} "
-        f"{q.unit}) would settle {share:.0f} % of it: scan at more line rates or angles, or a lattice "
-        "with more features"
+        f"feature is predicted to be placed to and the {tolerance_nm:.4g} nm the path may be open "
+        f"(solver.path_tolerance_nm); knowing the {q.name} ({q.value:.4g} +- {q.sd:.3g} {q.unit}) "
+        f"would settle {share:.0f} % of it: scan at more line rates or angles, or a lattice with "
+        "more features"
     ]
 
 

@@ -41,7 +41,7 @@ from .held_out import (
     validate,
 )
 from .identifiability import identifiability, position_check
-from .plausibility import implausible, undetermined, unsettled, unvalidated
+from .plausibility import implausible, path_tolerance_nm, undetermined, unsettled, unvalidated
 from .scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, start_loop, transplant
 from .selection import RungFit, aicc, matching_spec, select, supported_dead_zones
 from .stages import (
@@ -187,7 +187,9 @@ def identify(
     determination = identifiability(fit.model, scans, chords, drive_range(scans))
     quantities = determination.quantities
     validation |= _path_summary(determination)
-    failures = failures + unvalidated(validation, min(scans[0].pitch)) + unsettled(determination, validation)
+    tolerance = path_tolerance_nm(scans, plan.path_tolerance_nm)
+    validation["path_tolerance_nm"] = tolerance
+    failures += unvalidated(validation, min(scans[0].pitch)) + unsettled(determination, validation, tolerance)
     return Identification(
         fit.model,
         tuple(fit.results),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Sequence
-from typing import NamedTuple, Union
+from typing import NamedTuple, Optional, Union
 
 import equinox as eqx
 import jax
@@ -58,6 +58,10 @@ class FitPlan:
             them (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`),
             a later scan's in the first chord stage over all scans
             (:meth:`~jaxafm.identify.staged_fit._StagedFit._matched`).
+        path_tolerance_nm: the tip path's sd (nm, rms over the images) a fit may leave open: a
+            path more open than this and than a held-out feature's predicted error is refused
+            (:func:`~jaxafm.identify.plausibility.unsettled`); ``None``: a tenth of the scans'
+            finest pixel (:data:`~jaxafm.identify.plausibility.PATH_TOLERANCE_PX`).
     """
 
     solver: str = "jaxafm.geodesic_levenberg_marquardt"
@@ -69,6 +73,7 @@ class FitPlan:
     hold_out: bool = True
     select: bool = True
     wide_loop: bool = False
+    path_tolerance_nm: Optional[float] = None
 
 
 class StageKind(enum.Enum):
@@ -459,8 +464,15 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
 
 def check_plan(plan: FitPlan, stages: Sequence[Stage]) -> list:
     """The stages' step limits (:func:`stage_steps`), each checked with the plan's solver and
-    tolerances (:func:`~jaxafm.identify.fit.check_solver`)."""
+    tolerances (:func:`~jaxafm.identify.fit.check_solver`), after the plan's path tolerance
+    (positive, or ``None``)."""
     limits = stage_steps(plan.max_steps, stages)
+    tolerance = plan.path_tolerance_nm
+    if tolerance is not None and not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(
+            f"path_tolerance_nm (a config's solver.path_tolerance_nm) = {tolerance}: give a positive "
+            "number of nm, or leave it out for a tenth of the scans' finest pixel"
+        )
     for limit in limits:
         check_solver(plan.solver, limit, plan.rtol, plan.atol)
     return limits

@@ -187,6 +187,7 @@ def identify_model(
         hold_out=solver.hold_out,
         select=solver.select,
         wide_loop=solver.wide_loop,
+        path_tolerance_nm=solver.path_tolerance_nm,
     )
     return identify(scans, spec, plan, log=log)
 
@@ -390,7 +391,8 @@ def _path_line(name: str, ident: Identification) -> str:
     q = next(q for q in ident.quantities if q.key == v["path_settled_most_by"])
     return (
         f"  {name}: the tip path's sd over the images {v['path_sd_rms_nm']:.1f} nm rms (x "
-        f"{v['path_sd_x_rms_nm']:.1f}, y {v['path_sd_y_rms_nm']:.1f} nm); knowing the {q.name} would "
+        f"{v['path_sd_x_rms_nm']:.1f}, y {v['path_sd_y_rms_nm']:.1f} nm; it may be open by "
+        f"{v['path_tolerance_nm']:.1f} nm, solver.path_tolerance_nm); knowing the {q.name} would "
         f"settle {v['path_settled_most_pct']:.0f} % of its variance"
     )
 
