@@ -1471,6 +1471,16 @@ STEP_A_CASES = tuple(
 )
 
 
+def _gpi_cases(results: Results) -> dict:
+    """The generalised PI study's cases by seed: each its latest row and the run that wrote it."""
+    return {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
+
+
+def _preisach_run(seed: int) -> Run:
+    """The Preisach study's file with the command that last wrote case ``seed`` into it."""
+    return _run_of(seed, STEP_A_PREISACH, STEP_A_PREISACH_RERUNS, STEP_A_PREISACH)
+
+
 def _tip_path_cell(saved: bool, rms_px: float, inside_px=None, outside_px=None) -> str:
     """A tip path's rms (px), with its split inside / outside the features' reach where the run
     made it, marked ``refused:`` for a fit step A refused or judged not plausible."""
@@ -1483,7 +1493,7 @@ def _tip_path_cell(saved: bool, rms_px: float, inside_px=None, outside_px=None) 
 def step_a_floor_preisach(results: Results) -> Table:
     px = lambda v: "–" if v is None else q(v, "px", 2)
     path = lambda a, saved: _tip_path_cell(saved, a["all_px"], a["inside_px"], a["outside_px"])
-    study = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
+    study = _gpi_cases(results)
     rows, runs = [], [STEP_A_FLOOR_PREISACH]
     for r in results(STEP_A_FLOOR_PREISACH):
         if "step_a_preisach" not in r:
@@ -1534,11 +1544,11 @@ def step_a_independent_preisach(results: Results) -> Table:
     plane kept, its lag."""
     px = lambda v: "–" if v is None else q(v, "px", 2)
     saved = lambda r, name: "refused" not in r and r.get(f"{name}_plausible")
-    gpi = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
+    gpi = _gpi_cases(results)
     rows, runs, pairs = [], [], []
     for p in results(STEP_A_PREISACH):
         g, run = gpi[p["seed"]]
-        own = _run_of(p["seed"], STEP_A_PREISACH, STEP_A_PREISACH_RERUNS, STEP_A_PREISACH)
+        own = _preisach_run(p["seed"])
         runs += [r for r in (own, run) if r not in runs]
         scans = _scans_label(p)
         cells = [f"{p['seed']} ({scans}, {p['feature'].replace('_', ' ')})"]
@@ -1588,11 +1598,8 @@ def step_a_path_tolerance(results: Results) -> Table:
     re-applied to each case's recorded path sd and predicted held-out error."""
     px = lambda v: q(v, "px", 2)
     spread = lambda v, end: "–" if not v else f"{px(statistics.median(v))} / {px(end(v))}"
-    gpi = {r["seed"]: (r, _run_of(r["seed"], run)) for run in STEP_A_CASES for r in results(run)}
-    preisach = {
-        r["seed"]: (r, _run_of(r["seed"], STEP_A_PREISACH, STEP_A_PREISACH_RERUNS, STEP_A_PREISACH))
-        for r in results(STEP_A_PREISACH)
-    }
+    gpi = _gpi_cases(results)
+    preisach = {r["seed"]: (r, _preisach_run(r["seed"])) for r in results(STEP_A_PREISACH)}
     rows, runs = [], []
     for label, name, cases in (("generalised PI", "gpi", gpi), ("Preisach", "preisach", preisach)):
         checked = [(r, run) for r, run in cases.values() if r.get(f"{name}_path_sd_rms_nm") is not None]
