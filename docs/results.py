@@ -1711,6 +1711,53 @@ def push_odds(results: Results) -> Table:
     return Table(header, rows, [STUDY], note)
 
 
+PUSH_ODDS_MODELS = Run("push_odds_models/metrics.json", "python experiments/push_odds_models.py")
+
+
+@table("push_odds_models")
+def push_odds_models(results: Results) -> Table:
+    """Committed studies' first pushes scored with two models of a push's miss."""
+    m = results(PUSH_ODDS_MODELS)
+    labels = {
+        "distance": "along and across, each a line in the push's distance",
+        "affine": "affine (jaxafm's)",
+    }
+    rows = []
+    for study, scores in m.items():
+        for name, label in labels.items():
+            score = scores[name]
+            big = [b for b in score["bins"] if b["trials"] >= 100]
+            rows.append(
+                [
+                    f"{study}.yaml",
+                    label,
+                    count(score["trials"]),
+                    f"{score['brier']:.4f} / {score['brier_base_rate']:.4f}",
+                    ", ".join(
+                        f"{q(100 * b['lo'], '%', 0)}–{q(100 * b['hi'], '%', 0)}: "
+                        f"{q(b['observed_pct'] - b['predicted_pct'], 'points')}"
+                        for b in big
+                    ),
+                    q(_largest_gap(score["bins"]), "points"),
+                    q(statistics.median(score["residual_sd_nm"]), "nm"),
+                ]
+            )
+    header = [
+        "study",
+        "model of the miss",
+        "trials given odds",
+        "Brier score / the overall rate's",
+        "observed − predicted, tenths with ≥ 100 trials",
+        "largest gap there",
+        "scatter about the model, median over the scanners",
+    ]
+    note = (
+        "The same trials, in the same order, for both models. Scatter: each scanner's rms residual per component of "
+        "its touching first pushes' misses about the model fitted to all of them."
+    )
+    return Table(header, rows, [PUSH_ODDS_MODELS], note)
+
+
 STEP_A_REAL_CLASSES = Run("step_a_real_classes/metrics.json", "python experiments/step_a_real_classes.py")
 
 

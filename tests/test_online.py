@@ -31,6 +31,26 @@ def test_each_case_is_predicted_by_the_least_squares_fit_to_the_observed_cases_b
     assert np.all(np.isnan(pred.mean[:first])) and np.all(np.isfinite(pred.cov[first]))
 
 
+def test_a_regressor_the_earlier_cases_never_varied_leaves_only_cases_in_their_span_predicted():
+    # the first 20 cases all have the third regressor at 0: a case with it at 0 is predicted as
+    # the fit on the first two regressors predicts it, with n - 2 degrees of freedom; a case with
+    # it at 0.5 lies outside what they determine and gets NaN; and the first p + 3 cases get NaN
+    # whatever their rank
+    rng = np.random.default_rng(4)
+    X, Y = _cases(rng, 22)
+    X[:21, 2] = 0.0
+    X[21, 2] = 0.5
+    pred = online.online_regression(X, Y, np.ones(22, bool))
+    B = np.linalg.lstsq(X[:20, :2], Y[:20], rcond=None)[0]
+    R = Y[:20] - X[:20, :2] @ B
+    h = X[20, :2] @ np.linalg.inv(X[:20, :2].T @ X[:20, :2]) @ X[20, :2]
+    np.testing.assert_allclose(pred.mean[20], X[20, :2] @ B, rtol=1e-9)
+    np.testing.assert_allclose(pred.cov[20], R.T @ R / 18 * (1 + h), rtol=1e-9)
+    assert pred.dof[20] == 18
+    assert np.all(np.isnan(pred.mean[21])) and np.isnan(pred.dof[21])
+    assert np.all(np.isnan(pred.dof[:6])) and pred.dof[6] == 4
+
+
 def test_learnt_field_is_the_prior_mean_without_observations():
     field = online.learn_field(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(2), 1500.0, 100.0, 5.0)
     np.testing.assert_array_equal(field(np.array([[100.0, -300.0], [0.0, 0.0]])), 0.0)

@@ -7,65 +7,100 @@ from scipy import stats
 
 from jaxafm import plots
 from jaxafm.position import push_odds
+from jaxafm.position.online import Predictive
 from jaxafm.study.monte_carlo import predicted_push_success
 from jaxafm.study.reliability import gate, reliability
 
 
-@pytest.mark.parametrize("mean, sd, tolerance", [(0.0, 2.0, 3.0), (4.0, 1.5, 5.0), (6.0, 3.0, 2.0)])
+def _miss(mean, cov, dof):
+    """One push's predicted miss: ``mean`` (2,) nm, scale matrix ``cov`` (2, 2) nm^2, ``dof``."""
+    return Predictive(np.array([mean], float), np.array([cov], float), np.array([dof], float))
+
+
+@pytest.mark.parametrize(
+    "mean, sd, tolerance",
+    [(0.0, 2.0, 3.0), (4.0, 1.5, 5.0), (6.0, 3.0, 2.0), (2.0, 0.5, 47.0), (46.0, 0.3, 47.0)],
+)
 def test_success_probability_is_the_rice_distribution_for_a_round_gaussian_miss(mean, sd, tolerance):
-    """An isotropic Gaussian miss of mean ``mean`` along the push: its length is Rice distributed,
-    P(|m| <= T) = rice.cdf(T / sd, mean / sd) (a Student-t of 1e7 degrees of freedom is Gaussian)."""
-    miss = push_odds.Miss(mean, sd, 0.0, sd, 1e7)
+    """An isotropic Gaussian miss of mean ``mean`` along the first axis: its length is Rice
+    distributed, P(|m| <= T) = rice.cdf(T / sd, mean / sd) (a Student-t of 1e7 degrees of freedom
+    is Gaussian); the last two a miss a hundred times narrower than the tolerance, in the middle
+    and at the edge. To 1e-5: a probability far finer than any decision on it needs."""
+    miss = _miss([mean, 0.0], np.eye(2) * sd**2, 1e7)
     want = stats.rice.cdf(tolerance / sd, mean / sd)
-    assert push_odds.success_probability(miss, tolerance) == pytest.approx(want, abs=1e-6)
+    assert push_odds.success_probability(miss, tolerance) == pytest.approx(want, abs=1e-5)
+
+
+@pytest.mark.parametrize("dof", [3.0, 30.0])
+def test_success_probability_of_a_correlated_student_t_miss_matches_draws(dof):
+    """A bivariate Student-t miss with correlated components, drawn in NumPy as a Gaussian over
+    sqrt(chi^2 / nu): the share of 400,000 draws within the tolerance, to 4 binomial sd."""
+    mean, cov, tolerance = np.array([1.5, -2.0]), np.array([[9.0, 4.8], [4.8, 4.0]]), 4.0
+    rng = np.random.default_rng(5)
+    n = 400_000
+    draws = mean + rng.multivariate_normal([0, 0], cov, n) / np.sqrt(rng.chisquare(dof, n) / dof)[:, None]
+    share = np.mean(np.hypot(*draws.T) <= tolerance)
+    got = push_odds.success_probability(_miss(mean, cov, dof), tolerance)[0]
+    assert abs(got - share) < 4 * np.sqrt(share * (1 - share) / n)
 
 
 def test_components_split_a_miss_along_and_across_the_push():
     direction = np.array([[0.6, 0.8]])
-    along, across = push_odds.components(np.array([[3.0, 4.0]]) + np.array([[-0.8, 0.6]]), direction)
+    miss = np.array([[3.0, 4.0]]) + np.array([[-0.8, 0.6]])
+    along, across = push_odds.components(miss, direction)
     np.testing.assert_allclose([along[0], across[0]], [5.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(push_odds.from_components(along, across, direction), miss, atol=1e-12)
+
+
+#: the frame's error over a push (module docstring): offset b (nm) and map M (per nm of push);
+#: x's drive 3 % long, y's 2 % short, their axes turned by 10 mrad over the push
+OFFSET, MAP = np.array([0.5, -1.0]), np.array([[0.03, -0.01], [0.01, -0.02]])
+#: the scatter's covariance (nm^2): 2 nm and 3 nm sd, correlation 0.3
+SCATTER = np.array([[4.0, 1.8], [1.8, 9.0]])
 
 
 def _pushes(rng, k):
-    """``k`` pushes of 100-300 nm whose misses follow the module's model: along 0.5 nm + 3 % of the
-    distance, sd 2 nm; across -1 nm + 1 % of the distance, sd 3 nm."""
-    L = rng.uniform(100, 300, k)
-    along = 0.5 + 0.03 * L + rng.normal(0, 2.0, k)
-    across = -1.0 + 0.01 * L + rng.normal(0, 3.0, k)
-    return L, along, across
+    """``k`` pushes of 100-300 nm in any direction, their misses drawn from the module's model."""
+    angle = rng.uniform(0, 2 * np.pi, k)
+    push = rng.uniform(100, 300, k)[:, None] * np.stack([np.cos(angle), np.sin(angle)], -1)
+    return push, OFFSET + push @ MAP.T + rng.multivariate_normal([0, 0], SCATTER, k)
 
 
 def test_online_misses_are_the_regression_on_the_pushes_before():
     rng = np.random.default_rng(0)
-    L, along, across = _pushes(rng, 40)
+    push, miss = _pushes(rng, 40)
     observed = rng.uniform(size=40) > 0.2
-    miss = push_odds.online_misses(L, along, across, observed)
+    predicted = push_odds.online_misses(push, miss, observed)
     k = 30
     prior = np.flatnonzero(observed[:k])
-    X = np.column_stack([np.ones(prior.size), L[prior] / 100])
-    beta, rss = np.linalg.lstsq(X, along[prior], rcond=None)[:2]
-    x = np.array([1, L[k] / 100])
-    scale = np.sqrt(rss[0] / (prior.size - 2) * (1 + x @ np.linalg.inv(X.T @ X) @ x))
-    assert miss.along[k] == pytest.approx(x @ beta, rel=1e-9)
-    assert miss.along_scale[k] == pytest.approx(scale, rel=1e-9)
-    assert miss.dof[k] == prior.size - 2
+    X = np.column_stack([np.ones(prior.size), push[prior] / 100])
+    B = np.linalg.lstsq(X, miss[prior], rcond=None)[0]
+    R = miss[prior] - X @ B
+    x = np.append(1.0, push[k] / 100)
+    cov = R.T @ R / (prior.size - 3) * (1 + x @ np.linalg.inv(X.T @ X) @ x)
+    np.testing.assert_allclose(predicted.mean[k], x @ B, rtol=1e-9)
+    np.testing.assert_allclose(predicted.cov[k], cov, rtol=1e-9)
+    assert predicted.dof[k] == prior.size - 3
     first = np.flatnonzero(np.cumsum(observed) - observed >= push_odds.MIN_PUSHES)[0]
-    assert np.all(np.isnan(miss.along[:first])) and np.isfinite(miss.along[first])
+    assert np.all(np.isnan(predicted.mean[:first])) and np.isfinite(predicted.mean[first]).all()
 
 
-def test_predicted_odds_are_as_often_right_as_they_say():
+def test_predicted_odds_are_as_often_right_as_they_say_in_every_direction():
     """Pushes of particles of radius 2-12 nm (tolerance: one radius) drawn from the known model:
-    the mean predicted success equals the observed rate within 3 binomial sd, in the whole and in
-    each half of the predictions, and the Brier score beats the overall rate's."""
+    the mean predicted success equals the observed rate within 3 binomial sd, in the whole, in
+    each half of the predictions and for the pushes mostly along x and mostly along y (whose
+    misses differ: the axes' scale errors differ), and the Brier score beats the overall rate's."""
     rng = np.random.default_rng(1)
     n = 4000
-    L, along, across = _pushes(rng, n)
+    push, miss = _pushes(rng, n)
     radius = rng.uniform(2, 12, n)
-    ok = np.hypot(along, across) <= radius
-    p = push_odds.success_probability(push_odds.online_misses(L, along, across, np.ones(n, bool)), radius)
+    ok = np.hypot(*miss.T) <= radius
+    p = push_odds.success_probability(push_odds.online_misses(push, miss, np.ones(n, bool)), radius)
     scored = np.isfinite(p)
     assert scored.sum() == n - push_odds.MIN_PUSHES
-    for part in (scored, scored & (p < np.nanmedian(p)), scored & (p >= np.nanmedian(p))):
+    along_x = np.abs(push[:, 0]) > np.abs(push[:, 1])
+    halves = (p < np.nanmedian(p), p >= np.nanmedian(p), along_x, ~along_x)
+    for part in (scored, *(scored & h for h in halves)):
         sd = np.sqrt(np.sum(p[part] * (1 - p[part]))) / part.sum()
         assert abs(p[part].mean() - ok[part].mean()) < 3 * sd
     score = reliability(p, ok)
@@ -112,6 +147,8 @@ def test_a_study_learns_each_scanners_odds_from_its_own_earlier_pushes(tmp_path)
         "scanner": np.repeat([0, 1], n),
         "radius_nm": np.full(2 * n, 5.0),
         "push_distance_nm": distance,
+        "push_dx": np.ones(2 * n),
+        "push_dy": np.zeros(2 * n),
         "push_contact": contact,
         "push_first_along_nm": np.where(np.isfinite(error), along, np.nan),
         "push_first_across_nm": np.where(np.isfinite(error), across, np.nan),

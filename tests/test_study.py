@@ -459,21 +459,23 @@ def test_learning_rounds_by_hand():
 
 
 def test_a_rounds_push_odds_come_from_the_scanners_earlier_pushes():
-    # eight earlier first pushes of 200-400 nm, all made and touching: falling 12 nm short (beyond
-    # the 5 nm tolerance of R = 5 nm at 1 R) gives the next round's pushes odds near 0; landing
-    # within 0.3 nm gives odds near 1 (the contact rule's 9/10 times the landing's ~1); withheld
-    # earlier pushes do not count, and with fewer than five made the pushes get 1 (no odds: made)
+    # eight earlier first pushes of 200-400 nm along x, all made and touching: falling 12 nm short
+    # (beyond the 5 nm tolerance of R = 5 nm at 1 R) gives the next round's pushes odds near 0;
+    # landing within 0.3 nm gives odds near 1 (the contact rule's 9/10 times the landing's ~1);
+    # withheld earlier pushes do not count, and with fewer than six made the pushes get 1 (no odds:
+    # made)
     rng = np.random.default_rng(6)
-    distance = rng.uniform(200, 400, 8)
-    rows = {"distance": np.array([250.0, 350.0]), "radius": np.array([5.0, 5.0])}
+    push = rng.uniform(200, 400, 8)[:, None] * [1.0, 0.0]
+    rows = {"distance": np.array([250.0, 350.0]), "direction": np.array([[1.0, 0.0], [1.0, 0.0]])}
+    rows["radius"] = np.array([5.0, 5.0])
 
     def history(short, made=np.ones(8, bool)):
-        along, across = short + rng.normal(0, 0.3, 8), rng.normal(0, 0.3, 8)
-        return study.push_rows(distance, along, across, np.ones(8, bool), made)
+        miss = np.column_stack([short + rng.normal(0, 0.3, 8), rng.normal(0, 0.3, 8)])
+        return study.push_rows(push, miss, np.ones(8, bool), made)
 
     assert np.all(study._round_odds(history(-12.0), rows, 1.0) < 1e-6)
     np.testing.assert_allclose(study._round_odds(history(0.0), rows, 1.0), 0.9, atol=1e-3)
-    np.testing.assert_array_equal(study._round_odds(history(-12.0, np.arange(8) < 4), rows, 1.0), 1.0)
+    np.testing.assert_array_equal(study._round_odds(history(-12.0, np.arange(8) < 5), rows, 1.0), 1.0)
 
 
 def test_position_coverage_of_gaussian_errors_is_the_nominal_level():

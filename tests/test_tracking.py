@@ -141,7 +141,8 @@ def test_a_push_whose_predicted_success_is_low_is_withheld():
     for short in (0.0, -12.0):
         along = np.append(short + rng.normal(0, 0.3, 8), np.nan)
         across = np.append(rng.normal(0, 0.3, 8), np.nan)
-        miss = push_odds.online_misses(distance, along, across, np.arange(9) < 8)
+        push = distance[:, None] * [1.0, 0.0]
+        miss = push_odds.online_misses(push, np.stack([along, across], -1), np.arange(9) < 8)
         odds.append(float(push_odds.success_probability(miss, tolerance)[-1]))
     assert odds[0] > 0.99 > 0.01 > odds[1]
     spec = Push(corrections=0, min_odds=0.99)

@@ -57,6 +57,7 @@ from ..study.monte_carlo import (
     failure_modes,
     noise_ceiling_pct,
     predicted_push_success,
+    push_vectors,
     run_chunk,
     stage_summary,
     with_chunk_observed,
@@ -300,8 +301,8 @@ def run(
             earlier = _kept_observed(cfg, out, draws, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
-                distance = draws["push_distance_nm"][a:b]
-                earlier = with_chunk_observed(earlier, r, distance) if cfg.learning else NOTHING_OBSERVED
+                push = push_vectors(draws)[a:b]
+                earlier = with_chunk_observed(earlier, r, push) if cfg.learning else NOTHING_OBSERVED
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
@@ -315,7 +316,7 @@ def _kept_observed(cfg: StudyConfig, out: Output, draws: dict, s: int, a: int) -
     for t, c, b in _chunks(cfg):
         if t == s and b <= a:
             columns = np.load(out.path / chunk_file(c, b))
-            seen = with_chunk_observed(seen, columns, draws["push_distance_nm"][c:b])
+            seen = with_chunk_observed(seen, columns, push_vectors(draws)[c:b])
     return seen
 
 

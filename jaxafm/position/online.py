@@ -7,7 +7,8 @@ the pushes checked before (:func:`learn_push`).
 
 For observations ``Y`` (n, m) on regressors ``X`` (n, p), least squares gives ``B`` (p, m) and the
 residuals' covariance ``S = R^T R / (n - p)``. A new case ``x`` (p,) is predicted at ``x B``
-with covariance ``S (1 + x (X^T X)^-1 x^T)`` and ``n - p`` degrees of freedom: per output, the
+with covariance ``S (1 + x (X^T X)^-1 x^T)`` and ``n - p`` degrees of freedom (with regressors of
+rank ``r < p``, the pseudo-inverse and ``n - r``, for a case within their span): per output, the
 Student-t predictive of a linear regression under a flat prior (its diagonal's square root the
 t's scale).
 
@@ -37,25 +38,33 @@ class Predictive(NamedTuple):
 def online_regression(X: np.ndarray, Y: np.ndarray, observed: np.ndarray, min_extra: int = 3) -> Predictive:
     """Each row of ``X`` (k, p) predicted from the rows before it whose ``Y`` (k, m) was
     ``observed`` (k,) bool, by the module's regression; NaN for a row with fewer than
-    ``p + min_extra`` observed rows before it."""
+    ``p + min_extra`` observed rows before it or with a part outside their regressors' span,
+    which they do not determine (a direction none of them took). Within the span the fit is the
+    minimum-norm one (the pseudo-inverse of ``X^T X``), whose prediction there is unique, with
+    ``n - r`` degrees of freedom (``r`` the rank of the earlier rows' regressors)."""
     X = np.asarray(X, float)
     k, p = X.shape
     w = np.asarray(observed, bool).astype(float)
     Y = np.where(w[:, None] > 0, np.asarray(Y, float).reshape(k, -1), 0.0)
     before = lambda v: np.cumsum(v, axis=0) - v  # sums over the rows before each one
     n = before(w)
-    ok = n >= p + min_extra
-    XtX = np.where(ok[:, None, None], before(w[:, None, None] * X[:, :, None] * X[:, None, :]), np.eye(p))
+    XtX = before(w[:, None, None] * X[:, :, None] * X[:, None, :])
     XtY = before(w[:, None, None] * X[:, :, None] * Y[:, None, :])
     YtY = before(w[:, None, None] * Y[:, :, None] * Y[:, None, :])
-    inv = np.linalg.inv(XtX)
+    inv = np.linalg.pinv(XtX, hermitian=True)
+    rank = np.linalg.matrix_rank(XtX, hermitian=True)
+    outside = np.einsum("ki,kij->kj", X, np.eye(p) - inv @ XtX)
+    spanned = np.linalg.norm(outside, axis=-1) <= 1e-9 * np.maximum(np.linalg.norm(X, axis=-1), 1e-300)
+    ok = (n >= p + min_extra) & spanned
     B = inv @ XtY
     rss = YtY - np.swapaxes(B, 1, 2) @ XtY
-    nu = np.maximum(n - p, 1)
+    nu = np.maximum(n - rank, 1)
     leverage = np.einsum("ki,kij,kj->k", X, inv, X)
     cov = rss / nu[:, None, None] * (1 + leverage)[:, None, None]
     nan = np.where(ok, 1.0, np.nan)
-    return Predictive(np.einsum("ki,kim->km", X, B) * nan[:, None], cov * nan[:, None, None], (n - p) * nan)
+    return Predictive(
+        np.einsum("ki,kim->km", X, B) * nan[:, None], cov * nan[:, None, None], (n - rank) * nan
+    )
 
 
 class OffsetField(NamedTuple):

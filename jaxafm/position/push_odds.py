@@ -1,28 +1,33 @@
 """A push's odds of success, predicted before it is made from the pushes already checked on the
 same scanner (the pushing task of paper section IV).
 
-Every push's miss ``m`` (nm), the particle's final centre minus its goal, is measured along the
-push, ``a = m . e``, and across it, ``c = m . n`` (``e`` the push's unit direction, ``n`` it
-turned by +90 degrees), against a reference outside the instrument's frame (in a study: the
-truth). A check in the instrument's own frame cannot see that frame's scale error over the
-push: on the study's test scanner it measured misses of 0.3-3.8 nm where the true ones were
-4.9-13.6 nm. Each component is modelled as linear
-in the push's distance ``L`` plus scatter,
+Every push's miss ``m`` (2,) nm, the particle's final centre minus its goal, is measured against
+a reference outside the instrument's frame (in a study: the truth). A check in the instrument's
+own frame cannot see that frame's scale error over the push: on the study's test scanner it
+measured misses of 0.3-3.8 nm where the true ones were 4.9-13.6 nm. Over a push of vector
+``d = L e`` (nm, ``e`` its unit direction) the frame errs by an affine map, the drive's scale
+error along each axis and the rotation and coupling of the axes over the push (``M d``, ``M``
+2 x 2), plus an offset ``b`` that the centring and the contact add, plus scatter:
 
-    a = alpha_0 + alpha_1 L + eps_a,        c = gamma_0 + gamma_1 L + eps_c,
+    m = b + M d + eps,        eps ~ N(0, Sigma).
 
-``alpha_1`` the drive's scale error over the push, ``gamma_1`` the push line's rotation, the
-intercepts and scatter what the centring and the contact add. After ``n`` checked pushes each
-component's least-squares fit gives the next push's miss the Student-t predictive of a linear
-regression under a flat prior: mean ``x beta``, scale ``s sqrt(1 + x (X^T X)^-1 x^T)``, ``n - 2``
-degrees of freedom (``s^2`` the residuals' RSS / (n - 2)). The push succeeds when its miss lies
-within the tolerance ``T``:
+The miss along a push therefore depends on its direction wherever the two axes' scale errors
+differ, which no model in the push's distance alone can follow. After ``n`` checked pushes the
+multivariate least-squares fit on ``x = (1, d / 100 nm)`` gives the next push's miss the
+bivariate Student-t predictive of a linear regression under a flat prior
+(:func:`~jaxafm.position.online.online_regression`): mean ``x B``, scale matrix
+``S (1 + x (X^T X)^-1 x^T)``, ``nu = n - 3`` degrees of freedom. The push succeeds when its miss
+lies within the tolerance ``T``:
 
-    P = int_{-T}^{T} p_c(c) [F_a(sqrt(T^2 - c^2)) - F_a(-sqrt(T^2 - c^2))] dc,
+    P = int_{-T}^{T} p_1(m_1) [F_2|1(h) - F_2|1(-h)] dm_1,        h = sqrt(T^2 - m_1^2),
 
-``p_c`` the across component's density and ``F_a`` the along one's distribution function, by
-Gauss-Legendre quadrature (:func:`success_probability`). The two components are taken as
-independent.
+``p_1`` the first component's marginal, a Student-t of ``nu`` degrees of freedom, and ``F_2|1``
+the second's distribution given the first, a Student-t of ``nu + 1`` degrees of freedom with
+mean ``mu_2 + S_12 / S_11 (m_1 - mu_1)`` and squared scale
+``(nu + q) / (nu + 1) (S_22 - S_12^2 / S_11)``, ``q = (m_1 - mu_1)^2 / S_11`` (Ding, "On the
+conditional distribution of the multivariate t distribution", The American Statistician 70,
+2016). The integral runs by Gauss-Legendre quadrature in ``u = F_1(m_1)``, which puts its nodes
+where the miss's density is however narrow it is against ``T`` (:func:`success_probability`).
 
 A push whose tip misses the particle leaves it where it was, a miss of the whole distance that
 no scatter of the pushes that touched it describes: the regression learns from the pushes that
@@ -33,43 +38,40 @@ those of landing within the tolerance.
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 from scipy import stats
 
-from .online import online_regression
+from .online import Predictive, online_regression
 
-#: pushes checked on a scanner before its next push is given odds (the predictive needs n - 2 >= 3)
-MIN_PUSHES = 5
-#: Gauss-Legendre nodes over the across component of :func:`success_probability`
-NODES = 64
-
-
-class Miss(NamedTuple):
-    """A push's predicted miss (nm): along the push (``along``, ``along_scale``) and across it
-    (``across``, ``across_scale``), each a Student-t of ``dof`` degrees of freedom with that
-    mean and scale. Fields may be arrays (one per push)."""
-
-    along: np.ndarray
-    along_scale: np.ndarray
-    across: np.ndarray
-    across_scale: np.ndarray
-    dof: np.ndarray
+#: pushes checked on a scanner before its next push is given odds (the predictive's three
+#: coefficients per component and ``nu = n - 3 >= 3``, the least for which its covariance is finite
+#: and its tails no heavier than a few pushes warrant)
+MIN_PUSHES = 6
+#: Gauss-Legendre nodes over the first component of :func:`success_probability`
+NODES = 128
+#: pushes' vectors are taken per this many nm in the regression: ``X^T X`` of order one
+PUSH_UNIT_NM = 100.0
 
 
-def success_probability(miss: Miss, tolerance) -> np.ndarray:
-    """The probability that a push whose miss is ``miss`` ends within ``tolerance`` (nm) of its
-    goal (module docstring); one value per push."""
+def success_probability(miss: Predictive, tolerance) -> np.ndarray:
+    """The probability that a push whose predicted miss is ``miss`` (``mean`` (k, 2) nm, ``cov``
+    (k, 2, 2) nm^2: the bivariate Student-t's scale matrix, ``dof`` (k,)) ends within
+    ``tolerance`` (k,) nm of its goal (module docstring); one value per push."""
     x, w = np.polynomial.legendre.leggauss(NODES)
     T = np.asarray(tolerance, float)[..., None]
-    c = T * x  # across, from -T to T
-    half = np.sqrt(np.maximum(T**2 - c**2, 0.0))
-    dof, a, sa = (np.asarray(v, float)[..., None] for v in (miss.dof, miss.along, miss.along_scale))
-    ac, sc = (np.asarray(v, float)[..., None] for v in (miss.across, miss.across_scale))
-    inside = stats.t.cdf((half - a) / sa, dof) - stats.t.cdf((-half - a) / sa, dof)
-    density = stats.t.pdf((c - ac) / sc, dof) / sc
-    return np.clip(np.sum(w * T * density * inside, axis=-1), 0.0, 1.0)
+    mean, S = np.asarray(miss.mean, float), np.asarray(miss.cov, float)
+    nu = np.asarray(miss.dof, float)[..., None]
+    mu1, mu2 = mean[..., 0:1], mean[..., 1:2]
+    s11, s12, s22 = S[..., 0, 0, None], S[..., 0, 1, None], S[..., 1, 1, None]
+    s1 = np.sqrt(s11)
+    lo, hi = stats.t.cdf((-T - mu1) / s1, nu), stats.t.cdf((T - mu1) / s1, nu)
+    m1 = np.clip(mu1 + s1 * stats.t.ppf(lo + (hi - lo) * (x + 1) / 2, nu), -T, T)
+    q = (m1 - mu1) ** 2 / s11
+    centre = mu2 + s12 / s11 * (m1 - mu1)
+    scale = np.sqrt((nu + q) / (nu + 1) * (s22 - s12**2 / s11))
+    h = np.sqrt(np.maximum(T**2 - m1**2, 0.0))
+    inside = stats.t.cdf((h - centre) / scale, nu + 1) - stats.t.cdf((-h - centre) / scale, nu + 1)
+    return np.clip(np.sum(w * (hi - lo) / 2 * inside, axis=-1), 0.0, 1.0)
 
 
 def components(miss_nm: np.ndarray, direction: np.ndarray) -> tuple:
@@ -79,16 +81,22 @@ def components(miss_nm: np.ndarray, direction: np.ndarray) -> tuple:
     return along, across
 
 
-def online_misses(distance: np.ndarray, along: np.ndarray, across: np.ndarray, observed: np.ndarray) -> Miss:
-    """Each push's predicted miss from the pushes before it (in the given order) whose misses were
-    ``observed``, as the module docstring's regression gives it
-    (:func:`~jaxafm.position.online.online_regression`); NaN for a push with fewer than
-    :data:`MIN_PUSHES` observed before it. ``distance``, ``along``, ``across`` (k,) nm."""
-    L = np.asarray(distance, float) / 100.0  # per 100 nm: X^T X of order one
-    X = np.stack([np.ones_like(L), L], -1)
-    pred = online_regression(X, np.stack([along, across], -1), observed, MIN_PUSHES - X.shape[1])
-    sd = np.sqrt(np.diagonal(pred.cov, axis1=1, axis2=2))
-    return Miss(pred.mean[:, 0], sd[:, 0], pred.mean[:, 1], sd[:, 1], pred.dof)
+def from_components(along: np.ndarray, across: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """A push's miss (k, 2) nm from its components ``along`` and ``across`` (k,) nm its unit
+    ``direction`` (k, 2): the inverse of :func:`components`."""
+    e = np.asarray(direction, float)
+    normal = np.stack([-e[..., 1], e[..., 0]], -1)
+    return np.asarray(along, float)[..., None] * e + np.asarray(across, float)[..., None] * normal
+
+
+def online_misses(push_nm: np.ndarray, miss_nm: np.ndarray, observed: np.ndarray) -> Predictive:
+    """Each push's predicted miss (mean (k, 2) nm, scale matrix (k, 2, 2) nm^2, degrees of freedom
+    (k,)) from the pushes before it (in the given order) whose misses were ``observed`` (k,)
+    bool, by the module docstring's regression on their vectors ``push_nm`` (k, 2) nm and misses
+    ``miss_nm`` (k, 2) nm; NaN for a push with fewer than :data:`MIN_PUSHES` observed before it."""
+    d = np.asarray(push_nm, float) / PUSH_UNIT_NM
+    X = np.column_stack([np.ones(len(d)), d])
+    return online_regression(X, miss_nm, observed, MIN_PUSHES - X.shape[1])
 
 
 def contact_odds(contact: np.ndarray, pushed: np.ndarray) -> np.ndarray:
@@ -100,13 +108,14 @@ def contact_odds(contact: np.ndarray, pushed: np.ndarray) -> np.ndarray:
     return (np.cumsum(hit) - hit + 1.0) / (np.cumsum(made) - made + 2.0)
 
 
-def odds_from_earlier(distance, along, across, contact, made, tolerance) -> np.ndarray:
+def odds_from_earlier(push_nm, miss_nm, contact, made, tolerance) -> np.ndarray:
     """Each push's predicted success, the chance of touching (:func:`contact_odds`) times that of
     ending within ``tolerance`` (k,) nm of its goal (:func:`success_probability` of
     :func:`online_misses`), from the pushes before it (in the given order) that were ``made``
-    (k,) bool; their ``distance``, miss ``along`` and ``across`` (k,) nm and ``contact`` (k,) bool.
-    NaN for a push with fewer than :data:`MIN_PUSHES` touching pushes before it."""
-    made = np.asarray(made, bool) & np.isfinite(along) & np.isfinite(across)
+    (k,) bool; their vectors ``push_nm`` (k, 2) nm, misses ``miss_nm`` (k, 2) nm (NaN where
+    none was measured) and ``contact`` (k,) bool. NaN for a push with fewer than
+    :data:`MIN_PUSHES` touching pushes before it."""
+    made = np.asarray(made, bool) & np.isfinite(miss_nm).all(-1)
     touched = made & np.asarray(contact, bool)
-    miss = online_misses(distance, along, across, touched)
+    miss = online_misses(push_nm, miss_nm, touched)
     return contact_odds(touched, made) * success_probability(miss, tolerance)

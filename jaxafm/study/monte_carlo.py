@@ -267,9 +267,9 @@ def learning_trials(
         r["predicted_sd"] = tracker.factor * np.hypot(field.sd(r["target"]), learn.noise_nm)
         pushes = None
         if "push_first" in r:
-            along, across = push_odds.components(first_push_miss(r), rows["direction"])
             made = ~r["push_withheld"] & np.isfinite(r["error_nm"])  # unseen: no target, no push
-            pushes = push_rows(rows["distance"], along, across, r["push_contact"], made)
+            push = rows["distance"][:, None] * rows["direction"]
+            pushes = push_rows(push, first_push_miss(r), r["push_contact"], made)
         seen.append(
             observed(
                 r["target"],
@@ -290,15 +290,15 @@ def _round_odds(pushes: np.ndarray, rows: dict, tolerance_radii: float) -> np.nd
     """Each of a round's pushes' predicted success from the scanner's earlier first pushes
     ``pushes`` (:class:`Observed`), :func:`~jaxafm.position.push_odds.odds_from_earlier`; 1 (no
     odds: the push is made) while fewer than :data:`~jaxafm.position.push_odds.MIN_PUSHES`
-    touching pushes came before."""
+    touching pushes came before, or for a push in a direction they never spanned."""
     k = len(rows["distance"])
-    blank = np.full(k, np.nan)
-    distance, along, across, contact, made = np.concatenate(
-        [pushes, np.stack([rows["distance"]] + [blank] * 4, -1)]
-    ).T
+    round_pushes = push_rows(rows["distance"][:, None] * rows["direction"], np.full((k, 2), np.nan), 0, 0)
+    every = np.concatenate([pushes, round_pushes])
     tolerance = tolerance_radii * np.concatenate([np.ones(len(pushes)), rows["radius"]])
-    odds = push_odds.odds_from_earlier(distance, along, across, contact == 1, made == 1, tolerance)[-k:]
-    return np.where(np.isfinite(odds), odds, 1.0)
+    odds = push_odds.odds_from_earlier(
+        every[:, :2], every[:, 2:4], every[:, 4] == 1, every[:, 5] == 1, tolerance
+    )
+    return np.where(np.isfinite(odds[-k:]), odds[-k:], 1.0)
 
 
 def _columns(r: TrialResults) -> dict:
@@ -353,10 +353,10 @@ class Observed(NamedTuple):
     """What a scanner's trials observed, for :func:`learning_trials`: step C's verified finds,
     their ``targets`` and ``offsets`` (``centre found - target``), the checked first pushes, their
     ``commands`` and the particle's moves the checks saw (``moved``), each (k, 2) nm; and every
-    first push tried, ``pushes`` (k, 5): its distance (nm), its miss along and across it (nm,
-    against the truth, as a reference outside the frame measures it; NaN where none was made),
-    whether it touched its particle and whether it was made (1 or 0: not withheld, and aimed at a
-    particle the survey saw)."""
+    first push tried, ``pushes`` (k, 6): its vector (2, nm), its miss (2, nm, against the truth,
+    as a reference outside the frame measures it; NaN where none was made), whether it touched
+    its particle and whether it was made (1 or 0: not withheld, and aimed at a particle the
+    survey saw)."""
 
     targets: np.ndarray
     offsets: np.ndarray
@@ -366,7 +366,7 @@ class Observed(NamedTuple):
 
 
 #: no observation: the ``earlier`` of a scanner's first trials
-NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4, np.zeros((0, 5)))
+NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4, np.zeros((0, 6)))
 
 #: a checked push teaches only when its particle moved at least this share of the command along
 #: it: one whose tip missed the particle left it where it was, which is no shortfall of the drive
@@ -377,20 +377,29 @@ def observed(target, centre, found, command=None, moved=None, pushes=None) -> Ob
     """What one round's trials observed: step C's verified finds (``found``; ``target``,
     ``centre`` found); with ``command`` and ``moved``, the first pushes whose check found the
     particle moved by at least :data:`MOVED_AT_LEAST` of the command along it; and the first
-    pushes tried, ``pushes`` (k, 5) (:class:`Observed`; ``None``: none)."""
+    pushes tried, ``pushes`` (k, 6) (:class:`Observed`; ``None``: none)."""
     found = np.asarray(found, bool)
     if command is None:
         command = moved = np.zeros((0, 2))
     along = np.sum(np.nan_to_num(moved) * command, -1) / np.maximum(np.sum(command**2, -1), 1e-12)
     pushed = np.isfinite(moved).all(-1) & (along >= MOVED_AT_LEAST)
-    pushes = np.zeros((0, 5)) if pushes is None else pushes
+    pushes = np.zeros((0, 6)) if pushes is None else pushes
     return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed], pushes)
 
 
-def push_rows(distance, along, across, contact, made) -> np.ndarray:
-    """The first pushes tried, as :class:`Observed` keeps them (k, 5); ``made`` (k,) bool: not
-    withheld, and aimed at a particle the survey saw."""
-    return np.stack([distance, along, across, contact, made], -1).astype(float)
+def push_rows(push, miss, contact, made) -> np.ndarray:
+    """The first pushes tried, as :class:`Observed` keeps them (k, 6): their vectors ``push``
+    and misses ``miss`` (k, 2) nm, ``contact`` and ``made`` (k,) bool (not withheld, and aimed at
+    a particle the survey saw; either may be one value for all)."""
+    k = len(push)
+    flags = [np.broadcast_to(np.asarray(v, float), (k,)) for v in (contact, made)]
+    return np.column_stack([push, miss, *flags]).astype(float)
+
+
+def push_vectors(draws: dict) -> np.ndarray:
+    """The trials' pushes (k, 2) nm, their distance along their unit direction, from a study's
+    draws (``push_distance_nm``, ``push_dx``, ``push_dy``)."""
+    return draws["push_distance_nm"][:, None] * np.stack([draws["push_dx"], draws["push_dy"]], -1)
 
 
 def first_push_miss(r: dict) -> np.ndarray:
@@ -399,28 +408,30 @@ def first_push_miss(r: dict) -> np.ndarray:
     return np.where(r["push_withheld"][:, None], np.nan, r["push_first"] - r["push_goal"])
 
 
-def with_chunk_observed(earlier: Observed, columns, distance=None) -> Observed:
+def with_chunk_observed(earlier: Observed, columns, push=None) -> Observed:
     """``earlier`` observations and, after them, those of a chunk's written ``columns``
     (:func:`run_chunk`'s ``AB_target``, ``ABC_centre``, ``ABC_found``, and ``push_command``,
     ``push_seen_moved``, ``push_first_along_nm``, ``push_first_across_nm``, ``push_contact``,
-    ``push_withheld`` where the push ran, its trials' push ``distance`` (k,) nm; :func:`observed`)."""
+    ``push_withheld`` where the push ran, its trials' ``push`` vectors (k, 2) nm,
+    :func:`push_vectors`; :func:`observed`)."""
     xy = lambda name: np.stack([columns[f"{name}_x_nm"], columns[f"{name}_y_nm"]], -1)
     pushed = "push_command_x_nm" in columns
+    pushes = None
+    if pushed:
+        direction = push / np.linalg.norm(push, axis=-1, keepdims=True)
+        miss = push_odds.from_components(
+            columns["push_first_along_nm"], columns["push_first_across_nm"], direction
+        )
+        pushes = push_rows(
+            push, miss, columns["push_contact"], ~columns["push_withheld"] & columns["AB_seen"]
+        )
     new = observed(
         xy("AB_target"),
         xy("ABC_centre"),
         columns["ABC_found"],
         xy("push_command") if pushed else None,
         xy("push_seen_moved") if pushed else None,
-        push_rows(
-            distance,
-            columns["push_first_along_nm"],
-            columns["push_first_across_nm"],
-            columns["push_contact"],
-            ~columns["push_withheld"] & columns["AB_seen"],
-        )
-        if pushed
-        else None,
+        pushes,
     )
     return Observed(*(np.concatenate([e, n]) for e, n in zip(earlier, new)))
 
@@ -554,13 +565,14 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
     for a trial that did not push or had fewer than
     :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes before it."""
     p = np.full(len(r["trial"]), np.nan)
+    push = push_vectors(r)
+    direction = push / np.linalg.norm(push, axis=-1, keepdims=True)
+    miss = push_odds.from_components(r["push_first_along_nm"], r["push_first_across_nm"], direction)
     for s in np.unique(r["scanner"]):
         idx = np.flatnonzero(r["scanner"] == s)
-        along, across = r["push_first_along_nm"][idx], r["push_first_across_nm"][idx]
         p[idx] = push_odds.odds_from_earlier(
-            r["push_distance_nm"][idx],
-            along,
-            across,
+            push[idx],
+            miss[idx],
             r["push_contact"][idx],
             np.ones(len(idx), bool),
             tolerance_radii * r["radius_nm"][idx],
