@@ -373,6 +373,7 @@ STEP_A_RERUNS = {
         STEP_A_INDEPENDENT.path, "python experiments/step_a_independent.py --pixels 64 --seeds " + seeds
     ): seeds
     for seeds in (
+        "102 108 111 117",
         "100 101 103 104 106 107 109 110 112 113 115 116 118 119 901",
         "114 105 900 901",
         "102 103 107 109 110 112 113 115 116 118 119",
@@ -1531,6 +1532,7 @@ STEP_A_PREISACH_RERUNS = {
         f"{STEP_A_PREISACH.command.split(' --cases')[0]} --pixels 64 --model preisach --seeds {seeds}",
     ): seeds
     for seeds in (
+        "900",
         "104 106 109 110 119 114",
         "111 119 106 104 101 109 103 118 115 107 112 117 102 105 108",
         "100 110 113 116 901",
