@@ -31,7 +31,7 @@ import numpy as np
 
 from jaxafm.position import push_odds
 from jaxafm.position.online import Predictive, online_regression
-from jaxafm.study.monte_carlo import predicted_push_success
+from jaxafm.study.monte_carlo import predicted_push_success, push_vectors
 from jaxafm.study.reliability import reliability
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,15 +67,15 @@ def residual_sd(r: dict) -> dict:
     """Each scanner's rms residual (nm, per component) of its touching first pushes' misses about
     each model fitted to all of them by least squares: the scatter each model leaves."""
     out = {"distance": [], "affine": []}
-    e = np.stack([r["push_dx"], r["push_dy"]], -1)
+    push = push_vectors(r)
     along, across = r["push_first_along_nm"], r["push_first_across_nm"]
-    miss = push_odds.from_components(along, across, e)
+    miss = push_odds.from_components(along, across, push)
     for s in np.unique(r["scanner"]):
         i = np.flatnonzero((r["scanner"] == s) & r["push_contact"].astype(bool) & np.isfinite(along))
         L = r["push_distance_nm"][i]
         fits = {
             "distance": (np.column_stack([np.ones_like(L), L]), np.column_stack([along[i], across[i]])),
-            "affine": (np.column_stack([np.ones_like(L), L[:, None] * e[i]]), miss[i]),
+            "affine": (np.column_stack([np.ones_like(L), push[i]]), miss[i]),
         }
         for name, (X, Y) in fits.items():
             residual = Y - X @ np.linalg.lstsq(X, Y, rcond=None)[0]

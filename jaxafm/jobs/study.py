@@ -283,6 +283,7 @@ def run(
         + (f"; resuming: {done} done" if done else "")
     )
     settings = trial_settings(cfg)
+    push = push_vectors(draws)
     start = time.perf_counter()
     with tqdm(
         total=cfg.trials, initial=done, unit="trial", desc="study", smoothing=0.1, disable=not writer
@@ -301,8 +302,7 @@ def run(
             earlier = _kept_observed(cfg, out, draws, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
-                push = push_vectors(draws)[a:b]
-                earlier = with_chunk_observed(earlier, r, push) if cfg.learning else NOTHING_OBSERVED
+                earlier = with_chunk_observed(earlier, r, push[a:b]) if cfg.learning else NOTHING_OBSERVED
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
@@ -313,10 +313,11 @@ def _kept_observed(cfg: StudyConfig, out: Output, draws: dict, s: int, a: int) -
     pushes), from the chunk files that a resumed study kept (all written before the run began,
     so every process reads them alike) and the trials' ``draws``."""
     seen = NOTHING_OBSERVED
+    push = push_vectors(draws)
     for t, c, b in _chunks(cfg):
         if t == s and b <= a:
             columns = np.load(out.path / chunk_file(c, b))
-            seen = with_chunk_observed(seen, columns, push_vectors(draws)[c:b])
+            seen = with_chunk_observed(seen, columns, push[c:b])
     return seen
 
 

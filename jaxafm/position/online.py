@@ -52,8 +52,9 @@ def online_regression(X: np.ndarray, Y: np.ndarray, observed: np.ndarray, min_ex
     XtY = before(w[:, None, None] * X[:, :, None] * Y[:, None, :])
     YtY = before(w[:, None, None] * Y[:, :, None] * Y[:, None, :])
     inv = np.linalg.pinv(XtX, hermitian=True)
-    rank = np.linalg.matrix_rank(XtX, hermitian=True)
-    outside = np.einsum("ki,kij->kj", X, np.eye(p) - inv @ XtX)
+    projector = inv @ XtX  # onto the span of the earlier rows' regressors
+    rank = np.rint(np.trace(projector, axis1=1, axis2=2))
+    outside = np.einsum("ki,kij->kj", X, np.eye(p) - projector)
     spanned = np.linalg.norm(outside, axis=-1) <= 1e-9 * np.maximum(np.linalg.norm(X, axis=-1), 1e-300)
     ok = (n >= p + min_extra) & spanned
     B = inv @ XtY

@@ -81,10 +81,12 @@ def components(miss_nm: np.ndarray, direction: np.ndarray) -> tuple:
     return along, across
 
 
-def from_components(along: np.ndarray, across: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """A push's miss (k, 2) nm from its components ``along`` and ``across`` (k,) nm its unit
-    ``direction`` (k, 2): the inverse of :func:`components`."""
-    e = np.asarray(direction, float)
+def from_components(along: np.ndarray, across: np.ndarray, push: np.ndarray) -> np.ndarray:
+    """A push's miss (k, 2) nm from its components ``along`` and ``across`` (k,) nm the push,
+    whose direction ``push`` (k, 2) gives (its vector or its unit direction): the inverse of
+    :func:`components`."""
+    e = np.asarray(push, float)
+    e = e / np.linalg.norm(e, axis=-1, keepdims=True)
     normal = np.stack([-e[..., 1], e[..., 0]], -1)
     return np.asarray(along, float)[..., None] * e + np.asarray(across, float)[..., None] * normal
 

@@ -418,9 +418,8 @@ def with_chunk_observed(earlier: Observed, columns, push=None) -> Observed:
     pushed = "push_command_x_nm" in columns
     pushes = None
     if pushed:
-        direction = push / np.linalg.norm(push, axis=-1, keepdims=True)
         miss = push_odds.from_components(
-            columns["push_first_along_nm"], columns["push_first_across_nm"], direction
+            columns["push_first_along_nm"], columns["push_first_across_nm"], push
         )
         pushes = push_rows(
             push, miss, columns["push_contact"], ~columns["push_withheld"] & columns["AB_seen"]
@@ -566,8 +565,7 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
     :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes before it."""
     p = np.full(len(r["trial"]), np.nan)
     push = push_vectors(r)
-    direction = push / np.linalg.norm(push, axis=-1, keepdims=True)
-    miss = push_odds.from_components(r["push_first_along_nm"], r["push_first_across_nm"], direction)
+    miss = push_odds.from_components(r["push_first_along_nm"], r["push_first_across_nm"], push)
     for s in np.unique(r["scanner"]):
         idx = np.flatnonzero(r["scanner"] == s)
         p[idx] = push_odds.odds_from_earlier(
