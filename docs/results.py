@@ -1055,12 +1055,12 @@ GOALS += [
     )
     for label, run in NANOSURF
 ]
-GOALS.append(
+GOALS += [
     Goal(
-        "push_odds",
-        "study: predicted first-push success within 5 points of the observed in every tenth with ≥ 100 trials, "
-        "Brier score better than the overall rate's",
-        STUDY,
+        name,
+        f"{label}: predicted first-push success within 5 points of the observed in every tenth with ≥ 100 "
+        "trials, Brier score better than the overall rate's",
+        run,
         "docs/uncertainty.md#before-a-push-its-odds",
         lambda m: (
             f"largest gap {q(_largest_gap(m['push_first_reliability']), 'points')} over "
@@ -1072,7 +1072,11 @@ GOALS.append(
             and m["push_first_brier"] < m["push_first_brier_base_rate"]
         ),
     )
-)
+    for name, label, run in (
+        ("push_odds", "study", STUDY),
+        ("push_odds_learning", "study with pushes that learn (study_push_learning.yaml)", STUDY_PUSHES),
+    )
+]
 GOALS.append(
     Goal(
         "step_a_independent_coverage",

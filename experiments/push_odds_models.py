@@ -6,7 +6,8 @@ distance alone.
   distance ``L`` with its own scatter, the two taken as independent (Student-t predictives of
   ``n - 2`` degrees of freedom); it cannot follow a miss that depends on the push's direction.
 - **affine** (the library's): the miss vector ``b + M d + eps`` in the push's vector ``d``, a
-  bivariate Student-t predictive of ``n - 3`` degrees of freedom.
+  bivariate Student-t predictive of ``n - 3`` degrees of freedom; where pushes learn, in what
+  each push commanded, ``(c - d) + b + M c + eps``.
 
 Both learn from the same pushes in the same order (the earlier trials' first pushes on each
 scanner that touched their particles, their true misses), both take the contact odds by
@@ -68,14 +69,15 @@ def residual_sd(r: dict) -> dict:
     each model fitted to all of them by least squares: the scatter each model leaves."""
     out = {"distance": [], "affine": []}
     push = push_vectors(r)
+    command = np.stack([r["push_command_x_nm"], r["push_command_y_nm"]], -1)
     along, across = r["push_first_along_nm"], r["push_first_across_nm"]
-    miss = push_odds.from_components(along, across, push)
+    miss = push_odds.from_components(along, across, push) - (command - push)
     for s in np.unique(r["scanner"]):
         i = np.flatnonzero((r["scanner"] == s) & r["push_contact"].astype(bool) & np.isfinite(along))
         L = r["push_distance_nm"][i]
         fits = {
             "distance": (np.column_stack([np.ones_like(L), L]), np.column_stack([along[i], across[i]])),
-            "affine": (np.column_stack([np.ones_like(L), push[i]]), miss[i]),
+            "affine": (np.column_stack([np.ones_like(L), command[i]]), miss[i]),
         }
         for name, (X, Y) in fits.items():
             residual = Y - X @ np.linalg.lstsq(X, Y, rcond=None)[0]

@@ -478,6 +478,24 @@ def test_a_rounds_push_odds_come_from_the_scanners_earlier_pushes():
     np.testing.assert_array_equal(study._round_odds(history(-12.0, np.arange(8) < 5), rows, 1.0), 1.0)
 
 
+def test_a_rounds_push_odds_follow_the_push_field_it_commands_through():
+    # a scanner whose pushes move their particle by 0.95 of the command along x: eight earlier
+    # pushes of 200-400 nm commanded as wanted fell 10-20 nm short; the round's pushes, commanded
+    # through the field that learnt the 5 % (c = d / 0.95), land on their goals: odds near 0.9
+    # (the contact rule's 9/10), near 0 without the field
+    rng = np.random.default_rng(7)
+    push = rng.uniform(200, 400, 8)[:, None] * [1.0, 0.0]
+    miss = -0.05 * push + rng.normal(0, 0.3, (8, 2))
+    earlier = study.push_rows(push, miss, np.ones(8, bool), np.ones(8, bool))
+    rows = {"distance": np.array([250.0, 350.0]), "direction": np.array([[1.0, 0.0], [1.0, 0.0]])}
+    rows["radius"] = np.array([5.0, 5.0])
+    shortfall = jnp.zeros((4, 2)).at[0, 0].set(-5.0)  # 5 nm short per 100 nm commanded along x
+    field = study.online.PushField(shortfall)
+    np.testing.assert_allclose(field.command(jnp.array([250.0, 0.0])), [250.0 / 0.95, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(study._round_odds(earlier, rows, 1.0, field), 0.9, atol=2e-3)
+    assert np.all(study._round_odds(earlier, rows, 1.0) < 1e-6)
+
+
 def test_position_coverage_of_gaussian_errors_is_the_nominal_level():
     # A+B miss vectors drawn from isotropic 2-D Gaussians of known per-axis sd (1-30 nm): the
     # share within each level's Rayleigh radius is that level, to the binomial error of 20,000

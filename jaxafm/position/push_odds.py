@@ -29,6 +29,18 @@ conditional distribution of the multivariate t distribution", The American Stati
 2016). The integral runs by Gauss-Legendre quadrature in ``u = F_1(m_1)``, which puts its nodes
 where the miss's density is however narrow it is against ``T`` (:func:`success_probability`).
 
+Where pushes are commanded through what the earlier ones taught (a learnt push field,
+:class:`~jaxafm.position.online.PushField`), a push wanted as ``d`` is commanded as another
+vector ``c``, and the frame errs by the affine map of what was commanded, while the miss is
+still taken against the goal ``d`` asked for:
+
+    m = (c - d) + b + M c + eps.
+
+The regression then runs on ``x = (1, c / 100 nm)`` with ``m - (c - d)`` and adds ``c - d`` back
+to its prediction; with ``c = d`` it is the model above. (Fitted on ``d`` instead, the
+``c - d`` that each round's learnt field changes lands in the scatter and the misses of the
+pushes before no longer describe the next one.)
+
 A push whose tip misses the particle leaves it where it was, a miss of the whole distance that
 no scatter of the pushes that touched it describes: the regression learns from the pushes that
 made contact, and the odds are those of contact, by Laplace's rule of succession over the
@@ -91,14 +103,20 @@ def from_components(along: np.ndarray, across: np.ndarray, push: np.ndarray) -> 
     return np.asarray(along, float)[..., None] * e + np.asarray(across, float)[..., None] * normal
 
 
-def online_misses(push_nm: np.ndarray, miss_nm: np.ndarray, observed: np.ndarray) -> Predictive:
+def online_misses(
+    push_nm: np.ndarray, miss_nm: np.ndarray, observed: np.ndarray, command_nm=None
+) -> Predictive:
     """Each push's predicted miss (mean (k, 2) nm, scale matrix (k, 2, 2) nm^2, degrees of freedom
     (k,)) from the pushes before it (in the given order) whose misses were ``observed`` (k,)
-    bool, by the module docstring's regression on their vectors ``push_nm`` (k, 2) nm and misses
-    ``miss_nm`` (k, 2) nm; NaN for a push with fewer than :data:`MIN_PUSHES` observed before it."""
-    d = np.asarray(push_nm, float) / PUSH_UNIT_NM
-    X = np.column_stack([np.ones(len(d)), d])
-    return online_regression(X, miss_nm, observed, MIN_PUSHES - X.shape[1])
+    bool, by the module docstring's regression on their wanted vectors ``push_nm`` (k, 2) nm,
+    their ``command_nm`` (k, 2) nm (``None``: each commanded as wanted; NaN where a push was not
+    commanded, which counts as wanted) and misses ``miss_nm`` (k, 2) nm; NaN for a push with
+    fewer than :data:`MIN_PUSHES` observed before it."""
+    d = np.asarray(push_nm, float)
+    c = d if command_nm is None else np.where(np.isfinite(command_nm), command_nm, d)
+    X = np.column_stack([np.ones(len(d)), c / PUSH_UNIT_NM])
+    miss = online_regression(X, np.asarray(miss_nm, float) - (c - d), observed, MIN_PUSHES - X.shape[1])
+    return miss._replace(mean=miss.mean + (c - d))
 
 
 def contact_odds(contact: np.ndarray, pushed: np.ndarray) -> np.ndarray:
@@ -110,14 +128,15 @@ def contact_odds(contact: np.ndarray, pushed: np.ndarray) -> np.ndarray:
     return (np.cumsum(hit) - hit + 1.0) / (np.cumsum(made) - made + 2.0)
 
 
-def odds_from_earlier(push_nm, miss_nm, contact, made, tolerance) -> np.ndarray:
+def odds_from_earlier(push_nm, miss_nm, contact, made, tolerance, command_nm=None) -> np.ndarray:
     """Each push's predicted success, the chance of touching (:func:`contact_odds`) times that of
     ending within ``tolerance`` (k,) nm of its goal (:func:`success_probability` of
     :func:`online_misses`), from the pushes before it (in the given order) that were ``made``
-    (k,) bool; their vectors ``push_nm`` (k, 2) nm, misses ``miss_nm`` (k, 2) nm (NaN where
-    none was measured) and ``contact`` (k,) bool. NaN for a push with fewer than
-    :data:`MIN_PUSHES` touching pushes before it."""
+    (k,) bool; their wanted vectors ``push_nm`` (k, 2) nm, commands ``command_nm`` (k, 2) nm
+    (``None``: as wanted), misses ``miss_nm`` (k, 2) nm (NaN where none was measured) and
+    ``contact`` (k,) bool. NaN for a push with fewer than :data:`MIN_PUSHES` touching pushes
+    before it."""
     made = np.asarray(made, bool) & np.isfinite(miss_nm).all(-1)
     touched = made & np.asarray(contact, bool)
-    miss = online_misses(push_nm, miss_nm, touched)
+    miss = online_misses(push_nm, miss_nm, touched, command_nm)
     return contact_odds(touched, made) * success_probability(miss, tolerance)

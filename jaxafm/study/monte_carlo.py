@@ -261,7 +261,7 @@ def learning_trials(
         rows = {k: v[a : a + learn.round_trials] for k, v in x.items()}
         odds = None
         if learn.min_push_odds > 0:
-            odds = _round_odds(so_far.pushes, rows, learn.push_tolerance_radii)
+            odds = _round_odds(so_far.pushes, rows, learn.push_tolerance_radii, push_field)
         field = tracker.field()
         r = stage_trials(survey, rows, stage, mesh, settings, settings.local, field, push_field, odds)
         r["predicted_sd"] = tracker.factor * np.hypot(field.sd(r["target"]), learn.noise_nm)
@@ -269,7 +269,7 @@ def learning_trials(
         if "push_first" in r:
             made = ~r["push_withheld"] & np.isfinite(r["error_nm"])  # unseen: no target, no push
             push = rows["distance"][:, None] * rows["direction"]
-            pushes = push_rows(push, first_push_miss(r), r["push_contact"], made)
+            pushes = push_rows(push, first_push_miss(r), r["push_contact"], made, r["push_command"])
         seen.append(
             observed(
                 r["target"],
@@ -286,17 +286,25 @@ def learning_trials(
     return {k: np.concatenate([r[k] for r in rounds]) for k in rounds[0]}
 
 
-def _round_odds(pushes: np.ndarray, rows: dict, tolerance_radii: float) -> np.ndarray:
+def _round_odds(
+    pushes: np.ndarray,
+    rows: dict,
+    tolerance_radii: float,
+    push_field: online.PushField = online.NO_PUSH_FIELD,
+) -> np.ndarray:
     """Each of a round's pushes' predicted success from the scanner's earlier first pushes
-    ``pushes`` (:class:`Observed`), :func:`~jaxafm.position.push_odds.odds_from_earlier`; 1 (no
-    odds: the push is made) while fewer than :data:`~jaxafm.position.push_odds.MIN_PUSHES`
-    touching pushes came before, or for a push in a direction they never spanned."""
+    ``pushes`` (:class:`Observed`), :func:`~jaxafm.position.push_odds.odds_from_earlier`, each
+    commanded through the round's ``push_field``; 1 (no odds: the push is made) while fewer than
+    :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes came before, or for a push in a
+    direction they never spanned."""
     k = len(rows["distance"])
-    round_pushes = push_rows(rows["distance"][:, None] * rows["direction"], np.full((k, 2), np.nan), 0, 0)
+    wanted = rows["distance"][:, None] * rows["direction"]
+    command = np.asarray(jax.vmap(push_field.command)(jnp.asarray(wanted)))
+    round_pushes = push_rows(wanted, np.full((k, 2), np.nan), 0, 0, command)
     every = np.concatenate([pushes, round_pushes])
     tolerance = tolerance_radii * np.concatenate([np.ones(len(pushes)), rows["radius"]])
     odds = push_odds.odds_from_earlier(
-        every[:, :2], every[:, 2:4], every[:, 4] == 1, every[:, 5] == 1, tolerance
+        every[:, :2], every[:, 2:4], every[:, 4] == 1, every[:, 5] == 1, tolerance, every[:, 6:8]
     )
     return np.where(np.isfinite(odds[-k:]), odds[-k:], 1.0)
 
@@ -353,10 +361,10 @@ class Observed(NamedTuple):
     """What a scanner's trials observed, for :func:`learning_trials`: step C's verified finds,
     their ``targets`` and ``offsets`` (``centre found - target``), the checked first pushes, their
     ``commands`` and the particle's moves the checks saw (``moved``), each (k, 2) nm; and every
-    first push tried, ``pushes`` (k, 6): its vector (2, nm), its miss (2, nm, against the truth,
-    as a reference outside the frame measures it; NaN where none was made), whether it touched
-    its particle and whether it was made (1 or 0: not withheld, and aimed at a particle the
-    survey saw)."""
+    first push tried, ``pushes`` (k, 8): its wanted vector (2, nm), its miss (2, nm, against the
+    truth, as a reference outside the frame measures it; NaN where none was made), whether it
+    touched its particle and whether it was made (1 or 0: not withheld, and aimed at a particle
+    the survey saw), and what it commanded (2, nm)."""
 
     targets: np.ndarray
     offsets: np.ndarray
@@ -366,7 +374,7 @@ class Observed(NamedTuple):
 
 
 #: no observation: the ``earlier`` of a scanner's first trials
-NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4, np.zeros((0, 6)))
+NOTHING_OBSERVED = Observed(*(np.zeros((0, 2)),) * 4, np.zeros((0, 8)))
 
 #: a checked push teaches only when its particle moved at least this share of the command along
 #: it: one whose tip missed the particle left it where it was, which is no shortfall of the drive
@@ -377,23 +385,25 @@ def observed(target, centre, found, command=None, moved=None, pushes=None) -> Ob
     """What one round's trials observed: step C's verified finds (``found``; ``target``,
     ``centre`` found); with ``command`` and ``moved``, the first pushes whose check found the
     particle moved by at least :data:`MOVED_AT_LEAST` of the command along it; and the first
-    pushes tried, ``pushes`` (k, 6) (:class:`Observed`; ``None``: none)."""
+    pushes tried, ``pushes`` (k, 8) (:class:`Observed`; ``None``: none)."""
     found = np.asarray(found, bool)
     if command is None:
         command = moved = np.zeros((0, 2))
     along = np.sum(np.nan_to_num(moved) * command, -1) / np.maximum(np.sum(command**2, -1), 1e-12)
     pushed = np.isfinite(moved).all(-1) & (along >= MOVED_AT_LEAST)
-    pushes = np.zeros((0, 6)) if pushes is None else pushes
+    pushes = np.zeros((0, 8)) if pushes is None else pushes
     return Observed(target[found], centre[found] - target[found], command[pushed], moved[pushed], pushes)
 
 
-def push_rows(push, miss, contact, made) -> np.ndarray:
-    """The first pushes tried, as :class:`Observed` keeps them (k, 6): their vectors ``push``
-    and misses ``miss`` (k, 2) nm, ``contact`` and ``made`` (k,) bool (not withheld, and aimed at
-    a particle the survey saw; either may be one value for all)."""
+def push_rows(push, miss, contact, made, command=None) -> np.ndarray:
+    """The first pushes tried, as :class:`Observed` keeps them (k, 8): their wanted vectors
+    ``push`` and misses ``miss`` (k, 2) nm, ``contact`` and ``made`` (k,) bool (not withheld, and
+    aimed at a particle the survey saw; either may be one value for all), and their ``command``
+    (k, 2) nm (``None``: each commanded as wanted)."""
     k = len(push)
     flags = [np.broadcast_to(np.asarray(v, float), (k,)) for v in (contact, made)]
-    return np.column_stack([push, miss, *flags]).astype(float)
+    command = push if command is None else command
+    return np.column_stack([push, miss, *flags, command]).astype(float)
 
 
 def push_vectors(draws: dict) -> np.ndarray:
@@ -421,9 +431,8 @@ def with_chunk_observed(earlier: Observed, columns, push=None) -> Observed:
         miss = push_odds.from_components(
             columns["push_first_along_nm"], columns["push_first_across_nm"], push
         )
-        pushes = push_rows(
-            push, miss, columns["push_contact"], ~columns["push_withheld"] & columns["AB_seen"]
-        )
+        made = ~columns["push_withheld"] & columns["AB_seen"]
+        pushes = push_rows(push, miss, columns["push_contact"], made, xy("push_command"))
     new = observed(
         xy("AB_target"),
         xy("ABC_centre"),
@@ -565,6 +574,7 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
     :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes before it."""
     p = np.full(len(r["trial"]), np.nan)
     push = push_vectors(r)
+    command = np.stack([r["push_command_x_nm"], r["push_command_y_nm"]], -1)
     miss = push_odds.from_components(r["push_first_along_nm"], r["push_first_across_nm"], push)
     for s in np.unique(r["scanner"]):
         idx = np.flatnonzero(r["scanner"] == s)
@@ -574,6 +584,7 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
             r["push_contact"][idx],
             np.ones(len(idx), bool),
             tolerance_radii * r["radius_nm"][idx],
+            command[idx],
         )
     return np.where(np.isfinite(r["push_first_error_nm"]), p, np.nan)
 
