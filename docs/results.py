@@ -252,6 +252,7 @@ BENCH_SCAN = Run("bench_scan.json", "python experiments/bench_scan.py")
 BENCH_RENDER = Run("bench_render/metrics.json", "python experiments/bench_render.py")
 GRATING_SCAN = Run("simulated_grating_scan/metrics.json", "python experiments/simulated_grating_scan.py")
 PIEZO_FIT = Run("piezo_sine_1hz/metrics.json", "jaxafm fit configs/piezo_sine_1hz.yaml")
+BENCH_BAND = Run("bench_band/bench.json", "python experiments/bench_band.py")
 CROSS_RECORD = Run("cross_record/metrics.json", "python experiments/cross_record.py")
 PREDICT = Run("predict_piezo/metrics.json", "jaxafm predict configs/predict_piezo.yaml")
 COMPENSATE = Run("compensate_piezo/metrics.json", "jaxafm compensate configs/compensate_piezo.yaml")
@@ -1057,6 +1058,26 @@ GOALS += [
 ]
 GOALS += [
     Goal(
+        "posterior_cost",
+        "the posterior adds at most 20 % to a fit's time (each model of jaxafm fit configs/piezo_sine_1hz.yaml)",
+        PIEZO_FIT,
+        "docs/uncertainty.md#what-it-costs-python-experimentsbench_bandpy",
+        lambda m: "; ".join(f"{BAND_MODELS[n]} {q(_posterior_share(m, n), '%', 0)}" for n in BAND_MODELS),
+        lambda m: all(_posterior_share(m, n) <= 20 for n in BAND_MODELS),
+    ),
+    Goal(
+        "band_cost",
+        "a 90 % band over a 20,000-sample prediction in under a second on 2 cores, compiling included",
+        BENCH_BAND,
+        "docs/uncertainty.md#what-it-costs-python-experimentsbench_bandpy",
+        lambda m: "; ".join(
+            f"{BAND_MODELS[n]} {q(r['first_call_s'], 's', 2)}" for n, r in m["models"].items()
+        ),
+        lambda m: m["samples"] >= 20_000 and all(r["first_call_s"] < 1 for r in m["models"].values()),
+    ),
+]
+GOALS += [
+    Goal(
         name,
         f"{label}: predicted first-push success within 5 points of the observed in every tenth with ≥ 100 "
         "trials, Brier score better than the overall rate's",
@@ -1762,6 +1783,59 @@ def push_odds_models(results: Results) -> Table:
         "its touching first pushes' misses about the model fitted to all of them."
     )
     return Table(header, rows, [PUSH_ODDS_MODELS], note)
+
+
+#: the models of ``jaxafm fit configs/piezo_sine_1hz.yaml`` whose band ``bench_band.py`` times
+BAND_MODELS = {
+    "line": "straight line",
+    "pi": "PI, 20 plays",
+    "gpi": "generalised PI",
+    "preisach": "Preisach, 30 levels",
+    "gpi_creep": "generalised PI + creep",
+    "gpi_lag_creep": "generalised PI + lag + creep",
+}
+
+
+def _posterior_share(fit: dict, name: str) -> float:
+    """What the posterior added to a model's fit in ``jaxafm fit`` (% of the fit's time)."""
+    return 100 * fit[f"{name}_posterior_s"] / fit[f"{name}_fit_s"]
+
+
+@table("posterior_cost")
+def posterior_cost(results: Results) -> Table:
+    """What a posterior and a band cost: ``jaxafm fit``'s times, and a 20,000-sample band."""
+    fit, bench = results(PIEZO_FIT), results(BENCH_BAND)
+    rows = [
+        [
+            label,
+            count(b["parameters"]),
+            q(fit[f"{name}_fit_s"], "s", 2),
+            q(fit[f"{name}_posterior_s"], "s", 2),
+            q(_posterior_share(fit, name), "%", 0),
+            q(b["first_call_s"], "s", 2),
+            f"{q(b['trace_s'], 's', 2)} + {q(b['compile_s'], 's', 2)}",
+            q(1e3 * b["later_call_median_s"], "ms", 0),
+        ]
+        for name, label in BAND_MODELS.items()
+        for b in [bench["models"][name]]
+    ]
+    header = [
+        "model",
+        "parameters",
+        "fit",
+        "posterior (and the record's band)",
+        "posterior / fit",
+        f"band over {count(bench['samples'])} samples: first call",
+        "of it, the linearisation's tracing + compiling",
+        "later calls, median",
+    ]
+    note = (
+        "Fit and posterior: the wall times `jaxafm fit` records (`<name>_fit_s`, `<name>_posterior_s`), "
+        "compiling included; the band: each model's first call (compiling included), its linearisation traced "
+        "and compiled again apart, and the median of five later calls on other drives of the same length, in one "
+        "process."
+    )
+    return Table(header, rows, [PIEZO_FIT, BENCH_BAND], note)
 
 
 STEP_A_REAL_CLASSES = Run("step_a_real_classes/metrics.json", "python experiments/step_a_real_classes.py")
