@@ -103,6 +103,9 @@ def test_nid_file_reads_each_frame_and_channel_in_nm(tmp_path):
         read_image(path, channel="Amplitude", direction="retrace")
     down = write_nid(tmp_path / "d.nid", {"Scan forward": {"Topography": raw["tf"]}}, direction="Down")
     assert "row_order" not in read_image(down).meta  # the file does not say: stored order kept
+    older = write_nid(tmp_path / "z.nid", {"Scan forward": {"Z-Axis": raw["tf"], "Amplitude": raw["af"]}})
+    assert read_image(older).meta["channel"] == "Z-Axis (Scan forward)"  # older software's height
+    np.testing.assert_allclose(read_image(older).z, heights(raw["tf"]), rtol=1e-12)
     (tmp_path / "b.nid").write_bytes(b"not a nanosurf file")
     with pytest.raises(ValueError, match=r"b\.nid is not a Nanosurf \.nid file"):
         read_image(tmp_path / "b.nid")

@@ -45,6 +45,10 @@ AFMREADER_FORMATS = {
 FORMATS = (".txt", ".nid", ".tif", ".tiff", ".gwy", ".npz") + tuple(AFMREADER_FORMATS)
 #: A Nanosurf .nid file's frames by scan direction.
 NID_FRAMES = {"trace": "Scan forward", "retrace": "Scan backward"}
+#: A Nanosurf .nid file's height channels, the first the file holds read when none is named:
+#: ``Z-Axis`` is the height in files of older Nanosurf software (easyScan 2), which has no
+#: ``Topography``
+NID_HEIGHTS = ("Topography", "Z-Axis")
 #: How far (relative, per axis) a given scan size may lie from a file's own before it is refused.
 SIZE_TOLERANCE = 0.01
 
@@ -169,7 +173,8 @@ def read_image(
     Arguments:
         path: the file.
         channel: the channel of multi-channel files (Gwyddion, AFMReader formats; a Nanosurf
-            .nid file: the channel's name, default ``Topography``, in the frame ``direction``
+            .nid file: the channel's name, default the first of :data:`NID_HEIGHTS` it holds,
+            in the frame ``direction``
             picks, default the forward one).
         size_nm: (width, height) nm of the image as returned: along its rows (x) and across them
             (y); one number: a square scan (square pixels needed). Required for a TIFF, which
@@ -443,8 +448,9 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
     head = _nid_header(path, raw[:cut].decode("utf-8", errors="replace"))
     blocks = _nid_channels(path, head)
     frame = NID_FRAMES[direction or "trace"]
-    channel = channel or "Topography"
     names = [f"{h.get('Dim2Name')} ({h.get('Frame')})" for h, *_ in blocks]
+    held = {h.get("Dim2Name") for h, *_ in blocks}
+    channel = channel or next((c for c in NID_HEIGHTS if c in held), NID_HEIGHTS[0])
     pick = [i for i, (h, *_) in enumerate(blocks) if h.get("Dim2Name") == channel and h.get("Frame") == frame]
     if not pick:
         raise ValueError(
