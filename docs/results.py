@@ -1831,9 +1831,9 @@ def posterior_cost(results: Results) -> Table:
     ]
     note = (
         "Fit and posterior: the wall times `jaxafm fit` records (`<name>_fit_s`, `<name>_posterior_s`), "
-        "compiling included; the band: each model's first call (compiling included), its linearisation traced "
-        "and compiled again apart, and the median of five later calls on other drives of the same length, in one "
-        "process."
+        "compiling included (run with `JAXAFM_CACHE_DIR=off`); the band: each model's first call (compiling "
+        "included), its linearisation traced and compiled again apart, and the median of five later calls on "
+        "other drives of the same length, in one process."
     )
     return Table(header, rows, [PIEZO_FIT, BENCH_BAND], note)
 

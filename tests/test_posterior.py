@@ -10,10 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from jax.flatten_util import ravel_pytree
 from scipy.stats import norm
 from typer.testing import CliRunner
 
 from jaxafm.cli import app
+from jaxafm.identify.fit import initial_operator
 from jaxafm.identify.uncertainty import PRIOR_SD, posterior_of
 from jaxafm.model.effects import Creep
 from jaxafm.model.hysteresis import Linear
@@ -52,6 +54,32 @@ def test_the_iid_band_of_a_straight_line_is_the_textbook_prediction_interval():
     np.testing.assert_allclose(got.sd**2, want, rtol=prior_shift)
     lower, upper = got.bounds()
     np.testing.assert_allclose(upper - lower, 2 * norm.ppf(0.95) * np.sqrt(want), rtol=prior_shift)
+
+
+@pytest.mark.parametrize("kind", ["pi", "gpi", "preisach", "gpi_creep"])
+def test_the_linearisation_is_the_predictions_derivative(kind):
+    """``linearise`` differentiates through the fit's evaluator (plays run once, outside the
+    derivative); its prediction is ``model.predict`` and its Jacobian matches central differences
+    of ``model.predict`` in each raw parameter (step 1e-5 of an order-one parameter: truncation
+    about 1e-10 of the output's scale, round-off about 1e-11 of it)."""
+    t = np.linspace(0.0, 8.0, 400)
+    u = 4.0 + 3.0 * np.sin(2 * np.pi * 0.5 * t) * np.exp(-0.1 * t)
+    d = 20.0 * u + 10.0 * np.tanh(u - 4.0)
+    h = initial_operator(kind.removesuffix("_creep"), u, d, operators=6, levels=6, deadzones=2)
+    start = Axis(h, creep=Creep.logarithmic(0.02, 0.5, 5.0)) if "creep" in kind else h
+    raw, rebuild = start.free_parameters(SPAN_V, RANGE_NM)
+    flat, unravel = ravel_pytree(raw)
+    flat = flat + np.random.default_rng(8).normal(0.0, 0.3, flat.size)  # away from the start's zeros
+    model = rebuild(unravel(flat))
+    y, G = linearise(model, SPAN_V, RANGE_NM, u, t)
+    np.testing.assert_allclose(y, model.predict(jnp.asarray(u), jnp.asarray(t)), rtol=1e-12, atol=1e-9)
+    raw, rebuild = model.free_parameters(SPAN_V, RANGE_NM)
+    flat, unravel = ravel_pytree(raw)
+    step = 1e-5
+    for k in range(flat.size):
+        e = jnp.zeros_like(flat).at[k].set(step)
+        up, down = (rebuild(unravel(flat + s * e)).predict(jnp.asarray(u), jnp.asarray(t)) for s in (1, -1))
+        np.testing.assert_allclose(G[:, k], (up - down) / (2 * step), rtol=1e-6, atol=1e-8 * np.ptp(y))
 
 
 def test_a_parameter_the_data_do_not_see_keeps_the_prior_width_under_every_noise_model():

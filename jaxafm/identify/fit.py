@@ -27,6 +27,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import checks
 from ..config.names import LINEAR_SOLVERS, SOLVERS
+from ..model.apply import evaluator
 from ..model.hysteresis import (
     Deadzone,
     GeneralizedPI,
@@ -34,7 +35,6 @@ from ..model.hysteresis import (
     PrandtlIshlinskii,
     Preisach,
 )
-from ..model.scanner import Axis
 from . import geodesic, linear
 
 Array = jax.Array
@@ -74,32 +74,6 @@ def initial_operator(kind: str, u, d, *, operators: int = 20, levels: int = 20, 
         margin = 1e-6 * span
         return Preisach.uniform(levels, u_lo - margin, u_hi + margin, total=rng / 2, offset=float(np.mean(d)))
     raise ValueError(f"unknown model kind {kind!r}; one of {', '.join(MODEL_KINDS)}")
-
-
-def evaluator(model, u: Array, t: Optional[Array] = None, history=None) -> Callable:
-    """``f(m) = m(u, t, history)`` for models shaped like ``model``, with the plays run once.
-
-    The fit keeps every threshold grid fixed, so the play trajectories -- the
-    only sequential part -- do not depend on the fitted parameters
-    (:meth:`~jaxafm.model.hysteresis.AbstractHysteresis.evaluator`).
-
-    Arguments:
-        model: a hysteresis operator or an :class:`~jaxafm.model.scanner.Axis`.
-        u: the input (T,) V.
-        t: the sample times (T,) s; an Axis needs them.
-        history: the inputs (H,) V before ``u[0]``, or ``None``.
-
-    Returns:
-        ``f(m) -> (T,) nm`` for models ``m`` of the same structure.
-    """
-    h = model.hysteresis if isinstance(model, Axis) else model
-    hysteresis = h.evaluator(u, history)
-    if isinstance(model, Axis):
-        if t is None:
-            raise ValueError("fitting an Axis (creep or rate dependence) needs the sample times t (s)")
-        t = jnp.asarray(t, dtype=float)
-        return lambda m: m.dynamics(hysteresis(m.hysteresis), t)
-    return hysteresis
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,6 +8,7 @@ way, ``predict(model, u, t, history)``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Optional
 
 import jax.numpy as jnp
@@ -48,6 +49,34 @@ def predict(model, u, t=None, history=None) -> np.ndarray:
             f"a {type(model).__name__} (with {', '.join(sorted(model.effects))}) needs the sample times t (s)"
         )
     return np.asarray(model.predict(u, None if t is None else jnp.asarray(t, dtype=float), history))
+
+
+def evaluator(model, u, t=None, history=None) -> Callable:
+    """``f(m) = m.predict(u, t, history)`` for one-axis models shaped like ``model``, with the
+    plays run once.
+
+    A fit keeps every threshold grid fixed, so the play trajectories -- the only sequential part
+    of the hysteresis -- do not depend on the fitted parameters
+    (:meth:`~jaxafm.model.hysteresis.AbstractHysteresis.evaluator`): a fit and a linearisation
+    (:func:`~jaxafm.model.posterior.linearise`) evaluate and differentiate the rest alone.
+
+    Arguments:
+        model: a hysteresis operator or an :class:`~jaxafm.model.scanner.Axis`.
+        u: the input (T,) V.
+        t: the sample times (T,) s; an Axis needs them.
+        history: the inputs (H,) V before ``u[0]``, or ``None``.
+
+    Returns:
+        ``f(m) -> (T,) nm`` for models ``m`` of the same structure.
+    """
+    h = model.hysteresis if isinstance(model, Axis) else model
+    hysteresis = h.evaluator(u, history)
+    if isinstance(model, Axis):
+        if t is None:
+            raise ValueError("an Axis (creep or rate dependence) needs the sample times t (s)")
+        t = jnp.asarray(t, dtype=float)
+        return lambda m: m.dynamics(hysteresis(m.hysteresis), t)
+    return hysteresis
 
 
 def axes_of(model) -> int:

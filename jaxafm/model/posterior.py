@@ -29,6 +29,7 @@ from jax.flatten_util import ravel_pytree
 from scipy.stats import norm
 
 from .. import checks
+from .apply import evaluator
 
 #: the noise models a posterior is made with (:func:`jaxafm.identify.uncertainty.posterior_of`)
 METHODS = ("ar1", "blocks", "iid")
@@ -171,7 +172,9 @@ def linear_band(y: np.ndarray, G: np.ndarray, posterior: Posterior, level: float
 def linearise(model, input_span_v: float, output_range_nm: float, u, t=None, history=None) -> tuple:
     """``(y, G)``: the one-axis ``model``'s prediction (T,) nm for the input ``u`` (T,) V and
     its Jacobian (T, k) with respect to the raw parameters
-    ``model.free_parameters(input_span_v, output_range_nm)`` (raveled), by forward mode."""
+    ``model.free_parameters(input_span_v, output_range_nm)`` (raveled), by forward mode through
+    the fit's evaluator (:func:`~jaxafm.model.apply.evaluator`: the plays run once, outside the
+    derivative)."""
     u = jnp.asarray(u, dtype=float)
     t = None if t is None else jnp.asarray(t, dtype=float)
     history = None if history is None else jnp.asarray(history, dtype=float)
@@ -184,5 +187,6 @@ def _linearise(model, u, t, history, input_span_v: float, output_range_nm: float
     """:func:`linearise`, jitted: the spans are static, the model and the data traced."""
     raw, rebuild = model.free_parameters(input_span_v, output_range_nm)
     flat, unravel = ravel_pytree(raw)
-    f = lambda x: rebuild(unravel(x)).predict(u, t, history)
+    forward = evaluator(model, u, t, history)
+    f = lambda x: forward(rebuild(unravel(x)))
     return f(flat), jax.jacfwd(f)(flat)
