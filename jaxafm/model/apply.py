@@ -3,7 +3,9 @@
 A model file (:mod:`jaxafm.model.io`) may hold a hysteresis operator (PI, generalised PI,
 Preisach, a straight line), an :class:`~jaxafm.model.scanner.Axis` (hysteresis with creep and
 rate dependence) or a two-axis :class:`~jaxafm.model.scanner.Scanner`; each is applied the same
-way, ``predict(model, u, t, history)``.
+way, ``predict(model, u, t, history)``. A one-axis model's :func:`evaluator` is the same output
+as a function of the model, its plays run once: what a fit evaluates and a linearisation
+differentiates.
 """
 
 from __future__ import annotations
