@@ -32,7 +32,7 @@ import numpy as np
 
 from jaxafm.position import push_odds
 from jaxafm.position.online import Predictive, online_regression
-from jaxafm.study.monte_carlo import predicted_push_success, push_vectors
+from jaxafm.study.monte_carlo import predicted_push_success, push_commands, push_vectors
 from jaxafm.study.reliability import reliability
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +69,7 @@ def residual_sd(r: dict) -> dict:
     each model fitted to all of them by least squares: the scatter each model leaves."""
     out = {"distance": [], "affine": []}
     push = push_vectors(r)
-    command = np.stack([r["push_command_x_nm"], r["push_command_y_nm"]], -1)
+    command = push_commands(r)
     along, across = r["push_first_along_nm"], r["push_first_across_nm"]
     miss = push_odds.from_components(along, across, push) - (command - push)
     for s in np.unique(r["scanner"]):

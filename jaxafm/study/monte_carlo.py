@@ -412,6 +412,13 @@ def push_vectors(draws: dict) -> np.ndarray:
     return draws["push_distance_nm"][:, None] * np.stack([draws["push_dx"], draws["push_dy"]], -1)
 
 
+def push_commands(r: dict) -> np.ndarray:
+    """The trials' first-push commands (k, 2) nm, what each asked of the tip (equal to
+    :func:`push_vectors` unless the pushes learn), from a study's columns (``push_command_x_nm``,
+    ``push_command_y_nm``)."""
+    return np.stack([r["push_command_x_nm"], r["push_command_y_nm"]], -1)
+
+
 def first_push_miss(r: dict) -> np.ndarray:
     """The first push's true miss (k, 2) nm, its particle's centre after it less its goal, from
     trials' columns ``r`` (:func:`_columns`); NaN where the push was withheld."""
@@ -574,7 +581,7 @@ def predicted_push_success(r: dict, tolerance_radii: float) -> np.ndarray:
     :data:`~jaxafm.position.push_odds.MIN_PUSHES` touching pushes before it."""
     p = np.full(len(r["trial"]), np.nan)
     push = push_vectors(r)
-    command = np.stack([r["push_command_x_nm"], r["push_command_y_nm"]], -1)
+    command = push_commands(r)
     miss = push_odds.from_components(r["push_first_along_nm"], r["push_first_across_nm"], push)
     for s in np.unique(r["scanner"]):
         idx = np.flatnonzero(r["scanner"] == s)
