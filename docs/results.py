@@ -3118,6 +3118,8 @@ def posterior_cost(results: Results) -> Table:
             q(b["first_call_s"], "s", 2),
             f"{q(b['trace_s'], 's', 2)} + {q(b['compile_s'], 's', 2)}",
             q(1e3 * b["later_call_median_s"], "ms", 0),
+            f"{q(b['compile_default_level_s'], 's', 2)}; {q(1e3 * b['run_default_level_s'], 'ms', 0)} "
+            f"against {q(1e3 * b['run_s'], 'ms', 0)}",
         ]
         for name, label in BAND_MODELS.items()
         for b in [bench["models"][name]]
@@ -3131,12 +3133,15 @@ def posterior_cost(results: Results) -> Table:
         f"band over {count(bench['samples'])} samples: first call",
         "of it, the linearisation's tracing + compiling",
         "later calls, median",
+        "the linearisation at XLA's default level instead: compiling; a run against level 0's",
     ]
     note = (
         "Fit and posterior: the wall times `jaxafm fit` records (`<name>_fit_s`, `<name>_posterior_s`), "
         "compiling included (run with `JAXAFM_CACHE_DIR=off`); the band: each model's first call (compiling "
         "included), its linearisation traced and compiled again apart, and the median of five later calls on "
-        "other drives of the same length, in one process."
+        "other drives of the same length, in one process; the linearisation compiles at XLA's backend "
+        "optimisation level 0, the last column the same lowered program compiled at the default level (3), "
+        "and the median of five runs of each."
     )
     return Table(header, rows, [PIEZO_FIT, BENCH_BAND], note)
 

@@ -8,7 +8,10 @@ samples (100 s), its times at 200 Hz. Each model's first call compiles the linea
 parameters, by forward mode) and forms the band (:func:`~jaxafm.model.posterior.band`); the
 second and later calls, on another drive of the same length, reuse the compiled code. Both are
 reported, the later ones as the median of ``--repeats``, and the linearisation's tracing and XLA
-compilation timed apart (lowered and compiled once more after the calls, its caches cleared).
+compilation timed apart (lowered and compiled once more after the calls, its caches cleared). The
+linearisation compiles at XLA's backend optimisation level 0
+(:data:`~jaxafm.model.posterior.ONE_SHOT`); beside it, the same lowered program compiled at
+XLA's default level (3), with the median run of each compiled program over ``--repeats`` calls.
 
     python experiments/bench_band.py [--samples 20000] [--repeats 5]
 
@@ -67,18 +70,34 @@ def time_band(kind: str, samples: int, repeats: int) -> dict:
         later.append(time.perf_counter() - start)
     jax.clear_caches()
     start = time.perf_counter()
-    lowered = _linearise.lower(model, u, t, None, posterior.input_span_v, posterior.output_range_nm)
+    args = (model, u, t, None, posterior.input_span_v, posterior.output_range_nm)
+    lowered = _linearise.lower(*args)
     traced = time.perf_counter()
-    lowered.compile()
+    one_shot = lowered.compile()
+    compiled = time.perf_counter()
+    default = lowered.compile(compiler_options={"xla_backend_optimization_level": 3})
     return {
         "trace_s": traced - start,
-        "compile_s": time.perf_counter() - traced,
+        "compile_s": compiled - traced,
+        "compile_default_level_s": time.perf_counter() - compiled,
+        "run_s": run_time(one_shot, args, repeats),
+        "run_default_level_s": run_time(default, args, repeats),
         "parameters": int(posterior.covariance.shape[0]),
         "first_call_s": first_s,
         "later_call_median_s": statistics.median(later),
         "later_call_max_s": max(later),
         "band_width_nm_mean": first.width(),
     }
+
+
+def run_time(compiled, args: tuple, repeats: int) -> float:
+    """The median wall time (s) of ``repeats`` calls of a compiled linearisation, results fetched."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def main() -> None:
@@ -93,7 +112,8 @@ def main() -> None:
             f"{kind:14s} {row['parameters']:3d} parameters: first call {row['first_call_s']:.2f} s "
             f"(compiling included), later {row['later_call_median_s'] * 1e3:.0f} ms median "
             f"({row['later_call_max_s'] * 1e3:.0f} ms worst); linearisation traced in {row['trace_s']:.2f} s, "
-            f"compiled in {row['compile_s']:.2f} s; mean 90 % width "
+            f"compiled in {row['compile_s']:.2f} s (XLA's default level: {row['compile_default_level_s']:.2f} s), "
+            f"run in {row['run_s'] * 1e3:.0f} ms ({row['run_default_level_s'] * 1e3:.0f} ms); mean 90 % width "
             f"{row['band_width_nm_mean']:.0f} nm"
         )
     OUT.mkdir(parents=True, exist_ok=True)

@@ -33,13 +33,15 @@ def test_leave_group_out_equals_the_refit_without_the_group():
             np.testing.assert_allclose(left[k], J[g == k] @ theta_k - y[g == k], rtol=1e-10, atol=1e-12)
 
 
-def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit():
-    """Groups of 3 rows and 12 parameters (the direct (b, b) form, not Woodbury's (k, k)), with a
-    ridge prior: the closed form against a refit of the other groups' rows."""
+@pytest.mark.parametrize("per", [3, 21])
+def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit(per):
+    """12 parameters, a ridge prior: groups of 3 rows (the direct (b, b) form, not Woodbury's
+    (k, k)), and groups of 21 rows with a last one of 6 (too few small groups for the direct
+    form: Woodbury's for all); the closed form against a refit of the other groups' rows."""
     rng = np.random.default_rng(3)
     J = rng.normal(size=(90, 12))
     y = J @ rng.normal(size=12) + 0.3 * rng.normal(size=90)
-    g = np.arange(90) // 3
+    g = np.arange(90) // per
     prior = 0.5 * np.eye(12)
     theta = np.linalg.solve(J.T @ J + prior, J.T @ y)
     left = uncertainty.leave_group_out(J, J @ theta - y, g, prior)

@@ -30,6 +30,7 @@ from scipy.stats import norm
 
 from .. import checks
 from .apply import evaluator
+from .hysteresis import Preisach
 
 #: the noise models a posterior is made with (:func:`jaxafm.identify.uncertainty.posterior_of`)
 METHODS = ("ar1", "blocks", "iid")
@@ -174,7 +175,7 @@ def linearise(model, input_span_v: float, output_range_nm: float, u, t=None, his
     its Jacobian (T, k) with respect to the raw parameters
     ``model.free_parameters(input_span_v, output_range_nm)`` (raveled), by forward mode through
     the fit's evaluator (:func:`~jaxafm.model.apply.evaluator`: the plays run once, outside the
-    derivative)."""
+    derivative); a Preisach plane's in closed form (:func:`_linear_in_density`)."""
     u = jnp.asarray(u, dtype=float)
     t = None if t is None else jnp.asarray(t, dtype=float)
     history = None if history is None else jnp.asarray(history, dtype=float)
@@ -182,11 +183,33 @@ def linearise(model, input_span_v: float, output_range_nm: float, u, t=None, his
     return np.asarray(y), np.asarray(G)
 
 
-@eqx.filter_jit
+#: XLA's options for :func:`_linearise`, which a fit or a prediction runs once: its compilation,
+#: not its run, is most of its time, and XLA's backend optimisation level 0 shortens the one more
+#: than it lengthens the other (``experiments/bench_band.py`` times both, each model at both levels)
+ONE_SHOT = {"xla_backend_optimization_level": 0}
+
+
+@eqx.filter_jit(compiler_options=ONE_SHOT)
 def _linearise(model, u, t, history, input_span_v: float, output_range_nm: float) -> tuple:
     """:func:`linearise`, jitted: the spans are static, the model and the data traced."""
     raw, rebuild = model.free_parameters(input_span_v, output_range_nm)
     flat, unravel = ravel_pytree(raw)
+    to_model = lambda x: rebuild(unravel(x))
+    if type(model) is Preisach:
+        return _linear_in_density(model, u, history, to_model, flat)
     forward = evaluator(model, u, t, history)
-    f = lambda x: forward(rebuild(unravel(x)))
+    f = lambda x: forward(to_model(x))
     return f(flat), jax.jacfwd(f)(flat)
+
+
+def _linear_in_density(model: Preisach, u, history, to_model, flat) -> tuple:
+    """``(y, G)`` of a Preisach plane, whose output is linear in its density:
+    ``y = offset + R w`` with ``R`` (T, m) the lower triangle's relay states
+    (:meth:`~jaxafm.model.hysteresis.Preisach.design_matrix`) and ``w`` (m,) its densities, so
+    ``G = [R, 1] d(w, offset) / d theta``: the chain rule's inner factor is (m + 1, k), and no
+    tangent of the k parameters runs over the samples (forward mode would carry each through the
+    (T, n, n) relay states)."""
+    tri = model._triangle()
+    weights = lambda x: (lambda m: jnp.append(m.density[tri], m.offset))(to_model(x))
+    R = jnp.column_stack([model.design_matrix(u, history), jnp.ones(u.shape[0])])
+    return R @ weights(flat), R @ jax.jacfwd(weights)(flat)
