@@ -3124,6 +3124,21 @@ def posterior_cost(results: Results) -> Table:
         for name, label in BAND_MODELS.items()
         for b in [bench["models"][name]]
     ]
+    large = results(BENCH_PREISACH_FIT)
+    exact = _exact_fit(large)
+    rows.append(
+        [
+            f"Preisach, {large['levels']} levels, {count(large['samples'])} training samples (simulated)",
+            count(exact["posterior"]["parameters"]),
+            q(exact["calls"][0]["seconds"], "s", 2),
+            q(exact["posterior"]["seconds"], "s", 2),
+            q(100 * exact["posterior"]["seconds"] / exact["calls"][0]["seconds"], "%", 0),
+            "–",
+            "–",
+            "–",
+            "–",
+        ]
+    )
     header = [
         "model",
         "parameters",
@@ -3141,9 +3156,10 @@ def posterior_cost(results: Results) -> Table:
         "included), its linearisation traced and compiled again apart, and the median of five later calls on "
         "other drives of the same length, in one process; the linearisation compiles at XLA's backend "
         "optimisation level 0, the last column the same lowered program compiled at the default level (3), "
-        "and the median of five runs of each."
+        "and the median of five runs of each. The last row: the exact fit's first call and its posterior as "
+        "`jaxafm fit` makes it, in one process, on the simulated actuator's record of `bench_preisach_fit.py`."
     )
-    return Table(header, rows, [PIEZO_FIT, BENCH_BAND], note)
+    return Table(header, rows, [PIEZO_FIT, BENCH_BAND, BENCH_PREISACH_FIT], note)
 
 
 BAND_METHODS = (("ar1", "AR(1), the default"), ("blocks", "blocks"), ("iid", "i.i.d., the naive band"))
@@ -3510,10 +3526,13 @@ def bench_preisach_fit(results: Results) -> Table:
         "held-out rms",
         "how it ended",
     ]
+    exact = _exact_fit(m)
     note = (
         f"{m['levels']} levels ({count(m['relays'])} relays), {count(m['samples'])} training samples; "
-        f"the exact fit's parts: normal equations {q(_exact_fit(m)['parts']['normal_equations_s'], 's', 2)}, "
-        f"solve {q(_exact_fit(m)['parts']['solve_s'], 's', 2)}."
+        f"the exact fit's parts: normal equations {q(exact['parts']['normal_equations_s'], 's', 2)}, "
+        f"solve {q(exact['parts']['solve_s'], 's', 2)}; after it, its posterior as `jaxafm fit` makes it "
+        f"{q(exact['posterior']['seconds'], 's', 2)}, the peak then "
+        f"{q(exact['posterior']['peak_mb'] / 1024, 'GiB', 2)}."
     )
     return Table(header, rows, [BENCH_PREISACH_FIT], note)
 

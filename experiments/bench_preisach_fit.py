@@ -17,7 +17,10 @@ Each fit runs twice in its process, the exact fit ``1 + --repeats`` times: the f
 compiles, the median of the others is the fit's time once compiled. Peak memory is the process's
 peak resident set (:func:`peak_mb`) before the first fit (Python, JAX and the solvers' libraries
 imported, the record loaded from a file the parent simulated) and after each fit; the training
-and held-out rms of the last fit are scored after them all.
+and held-out rms of the last fit are scored after them all. After the exact fit's calls, its
+posterior is made as ``jaxafm fit`` makes it (:func:`jaxafm.jobs.fit._posterior`: the
+linearisation over the whole record, the AR(1) posterior from the training part, the band over
+the record), timed, and the peak read again.
 
 Run:  python experiments/bench_preisach_fit.py [--samples 20000] [--levels 50] [--lm-steps 20] [--repeats 5]
       [--out experiments/results/bench_preisach_fit.json]
@@ -100,8 +103,21 @@ def one(run: str, path: str, samples: int, levels: int, lm_steps: int, repeats: 
     out["train_rms_nm"] = error_metrics(pred[:n], d[:n])["rms_error_nm"]
     out["heldout_rms_nm"] = error_metrics(pred[n:], d[n:])["rms_error_nm"]
     if run == "jaxafm.nnls":
+        out["posterior"] = posterior(model, u, d, n)
         out["parts"] = parts(start, u[:n], d[:n])
     return out
+
+
+def posterior(model, u, d, n: int) -> dict:
+    """The fitted ``model``'s posterior and band as ``jaxafm fit`` makes them, on the record's
+    first ``n`` samples (the training part) and over all of it: wall time (s), compiling included,
+    and the process's peak after it (MiB)."""
+    from jaxafm.instrument.records import Record
+    from jaxafm.jobs.fit import _posterior
+
+    record = Record(np.arange(len(u)) / 200.0, u, d, {"source": "bench_preisach_fit"})
+    post, _, seconds = _posterior(model, record, n, 0, None)
+    return {"seconds": seconds, "peak_mb": peak_mb(), "parameters": int(post.covariance.shape[0])}
 
 
 def parts(start, u, d, repeats: int = 5) -> dict:
@@ -171,6 +187,11 @@ def child_run(run: str, saved: Path, a) -> dict:
             f"{'':32s} median of {r['parts']['repeats']}: normal equations "
             f"{r['parts']['normal_equations_s']:.3f} s, solve {r['parts']['solve_s']:.3f} s; goal <= "
             f"{GOAL_S:g} s compiled and <= {GOAL_GB:g} GB (1e9 bytes) peak: {'met' if met else 'NOT met'}"
+        )
+        q = r["posterior"]
+        print(
+            f"{'':32s} its posterior ({q['parameters']} parameters) as jaxafm fit makes it: "
+            f"{q['seconds']:.2f} s, compiling included; peak after it {q['peak_mb']:.0f} MiB"
         )
         p = r["parts"]
         print(
