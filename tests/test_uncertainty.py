@@ -3,6 +3,7 @@ model ladder, against closed forms and refits written here in NumPy."""
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 
 from jaxafm.identify import selection, uncertainty
 from jaxafm.identify.scan_model import ScanModelSpec
@@ -33,15 +34,16 @@ def test_leave_group_out_equals_the_refit_without_the_group():
             np.testing.assert_allclose(left[k], J[g == k] @ theta_k - y[g == k], rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("per", [3, 21])
-def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit(per):
+@pytest.mark.parametrize("rows, per", [(90, 3), (91, 3), (90, 21)])
+def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit(rows, per):
     """12 parameters, a ridge prior: groups of 3 rows (the direct (b, b) form, not Woodbury's
-    (k, k)), and groups of 21 rows with a last one of 6 (too few small groups for the direct
-    form: Woodbury's for all); the closed form against a refit of the other groups' rows."""
+    (k, k)), the same with a last group of 1 (two sizes, each solved together), and groups of
+    21 rows with a last one of 6 (too few small groups for the direct form: Woodbury's for all);
+    the closed form against a refit of the other groups' rows."""
     rng = np.random.default_rng(3)
-    J = rng.normal(size=(90, 12))
-    y = J @ rng.normal(size=12) + 0.3 * rng.normal(size=90)
-    g = np.arange(90) // per
+    J = rng.normal(size=(rows, 12))
+    y = J @ rng.normal(size=12) + 0.3 * rng.normal(size=rows)
+    g = np.arange(rows) // per
     prior = 0.5 * np.eye(12)
     theta = np.linalg.solve(J.T @ J + prior, J.T @ y)
     left = uncertainty.leave_group_out(J, J @ theta - y, g, prior)
@@ -120,3 +122,13 @@ def test_a_direction_the_data_do_not_fix_keeps_the_priors_width():
     assert c[2, 2] == pytest.approx(sigma_p**2, rel=1e-9)
     plain = uncertainty.covariance(J[:, :2], r, g)
     np.testing.assert_allclose(c[:2, :2], plain, rtol=0.02)
+
+
+@pytest.mark.parametrize("rows, rho", [(1000, 0.96), (130, -0.5), (40, 0.999), (1, 0.9)])
+def test_the_blocked_backward_filter_equals_lfilter_run_backwards(rows, rho):
+    """``A_t = J_t + rho A_{t+1}`` by (64, 64) blocks against SciPy's ``lfilter`` over the
+    reversed rows: records longer than a block and not a multiple of it, shorter than one, and
+    a single row."""
+    J = np.random.default_rng(rows).normal(size=(rows, 7))
+    expected = lfilter([1.0], [1.0, -rho], J[::-1], axis=0)[::-1]
+    np.testing.assert_allclose(uncertainty.backward_filter(J, rho), expected, rtol=1e-10, atol=1e-12)

@@ -205,11 +205,13 @@ def _linearise(model, u, t, history, input_span_v: float, output_range_nm: float
 def _linear_in_density(model: Preisach, u, history, to_model, flat) -> tuple:
     """``(y, G)`` of a Preisach plane, whose output is linear in its density:
     ``y = offset + R w`` with ``R`` (T, m) the lower triangle's relay states
-    (:meth:`~jaxafm.model.hysteresis.Preisach.design_matrix`) and ``w`` (m,) its densities, so
-    ``G = [R, 1] d(w, offset) / d theta``: the chain rule's inner factor is (m + 1, k), and no
-    tangent of the k parameters runs over the samples (forward mode would carry each through the
-    (T, n, n) relay states)."""
+    (:meth:`~jaxafm.model.hysteresis.Preisach.design_matrix`) and ``w`` (m,) its densities. Each
+    raw parameter sets one density (through softplus) or the offset
+    (:meth:`~jaxafm.model.hysteresis.Preisach.free_parameters`), so ``d(w, offset) / d theta`` is
+    diagonal and ``G = [R, 1] diag(d(w, offset) / d theta)``: one column scaling, where forward
+    mode would carry each of the k tangents through the (T, n, n) relay states."""
     tri = model._triangle()
     weights = lambda x: (lambda m: jnp.append(m.density[tri], m.offset))(to_model(x))
     R = jnp.column_stack([model.design_matrix(u, history), jnp.ones(u.shape[0])])
-    return R @ weights(flat), R @ jax.jacfwd(weights)(flat)
+    w, slopes = jax.jvp(weights, (flat,), (jnp.ones_like(flat),))  # the diagonal's entries
+    return R @ w, R * slopes
