@@ -72,13 +72,14 @@ def leave_group_out(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None
     ``e_g = (I - J_g H^-1 J_g^T)^-1 r_g``, by one of two equal forms: the Woodbury identity
     ``(I - J_g H^-1 J_g^T)^-1 = I + J_g (H - J_g^T J_g)^-1 J_g^T``, a (k, k) solve for each group
     (``k`` parameters); or, for the groups of ``b < k`` rows when they are many enough that
-    forming ``J H^-1`` once (``n k^2`` products for ``n`` rows) costs less than their (k, k)
-    solves (``k^3 / 3`` each), a (b, b) solve each, the groups of one size solved together. (A
+    forming ``W = S J^T`` once (``S^T S = H^-1``, :func:`_half_inverse`: ``n k^2`` products for
+    ``n`` rows) costs less than their (k, k) solves (``k^3 / 3`` each), ``J_g H^-1 J_g^T =
+    W_g^T W_g`` and a (b, b) solve each, the groups of one size solved together. (A
     1,276-parameter Preisach plane on 4,000 samples in groups of a few rows: 478 s by Woodbury
     alone.) With a positive definite ``prior`` every matrix solved is positive definite
-    (``H - J_g^T J_g`` is at least the prior) and solved directly (Cholesky, the stacked small
-    ones by LU); without, by least squares (either may then be singular). ``H``: the Gauss-Newton Hessian
-    ``J^T J + prior`` (:func:`hessian`), if the caller has it already."""
+    (``H - J_g^T J_g`` is at least the prior) and solved directly (Cholesky; the stacked small
+    ones by LU); without, by least squares (either may then be singular). ``H``: the
+    Gauss-Newton Hessian ``J^T J + prior`` (:func:`hessian`), if the caller has it already."""
     n, k = J.shape
     H = hessian(J, prior) if H is None else H
     solve = _cholesky_solve if prior is not None else lambda a, b: np.linalg.lstsq(a, b, rcond=None)[0]
@@ -199,6 +200,6 @@ def backward_filter(J: np.ndarray, rho: float, block: int = 64) -> np.ndarray:
     for start in range(((n - 1) // block) * block, -1, -block):
         rows = slice(start, min(start + block, n))
         m = rows.stop - start
-        A[rows] = M[:m, :m] @ J[rows] + np.outer(carry[:m], after)  # only the last block is short: after = 0
+        A[rows] = M[:m, :m] @ J[rows] + np.outer(carry[:m], after)  # after = 0 for the short last block
         after = A[start]
     return A
