@@ -56,10 +56,14 @@ def test_the_iid_band_of_a_straight_line_is_the_textbook_prediction_interval():
     np.testing.assert_allclose(upper - lower, 2 * norm.ppf(0.95) * np.sqrt(want), rtol=prior_shift)
 
 
-@pytest.mark.parametrize("kind", ["pi", "gpi", "preisach", "gpi_creep"])
-def test_the_linearisation_is_the_predictions_derivative(kind):
+@pytest.mark.parametrize(
+    "kind, history",
+    [("pi", None), ("gpi", None), ("preisach", None), ("preisach", [0.0, 7.5, 1.0]), ("gpi_creep", None)],
+)
+def test_the_linearisation_is_the_predictions_derivative(kind, history):
     """``linearise`` differentiates through the fit's evaluator (plays run once, outside the
-    derivative); its prediction is ``model.predict`` and its Jacobian matches central differences
+    derivative), a Preisach plane's in closed form (with and without an input history before
+    the drive); its prediction is ``model.predict`` and its Jacobian matches central differences
     of ``model.predict`` in each raw parameter (step 1e-5 of an order-one parameter: truncation
     about 1e-10 of the output's scale, round-off about 1e-11 of it)."""
     t = np.linspace(0.0, 8.0, 400)
@@ -71,14 +75,16 @@ def test_the_linearisation_is_the_predictions_derivative(kind):
     flat, unravel = ravel_pytree(raw)
     flat = flat + np.random.default_rng(8).normal(0.0, 0.3, flat.size)  # away from the start's zeros
     model = rebuild(unravel(flat))
-    y, G = linearise(model, SPAN_V, RANGE_NM, u, t)
-    np.testing.assert_allclose(y, model.predict(jnp.asarray(u), jnp.asarray(t)), rtol=1e-12, atol=1e-9)
+    h = None if history is None else jnp.asarray(history)
+    predict = lambda m: m.predict(jnp.asarray(u), jnp.asarray(t), h)
+    y, G = linearise(model, SPAN_V, RANGE_NM, u, t, h)
+    np.testing.assert_allclose(y, predict(model), rtol=1e-12, atol=1e-9)
     raw, rebuild = model.free_parameters(SPAN_V, RANGE_NM)
     flat, unravel = ravel_pytree(raw)
     step = 1e-5
     for k in range(flat.size):
         e = jnp.zeros_like(flat).at[k].set(step)
-        up, down = (rebuild(unravel(flat + s * e)).predict(jnp.asarray(u), jnp.asarray(t)) for s in (1, -1))
+        up, down = (predict(rebuild(unravel(flat + s * e))) for s in (1, -1))
         np.testing.assert_allclose(G[:, k], (up - down) / (2 * step), rtol=1e-6, atol=1e-8 * np.ptp(y))
 
 
