@@ -439,7 +439,7 @@ def with_chunk_observed(earlier: Observed, columns, push=None) -> Observed:
             columns["push_first_along_nm"], columns["push_first_across_nm"], push
         )
         made = ~columns["push_withheld"] & columns["AB_seen"]
-        pushes = push_rows(push, miss, columns["push_contact"], made, xy("push_command"))
+        pushes = push_rows(push, miss, columns["push_contact"], made, push_commands(columns))
     new = observed(
         xy("AB_target"),
         xy("ABC_centre"),
