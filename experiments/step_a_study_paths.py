@@ -30,7 +30,8 @@ import numpy as np
 from bench_step_a import path_error
 
 from jaxafm.config import StudyConfig
-from jaxafm.identify.scan_model import ScanModel, ScanModelSpec, nominal_scan_model
+from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model
+from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import study as job
 from jaxafm.jobs.calibrate import calibration_scans
@@ -53,7 +54,7 @@ def right_matching(scan, sim, wide_loop: bool = False) -> str:
     """Which retrace matching of ``scan`` that step A tries (``"first"``, ``"second"``, with
     ``wide_loop`` also ``"third"``, or ``"none"``) puts its trace and retrace features on the same
     lattice sites through the true scanner of ``sim``."""
-    true = ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
+    true = true_scan_model(sim)
     trace, retraces = scan.feature_matches(wide_loop)
     for name, retrace in zip(("first", "second", "third"), retraces):
         e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxafm.config import CalibrationLattice, SimulatedCalibration
 from jaxafm.identify import features, held_out, stages
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.image_ops import gaussian_kernel
@@ -19,8 +20,10 @@ from jaxafm.identify.polynomial_baseline import BranchPolynomials, fit_polynomia
 from jaxafm.identify.scan_model import DELAY_RESTART_S, ScanModelSpec, nominal_scan_model, transplant
 from jaxafm.identify.staged_fit import identify
 from jaxafm.identify.stages import FitPlan
+from jaxafm.identify.step_a import held_out_floor, tip_path_error, true_scan_model
 from jaxafm.instrument.afm import Raster, RasterScan, default_afm, raster_scan
 from jaxafm.instrument.samples import Lattice
+from jaxafm.jobs import calibrate
 from jaxafm.model.effects import Drift
 from jaxafm.model.scanner import default_scanner
 
@@ -475,7 +478,7 @@ def test_calibrate_config_errors_name_the_key(tmp_path, text, match):
 
 def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     """Trace and retrace files, read back with their size, give the scan the images came from."""
-    from jaxafm.config import CalibrationImages, CalibrationLattice
+    from jaxafm.config import CalibrationImages
     from jaxafm.instrument.images import from_scan, save_image
     from jaxafm.jobs.calibrate import read_calibration
 
@@ -496,3 +499,39 @@ def test_measured_image_pair_becomes_a_calibration_scan(tmp_path):
     spec = spec.model_copy(update={"retrace": "missing.npz"})
     with pytest.raises(OSError, match="missing.npz"):
         read_calibration(spec, CalibrationLattice(), tmp_path / "c.yaml")
+
+
+def test_the_held_out_floor_is_the_pixels_quantisation_of_the_edges():
+    """Through the simulator's own tip path the features' chord centres lie off their sites by the
+    chords' quantisation on the pixels alone (0.2 nm noise): a chord end interpolated between two
+    pixels is off by under half a pixel, so a centre by under a pixel's width in length; and
+    halving the pixel at least halves it. A wrong gauge or a wrong matching would leave whole
+    pitches (1000 nm)."""
+    floors = {}
+    for pixels in (64, 128):
+        spec = SimulatedCalibration(pixels=pixels, size_nm=8000, angles_deg=[0.0])
+        scans, sim = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000))
+        floors[pixels] = held_out_floor(sim, scans)
+    pixel_nm = 8000 / 64
+    assert 0.0 < floors[64] < pixel_nm, floors
+    assert floors[128] < floors[64] / 2, floors
+
+
+def test_the_tip_path_error_sees_a_gain_error_but_not_the_rigid_motion():
+    """A model whose tip path is the simulator's own turned by 0.3°, shifted by 40 nm and stretched
+    by 1 % along x scores a path error of 1 % of the path's spread along x and none along y: the
+    rigid motion no image sees is taken out, a gain error is not."""
+    spec = SimulatedCalibration(pixels=64, size_nm=8000, angles_deg=[0.0])
+    scans, sim = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000))
+    true = true_scan_model(sim)
+    a = np.deg2rad(0.3)
+    turn = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+
+    class Distorted:
+        def paths(self, scan):
+            return [(np.asarray(p) * [1.01, 1.0]) @ turn + [40.0, -40.0] for p in true.paths(scan)]
+
+    x = np.concatenate([np.asarray(p)[..., 0].ravel() for p in true.paths(scans[0])])
+    e = tip_path_error(sim, Distorted(), scans)
+    np.testing.assert_allclose(e[0], 0.01 * np.std(x), rtol=0.02)
+    assert e[1] < 0.05 * e[0]

@@ -15,8 +15,9 @@ from jaxafm.config import CalibrationImages, CalibrationLattice, CalibrationMode
 from jaxafm.identify import features, held_out, staged_fit
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.plausibility import implausible
-from jaxafm.identify.scan_model import ScanModel, ScanModelSpec
+from jaxafm.identify.scan_model import ScanModelSpec
 from jaxafm.identify.stages import FitPlan
+from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
 from jaxafm.instrument.samples import Grating as LineGrating
 from jaxafm.instrument.samples import Tip
@@ -109,16 +110,12 @@ def _scans(angles=(0.0, 90.0), rotation=2.0, pits=False):
     return calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000, pits=pits, rotation_deg="fit"))
 
 
-def _true_model(sim):
-    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
-
-
 @pytest.mark.parametrize("pits", [False, True])
 def test_features_of_both_scans_sit_on_the_true_lattice(pits):
     """Through the true scanner every feature of both scans (trace and retrace, indexed in
     nominal stage coordinates) lies near a whole lattice coordinate, one shift per scan."""
     scans, sim = _scans(pits=pits)
-    true = _true_model(sim)
+    true = true_scan_model(sim)
     for scan in scans:
         ft, fr = scan.features()
         e = np.concatenate([np.asarray(x) for x in true.site_errors(scan, [(ft.rc, ft.ij), (fr.rc, fr.ij)])])
@@ -135,7 +132,7 @@ def test_held_out_residual_separates_the_true_scanner_from_a_wrong_one():
     test = [
         [(f.chords.ends[odd(f)], f.chord_indices()[odd(f)], f.chords.along_lines[odd(f)]) for f in (ft, fr)]
     ]
-    true = _true_model(sim)
+    true = true_scan_model(sim)
     e = np.asarray(true.site_errors(scans[0], [(ft.rc, ft.ij)])[0])  # indices from 0: the true lattice's
     shift = np.round(np.median(e, axis=0)).astype(int)
     test = [[(ends, ij + shift, along) for ends, ij, along in images] for images in test]
@@ -150,10 +147,10 @@ def test_training_masks_cover_a_quarter_pitch_about_even_rows():
     """Closed form: bands of half a pitch about every other row are a quarter of the area (up
     to the partial bands at the image's ends: half a band each over more than 5 pitches)."""
     scans, sim = _scans(angles=(0.0,), rotation=0.0)
-    (train,), (held,) = held_out.split_masks(_true_model(sim), scans, hold_out=True)
+    (train,), (held,) = held_out.split_masks(true_scan_model(sim), scans, hold_out=True)
     assert abs(float(np.mean(train)) - 0.25) < 0.5 / 5 and abs(float(np.mean(held)) - 0.25) < 0.5 / 5
     assert float(np.max(train * held)) == 0.0
-    (full,), none = held_out.split_masks(_true_model(sim), scans, hold_out=False)
+    (full,), none = held_out.split_masks(true_scan_model(sim), scans, hold_out=False)
     assert float(np.min(full)) == 1.0 and none is None
 
 
@@ -376,7 +373,7 @@ def test_the_ellipse_quantile_holds_its_level_of_a_gaussian():
 
 def test_implausible_models_are_named():
     scans, sim = _scans(angles=(0.0,), rotation=0.0)
-    true = _true_model(sim)
+    true = true_scan_model(sim)
     assert implausible(true, scans) == []
     pi = lambda m: m.scanner.x.hysteresis.pi
     weights = pi(true).weights
@@ -398,7 +395,7 @@ def test_image_stages_that_leave_an_implausible_scanner_give_way_to_the_last_pla
     from jaxafm.identify.stages import StageKind
 
     scans, sim = _scans(angles=(0.0,), rotation=0.0)
-    true = _true_model(sim)
+    true = true_scan_model(sim)
     pi = lambda m: m.scanner.x.hysteresis.pi
     tripled = eqx.tree_at(lambda m: pi(m).weights, true, 3 * pi(true).weights)
 

@@ -9,15 +9,12 @@ import pytest
 from jaxafm.config import CalibrationLattice, SimulatedCalibration
 from jaxafm.identify.calibration_scan import _retrace_matches, one_pitch_back, reversal_lag
 from jaxafm.identify.features import LatticeFeatures
-from jaxafm.identify.scan_model import ScanModel, ScanModelSpec, nominal_scan_model, start_lattice, start_loop
+from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model, start_lattice, start_loop
 from jaxafm.identify.staged_fit import identify
 from jaxafm.identify.stages import FitPlan
+from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import calibrate
-
-
-def _true_model(sim):
-    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
 
 
 def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_feature():
@@ -32,7 +29,7 @@ def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_featu
     spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
     (scan,), sim = calibrate.calibration_scans(spec, CalibrationLattice(pitch_nm=1000, rotation_deg=0), afm)
     trace, retraces = scan.feature_matches()
-    true = _true_model(sim)
+    true = true_scan_model(sim)
 
     def shifts(retrace):  # whole-pitch shift of trace and of retrace onto the true sites
         e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])
@@ -105,7 +102,7 @@ def test_wide_loop_puts_a_25_percent_loop_on_its_lattice_in_both_scans_of_a_0_90
         )
         scans.append(scan)
         sims.append(sim)
-    true = _true_model(sims[0])
+    true = true_scan_model(sims[0])
 
     def on_true_sites(scan, trace, retrace):
         e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])

@@ -19,6 +19,7 @@ import numpy as np
 
 from .features import neighbour_distances, pitch_spread
 from .fit import residual_values
+from .image_ops import interpolate
 from .scan_model import ScanModel
 from .stages import chord_linearisation, image_residuals
 
@@ -152,6 +153,26 @@ def held_out_rms(model: ScanModel, scans: tuple, test: list) -> float:
     """The rms length (nm) of :func:`held_out_errors`; NaN when no feature is held out."""
     e = held_out_errors(model, scans, test)
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if len(e) else float("nan")
+
+
+def path_floor(scans: tuple, paths: list, slope=(0.0, 0.0)) -> float:
+    """What :func:`held_out_rms` would be for a model whose tip path is ``paths`` (per scan, its
+    trace's and its retrace's (lines, pixels, 2) nm), the true one where it is known: every
+    feature of every image placed from its chords where that tip crossed them
+    (:func:`chord_centres`, the chords' midpoint ``slope``), less its lattice site after the one
+    rigid motion per image (:func:`fit_sites`), rms nm. With the true path, what is left is the
+    chords' noise, the features' irregularity and the pixels' quantisation of the edges: the
+    floor no model can place the features below from these images."""
+    errors = []
+    for scan, (trace_path, retrace_path) in zip(scans, paths):
+        trace, retraces = scan.feature_matches()
+        for path, found in ((trace_path, trace), (retrace_path, retraces[0])):
+            tips = interpolate(jnp.asarray(path), jnp.asarray(found.chords.ends).reshape(-1, 2))
+            tips = np.asarray(tips).reshape(-1, 2, 2)
+            keys, centres = chord_centres(tips, found.chord_indices(), found.chords.along_lines, slope)
+            ideal = keys * np.asarray(scan.pitch)
+            errors.append(centres - fit_sites(ideal, centres)(ideal))
+    return _rms(np.concatenate(errors))
 
 
 def nominal_centres(scans: tuple, part: list, slope) -> list:

@@ -22,6 +22,7 @@ from ..model.io import describe
 from ..model.scanner import Scanner
 from . import features
 from .calibration_scan import CalibrationScan, drive_range
+from .held_out import fit_sites, path_floor
 from .inverse import Compensator, train_neural_inverse
 from .polynomial_baseline import BranchPolynomials
 from .scan_model import KEY, ScanModel
@@ -232,6 +233,33 @@ def parameters_vs_truth(sim: Simulation, model: ScanModel) -> dict:
                 f"fit_creep_per_decade_{a}": _per_decade(getattr(m, a).creep),
             }
     return out
+
+
+def true_scan_model(sim: Simulation) -> ScanModel:
+    """The simulated instrument as a scan model: its scanner without noise (the tip path the
+    simulator drove, to its noise), its z feedback and its lattice."""
+    return ScanModel(sim.afm.scanner.without("noise"), sim.afm.feedback, sim.lattice, rotation_free=True)
+
+
+def held_out_floor(sim: Simulation, scans: tuple) -> float:
+    """The held-out residual a perfect model would score on the simulated ``scans`` (nm rms,
+    :func:`~jaxafm.identify.held_out.path_floor`) through the simulator's own tip path, with no
+    edge delay: the simulated z lag, stepped once a pixel, has all but settled within a pixel at
+    1 Hz and 128 px or fewer (docs/step_a.md)."""
+    true = true_scan_model(sim)
+    return path_floor(scans, [true.paths(scan) for scan in scans])
+
+
+def tip_path_error(sim: Simulation, model: ScanModel, scans: tuple) -> np.ndarray:
+    """How far (2,) nm rms along x and y the fitted ``model`` puts the tip from where the simulator
+    put it, over every pixel of every scan, trace and retrace, after the one rigid motion of the
+    whole path no image can see (:func:`~jaxafm.identify.held_out.fit_sites`), against
+    :func:`true_scan_model`'s."""
+    true = true_scan_model(sim)
+    stack = lambda m: np.concatenate([np.asarray(p).reshape(-1, 2) for scan in scans for p in m.paths(scan)])
+    fitted, path = stack(model), stack(true)
+    e = fit_sites(fitted, path)(fitted) - path
+    return np.sqrt(np.mean(e**2, axis=0))
 
 
 def _per_decade(creep) -> float:
