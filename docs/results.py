@@ -1913,12 +1913,15 @@ def step_a_ablation(results: Results) -> Table:
     ]
     rows = []
     for label, name in models:
-        if m[f"{name}_plausible"]:
-            rows += grid(m, [(label, f"{name}_analytic_")], COMPENSATED)
+        why = (
+            "; ".join(m[f"{name}_failures"])
+            if not m[f"{name}_plausible"]
+            else m.get(f"{name}_analytic_refused")  # the inverse refused the compensated scan's drive
+        )
+        if why:
+            rows.append([label, f"refused: {why}"] + ["–"] * (len(COMPENSATED) - 1))
         else:
-            rows.append(
-                [label, "refused: " + "; ".join(m[f"{name}_failures"])] + ["–"] * (len(COMPENSATED) - 1)
-            )
+            rows += grid(m, [(label, f"{name}_analytic_")], COMPENSATED)
     return Table(["model"] + [c.header for c in COMPENSATED], rows, [STEP_A_ABL])
 
 

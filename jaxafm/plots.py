@@ -7,6 +7,8 @@ user's interactive plotting as it was, and no display is needed.
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
@@ -193,8 +195,8 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
             ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
     fig.colorbar(im, ax=axes[:2], label="height (nm)", shrink=0.6)
-    if title:
-        fig.suptitle(title)
+    if title:  # wrapped to the figure's width (about 11 characters of the title an inch)
+        fig.suptitle(textwrap.fill(title, width=int(11 * 3.3 * len(names))))
     fig.savefig(path, dpi=110)
 
 

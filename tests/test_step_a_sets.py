@@ -2,6 +2,7 @@
 default calibration, and what a set of measured images may not be."""
 
 import functools
+import json
 import subprocess
 import sys
 
@@ -548,6 +549,31 @@ def test_an_implausible_fit_saves_no_model(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="failed the plausibility checks.*pi: the tip travels 9 µm"):
         calibrate.run(cfg, tmp_path / "c.yaml", Output(tmp_path), log=lambda *_: None)
     assert not (tmp_path / "model_pi.json").exists() and (tmp_path / "metrics.json").is_file()
+
+
+def test_a_compensated_scan_the_inverse_refuses_is_reported_and_the_rest_is_written(tmp_path, monkeypatch):
+    """A compensated scan 20 % wider than the calibration on each side needs drives beyond the
+    range the model was fitted over: its inverse refuses them. The run goes on, writes the model,
+    the uncompensated scan's errors and the refusal into metrics.json, then fails naming it."""
+    from jaxafm.config import CalibrateConfig
+
+    for check in ("implausible", "unvalidated", "undetermined", "unsettled"):  # a 3-step fit: the
+        monkeypatch.setattr(staged_fit, check, lambda *a, **k: [])  # compensation is the point here
+    extent = lambda xy: (xy[..., 0].min(), xy[..., 0].max(), xy[..., 1].min(), xy[..., 1].max())
+    monkeypatch.setattr(calibrate, "_placed", lambda path, z: (z, extent(path)))  # as the test above
+    cfg = CalibrateConfig(
+        simulate={"pixels": 64, "size_nm": 6000},
+        models=[{"name": "pi", "kind": "pi", "operators": 4, "effects": []}],
+        solver={"max_steps": 3, "blur_px": [], "select": False},
+        compensate={"scan_fraction": 1.0, "overscan": 0.2, "inverses": ["analytic"], "paper_baseline": False},
+    )
+    with pytest.raises(
+        ValueError, match=r"compensated scan of pi \+ analytic was refused: .*outside the range"
+    ):
+        calibrate.run(cfg, tmp_path / "c.yaml", Output(tmp_path), log=lambda *_: None)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert "outside the range" in metrics["pi_analytic_refused"]
+    assert "uncompensated_linearity_error_trace_pct" in metrics and (tmp_path / "model_pi.json").is_file()
 
 
 @pytest.mark.parametrize(

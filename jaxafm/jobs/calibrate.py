@@ -199,7 +199,8 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
 
     Raises:
         ValueError: after writing the metrics and figures, when a model failed the
-            plausibility checks (naming each failure).
+            plausibility checks or its inverse refused the compensated scan's drive (beyond the
+            range it was fitted over), naming each.
     """
     scans, sim = _scans(cfg, config_path, log)
     for scan in scans:
@@ -218,7 +219,7 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
     if cfg.compensate is not None and sim is None:
         log("measured images: no instrument to re-image with, so no compensation study")
     work = None if comp is None else _compensated_raster(first.raster, comp.scan_fraction, comp.overscan)
-    rows, images, failed = [], {}, {}
+    rows, images, failed, refused = [], {}, {}, {}
     if comp is not None:
         images = _baselines(sim, work, first, comp.paper_baseline, metrics, rows, log)
     source = "simulated calibration scan" if sim is not None else _files(cfg.data)
@@ -231,7 +232,13 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
         out.write(f"model_{spec.name}.json", lambda path: save_model(ident.model.scanner, path, about))
         for method in comp.inverses if comp is not None else ():
             volts = model_compensator(ident.model, scans, sim, method)
-            image = _measure(sim, work, volts, f"{spec.name}_{method}", ident.seconds, metrics, rows)
+            try:
+                image = _measure(sim, work, volts, f"{spec.name}_{method}", ident.seconds, metrics, rows)
+            except ValueError as e:  # its inverse refuses a drive beyond the range it was fitted over
+                metrics[f"{spec.name}_{method}_refused"] = str(e)
+                log(f"  {spec.name} + {method}: compensated scan refused: {e}")
+                refused[f"{spec.name} + {method}"] = str(e)
+                continue
             if spec is cfg.models[0]:
                 images[f"{spec.name} + {method}"] = image
     if rows:
@@ -242,12 +249,12 @@ def run(cfg: CalibrateConfig, config_path: Path, out: Output, log=print) -> dict
             lambda path: plots.compensation(images, work, path, title + "and with compensation (Fig. 7)"),
         )
     out.write_metrics(metrics)
-    if failed:  # the metrics and figures are written: they say why
-        raise ValueError(
-            "step A failed the plausibility checks, no model file saved for "
-            + "; ".join(f"{name}: {', '.join(f)}" for name, f in failed.items())
-            + f" (metrics.json and validation figures in {out.path})"
-        )
+    problems = [
+        f"step A failed the plausibility checks, no model file saved for {name}: {', '.join(f)}"
+        for name, f in failed.items()
+    ] + [f"the compensated scan of {name} was refused: {why}" for name, why in refused.items()]
+    if problems:  # the metrics and figures are written: they say why
+        raise ValueError("; ".join(problems) + f" (metrics.json and figures in {out.path})")
     return metrics
 
 
