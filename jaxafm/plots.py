@@ -196,7 +196,7 @@ def compensation(images: dict, raster, path, title: str = "", every: int = 16) -
         ax.grid(alpha=0.3)
     fig.colorbar(im, ax=axes[:2], label="height (nm)", shrink=0.6)
     if title:  # wrapped to the figure's width (about 11 characters of the title an inch)
-        fig.suptitle(textwrap.fill(title, width=int(11 * 3.3 * len(names))))
+        fig.suptitle(textwrap.fill(title, width=int(11 * fig.get_figwidth())))
     fig.savefig(path, dpi=110)
 
 
