@@ -20,11 +20,12 @@ generator's truth:
     python experiments/step_a_independent.py [--cases 20] [--speeds 4] [--shard 1/2] [--resume]
     python experiments/step_a_independent.py --seeds 102 105  # those cases again, in place
     python experiments/step_a_independent.py --model preisach  # step A with the Preisach class
+    python experiments/step_a_independent.py --creep-onset --seeds 102 105  # creep's onset fitted too
 
 writes experiments/results/step_a_independent/ (step_a_independent_preisach/ with --model
-preisach): cases-K-of-N.json per shard, after each case (with --resume the cases already in one
-are skipped); then summary.json and summary.png, what the docs table shows (--summarise: those
-alone).
+preisach; the folder's name ending _creep_onset with --creep-onset): cases-K-of-N.json per
+shard, after each case (with --resume the cases already in one are skipped); then summary.json
+and summary.png, what the docs table shows (--summarise: those alone).
 """
 
 from __future__ import annotations
@@ -139,6 +140,7 @@ def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL) -> dict:
     m |= path_coverage(ident, scans, case)
     truth = case["truth"]["scanner"]
     m["true_rate_lag_s"] = truth["rate_tau_s"]
+    m["true_creep_per_decade"] = truth["creep_per_decade"]
     m["true_drift_nm_per_s"] = truth["drift_nm_per_s"]
     m["true_loop_pct"] = [a["loop_pct"] for a in truth["axes"]]
     return _row(spec, case, m, time.perf_counter() - began, said)
@@ -439,8 +441,15 @@ def main() -> None:
         default="gpi",
         help="step A's model class (its own results folder)",
     )
+    a.add_argument(
+        "--creep-onset",
+        action="store_true",
+        help="fit creep's onset too (the model's creep_onset; its own results folder)",
+    )
     args = a.parse_args()
     model, folder = CLASSES[args.model]
+    if args.creep_onset:
+        model, folder = model | {"creep_onset": True}, folder.with_name(folder.name + "_creep_onset")
     folder.mkdir(parents=True, exist_ok=True)
     if args.seeds:
         rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder)

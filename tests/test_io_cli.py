@@ -142,6 +142,22 @@ def test_saved_scanner_round_trips(tmp_path):
     assert back.effects == s.effects
 
 
+def test_a_saved_creep_keeps_its_onset_and_a_file_without_one_reads_as_none(tmp_path):
+    from jaxafm.model.effects import Creep
+
+    s = default_scanner()
+    onset = eqx.tree_at(lambda m: m.x.creep, s, s.x.creep.with_onset(0.3))
+    save_model(onset, tmp_path / "s.json")
+    back = load_model(tmp_path / "s.json").x.creep
+    assert float(back.onset) == pytest.approx(0.3, rel=1e-15)
+    np.testing.assert_array_equal(np.asarray(back.weights), np.asarray(onset.x.creep.weights))
+    saved = json.loads((tmp_path / "s.json").read_text())
+    del saved["model"]["fields"]["x"]["fields"]["creep"]["fields"]["onset"]  # as written before onsets
+    write(tmp_path / "old.json", json.dumps(saved))
+    assert isinstance(load_model(tmp_path / "old.json").x.creep, Creep)
+    assert load_model(tmp_path / "old.json").x.creep.onset is None
+
+
 def test_a_saved_lag_keeps_its_hold_and_a_version_3_file_reads_as_the_zero_hold(tmp_path):
     lagged = eqx.tree_at(
         lambda s: s.x.rate_dependence,

@@ -118,6 +118,35 @@ def test_logarithmic_creep_grows_gamma_per_decade(gamma):
     assert 0 < y[-1] / d0 - 1 < 6 * gamma
 
 
+@pytest.mark.parametrize("onset", [0.03, 0.1, 0.5])
+def test_creep_with_an_onset_follows_the_log_law_from_zero(onset):
+    """The regularised log law d(t) = d0 (1 + gamma log10(1 + t / t0)) (Creep.with_onset) after a
+    step, closed form: within 1e-3 gamma d0 of it for t <= 2 s (the bank's discretisation at 2
+    lags a decade; the law's own slope there is gamma d0 / (ln 10 (t + t0)))."""
+    gamma, d0 = 0.02, 100.0
+    t = np.concatenate([[0.0], np.logspace(-3, np.log10(2.0), CREEP_T - 1)])
+    v = np.full(CREEP_T, d0)
+    v[0] = 0.0
+    creep = Creep.logarithmic(gamma, 0.01, 1000.0).with_onset(onset)
+    y = np.asarray(call(creep, jnp.asarray(v), jnp.asarray(t)))
+    want = d0 * (1 + gamma * np.log10(1 + t[1:] / onset))
+    np.testing.assert_allclose(y[1:], want, rtol=0, atol=1e-3 * gamma * d0)
+    assert float(creep.per_decade) == pytest.approx(gamma, rel=1e-12)
+
+
+def test_creep_onset_and_rate_round_trip_through_the_free_parameters():
+    """rebuild(raw) gives back the same bank, and raw moves the rate and the onset as documented:
+    raw_1 + ln 2 doubles the onset, the rate per decade staying."""
+    creep = Creep.logarithmic(0.015, 0.01, 1000.0).with_onset(0.2)
+    raw, rebuild = creep.free_parameters(0.001, rate=True)
+    back = rebuild(raw)
+    np.testing.assert_allclose(back.weights, creep.weights, rtol=1e-12, atol=1e-300)
+    assert float(back.onset) == pytest.approx(0.2, rel=1e-12)
+    doubled = rebuild(raw + jnp.asarray([0.0, np.log(2.0)]))
+    assert float(doubled.onset) == pytest.approx(0.4, rel=1e-12)
+    assert float(doubled.per_decade) == pytest.approx(0.015, rel=1e-12)
+
+
 def test_creep_without_step_is_identity():
     """Constant drive: the lags start relaxed at v[0], so nothing creeps."""
     t = jnp.linspace(0.0, 10.0, CREEP_T)

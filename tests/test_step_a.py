@@ -320,13 +320,32 @@ def test_coarse_factor_keeps_eight_pixels_a_pitch():
     assert stages.coarse_factor((make(256, 1000.0),), 8) == 8
 
 
-def test_parameters_rebuild_the_model_they_came_from():
+@pytest.mark.parametrize("creep_onset", [False, True])
+def test_parameters_rebuild_the_model_they_came_from(creep_onset):
     scan, _ = _simulated_scan()
-    model = nominal_scan_model(scan)
+    model = nominal_scan_model(scan, ScanModelSpec(creep_onset=creep_onset))
+    assert (model.scanner.x.creep.onset is not None) == creep_onset
     raw, rebuild = model.free_parameters(scan)
     back = rebuild(raw)
     for a, b in zip(jax.tree.leaves(model), jax.tree.leaves(back)):
         assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+
+
+def test_a_model_asks_for_creep_onset_by_name_and_the_fit_is_told(tmp_path, monkeypatch):
+    """``creep_onset: true`` in a model of the calibrate config reaches step A's spec; the default
+    is the fixed-shape creep; a value that is not a yes or no is refused naming the key."""
+    from jaxafm.config import CalibrateConfig, ConfigError, load_config
+
+    cfg = CalibrateConfig(simulate={}, models=[{"name": "a", "creep_onset": True}, {"name": "b"}])
+    assert [m.creep_onset for m in cfg.models] == [True, False]
+    seen = {}
+    monkeypatch.setattr(calibrate, "identify", lambda scans, spec, plan, log: seen.setdefault("spec", spec))
+    calibrate.identify_model((), cfg.models[0], cfg.solver, cfg.grating)
+    assert seen["spec"].creep_onset is True
+    path = tmp_path / "c.yaml"
+    path.write_text("simulate: {}\nmodels: [{name: a, creep_onset: sometimes}]\n")
+    with pytest.raises(ConfigError, match="creep_onset"):
+        load_config(path, CalibrateConfig)
 
 
 # ---------------------------------------------------------------- the paper's baseline, the run

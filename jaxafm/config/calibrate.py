@@ -201,6 +201,11 @@ class CalibrationModel(HysteresisSpec):
     kind: HysteresisKind = "gpi"
     operators: Operators = 16
     effects: list[str] = Field(list(CALIBRATION_EFFECTS), description="effects besides hysteresis")
+    creep_onset: bool = Field(
+        False,
+        description="creep as d0 (1 + gamma log10(1 + t / t0)) with its onset t0 (s) fitted too; "
+        "otherwise a log law of fixed shape from 0.1 s",
+    )
 
     @model_validator(mode="before")
     @classmethod

@@ -135,13 +135,19 @@ def _quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
         )
         axis = getattr(model.scanner, a)
         if axis.creep is not None:
-            per = 1 / np.diff(np.log10(np.asarray(axis.creep.taus)))[0]
             add(
                 f"{a}_creep_per_decade",
                 f"{a} creep",
                 "per decade",
-                lambda m, a=a, per=per: jnp.mean(getattr(m.scanner, a).creep.weights) * per,
+                lambda m, a=a: getattr(m.scanner, a).creep.per_decade,
             )
+            if axis.creep.onset is not None:
+                add(
+                    f"{a}_creep_onset_s",
+                    f"{a} creep onset",
+                    "s",
+                    lambda m, a=a: getattr(m.scanner, a).creep.onset,
+                )
         if axis.rate_dependence is not None:
             add(
                 f"{a}_rate_lag_s",

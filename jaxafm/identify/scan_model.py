@@ -35,6 +35,12 @@ KEY = jax.random.key(0)  # a fitted model's drift has no wander, so its key neve
 #: step A's starting creep, fraction per decade: positive, as its fit keeps it (a tenth of the
 #: 0.01-0.02 of published data)
 CREEP_START = 1e-3
+#: step A's creep bank with a fitted onset (``ScanModelSpec.creep_onset``,
+#: :meth:`~jaxafm.model.effects.Creep.with_onset`): lags from 10 ms to 1000 s, 2 a decade (a
+#: pixel's time at 64-512 px and 0.5-4 Hz is 0.2-16 ms), and the onset it starts from, the 0.1 s
+#: the log law is often written from (``log10(t / 0.1 s)``)
+CREEP_ONSET_TAUS_S = (0.01, 1000.0)
+CREEP_ONSET_START_S = 0.1
 
 # The order-one scales of step A's parameters (what a raw value of 1 stands for). Phase and
 # radius are in pitches and the depth in the image's height range (the scan's ``depth_scale``);
@@ -72,6 +78,9 @@ class ScanModelSpec:
         deadzone_reach: per stage axis ``(below, above)`` nm, where to lay the dead zones out
             instead of the imaged half width (step A's model ladder sets it,
             :func:`~jaxafm.identify.selection.supported_dead_zones`).
+        creep_onset: creep follows ``d0 (1 + gamma log10(1 + t / t0))`` with its onset ``t0``
+            fitted too (:meth:`~jaxafm.model.effects.Creep.with_onset`); otherwise a log law
+            of fixed shape from 0.1 s.
     """
 
     kind: str = "gpi"
@@ -81,6 +90,7 @@ class ScanModelSpec:
     levels: int = 20
     rotation: Optional[float] = 0.0
     deadzone_reach: Optional[tuple] = None
+    creep_onset: bool = False
 
 
 class ScanModel(eqx.Module):
@@ -369,8 +379,16 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tup
         h,
         # a raster's drive is a ramp between its samples, one a pixel: the linear hold
         RateDependence(jnp.asarray(5e-3), hold="linear") if "rate_dependence" in spec.effects else None,
-        Creep.logarithmic(CREEP_START, per_decade=1) if "creep" in spec.effects else None,
+        _nominal_creep(spec) if "creep" in spec.effects else None,
     )
+
+
+def _nominal_creep(spec: ScanModelSpec) -> Creep:
+    """Step A's starting creep: :data:`CREEP_START` a decade on lags from 0.1 s to 1000 s, one a
+    decade, or with ``spec.creep_onset`` the regularised log law from 10 ms, its onset fitted."""
+    if spec.creep_onset:
+        return Creep.logarithmic(CREEP_START, *CREEP_ONSET_TAUS_S).with_onset(CREEP_ONSET_START_S)
+    return Creep.logarithmic(CREEP_START, per_decade=1)
 
 
 def transplant(fitted: ScanModel, into: ScanModel) -> ScanModel:

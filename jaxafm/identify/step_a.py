@@ -229,8 +229,8 @@ def parameters_vs_truth(sim: Simulation, model: ScanModel) -> dict:
     for a in ("x", "y"):
         if getattr(t, a).creep is not None and getattr(m, a).creep is not None:
             out |= {
-                f"true_creep_per_decade_{a}": _per_decade(getattr(t, a).creep),
-                f"fit_creep_per_decade_{a}": _per_decade(getattr(m, a).creep),
+                f"true_creep_per_decade_{a}": float(getattr(t, a).creep.per_decade),
+                f"fit_creep_per_decade_{a}": float(getattr(m, a).creep.per_decade),
             }
     return out
 
@@ -260,9 +260,3 @@ def tip_path_error(sim: Simulation, model: ScanModel, scans: tuple) -> np.ndarra
     fitted, path = stack(model), stack(true)
     e = fit_sites(fitted, path)(fitted) - path
     return np.sqrt(np.mean(e**2, axis=0))
-
-
-def _per_decade(creep) -> float:
-    """Creep per decade of time (fraction) of a logarithmic bank: mean weight x lags per decade."""
-    per_decade = 1 / np.diff(np.log10(np.asarray(creep.taus)))[0]
-    return float(np.mean(creep.weights) * per_decade)

@@ -176,7 +176,13 @@ def identify_model(
     the default image stages, :meth:`~jaxafm.config.CalibrationSolver.image_blurs`) with the
     configured ``solver``."""
     spec = ScanModelSpec(
-        model.kind, tuple(model.effects), model.operators, model.deadzones, model.levels, grating.rotation_rad
+        model.kind,
+        tuple(model.effects),
+        model.operators,
+        model.deadzones,
+        model.levels,
+        grating.rotation_rad,
+        creep_onset=model.creep_onset,
     )
     max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
     plan = FitPlan(

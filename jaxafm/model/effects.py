@@ -8,6 +8,8 @@ the AFM records heights through ``FeedbackLag`` or ``FeedbackAsymmetry``.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -112,6 +114,9 @@ def hold_weights(dt: Array, tau: Array, hold: str) -> tuple:
 #: enough to be no creep (1e-5 of the move per lag at the fit's usual scale 0.01), large enough
 #: for the softplus to pass the fit a gradient (its slope there 1e-3)
 CREEP_START_FLOOR = 1e-3
+#: the onset (s) a raw value of 0 stands for when a fit frees it (``t0 = ONSET_SCALE_S exp(raw)``:
+#: one raw unit is a factor e)
+ONSET_SCALE_S = 0.1
 
 
 class Creep(eqx.Module):
@@ -126,14 +131,48 @@ class Creep(eqx.Module):
     ``d(t) = d0 (1 + gamma log10(t / 0.1 s))``, with a level about ``gamma d0 / 2`` higher.
     The lags start relaxed at ``v[0]`` (the scanner rested there before ``t[0]``),
     whatever input ``history`` the hysteresis stage was given.
+
+    **With an onset** ``t0`` (:meth:`with_onset`) the bank follows the regularised log law
+    ``d(t) = d0 (1 + gamma log10(1 + t / t0))`` (the log law ``log10(t / t0)`` of Jung & Gweon
+    2000, kept finite at ``t = 0``): its rate ``d'(t) = gamma d0 / (ln 10 (t + t0))
+    = gamma d0 / ln 10 int_0^inf exp(-s (t + t0)) ds`` is a superposition of decays whose
+    weight per decade of ``tau = 1 / s`` is ``gamma exp(-t0 / tau)``, so
+    ``g_k = (gamma / m) exp(-t0 / tau_k)``: the lags faster than the onset fade, those slower
+    creep at ``gamma`` a decade. At 2 lags a decade from 10 ms the bank's step response is
+    within 1e-3 gamma of the law for t <= 2 s and any t0 of 30 ms-0.5 s.
     """
 
     taus: Array  # (K,) s
     weights: Array  # (K,) dimensionless
+    onset: Optional[Array] = None  # s: t0 of the log law the weights follow; None: uniform
 
     def __check_init__(self):
         checks.positive("Creep.taus", self.taus)
         checks.finite("Creep.weights", self.weights)
+        if self.onset is not None:
+            checks.positive("Creep.onset", self.onset)
+
+    @property
+    def per_decade(self) -> Array:
+        """``gamma``: the creep (fraction of a step) per decade of time: ``m`` lags a decade times
+        their mean weight, or with an onset, once past it, ``m g_K / exp(-t0 / tau_K)`` from the
+        slowest lag (whose onset factor is nearest 1)."""
+        m = 1 / jnp.log10(self.taus[1] / self.taus[0]) if self.taus.size > 1 else 1.0
+        if self.onset is None:
+            return m * jnp.mean(self.weights)
+        return m * self.weights[-1] / self._onset_factor()[-1]
+
+    def _onset_factor(self) -> Array:
+        """``exp(-t0 / tau_k)`` per lag; ones without an onset."""
+        return jnp.ones_like(self.taus) if self.onset is None else jnp.exp(-self.onset / self.taus)
+
+    def with_onset(self, onset: float) -> Creep:
+        """The same lags and rate per decade with the onset ``t0`` (s; class docstring)."""
+        checks.positive("creep onset", onset)
+        gamma = self.per_decade
+        m = 1 / jnp.log10(self.taus[1] / self.taus[0])
+        t0 = jnp.asarray(onset, dtype=self.taus.dtype)
+        return Creep(self.taus, gamma / m * jnp.exp(-t0 / self.taus), t0)
 
     @classmethod
     def logarithmic(cls, gamma: float, tau_min: float = 0.1, tau_max: float = 1000.0, per_decade: int = 2):
@@ -153,7 +192,9 @@ class Creep(eqx.Module):
             scale: the weight a raw value of 1 stands for (dimensionless).
             rate: fit one creep rate shared by every lag, so that a logarithmic bank stays
                 logarithmic: ``raw`` is the mean over the lags of ``softplus^-1(g_k / scale)``,
-                every ``g_k = softplus(raw) scale``. Otherwise every weight is its own,
+                every ``g_k = softplus(raw) scale``; with an :attr:`onset`, ``raw`` is (rate,
+                onset), ``g_k = softplus(raw_0) scale exp(-t0 / tau_k)``,
+                ``t0 = ONSET_SCALE_S exp(raw_1)``. Otherwise every weight is its own,
                 ``raw_k = softplus^-1(max(g_k / scale, CREEP_START_FLOOR))``.
 
         Every weight stays >= 0: creep continues the move. Weights of either sign would let the
@@ -165,6 +206,19 @@ class Creep(eqx.Module):
         Returns:
             ``(raw, rebuild)``: the raw parameters and ``rebuild(raw) -> Creep``.
         """
+        if rate and self.onset is not None:  # (rate, log onset): g_k = softplus(p0) scale exp(-t0 / tau_k)
+            raw = jnp.stack(
+                [
+                    softplus_inverse(self.weights[-1] / self._onset_factor()[-1] / scale),
+                    jnp.log(self.onset / ONSET_SCALE_S),
+                ]
+            )
+
+            def rebuild(p):
+                t0 = ONSET_SCALE_S * jnp.exp(p[1])
+                return Creep(self.taus, jax.nn.softplus(p[0]) * scale * jnp.exp(-t0 / self.taus), t0)
+
+            return raw, rebuild
         if rate:
             raw = jnp.mean(softplus_inverse(self.weights / scale))
             return raw, lambda p: Creep(self.taus, jax.nn.softplus(p) * scale * jnp.ones_like(self.weights))
