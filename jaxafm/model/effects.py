@@ -157,10 +157,13 @@ class Creep(eqx.Module):
         """``gamma``: the creep (fraction of a step) per decade of time: ``m`` lags a decade times
         their mean weight, or with an onset, once past it, ``m g_K / exp(-t0 / tau_K)`` from the
         slowest lag (whose onset factor is nearest 1)."""
-        m = 1 / jnp.log10(self.taus[1] / self.taus[0]) if self.taus.size > 1 else 1.0
         if self.onset is None:
-            return m * jnp.mean(self.weights)
-        return m * self.weights[-1] / self._onset_factor()[-1]
+            return self._lags_per_decade() * jnp.mean(self.weights)
+        return self._lags_per_decade() * self.weights[-1] / self._onset_factor()[-1]
+
+    def _lags_per_decade(self) -> Array:
+        """``m``: the bank's lags per decade of time (1 for a single lag)."""
+        return 1 / jnp.log10(self.taus[1] / self.taus[0]) if self.taus.size > 1 else jnp.asarray(1.0)
 
     def _onset_factor(self) -> Array:
         """``exp(-t0 / tau_k)`` per lag; ones without an onset."""
@@ -169,10 +172,8 @@ class Creep(eqx.Module):
     def with_onset(self, onset: float) -> Creep:
         """The same lags and rate per decade with the onset ``t0`` (s; class docstring)."""
         checks.positive("creep onset", onset)
-        gamma = self.per_decade
-        m = 1 / jnp.log10(self.taus[1] / self.taus[0])
         t0 = jnp.asarray(onset, dtype=self.taus.dtype)
-        return Creep(self.taus, gamma / m * jnp.exp(-t0 / self.taus), t0)
+        return Creep(self.taus, self.per_decade / self._lags_per_decade() * jnp.exp(-t0 / self.taus), t0)
 
     @classmethod
     def logarithmic(cls, gamma: float, tau_min: float = 0.1, tau_max: float = 1000.0, per_decade: int = 2):
