@@ -1506,10 +1506,8 @@ def _lag_error(fitted: Optional[float], true: float) -> str:
 
 @table("step_a_creep_onset_floor")
 def step_a_creep_onset_floor(results: Results) -> Table:
-    rows = []
-    for r in results(STEP_A_FLOOR_ONSET):
-        if "floor_preisach_creep_onset" not in r:
-            continue
+    rows, cases = [], [r for r in results(STEP_A_FLOOR_ONSET) if "floor_preisach_creep_onset" in r]
+    for r in cases:
         true = r["true_rate_lag_s"]
         fits = [
             ("floor, creep of fixed shape", r["floor_preisach"]),
@@ -1530,17 +1528,9 @@ def step_a_creep_onset_floor(results: Results) -> Table:
     note = (
         "Preisach class: the floor 16 levels with every effect, step A its ladder. The generator: "
         "drive lag "
-        + ", ".join(
-            f"{q(1e3 * r['true_rate_lag_s'], 'ms', 2)}"
-            for r in results(STEP_A_FLOOR_ONSET)
-            if "floor_preisach_creep_onset" in r
-        )
+        + ", ".join(q(1e3 * r["true_rate_lag_s"], "ms", 2) for r in cases)
         + ", creep per decade "
-        + ", ".join(
-            f"{q(100 * r['true_creep_per_decade'], '%', 2)}"
-            for r in results(STEP_A_FLOOR_ONSET)
-            if "floor_preisach_creep_onset" in r
-        )
+        + ", ".join(q(100 * r["true_creep_per_decade"], "%", 2) for r in cases)
         + " from an onset of 0.1 s. Fitted creep is the x axis'; the floor's creep of fixed shape "
         "predates its report (–)."
     )

@@ -141,6 +141,12 @@ def step_a(spec: dict, pixels: int, kind: str, model_class: str, creep_onset: bo
     }
 
 
+def _suffix(model_class: str, creep_onset: bool) -> str:
+    """The ending of a class's keys in floor.json: none for ``gpi``, ``_preisach`` for the
+    Preisach class; then ``_creep_onset`` with the creep's onset fitted."""
+    return ("" if model_class == "gpi" else f"_{model_class}") + ("_creep_onset" if creep_onset else "")
+
+
 def run(
     seed: int,
     steps: int,
@@ -157,7 +163,7 @@ def run(
     also fitted to the case drawn without the generator's creep (``floor..._no_creep``)."""
     spec = next(c for c in S.plan(20, 3) if c["seed"] == seed)
     out = {"seed": seed, "rates_hz": list(spec["rates"]), "angles_deg": list(spec["angles"])}
-    suffix = ("" if model_class == "gpi" else f"_{model_class}") + ("_creep_onset" if creep_onset else "")
+    suffix = _suffix(model_class, creep_onset)
     out["step_a" + suffix] = step_a(spec, pixels, kind, model_class, creep_onset)
     if not floors:
         return out
@@ -200,9 +206,7 @@ def main() -> None:
             earlier = next((row for row in rows if row["seed"] == seed), {})
             rows = [row for row in rows if row["seed"] != seed] + [earlier | r]
             out.write_text(json.dumps(sorted(rows, key=lambda row: row["seed"]), indent=1, default=float))
-            suffix = ("" if model_class == "gpi" else f"_{model_class}") + (
-                "_creep_onset" if args.creep_onset else ""
-            )
+            suffix = _suffix(model_class, args.creep_onset)
             a_, f_ = r["step_a" + suffix], (earlier | r)["floor" + suffix]
             print(
                 f"seed {seed}, {model_class}: step A {a_['all_px']:.2f} px (inside the reach "

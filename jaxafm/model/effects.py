@@ -210,7 +210,7 @@ class Creep(eqx.Module):
         if rate and self.onset is not None:  # (rate, log onset): g_k = softplus(p0) scale exp(-t0 / tau_k)
             raw = jnp.stack(
                 [
-                    softplus_inverse(self.weights[-1] / self._onset_factor()[-1] / scale),
+                    softplus_inverse(self.per_decade / self._lags_per_decade() / scale),
                     jnp.log(self.onset / ONSET_SCALE_S),
                 ]
             )
