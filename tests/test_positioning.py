@@ -457,8 +457,8 @@ def test_a_corrective_push_brings_a_short_push_towards_the_goal():
     directions = jnp.array([[0.6, 0.8], [-1.0, 0.0], [0.0, -1.0], [0.8, 0.6]])
     R, distance, approach = 5.0, 600.0, 500.0
 
-    found, (checked, _) = _scan_push_and_check(
-        pos, stand, centres, directions, R, distance, approach, jax.random.key(1)
+    found, (checked, _) = _scan_push_and_check(  # learnt given as later: one compile for both
+        pos, stand, centres, directions, R, distance, approach, jax.random.key(1), NO_PUSH_FIELD
     )
     final, touched, first, made = (
         checked.final,
