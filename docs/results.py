@@ -374,6 +374,8 @@ STEP_A_RERUNS = {
         STEP_A_INDEPENDENT.path, "python experiments/step_a_independent.py --pixels 64 --seeds " + seeds
     ): seeds
     for seeds in (
+        "100 106 116",
+        "114 105 102 108 111 117",
         "102 108 111 117",
         "100 101 103 104 106 107 109 110 112 113 115 116 118 119 901",
         "114 105 900 901",
@@ -1292,6 +1294,16 @@ def step_a_nanosurf(results: Results) -> Table:
                     "%",
                     2,
                 ),
+                " / ".join(
+                    _raw_to(
+                        m,
+                        f"gpi_feature_width_spread_{way}_raw_pct",
+                        f"gpi_feature_width_spread_{way}_corrected_pct",
+                        "%",
+                        2,
+                    )
+                    for way in ("along", "across")
+                ),
                 q(m["gpi_plausible"]),
                 q(m["gpi_fit_s"], "s", 0),
             ]
@@ -1303,6 +1315,7 @@ def step_a_nanosurf(results: Results) -> Table:
         "held-out residual, raw → corrected",
         "local pitch spread",
         "largest distance error",
+        "feature widths' spread, along / across the lines",
         "saved",
         "fit",
     ]
@@ -1481,7 +1494,8 @@ def _lags(row: dict, suffix: str = "") -> str:
 
 STEP_A_CREEP_ONSET = Run(
     "step_a_independent_creep_onset/cases-rerun.json",
-    "python experiments/step_a_independent.py --pixels 64 --creep-onset --seeds 102 105 108 111 114 117",
+    "python experiments/step_a_independent.py --pixels 64 --creep-onset --seeds 102 105 108 111 114 117 && "
+    "python experiments/step_a_independent.py --pixels 64 --creep-onset --seeds 114",
 )
 STEP_A_FLOOR_ONSET = Run(
     "step_a_independent/floor.json",
@@ -1694,6 +1708,53 @@ def step_a_independent_preisach(results: Results) -> Table:
         "Tip path rms against the truth after the rigid motion (inside / outside the features' reach where "
         "the run split it); held-out features as `jaxafm calibrate` gives them; refused: the fit step A "
         "refused or judged not plausible; not saved: none scored."
+    )
+    return Table(header, rows, runs, note)
+
+
+@table("step_a_feature_widths")
+def step_a_feature_widths(results: Results) -> Table:
+    """The generator's cases whose runs measured the features' widths (generalised PI, with the
+    fixed creep shape and with its onset fitted): tip path, held-out features, the widths'
+    spread along and across the lines raw and corrected, and what step A refused them for."""
+    px = lambda v: q(v, "px", 2)
+    gpi = _gpi_cases(results)
+    found = [(row, run, "") for row, run in gpi.values()]
+    found += [(row, STEP_A_CREEP_ONSET, ", creep onset fitted") for row in results(STEP_A_CREEP_ONSET)]
+    rows, runs = [], []
+    for r, run, how in sorted(found, key=lambda f: (f[0]["seed"], f[2])):
+        if "gpi_feature_widths_across" not in r:
+            continue
+        runs += [run] if run not in runs else []
+        spread = lambda way: (
+            f"{q(r[f'gpi_feature_width_spread_{way}_raw_pct'], '%', 1)} → "
+            f"{q(r[f'gpi_feature_width_spread_{way}_corrected_pct'], '%', 1)}"
+        )
+        why = [
+            reason
+            for reason, words in (
+                ("widths", "widths"),
+                ("path open", "leave the tip path open"),
+                ("local pitch", "local pitch"),
+            )
+            if any(words in f for f in r.get("gpi_failures", []))
+        ]
+        rows.append(
+            [
+                f"{r['seed']} ({_scans_label(r)}{how})",
+                px(r["tip_path_rms_px"]),
+                px(r["gpi_held_out_rms_nm"] / r["pixel_nm"]),
+                spread("along"),
+                spread("across"),
+                "saved" if r.get("gpi_plausible") else "refused: " + ", ".join(why or ["another check"]),
+            ]
+        )
+    header = ["case", "tip path", "held-out features", "widths' spread along the lines, raw → corrected"]
+    header += ["across the lines", "step A"]
+    note = (
+        "Tip path rms against the truth after the rigid motion; the widths' spread over every feature of "
+        "every image, % of their mean; refused: the checks that refused the fit (widths: the feature "
+        "width check; path open: the path check; local pitch: the held-out local pitch check)."
     )
     return Table(header, rows, runs, note)
 

@@ -645,3 +645,57 @@ def test_a_later_scans_lattice_shift_is_found_through_a_model_loose_across_the_l
     assert shift.tolist() == [1.0, -2.0] and agree >= 0.95
     _, agree = _index_shift(rng.uniform(-1.5, 1.5, ij.shape), ij)
     assert agree < 0.8
+
+
+def _placed_by_the_true_scanner():
+    """The chords of a 0-degree scan of the simulated lattice, trace and retrace, placed where
+    the true scanner's tip crossed them (:func:`held_out.placed_chords`)."""
+    scans, sim = _scans(angles=(0.0,), rotation=0.0)
+    found = [[scans[0].feature_matches()[0], scans[0].feature_matches()[1][0]]]
+    every, _ = held_out.split_chords(found, hold_out=False)
+    return held_out.placed_chords(true_scan_model(sim), scans, every)
+
+
+def _remapped(placed, y_map):
+    """``placed`` with every chord end's y coordinate replaced by ``y_map(y)``."""
+    out = []
+    for tips, ij, along in placed[0]:
+        tips = tips.copy()
+        tips[..., 1] = y_map(tips[..., 1])
+        out.append((tips, ij, along))
+    return [out]
+
+
+def test_feature_widths_scale_with_the_path_that_places_them():
+    """Closed form: stretching the path 10 % along y widens every feature 10 % across the lines
+    (the chords across a 0-degree scan's lines run along y) and leaves the widths along them,
+    and so every spread, as they were (to the square of the chords' small tilt off the axes);
+    through the true scanner the lattice's features are one width to within a pixel (94 nm) of
+    edge noise."""
+    placed = _placed_by_the_true_scanner()
+    along, across = held_out.feature_widths(placed)
+    assert len(along) >= 20 and len(across) >= 20
+    assert np.std(along) < 94.0 and np.std(across) < 94.0
+    stretched = held_out.feature_widths(_remapped(placed, lambda y: 1.1 * y))
+    # to the square of the chords' tilt off the axes (the scanner's coupling, ~1e-2)
+    np.testing.assert_allclose(stretched[0], along, rtol=1e-3)
+    np.testing.assert_allclose(stretched[1], 1.1 * across, rtol=1e-3)
+    from jaxafm.identify.plausibility import uneven_widths
+
+    assert not uneven_widths(held_out.width_metrics(placed, _remapped(placed, lambda y: 1.1 * y)))
+
+
+def test_a_path_that_runs_unevenly_across_the_features_is_refused():
+    """A path that runs up to 40 % too fast and too slow along y, in a wave 2.7 pitches long (so
+    the features sit at every phase of it), makes the features' widths across the lines spread
+    about 28 % (0.4 / sqrt 2) where the true path leaves a few %: the width check names that
+    direction, and only it."""
+    from jaxafm.identify.plausibility import uneven_widths
+
+    placed = _placed_by_the_true_scanner()
+    wave = 2.7 * 1000.0  # nm
+    uneven = _remapped(placed, lambda y: y + 0.4 * wave / (2 * np.pi) * np.sin(2 * np.pi * y / wave))
+    m = held_out.width_metrics(placed, uneven)
+    assert m["feature_width_spread_across_corrected_pct"] > 15.0, m
+    failures = uneven_widths(m)
+    assert len(failures) == 1 and "widths across the lines less uniform" in failures[0], failures

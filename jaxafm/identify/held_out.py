@@ -107,17 +107,60 @@ def chord_centres(tips: np.ndarray, ij: np.ndarray, along: np.ndarray, slope) ->
 def model_centres(model: ScanModel, scans: tuple, part: list) -> list:
     """Per scan, per image, the features of ``part`` (:func:`split_chords`) placed by the model:
     :func:`chord_centres` of their chords where its tip crossed them, ``(indices, centres)``."""
-    out = []
     slope = np.asarray(model.chord_slope)
+    return [
+        [chord_centres(*image, slope) for image in images] for images in placed_chords(model, scans, part)
+    ]
+
+
+def placed_chords(model, scans: tuple, part: list) -> list:
+    """Per scan, per image of ``part`` (:func:`split_chords`) that holds chords, ``(tips, ij,
+    along)``: the chords' ends (n, 2, 2) nm where ``model``'s tip was when it crossed them (the
+    edge delay earlier, :meth:`~jaxafm.identify.scan_model.ScanModel.chord_ends`), or at the
+    images' nominal pixel positions when ``model`` is None (the instrument's own calibration:
+    what the raw images say), with their features' lattice indices and directions."""
+    out = []
     for scan, images in zip(scans, part):
-        shift = float(model.edge_delay) / scan.raster.sample_time
-        paths = model.paths(scan)
         out.append([])
+        if model is None:
+            paths, shift = [None, None], 0.0
+        else:
+            paths, shift = model.paths(scan), float(model.edge_delay) / scan.raster.sample_time
         for path, (ends, ij, along), forward in zip(paths, images, (1.0, -1.0)):
-            if len(ends):
+            if not len(ends):
+                continue
+            if model is None:
+                tips = scan.raster.nominal(np.asarray(ends).reshape(-1, 2)).reshape(-1, 2, 2)
+            else:
                 tips = model.chord_ends(path, jnp.asarray(ends), forward * shift)
-                out[-1].append(chord_centres(np.asarray(tips), ij, along, slope))
+            out[-1].append((np.asarray(tips), ij, along))
     return out
+
+
+#: the fewest chords one way across a feature that give it a width (:func:`feature_widths`)
+MIN_WIDTH_CHORDS = 3
+
+
+def feature_widths(placed: list) -> tuple:
+    """Per chord direction (along the lines, across them), every feature's width (nm) in every
+    image of ``placed`` (:func:`placed_chords`): the median length of its chords that run that
+    way, where it has :data:`MIN_WIDTH_CHORDS` or more. The features of a lattice are one shape,
+    so their widths agree to the edges' noise where the tip path is right; the chord fit places
+    only the chords' midpoints, so the widths are a check it has not trained on: a path that
+    runs too fast or too slow across a feature shows as a feature too wide or too narrow."""
+    out = ([], [])
+    for images in placed:
+        for tips, ij, along in images:
+            length = np.linalg.norm(tips[:, 1] - tips[:, 0], axis=1)
+            for way, sel in enumerate((np.asarray(along, bool), ~np.asarray(along, bool))):
+                if not sel.any():
+                    continue
+                keys, which = np.unique(np.asarray(ij)[sel], axis=0, return_inverse=True)
+                for k in range(len(keys)):
+                    chords = length[sel][which.ravel() == k]
+                    if len(chords) >= MIN_WIDTH_CHORDS:
+                        out[way].append(float(np.median(chords)))
+    return tuple(np.asarray(w) for w in out)
 
 
 def fitted_parameters(model: ScanModel, scans: tuple, chords: tuple) -> float:
@@ -178,14 +221,7 @@ def path_floor(scans: tuple, paths: list, slope=(0.0, 0.0)) -> float:
 def nominal_centres(scans: tuple, part: list, slope) -> list:
     """:func:`model_centres` at the images' nominal pixel positions (the instrument's own
     calibration, no delay): what the raw images say."""
-    out = []
-    for scan, images in zip(scans, part):
-        out.append([])
-        for ends, ij, along in images:
-            if len(ends):
-                tips = scan.raster.nominal(ends.reshape(-1, 2)).reshape(-1, 2, 2)
-                out[-1].append(chord_centres(tips, ij, along, slope))
-    return out
+    return [[chord_centres(*image, slope) for image in images] for images in placed_chords(None, scans, part)]
 
 
 def raw_errors(scans: tuple, train: list, test: list, slope) -> np.ndarray:
@@ -232,11 +268,33 @@ def _distance_errors(images: list, pitch: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0)
 
 
+#: the chord directions of :func:`feature_widths`, as the metrics name them
+WIDTH_WAYS = ("along", "across")
+
+
+def width_metrics(raw: list, corrected: list) -> dict:
+    """The mean (nm) and the spread (% of the mean) of the features' widths
+    (:func:`feature_widths`) along the lines and across them, from the same chords placed ``raw``
+    and ``corrected`` (:func:`placed_chords`), and how many widths each direction has."""
+    out = {}
+    for name, placed in (("raw", raw), ("corrected", corrected)):
+        for way, w in zip(WIDTH_WAYS, feature_widths(placed)):
+            out[f"feature_widths_{way}"] = len(w)
+            out[f"feature_width_{way}_{name}_nm"] = float(np.mean(w)) if len(w) else float("nan")
+            out[f"feature_width_spread_{way}_{name}_pct"] = (
+                100 * float(np.std(w) / np.mean(w)) if len(w) > 1 else float("nan")
+            )
+    return out
+
+
 def validate(model: ScanModel, scans: tuple, train: list, test: list) -> dict:
     """The held-out features, raw and corrected, as flat metrics: how many; their rms residual
     (nm, :func:`held_out_errors`, :func:`raw_errors`); the spread of the local pitch between
     held-out features two sites apart along a row, % of the mean; and the relative errors of the
-    distances between held-out features (%, max and rms: the published calibrations' measure)."""
+    distances between held-out features (%, max and rms: the published calibrations' measure);
+    and over every feature, trained on or held out, the spread of its width along the lines and
+    across them, % of the mean, raw and corrected (:func:`feature_widths`), with how many widths
+    each direction has."""
     n = sum(len({tuple(k) for k in ij}) for images in test for _, ij, _ in images)
     if not n:
         return {"held_out_features": 0}
@@ -248,6 +306,11 @@ def validate(model: ScanModel, scans: tuple, train: list, test: list) -> dict:
         "held_out_rms_nm": _rms(held_out_errors(model, scans, test)),
         "held_out_raw_rms_nm": _rms(raw_errors(scans, train, test, slope)),
     }
+    every = [
+        [tuple(np.concatenate(pair) for pair in zip(a, b)) for a, b in zip(trained, held)]
+        for trained, held in zip(train, test)
+    ]
+    out |= width_metrics(placed_chords(None, scans, every), placed_chords(model, scans, every))
     for name, images in (("raw", raw), ("corrected", corrected)):
         e = _distance_errors(images, pitch)
         out |= {

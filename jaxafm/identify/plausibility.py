@@ -3,7 +3,8 @@
 :func:`implausible`: a tip that travels far more or less than the image, a falling hysteresis
 branch, creep against the move, a loop wider than its travel. :func:`unvalidated`: held-out
 features misplaced by more than :data:`MAX_HELD_OUT_PITCH` of the pitch, or placed worse by the
-correction than by the raw image (their rms residual or the spread of their local pitch).
+correction than by the raw image (their rms residual or the spread of their local pitch), or
+features whose widths the correction makes less uniform than the raw image's (:func:`uneven_widths`).
 :func:`undetermined`: an axis's loop the data leave open
 (:class:`~jaxafm.identify.identifiability.Quantity`). :func:`unsettled`: a tip path the data
 leave more open than both a held-out feature's place and the precision the task asks for.
@@ -15,10 +16,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 from ..model.hysteresis import AbstractHysteresis
 from ..model.io import check_monotone
 from ..model.scanner import Scanner
+from .held_out import WIDTH_WAYS
 from .scan_model import ScanModel
 
 Array = jax.Array
@@ -89,6 +92,39 @@ def unvalidated(validation: dict, pitch: float) -> list:
             f"the correction makes the held-out features' local pitch less uniform ({spread[0]:.3g} % "
             f"spread against {spread[1]:.3g} % raw)"
         )
+    return out + uneven_widths(validation)
+
+
+#: the level of the one-sided F test by which :func:`uneven_widths` calls the corrected features'
+#: widths less uniform than the raw ones
+WIDTH_LEVEL = 0.99
+
+
+def uneven_widths(validation: dict) -> list:
+    """Where the correction makes the features' widths less uniform than the raw image, in words
+    (:func:`~jaxafm.identify.held_out.feature_widths`, along the lines and across them): their
+    corrected spread's square against the raw one's beyond the ``WIDTH_LEVEL`` quantile of the
+    F distribution with ``n - 1`` and ``n - 1`` degrees of freedom for ``n`` widths (the test of
+    two independent samples' spreads; the raw and corrected widths of a feature share its edges'
+    noise, which brings their spreads closer, so chance alone refuses less often than the
+    level says). A lattice's features are
+    one shape: a path that runs too fast or too slow across some of them (one that slips a
+    lattice row between features, say, while the chords' midpoints still fit) shows here."""
+    out = []
+    for way in WIDTH_WAYS:
+        n = validation.get(f"feature_widths_{way}", 0)
+        raw = validation.get(f"feature_width_spread_{way}_raw_pct")
+        corrected = validation.get(f"feature_width_spread_{way}_corrected_pct")
+        if n < 3 or not raw or not np.isfinite(raw) or not np.isfinite(corrected):
+            continue
+        allowed = float(np.sqrt(scipy.stats.f.ppf(WIDTH_LEVEL, n - 1, n - 1)))
+        if corrected > allowed * raw:
+            out.append(
+                f"the correction makes the features' widths {way} the lines less uniform "
+                f"({corrected:.3g} % spread against {raw:.3g} % raw over {n} widths, more than the "
+                f"{allowed:.2f} times chance allows): the fitted path runs too fast or too slow "
+                "across some features"
+            )
     return out
 
 

@@ -392,7 +392,11 @@ def _validation_line(name: str, ident: Identification) -> str:
         f"{v['held_out_rms_nm']:.1f} nm rms corrected; their local pitch spread "
         f"{v['held_out_pitch_std_raw_pct']:.2f} % raw -> {v['held_out_pitch_std_corrected_pct']:.2f} % corrected; "
         f"distances between them {v['held_out_distance_error_max_raw_pct']:.2f} % raw -> "
-        f"{v['held_out_distance_error_max_corrected_pct']:.2f} % corrected at most; lattice rotation "
+        f"{v['held_out_distance_error_max_corrected_pct']:.2f} % corrected at most; the features' widths "
+        f"spread {v['feature_width_spread_along_raw_pct']:.2f} % raw -> "
+        f"{v['feature_width_spread_along_corrected_pct']:.2f} % corrected along the lines, "
+        f"{v['feature_width_spread_across_raw_pct']:.2f} % -> {v['feature_width_spread_across_corrected_pct']:.2f} % "
+        "across them; lattice rotation "
         f"{float(np.rad2deg(ident.model.lattice.angle)):.3f} deg"
     ) + _coverage_words(v)
 
