@@ -374,6 +374,7 @@ STEP_A_RERUNS = {
         STEP_A_INDEPENDENT.path, "python experiments/step_a_independent.py --pixels 64 --seeds " + seeds
     ): seeds
     for seeds in (
+        "101 103 104 107 109 110 112 113 115 118 119 900 901",
         "100 106 116",
         "114 105 102 108 111 117",
         "102 108 111 117",
