@@ -253,15 +253,15 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
         warnings.filterwarnings("ignore", message="a drive far beyond the model's range")
         value = np.asarray(q(unravel(flat)))
         G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
-    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
+    sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G, optimize=True), 0.0))
     unmeasured = _unmeasured_loops(scans)
     quantities = [
         Quantity(*row, unmeasured.get(row[0], ""))
         for row in zip(keys, names, value.tolist(), sd.tolist(), units)
     ]
     P = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in _path_gradients(model, scans, PATH_SAMPLES)])
-    variance = np.einsum("nij,jk,nik->ni", P, C, P)  # (N, 2) nm^2
-    cross = np.einsum("nij,jk,qk->qni", P, C, G)  # the path's covariance with each quantity
+    variance = np.einsum("nij,jk,nik->ni", P, C, P, optimize=True)  # (N, 2) nm^2
+    cross = np.einsum("nij,jk,qk->qni", P, C, G, optimize=True)  # the path's covariance with each quantity
     removed = np.sum(cross**2, axis=(1, 2)) / np.maximum(sd**2, 1e-300)
     shares = 100 * removed / max(float(np.sum(variance)), 1e-300)
     return Determination(quantities, np.sqrt(np.mean(variance, axis=0)), dict(zip(keys, shares.tolist())))
@@ -311,7 +311,7 @@ def path_covariance(model: ScanModel, scans: tuple, chords: tuple) -> list:
     move it."""
     model = model.as_float64()
     C = chord_covariance(model, scans, chords)
-    return [np.einsum("...ij,jk,...lk->...il", g, C, g) for g in _path_gradients(model, scans)]
+    return [np.einsum("...ij,jk,...lk->...il", g, C, g, optimize=True) for g in _path_gradients(model, scans)]
 
 
 def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
@@ -407,7 +407,7 @@ def point_predictions(model: ScanModel, scans: tuple, train: tuple, test: tuple)
     r, J, _ = chord_linearisation(model, scans, test)
     keys, m = feature_points(test, r)
     G = feature_points(test, J)[1] * pitch
-    parameters = np.einsum("pij,jk,plk->pil", G, C, G)
+    parameters = np.einsum("pij,jk,plk->pil", G, C, G, optimize=True)
     return PointPredictions(keys, m * pitch, parameters + S, parameters)
 
 
