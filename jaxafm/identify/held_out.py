@@ -132,7 +132,7 @@ def placed_chords(model, scans: tuple, part: list) -> list:
             if model is None:
                 tips = scan.raster.nominal(np.asarray(ends).reshape(-1, 2)).reshape(-1, 2, 2)
             else:
-                tips = model.chord_ends(path, jnp.asarray(ends), forward * shift)
+                tips = model.chord_ends(path, ends, forward * shift, np)  # NumPy: nothing to compile
             out[-1].append((np.asarray(tips), ij, along))
     return out
 

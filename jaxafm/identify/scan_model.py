@@ -120,13 +120,14 @@ class ScanModel(eqx.Module):
     edge_delay: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     rotation_free: bool = eqx.field(static=True, default=False)
 
-    def chord_ends(self, path: Array, ends: Array, shift) -> Array:
+    def chord_ends(self, path: Array, ends: Array, shift, xp=jnp) -> Array:
         """Where the tip was (n, 2, 2) nm when it crossed the chords' ``ends`` (n, 2, 2)
         fractional pixels (row, col) of an image whose tip positions are ``path`` (lines,
         pixels, 2): ``shift`` columns earlier in time than where the image shows them (the edge
-        delay; columns run backwards in time in a retrace)."""
-        rc = ends.reshape(-1, 2) - jnp.asarray([0.0, 1.0]) * shift
-        return interpolate(path, rc).reshape(-1, 2, 2)
+        delay; columns run backwards in time in a retrace). ``xp``: the array module
+        (:func:`~jaxafm.identify.image_ops.interpolate`)."""
+        rc = xp.asarray(ends).reshape(-1, 2) - xp.asarray([0.0, 1.0]) * shift
+        return interpolate(xp.asarray(path), rc, xp).reshape(-1, 2, 2)
 
     def chord_offsets(self, tips: Array, ij: Array, along_lines: Array) -> Array:
         """How far (n,) nm each chord's midpoint lies off the line its feature's midpoints
