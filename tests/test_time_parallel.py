@@ -50,14 +50,15 @@ def test_their_gradients_agree_with_each_other_and_with_finite_differences():
         start = H.play_state(radii, u[:1])
         return jnp.sum((path(u, radii, start) @ w - target) ** 2)
 
-    ga = jax.grad(lambda u, r: loss(H.associative_plays, u, r), argnums=(0, 1))(u, radii)
-    gs = jax.grad(lambda u, r: loss(sequential, u, r), argnums=(0, 1))(u, radii)
+    ga = jax.jit(jax.grad(lambda u, r: loss(H.associative_plays, u, r), argnums=(0, 1)))(u, radii)
+    gs = jax.jit(jax.grad(lambda u, r: loss(sequential, u, r), argnums=(0, 1)))(u, radii)
+    along = jax.jit(lambda u: loss(sequential, u, radii))
     for a, s in zip(ga, gs):
         np.testing.assert_allclose(a, s, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(s))))
     h = 1e-6
     for i in (5, 77, 150):
         e = jnp.zeros_like(u).at[i].set(h)
-        fd = (loss(sequential, u + e, radii) - loss(sequential, u - e, radii)) / (2 * h)
+        fd = (along(u + e) - along(u - e)) / (2 * h)
         assert float(ga[0][i]) == pytest.approx(float(fd), rel=1e-6, abs=1e-6)
 
 
@@ -104,11 +105,16 @@ def test_associative_lags_equal_the_sequential_ones_and_so_do_their_gradients(mo
         out, z = E.lowpass(v, t, taus, z0, None, w)
         return jnp.sum(jnp.sin(out / 50.0)) + jnp.sum(z)
 
-    plain = (E.lowpass(v, t, taus, z0, None, w), jax.grad(loss, argnums=(0, 1, 2))(v, taus, z0))
+    def both():  # compiled afresh each call: the path is chosen while tracing
+        return jax.jit(lambda *a: (E.lowpass(a[0], t, a[1], a[2], None, w), jax.grad(loss, (0, 1, 2))(*a)))(
+            v, taus, z0
+        )
+
+    plain = both()
     monkeypatch.setattr(E, "time_parallel", lambda: True)
     ran = []
     monkeypatch.setattr(E, "associative_lags", lambda *a: ran.append(1) or LAGS(*a))
-    parallel = (E.lowpass(v, t, taus, z0, None, w), jax.grad(loss, argnums=(0, 1, 2))(v, taus, z0))
+    parallel = both()
     assert ran, "the associative path did not run"
     for a, b in zip(jax.tree.leaves(parallel), jax.tree.leaves(plain)):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(b))))
@@ -163,20 +169,27 @@ def test_the_associative_mode_equals_the_sequential_one_and_so_do_its_gradients(
         return jnp.sum(jnp.sin(out / 20.0)) + s[0] + 1e-3 * s[1]
 
     args = (v, jnp.asarray(200.0), jnp.asarray(0.05), start)
-    mode = E.Vibration(args[1], args[2])
-    plain = (mode.run(v, t, start, t[0] - 1e-3), jax.grad(loss, argnums=(0, 1, 2, 3))(*args))
+
+    def both():  # compiled afresh each call: the path is chosen while tracing
+        def run(*a):
+            return E.Vibration(a[1], a[2]).run(a[0], t, a[3], t[0] - 1e-3), jax.grad(loss, (0, 1, 2, 3))(*a)
+
+        return jax.jit(run)(*args)
+
+    plain = both()
     monkeypatch.setattr(E, "time_parallel", lambda: True)
     ran = []
     monkeypatch.setattr(E, "associative_mode", lambda *a: ran.append(1) or MODE(*a))
-    parallel = (mode.run(v, t, start, t[0] - 1e-3), jax.grad(loss, argnums=(0, 1, 2, 3))(*args))
+    parallel = both()
     assert ran, "the associative path did not run"
     for a, b in zip(jax.tree.leaves(parallel), jax.tree.leaves(plain)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(b))))
     grads = parallel[1]
+    compiled = jax.jit(loss)
     for k, h in ((1, 1e-3), (2, 1e-6)):
         up, down = list(args), list(args)
         up[k], down[k] = args[k] + h, args[k] - h
-        fd = (loss(*up) - loss(*down)) / (2 * h)
+        fd = (compiled(*up) - compiled(*down)) / (2 * h)
         np.testing.assert_allclose(grads[k], fd, rtol=1e-5)
 
 
@@ -206,11 +219,16 @@ def test_the_linear_hold_lag_equals_its_sequential_self_and_finite_differences_i
         return jnp.sum(jnp.sin(out / 30.0)) + state[0]
 
     tau = jnp.asarray(2e-3)
-    plain = loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)
+
+    def both():  # compiled afresh each call: the path is chosen while tracing
+        return jax.jit(lambda tau, v: (loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)))(tau, v)
+
+    plain = both()
     monkeypatch.setattr(E, "time_parallel", lambda: True)
-    parallel = loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)
+    parallel = both()
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(parallel)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
     e = 1e-8
-    fd = (loss(tau + e, v) - loss(tau - e, v)) / (2 * e)
+    compiled = jax.jit(loss)
+    fd = (compiled(tau + e, v) - compiled(tau - e, v)) / (2 * e)
     assert float(plain[1][0]) == pytest.approx(float(fd), rel=1e-5)
