@@ -17,6 +17,7 @@ from jaxafm.instrument.afm import (
     move,
     press,
     raster_scan,
+    render,
 )
 from jaxafm.instrument.samples import Grating, Indented, Particles, Plane, Tip
 from jaxafm.model.effects import Drift, FeedbackLag
@@ -119,6 +120,21 @@ def test_feedback_lag_shifts_edges_by_speed_times_delay_in_opposite_directions()
     assert ref.size >= 3
     np.testing.assert_allclose(rising_edges(np.asarray(scan.trace[0])) - ref, shift, atol=0.05)
     np.testing.assert_allclose(rising_edges(np.asarray(scan.retrace[0])) - ref, -shift, atol=0.05)
+
+
+def test_a_default_instrument_without_z_lag_records_the_height_where_the_tip_is():
+    # feedback_tau 0: no z lag, so every recorded height is the sample's height under the
+    # tip's true position, seen through the tip, at the same sample (with the default 1 ms lag
+    # the pulse is read late: test_feedback_lag_shifts_edges_...)
+    afm = default_afm(feedback_tau=0.0).without("drift", "noise")
+    assert "feedback_lag" not in afm.effects
+    R = 30.0
+    sample = Particles(jnp.array([[100.0, 50.0]]), jnp.array([R]))
+    h, path, _ = line_scan(
+        afm, sample, afm.initial_state(), jnp.array([-100.0, 50.0]), jnp.array([300.0, 50.0]), 401, 1000.0
+    )
+    assert float(jnp.max(h)) > R  # the line crosses the particle
+    np.testing.assert_allclose(h, render(sample, afm.tip, path), atol=1e-9)
 
 
 def test_drift_acts_in_real_time_between_scans():

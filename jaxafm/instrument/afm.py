@@ -167,7 +167,8 @@ def default_afm(
     tip_radius: float = 10.0, tip_half_angle_deg: float = 20.0, feedback_tau: float = 1e-3, **scanner_options
 ) -> AFM:
     """The default instrument: ``default_scanner(**scanner_options)``, a 10 nm tip of 20 degrees,
-    a 1 ms feedback lag, and the nominal calibration ``travel / (2 u_range)`` nm/V.
+    a 1 ms feedback lag (0: a z signal without lag), and the nominal calibration
+    ``travel / (2 u_range)`` nm/V.
 
     Raises:
         ValueError: naming the argument: a tip radius or lag that is not finite and >= 0, a half
@@ -186,7 +187,7 @@ def default_afm(
         scanner,
         Tip(jnp.asarray(tip_radius), jnp.asarray(np.deg2rad(tip_half_angle_deg))),
         jnp.full(2, travel / (2 * u_range)),
-        FeedbackLag(jnp.asarray(feedback_tau)),
+        FeedbackLag(jnp.asarray(feedback_tau)) if feedback_tau > 0 else None,
         u_max=u_range,
     )
 
