@@ -454,7 +454,7 @@ def step_a_validation(view, path, title: str = "") -> None:
     _validation_held_out(axes[1, 2], view)
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
 
 
 def _validation_images(fig, ax, ax_background, view, ext) -> tuple:
@@ -483,7 +483,7 @@ def _validation_images(fig, ax, ax_background, view, ext) -> tuple:
         title=f"background removed (plane, bow, line offsets: {np.ptp(view.background):.3g} nm)",
         xlabel="fast axis, nominal (µm)",
     )
-    fig.colorbar(im, ax=ax, label="nm", shrink=0.8)
+    fig.colorbar(im, ax=ax, label="background height (nm)", shrink=0.8)
     return lo, hi
 
 
@@ -524,7 +524,7 @@ def _validation_chords(fig, ax, view, ext) -> None:
         ylim=ext[2:],
         aspect="equal",
     )
-    fig.colorbar(sc, ax=ax, label="nm", shrink=0.8)
+    fig.colorbar(sc, ax=ax, label="midpoint offset (nm)", shrink=0.8)
 
 
 def _validation_shifts(ax, view) -> None:
@@ -546,7 +546,7 @@ def _validation_shifts(ax, view) -> None:
     ax.set(
         title="each feature's retrace less trace position, along the fast axis",
         xlabel="fast axis, nominal (µm)",
-        ylabel="nm",
+        ylabel="retrace less trace (nm)",
     )
 
 
