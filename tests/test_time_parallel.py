@@ -24,6 +24,12 @@ def drive(T: int, seed: int) -> jax.Array:
     return jnp.asarray(np.cumsum(rng.normal(0.0, 0.3, T)) + rng.normal(0.0, 0.05, T))
 
 
+def traced_afresh(f, *args):
+    """``f(*args)`` under a ``jit`` of its own, traced again on every call (a new function each
+    time): which path runs, sequential or associative, is chosen while tracing."""
+    return jax.jit(lambda *a: f(*a))(*args)
+
+
 def sequential(u, radii, start):
     return jax.lax.scan(H._play_step(radii), start, u)[1]
 
@@ -105,16 +111,14 @@ def test_associative_lags_equal_the_sequential_ones_and_so_do_their_gradients(mo
         out, z = E.lowpass(v, t, taus, z0, None, w)
         return jnp.sum(jnp.sin(out / 50.0)) + jnp.sum(z)
 
-    def both():  # compiled afresh each call: the path is chosen while tracing
-        return jax.jit(lambda *a: (E.lowpass(a[0], t, a[1], a[2], None, w), jax.grad(loss, (0, 1, 2))(*a)))(
-            v, taus, z0
-        )
+    def both(v, taus, z0):
+        return E.lowpass(v, t, taus, z0, None, w), jax.grad(loss, (0, 1, 2))(v, taus, z0)
 
-    plain = both()
+    plain = traced_afresh(both, v, taus, z0)
     monkeypatch.setattr(E, "time_parallel", lambda: True)
     ran = []
     monkeypatch.setattr(E, "associative_lags", lambda *a: ran.append(1) or LAGS(*a))
-    parallel = both()
+    parallel = traced_afresh(both, v, taus, z0)
     assert ran, "the associative path did not run"
     for a, b in zip(jax.tree.leaves(parallel), jax.tree.leaves(plain)):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(b))))
@@ -170,17 +174,14 @@ def test_the_associative_mode_equals_the_sequential_one_and_so_do_its_gradients(
 
     args = (v, jnp.asarray(200.0), jnp.asarray(0.05), start)
 
-    def both():  # compiled afresh each call: the path is chosen while tracing
-        def run(*a):
-            return E.Vibration(a[1], a[2]).run(a[0], t, a[3], t[0] - 1e-3), jax.grad(loss, (0, 1, 2, 3))(*a)
+    def both(*a):
+        return E.Vibration(a[1], a[2]).run(a[0], t, a[3], t[0] - 1e-3), jax.grad(loss, (0, 1, 2, 3))(*a)
 
-        return jax.jit(run)(*args)
-
-    plain = both()
+    plain = traced_afresh(both, *args)
     monkeypatch.setattr(E, "time_parallel", lambda: True)
     ran = []
     monkeypatch.setattr(E, "associative_mode", lambda *a: ran.append(1) or MODE(*a))
-    parallel = both()
+    parallel = traced_afresh(both, *args)
     assert ran, "the associative path did not run"
     for a, b in zip(jax.tree.leaves(parallel), jax.tree.leaves(plain)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(b))))
@@ -220,12 +221,12 @@ def test_the_linear_hold_lag_equals_its_sequential_self_and_finite_differences_i
 
     tau = jnp.asarray(2e-3)
 
-    def both():  # compiled afresh each call: the path is chosen while tracing
-        return jax.jit(lambda tau, v: (loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)))(tau, v)
+    def both(tau, v):
+        return loss(tau, v), jax.grad(loss, argnums=(0, 1))(tau, v)
 
-    plain = both()
+    plain = traced_afresh(both, tau, v)
     monkeypatch.setattr(E, "time_parallel", lambda: True)
-    parallel = both()
+    parallel = traced_afresh(both, tau, v)
     for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(parallel)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10)
     e = 1e-8
