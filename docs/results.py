@@ -253,6 +253,8 @@ BENCH_RENDER = Run("bench_render/metrics.json", "python experiments/bench_render
 GRATING_SCAN = Run("simulated_grating_scan/metrics.json", "python experiments/simulated_grating_scan.py")
 PIEZO_FIT = Run("piezo_sine_1hz/metrics.json", "jaxafm fit configs/piezo_sine_1hz.yaml")
 BENCH_BAND = Run("bench_band/bench.json", "python experiments/bench_band.py")
+BENCH_SUITE = Run("bench_suite/suite.json", "python experiments/bench_suite.py")
+BENCH_SUITE_TRIAL = Run("bench_suite/trial.json", "python experiments/bench_suite.py --trial")
 CROSS_RECORD = Run("cross_record/metrics.json", "python experiments/cross_record.py")
 PREDICT = Run("predict_piezo/metrics.json", "jaxafm predict configs/predict_piezo.yaml")
 COMPENSATE = Run("compensate_piezo/metrics.json", "jaxafm compensate configs/compensate_piezo.yaml")
@@ -3323,6 +3325,58 @@ def posterior_cost(results: Results) -> Table:
         "`jaxafm fit` makes it, in one process, on the simulated actuator's record of `bench_preisach_fit.py`."
     )
     return Table(header, rows, [PIEZO_FIT, BENCH_BAND, BENCH_PREISACH_FIT], note)
+
+
+#: the suite's modules listed one by one (the longest); the rest share a row
+SUITE_ROWS = 12
+
+
+def _compiling(m: dict) -> float:
+    """A test module's (or the suite's) seconds of JAX tracing, lowering and XLA compiling."""
+    return m["trace_s"] + m["lower_s"] + m["backend_s"]
+
+
+@table("bench_suite")
+def bench_suite(results: Results) -> Table:
+    """The test suite's time by module: the tests' wall time and what of it JAX spent compiling."""
+    m = results(BENCH_SUITE)
+    mods, total = m["modules"], m["total"]
+    rest = {k: sum(r[k] for r in mods[SUITE_ROWS:]) for k in total}
+
+    def row(name: str, r: dict) -> list:
+        c = _compiling(r)
+        cells = [count(r["tests"]), q(r["wall_s"], "s", 0), q(c, "s", 0), q(100 * c / r["wall_s"], "%", 0)]
+        return [name, *cells, q(r["backend_s"], "s", 0)]
+
+    rows = [row(f"`{r['module'].removeprefix('tests/')}`", r) for r in mods[:SUITE_ROWS]]
+    rows += [row(f"the other {len(mods) - SUITE_ROWS} modules", rest), row("all", total)]
+    header = ["module", "tests", "wall time", "compiling", "share", "of it, XLA's backend"]
+    note = (
+        f"`pytest -q -n 2` on 2 cores: the suite took {q(m['suite_wall_s'], 's', 0)}; a test's wall time is "
+        "pytest's (setup, call, teardown), in the worker that ran it; compiling is JAX's own events "
+        "(tracing, lowering to MLIR, XLA's backend), not counting the `jaxafm` processes some tests start."
+    )
+    return Table(header, rows, [BENCH_SUITE], note)
+
+
+@table("bench_suite_trial")
+def bench_suite_trial(results: Results) -> Table:
+    """What the corrective-push test's program compiles: the whole, and with one part taken out."""
+    rows = []
+    for r in results(BENCH_SUITE_TRIAL)["rows"]:
+        diff = r.get("largest_difference")
+        rows.append(
+            [
+                r["program"] + ("" if diff is None else f" (results within {diff:.0e} nm)"),
+                q(r["lower_s"], "s", 1),
+                q(r["compile_s"], "s", 1),
+                q(1e3 * r["run_s"], "ms", 0),
+                count(r["while_loops"]),
+            ]
+        )
+    header = ["program", "lowering", "XLA compiling", "a run", "loops in the compiled program"]
+    note = "XLA on one thread, as in a test worker; four particles vmapped; a run: the median of three."
+    return Table(header, rows, [BENCH_SUITE_TRIAL], note)
 
 
 BAND_METHODS = (("ar1", "AR(1), the default"), ("blocks", "blocks"), ("iid", "i.i.d., the naive band"))
