@@ -135,8 +135,10 @@ def summarise(parts: Path, summary: str) -> dict:
 
 def profile_trial() -> list:
     """The corrective-push test's program compiled as the test compiles it, and with one part
-    taken out at a time: lowering and compile time (s), the optimised program's size (its text,
-    kilo-characters) and its while loops."""
+    taken out at a time, and compiled at XLA's backend optimisation level 0: lowering and compile
+    time (s), a run's time (s, the median of three), the optimised program's size (its text,
+    kilo-characters) and its while loops; for level 0, its largest difference from the default's
+    results."""
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), ONE_THREAD]).strip()
     import benchutil  # noqa: F401  (puts tests/ on sys.path)
     import equinox as eqx
