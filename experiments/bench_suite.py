@@ -12,7 +12,7 @@ the test's duration as pytest reports it (setup, call and teardown). What a test
 the test. ``--trial`` compiles the program of ``tests/test_positioning.py``'s corrective-push test
 (four particles, vmapped: reached with an approach, found by a local scan, pushed and checked)
 with XLA on one thread, as a test worker runs it, and again with one part taken out at a time,
-to say what its compile is made of.
+to say what its compile is made of, and once at XLA's backend optimisation level 0.
 
 Writes ``experiments/results/bench_suite/suite.json`` and ``trial.json`` (the tables
 ``bench_suite`` and ``bench_suite_trial`` of docs/development.md).
