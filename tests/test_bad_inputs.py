@@ -211,10 +211,11 @@ def write_csv(path: Path, columns: dict) -> Path:
     return path
 
 
-def write_nanosurf(path: Path, z: np.ndarray, width_um: float, z_unit: str = "nm") -> Path:
+def write_nanosurf(path: Path, z: np.ndarray, width_um: float, z_unit: str = "nm", way: str = "Fwd") -> Path:
+    """A Nanosurf text export of the heights ``z``: ``way`` Fwd a trace, Bwd a retrace."""
     rows, cols = z.shape
     head = (
-        f"Name : Topography_Fwd ({cols}x{rows})\n\nImage Width : {cols}\nImage Height : {rows}\n\n"
+        f"Name : Topography_{way} ({cols}x{rows})\n\nImage Width : {cols}\nImage Height : {rows}\n\n"
         f"Real Width : {width_um:g} um\nReal Height : {width_um * rows / cols:g} um\nZ Unit : {z_unit}\n\n"
     )
     body = "\n".join(" ".join(f"{v:.6g}" for v in row) for row in z)
@@ -305,8 +306,8 @@ def data(tmp_path, model_doc) -> Path:
     write_csv(d / "nan_rows.csv", {"time_s": t, "drive_v": u, "sensor_um": nan_rows})
     (d / "binary.csv").write_bytes(bytes(range(256)) * 8)
     write_nanosurf(d / "trace.txt", lattice(), 8.0)
-    write_nanosurf(d / "retrace.txt", lattice(shift=0.3), 8.0)
-    write_nanosurf(d / "retrace_small.txt", lattice()[:, :32], 4.0)
+    write_nanosurf(d / "retrace.txt", lattice(shift=0.3), 8.0, way="Bwd")
+    write_nanosurf(d / "retrace_small.txt", lattice()[:, :32], 4.0, way="Bwd")
     write_nanosurf(d / "volts.txt", lattice(), 8.0, z_unit="V")
     nan_image = lattice()
     nan_image[3, 4] = NAN
@@ -316,8 +317,8 @@ def data(tmp_path, model_doc) -> Path:
     (d / "photo.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(64))
     for rate in ("slow", "fast"):
         write_nanosurf(d / f"{rate}_trace.txt", line_grating(), 2.0)
-        write_nanosurf(d / f"{rate}_retrace.txt", line_grating(), 2.0)
-    write_nanosurf(d / "fast_retrace_small.txt", line_grating(pixels=32), 1.0)
+        write_nanosurf(d / f"{rate}_retrace.txt", np.roll(line_grating(), 1, axis=1), 2.0, way="Bwd")
+    write_nanosurf(d / "fast_retrace_small.txt", line_grating(pixels=32), 1.0, way="Bwd")
     (d / "scanner.json").write_text(json.dumps(model_doc))
     (d / "negative_weight.json").write_text(json.dumps(negative_weight(model_doc)))
     (d / "nan_weight.json").write_text(json.dumps(nan_weight(model_doc)))

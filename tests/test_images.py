@@ -24,7 +24,7 @@ from jaxafm.instrument.images import (
 )
 from jaxafm.instrument.samples import Grating
 from jaxafm.jobs import Output
-from jaxafm.jobs.inputs import read_image_file
+from jaxafm.jobs.inputs import read_image_file, read_image_pair
 
 GRATING_FILE = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 
@@ -128,6 +128,31 @@ def test_real_nid_lattice_reads_its_header_and_both_directions():
     }
     best = max(match, key=match.get)
     assert match[best] > 0.9 and 1 <= abs(best) <= 10 and match[0] < match[best]
+
+
+def test_a_pair_reads_each_key_as_its_direction_and_refuses_the_other(tmp_path):
+    """A config's trace/retrace pair (``read_image_pair``): one .nid file under both keys gives
+    its forward frame as the trace and its backward frame as the retrace, as the file's frames
+    read one by one; a file whose own header records the other direction (the real Nanosurf text
+    export, a backward scan) and one image under both keys are refused, naming the key."""
+    rng = np.random.default_rng(2)
+    frames = {
+        f: {"Topography": rng.integers(-(2**15), 2**15, (6, 8))} for f in ("Scan forward", "Scan backward")
+    }
+    nid = str(write_nid(tmp_path / "pair.nid", frames))
+    pair = lambda trace, retrace: type("Pair", (), {"trace": trace, "retrace": retrace})
+    trace, retrace = read_image_pair(pair(nid, nid), tmp_path / "c.yaml", "data.scans.0")
+    np.testing.assert_array_equal(trace.z, read_image(nid, direction="trace").z)
+    np.testing.assert_array_equal(retrace.z, read_image(nid, direction="retrace").z)
+    assert not np.array_equal(trace.z, retrace.z)
+    text = str(GRATING_FILE)  # its header: a backward scan
+    with pytest.raises(ValueError, match=r"data\.scans\.0\.trace: .*holds the retrace"):
+        read_image_pair(pair(text, text), tmp_path / "c.yaml", "data.scans.0")
+    tiff = tmp_path / "one.tif"
+    tifffile.imwrite(tiff, rng.normal(size=(6, 8)))
+    same = {"path": str(tiff), "size_nm": [4000.0, 3000.0]}
+    with pytest.raises(ValueError, match=r"data\.scans\.0: the trace and the retrace are the same image"):
+        read_image_pair(pair(same, same), tmp_path / "c.yaml", "data.scans.0")
 
 
 def test_image_format_round_trips_exactly_and_never_overwrites(tmp_path):

@@ -5,6 +5,7 @@ import functools
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -12,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxafm
 from jaxafm.config import CalibrationImages, CalibrationLattice, CalibrationModel, SimulatedCalibration
 from jaxafm.identify import features, held_out, staged_fit
 from jaxafm.identify.calibration_scan import CalibrationScan
@@ -23,6 +25,8 @@ from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
 from jaxafm.instrument.samples import Grating as LineGrating
 from jaxafm.instrument.samples import Tip
 from jaxafm.jobs import Output, calibrate
+
+GRATING = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 
 
 def test_a_90_degree_raster_runs_its_lines_along_y():
@@ -445,9 +449,10 @@ def test_default_sensitivity_from_the_stated_range_or_the_images():
 
 
 def _write_pair(tmp_path, name, z, size):
+    """``z`` as a trace and, a pixel later along the lines, as its retrace (jaxafm's image files)."""
     from jaxafm.instrument.images import AFMImage, save_image
 
-    for k, zz in (("trace", z), ("retrace", z)):
+    for k, zz in (("trace", z), ("retrace", np.roll(z, 1, axis=1))):
         save_image(
             AFMImage(
                 np.asarray(zz, dtype=float), (size / z.shape[1], size / z.shape[0]), meta={"direction": k}
@@ -509,11 +514,16 @@ def test_a_set_whose_scans_show_different_pitches_names_the_scan(tmp_path):
 
 
 def test_the_real_1d_grating_is_refused_with_the_reason(tmp_path):
-    """The shipped Nanosurf image (lines, retrace only) cannot identify a 2-D scanner: step A
-    says why before it touches the output folder."""
-    image = "{path: builtin:grating_1d_nanosurf.txt, direction: %s}"
-    data = f"{{trace: {image % 'trace'}, retrace: {image % 'retrace'}, line_rate_hz: 1}}"
-    proc = _calibrate(tmp_path, data)
+    """The shipped Nanosurf image (lines; its retrace alone, which a trace a pixel earlier along
+    the lines joins) cannot identify a 2-D scanner: step A says why before it touches the
+    output folder."""
+    from jaxafm.instrument.images import AFMImage, read_image, save_image
+
+    real = read_image(GRATING)
+    save_image(AFMImage(np.roll(real.z, -1, axis=1), real.pixel_size), tmp_path / "trace.npz")
+    proc = _calibrate(
+        tmp_path, "{trace: trace.npz, retrace: builtin:grating_1d_nanosurf.txt, line_rate_hz: 1}"
+    )
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "lines of a 1-D grating" in proc.stderr and "fit_line_grating" in proc.stderr
     assert not (tmp_path / "out").exists()

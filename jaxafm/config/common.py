@@ -105,7 +105,9 @@ class ImageFile(Strict):
         "default: the file's (Gwyddion: top), else bottom",
     )
     direction: Optional[Literal["trace", "retrace"]] = Field(
-        None, description="the scan direction the file holds; default: the file's, if any"
+        None,
+        description="the scan direction the file holds; default: under a pair's trace or retrace key, "
+        "that key's (a file recording the other is refused); else the file's, if any",
     )
 
     @model_validator(mode="before")

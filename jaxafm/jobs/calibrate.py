@@ -55,7 +55,7 @@ from ..identify.step_a import (
 from ..instrument.afm import AFM, Raster, default_afm
 from ..model.io import save_model
 from .folder import Output
-from .inputs import read_image_file
+from .inputs import read_image_pair
 
 
 def calibration_scans(
@@ -83,9 +83,7 @@ def read_calibration(
     given or its default (:func:`nominal_sensitivity`)."""
     images, rasters = [], []
     for key, pair in spec.pairs:
-        trace, retrace = (
-            read_image_file(getattr(pair, k), config_path, f"{key}.{k}") for k in ("trace", "retrace")
-        )
+        trace, retrace = read_image_pair(pair, config_path, key)
         if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
             raise ValueError(
                 f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "

@@ -23,7 +23,7 @@ from ..diagnose.report import write
 from ..diagnose.scans import ScanPair, diagnose_scans
 from ..instrument.records import read_record
 from .folder import Output
-from .inputs import read_image_file
+from .inputs import read_image_file, read_image_pair
 
 
 def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
@@ -153,9 +153,7 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
         )
     pairs = []
     for i, p in enumerate(sc.pairs):
-        tr, re = (
-            read_image_file(getattr(p, k), config_path, f"scans.pairs[{i}].{k}") for k in ("trace", "retrace")
-        )
+        tr, re = read_image_pair(p, config_path, f"scans.pairs[{i}]")
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "

@@ -7,6 +7,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from ..config import ImageFile, RecordData, resolve_data_path
 from ..instrument.images import AFMImage, read_image
 from ..instrument.records import Record, read_record
@@ -41,6 +43,36 @@ def read_image_file(spec, config_path, key: str) -> AFMImage:
     except (ValueError, FileNotFoundError) as e:
         raise type(e)(f"{config_path}: {key}: {e}") from None
     return dataclasses.replace(image, meta=image.meta | {"source": spec.path})
+
+
+def read_image_pair(pair, config_path: Path, key: str) -> tuple:
+    """The trace and the retrace image of a config's pair ``key`` (its keys ``trace`` and
+    ``retrace``, :func:`read_image_file`), each read as the scan direction of its key: of a file
+    that holds both (a Nanosurf .nid), that frame.
+
+    Raises:
+        ValueError: naming the config and the key: a file whose own header records the other
+            direction, or one image under both keys.
+    """
+    images = []
+    for k in ("trace", "retrace"):
+        spec = ImageFile.model_validate(getattr(pair, k))  # a direction given is the key's (ImagePair)
+        spec = ImageFile.model_validate(spec.model_dump(exclude_unset=True) | {"direction": k})
+        image = read_image_file(spec, config_path, f"{key}.{k}")
+        recorded = image.meta.get("file", {}).get("direction")
+        if recorded in ("trace", "retrace"):
+            raise ValueError(
+                f"{config_path}: {key}.{k}: {spec.path} holds the {recorded} (its own header says so), "
+                f"not the {k}: swap the two files"
+            )
+        images.append(image)
+    trace, retrace = images
+    if trace.z.shape == retrace.z.shape and bool(np.all(trace.z == retrace.z)):
+        raise ValueError(
+            f"{config_path}: {key}: the trace and the retrace are the same image ({trace.meta['source']}); "
+            "step A needs both directions of each line"
+        )
+    return trace, retrace
 
 
 def read_model_and_posterior(spec: str, config_path: Path, key: str = "model") -> tuple:
