@@ -90,7 +90,7 @@ def pytest_sessionfinish(session):
 
 
 def profile_suite(parts: Path) -> dict:
-    """Run the README's test command with this plugin (:func:`summarise` its parts)."""
+    """Run the README's test command with this plugin; :func:`summarise` its parts, then remove them."""
     parts.mkdir(parents=True, exist_ok=True)
     for old in parts.glob("gw*.json"):
         old.unlink()
@@ -105,7 +105,11 @@ def profile_suite(parts: Path) -> dict:
     print(run.stdout[-400:])
     if run.returncode != 0:
         raise SystemExit(f"the suite failed (exit {run.returncode}); nothing written")
-    return summarise(parts, run.stdout.strip().splitlines()[-1])
+    doc = summarise(parts, run.stdout.strip().splitlines()[-1])
+    for f in parts.glob("gw*.json"):
+        f.unlink()
+    parts.rmdir()
+    return doc
 
 
 def summarise(parts: Path, summary: str) -> dict:
@@ -223,9 +227,6 @@ def main() -> None:
         )
         return
     doc = profile_suite(OUT / "parts")
-    for f in (OUT / "parts").glob("gw*.json"):
-        f.unlink()
-    (OUT / "parts").rmdir()
     (OUT / "suite.json").write_text(json.dumps(doc, indent=1))
     t = doc["total"]
     compile_s = t["trace_s"] + t["lower_s"] + t["backend_s"]

@@ -56,18 +56,18 @@ def read_image_pair(pair, config_path: Path, key: str) -> tuple:
     """
     images = []
     for k in ("trace", "retrace"):
-        spec = ImageFile.model_validate(getattr(pair, k))  # a direction given is the key's (ImagePair)
-        spec = ImageFile.model_validate(spec.model_dump(exclude_unset=True) | {"direction": k})
-        image = read_image_file(spec, config_path, f"{key}.{k}")
+        # a direction given is already the key's (ImagePair refuses another)
+        given = ImageFile.model_validate(getattr(pair, k)).model_dump(exclude_unset=True)
+        image = read_image_file(given | {"direction": k}, config_path, f"{key}.{k}")
         recorded = image.meta.get("file", {}).get("direction")
         if recorded in ("trace", "retrace"):
             raise ValueError(
-                f"{config_path}: {key}.{k}: {spec.path} holds the {recorded} (its own header says so), "
+                f"{config_path}: {key}.{k}: {given['path']} holds the {recorded} (its own header says so), "
                 f"not the {k}: swap the two files"
             )
         images.append(image)
     trace, retrace = images
-    if trace.z.shape == retrace.z.shape and bool(np.all(trace.z == retrace.z)):
+    if np.array_equal(trace.z, retrace.z):
         raise ValueError(
             f"{config_path}: {key}: the trace and the retrace are the same image ({trace.meta['source']}); "
             "step A needs both directions of each line"
