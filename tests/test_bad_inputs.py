@@ -736,6 +736,26 @@ CALIBRATE = [
         {"data.sensitivity_nm_per_v": [50.0, 50.0]},
         (either(key("sensitivity_nm_per_v"), key("u_max_v")), value(50)),
     ),
+    *(  # a scan setting given against the file's own header (the real lattice: -45 deg, 5 %, 2 s, Up)
+        case(
+            f"calibrate-data.{k}-against-the-header",
+            "calibrate-data",
+            {
+                "data.trace": "builtin:lattice_square_pits_nanosurf.nid",
+                "data.retrace": "builtin:lattice_square_pits_nanosurf.nid",
+                "data.line_rate_hz": 0.5,  # as the header says: one setting against it at a time
+                f"data.{k}": v,
+                "grating": {"pitch_nm": 10000.0, "pits": True},
+            },
+            (key(f"data.{k}"), value(v), re.escape(entry)),
+        )
+        for k, v, entry in [
+            ("angle_deg", 0.0, "Rotation=-45"),
+            ("overscan", 0.1, "Overscan=5 %"),
+            ("line_rate_hz", 1.0, "Time/Line=2 s"),
+            ("lines", "down", "Scan direction=Up"),
+        ]
+    ),
     nan_case("calibrate-data.line_rate_hz-.nan", "calibrate-data", "data.line_rate_hz", NAN),
     nan_case("calibrate-data.u_max_v-.inf", "calibrate-data", "data.u_max_v", INF),
     nan_case(

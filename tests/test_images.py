@@ -3,6 +3,7 @@ image format, scans as images, bad input, and the image metadata a config gives 
 through every mode that reads images."""
 
 import json
+import re
 from pathlib import Path
 
 import jax
@@ -24,7 +25,7 @@ from jaxafm.instrument.images import (
 )
 from jaxafm.instrument.samples import Grating
 from jaxafm.jobs import Output
-from jaxafm.jobs.inputs import read_image_file, read_image_pair
+from jaxafm.jobs.inputs import read_image_file, read_image_pair, scan_settings
 
 GRATING_FILE = Path(jaxafm.__file__).parent / "data" / "real" / "grating_1d_nanosurf.txt"
 
@@ -46,10 +47,18 @@ def test_real_nanosurf_grating_reads_in_nm_with_the_readme_facts():
 NID_FILE = GRATING_FILE.parent / "lattice_square_pits_nanosurf.nid"
 
 
-def write_nid(path, frames: dict, size_m=(4e-6, 3e-6), z=(-2e-6, 4e-6), bits=16, direction="Up"):
+def write_nid(
+    path,
+    frames: dict,
+    size_m=(4e-6, 3e-6),
+    z=(-2e-6, 4e-6),
+    bits=16,
+    direction="Up",
+    scan=("Time/Line=0.5 s",),
+):
     """A Nanosurf .nid file written from the format's description (the vendor's NSFopen reader):
     ``frames`` {frame: {channel: raw integers (lines, points)}}, heights
-    ``z0 + (raw + 2^(bits-1)) / 2^bits * range`` m."""
+    ``z0 + (raw + 2^(bits-1)) / 2^bits * range`` m; ``scan``: the header's other scan entries."""
     head, data, sections = ["[DataSet]", "Version=2", f"GroupCount={len(frames)}"], [], []
     for g, (frame, channels) in enumerate(frames.items()):
         head += [f"Gr{g}-Name={frame}", f"Gr{g}-ID=0", f"Gr{g}-Count={len(channels) + 1}"]
@@ -73,7 +82,7 @@ def write_nid(path, frames: dict, size_m=(4e-6, 3e-6), z=(-2e-6, 4e-6), bits=16,
                 f"SaveBits={bits}",
             ]
             data.append(np.asarray(raw, f"<i{bits // 8}").tobytes())
-    info = ["", "[DataSet\\DataSetInfos\\Scan]", f"Scan direction={direction}", "Time/Line=0.5 s"]
+    info = ["", "[DataSet\\DataSetInfos\\Scan]", f"Scan direction={direction}", *scan]
     text = "\r\n".join(head + info + sections) + "\r\n#!"
     path.write_bytes(text.encode() + b"".join(data))
     return path
@@ -153,6 +162,69 @@ def test_a_pair_reads_each_key_as_its_direction_and_refuses_the_other(tmp_path):
     same = {"path": str(tiff), "size_nm": [4000.0, 3000.0]}
     with pytest.raises(ValueError, match=r"data\.scans\.0: the trace and the retrace are the same image"):
         read_image_pair(pair(same, same), tmp_path / "c.yaml", "data.scans.0")
+
+
+def test_a_pair_takes_how_it_was_scanned_from_the_header_and_refuses_a_contradiction(tmp_path):
+    """``scan_settings``: what a pair leaves out is what its files' header records (the real
+    lattice's: ``Time/Line=2 s``, ``Rotation=-45 °``, ``Overscan=5 %``, ``Scan direction=Up``),
+    else the schema's default; a value given against the header, trace and retrace headers that
+    disagree, and a line rate nowhere, are refused naming the key and the header entry."""
+    from jaxafm.config.calibrate import CalibrationPair
+    from jaxafm.config.diagnose import ScanFiles
+
+    config = tmp_path / "c.yaml"
+    resolved = lambda **pair: scan_settings(
+        (p := CalibrationPair(**pair)), read_image_pair(p, config, "data.scans.0"), config, "data.scans.0"
+    )
+    settings = lambda **pair: resolved(**pair)[0]
+    real = {"trace": str(NID_FILE), "retrace": str(NID_FILE)}
+    assert settings(**real) == {"line_rate_hz": 0.5, "angle_deg": -45.0, "overscan": 0.05, "lines": "up"}
+    assert set(resolved(**real)[1].values()) == {"header"}
+    assert resolved(**real, angle_deg=-45, line_rate_hz=0.5) == (
+        settings(**real),
+        {"line_rate_hz": "given", "angle_deg": "given", "overscan": "header", "lines": "header"},
+    )
+    for key, value, entry in [
+        ("angle_deg", 0, "Rotation=-45 °"),
+        ("overscan", 0.1, "Overscan=5 %"),
+        ("line_rate_hz", 1.0, "Time/Line=2 s"),
+        ("lines", "down", "Scan direction=Up"),
+    ]:
+        with pytest.raises(
+            ValueError, match=rf"data\.scans\.0\.{key} = .*disagrees with .*{re.escape(entry)}"
+        ):
+            settings(**real, **{key: value})
+    frames = lambda seed: {
+        f: {"Topography": np.random.default_rng([seed, i]).integers(-(2**15), 2**15, (6, 8))}
+        for i, f in enumerate(("Scan forward", "Scan backward"))
+    }
+    other = ("Time/Line=500 ms", "Rotation=30 °", "Overscan=10 %")
+    down = str(write_nid(tmp_path / "down.nid", frames(1), direction="Down", scan=other))
+    assert settings(trace=down, retrace=down) == {
+        "line_rate_hz": 2.0,
+        "angle_deg": 30.0,
+        "overscan": 0.1,
+        "lines": "down",
+    }
+    slower = str(
+        write_nid(tmp_path / "slow.nid", frames(2), direction="Down", scan=("Time/Line=1 s", *other[1:]))
+    )
+    with pytest.raises(ValueError, match=r"data\.scans\.0: the trace's and the retrace's headers disagree"):
+        settings(trace=down, retrace=slower)
+    for name, z in (("t.tif", np.eye(6, 8)), ("r.tif", np.eye(6, 8)[::-1])):
+        tifffile.imwrite(tmp_path / name, z)
+    tiffs = {k: {"path": str(tmp_path / f"{k[0]}.tif"), "size_nm": [800, 600]} for k in ("trace", "retrace")}
+    with pytest.raises(ValueError, match=r"data\.scans\.0: missing line_rate_hz: the files' headers do not"):
+        settings(**tiffs)
+    assert resolved(**tiffs, line_rate_hz=1.0) == (
+        {"line_rate_hz": 1.0, **CalibrationPair.SCAN_DEFAULTS},
+        {"line_rate_hz": "given", "angle_deg": "default", "overscan": "default", "lines": "default"},
+    )
+    pair = ScanFiles(trace=down, retrace=down)  # jaxafm diagnose's pairs: a rate and an over-scan
+    assert scan_settings(pair, read_image_pair(pair, config, "p"), config, "p")[0] == {
+        "line_rate_hz": 2.0,
+        "overscan": 0.1,
+    }
 
 
 def test_image_format_round_trips_exactly_and_never_overwrites(tmp_path):
@@ -433,10 +505,36 @@ def test_z_unit_converts_exactly_and_first_row_top_flips(tmp_path):
     assert np.array_equal(nm.z, Z_UM) and "assumed" in nm.meta["converted"]  # no z_unit: nm
 
 
-def test_fast_axis_y_transposes_and_size_is_of_the_transposed_image(tmp_path):
-    _tiff(tmp_path / "h.tif", Z_UM.T)  # 8 stored rows of 6 px: the lines are its columns
-    im = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600], "fast_axis": "y"})
-    assert np.array_equal(im.z, Z_UM) and im.pixel_size == (100.0, 100.0)
+@pytest.mark.parametrize("first_row", ["bottom", "top"])
+def test_fast_axis_y_turns_the_image_keeping_the_frame_right_handed(tmp_path, first_row):
+    """Three marks on a stored image whose lines are its columns: ``o``, ``a`` a step up the
+    columns (the way the trace runs), ``b`` a step to the right. Read with ``fast_axis: y`` the
+    trace runs along +x, and the turn from ``a - o`` to ``b - o`` keeps its sense (a rotation; a
+    transpose would reverse it). The size is of the turned image: along the lines first."""
+    stored = np.zeros((8, 6))  # 6 lines (the columns) of 8 px
+    marks = {"o": (2, 1), "a": (5, 1), "b": (2, 4)}  # (row, column), row 0 at the bottom
+    for k, (i, j) in enumerate(marks.values(), start=1):
+        stored[i, j] = k
+    _tiff(tmp_path / "h.tif", stored if first_row == "bottom" else stored[::-1])
+    im = _read(tmp_path, {"path": "h.tif", "size_nm": [800, 600], "fast_axis": "y", "first_row": first_row})
+    assert im.shape == (6, 8) and im.pixel_size == (100.0, 100.0)
+    at = {k: np.argwhere(im.z == v)[0][::-1] for k, v in zip(marks, (1, 2, 3))}  # (x, y) px
+    up, right = at["a"] - at["o"], at["b"] - at["o"]
+    assert up[0] == 3 and up[1] == 0  # the trace's way: +x
+    stored_sense = np.sign(np.cross([0, 3], [3, 0]))  # (x, y) of a - o and b - o as stored
+    assert np.sign(np.cross(up, right)) == stored_sense
+
+
+def test_fast_axis_y_puts_every_pixel_where_the_turn_puts_its_point(tmp_path):
+    """A saved image with an origin and unequal pixel sizes, read with ``fast_axis: y``: each
+    value lies at (x', y') = (y, -x) of where it lay."""
+    z = np.arange(35.0).reshape(5, 7)
+    path = save_image(AFMImage(z, (2.5, 4.0), (10.0, -3.0), {"source": "test"}), tmp_path / "a.npz")
+    im = _read(tmp_path, {"path": str(path), "fast_axis": "y"})
+    position = lambda image, v: np.array(image.origin) + np.argwhere(image.z == v)[0][::-1] * image.pixel_size
+    for v in (0.0, 6.0, 30.0, 17.0):
+        x, y = position(load_image(path), v)
+        np.testing.assert_allclose(position(im, v), (y, -x))
 
 
 def test_gwyddion_row_order_from_the_config_wins_and_is_noted(tmp_path):
@@ -518,7 +616,7 @@ def test_bad_image_metadata_is_refused_by_the_schema_naming_the_key(tmp_path, im
 @pytest.mark.parametrize(
     "trace, match",
     [
-        ({"line_rate_hz": 4.0}, r"data: trace.line_rate_hz = 4 Hz disagrees with line_rate_hz = 2 Hz"),
+        ({"line_rate_hz": 4.0}, r"data: line_rate_hz = 2 Hz, trace.line_rate_hz = 4 Hz disagree"),
         ({"direction": "retrace"}, r"data: trace.direction is 'retrace', but the trace key holds"),
     ],
 )

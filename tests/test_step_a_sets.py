@@ -598,7 +598,7 @@ def test_a_compensated_scan_the_inverse_refuses_is_reported_and_the_rest_is_writ
             "{trace: a, retrace: b, line_rate_hz: 1, scans: [{trace: a, retrace: b, line_rate_hz: 1}]}",
             "not both",
         ),
-        ("{trace: a, retrace: b}", "missing line_rate_hz"),
+        ("{trace: a}", "missing retrace"),
         ("{trace: a, retrace: b, line_rate_hz: 1, scan_range_nm: -5}", "data.scan_range_nm.0"),
     ],
 )

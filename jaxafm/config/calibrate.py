@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, ClassVar, Literal, Optional, Union
 
 from pydantic import Field, field_validator, model_validator
 
@@ -101,14 +101,25 @@ class SimulatedCalibration(Strict):
 
 
 class CalibrationPair(ImagePair):
-    """One measured trace/retrace pair of the calibration lattice and how it was scanned."""
+    """One measured trace/retrace pair of the calibration lattice and how it was scanned; a
+    setting left out is the files' header's, else :attr:`SCAN_DEFAULTS`'."""
 
-    angle_deg: float = Field(0.0, ge=-360, le=360, description="scan angle, degrees anticlockwise")
-    overscan: float = Field(
-        0.1, ge=0, le=1, description="over-scan beyond the image at each end of a line, fraction of the width"
+    SCAN_DEFAULTS: ClassVar[dict] = {"angle_deg": 0.0, "overscan": 0.1, "lines": "up"}
+
+    angle_deg: Optional[float] = Field(
+        None, ge=-360, le=360, description="scan angle, degrees anticlockwise; default: the header's, else 0"
     )
-    lines: Literal["up", "down"] = Field(
-        "up", description="the order the lines were scanned: up (the image's row 0 first) or down"
+    overscan: Optional[float] = Field(
+        None,
+        ge=0,
+        le=1,
+        description="over-scan beyond the image at each end of a line, fraction of the width; "
+        "default: the header's, else 0.1",
+    )
+    lines: Optional[Literal["up", "down"]] = Field(
+        None,
+        description="the order the lines were scanned: up (the image's row 0 first) or down; "
+        "default: the header's, else up",
     )
 
 
@@ -122,10 +133,21 @@ class CalibrationImages(Strict):
 
     trace: Optional[ImageFile] = Field(None, description="the trace image of a single scan")
     retrace: Optional[ImageFile] = Field(None, description="the retrace image of a single scan")
-    line_rate_hz: Optional[float] = Field(None, gt=0, description="a single scan's lines per second")
-    angle_deg: float = Field(0.0, ge=-360, le=360, description="a single scan's angle, degrees")
-    overscan: float = Field(0.1, ge=0, le=1, description="a single scan's over-scan, fraction of the width")
-    lines: Literal["up", "down"] = Field("up", description="a single scan's line order")
+    line_rate_hz: Optional[float] = Field(
+        None, gt=0, description="a single scan's lines per second; default: the files' header's"
+    )
+    angle_deg: Optional[float] = Field(
+        None, ge=-360, le=360, description="a single scan's angle, degrees; default: the header's, else 0"
+    )
+    overscan: Optional[float] = Field(
+        None,
+        ge=0,
+        le=1,
+        description="a single scan's over-scan, fraction of the width; default: the header's, else 0.1",
+    )
+    lines: Optional[Literal["up", "down"]] = Field(
+        None, description="a single scan's line order; default: the header's, else up"
+    )
     scans: Optional[list[CalibrationPair]] = Field(
         None,
         min_length=1,
@@ -152,29 +174,20 @@ class CalibrationImages(Strict):
 
     @model_validator(mode="after")
     def _one_form(self):
-        single = {k: getattr(self, k) for k in ("trace", "retrace", "line_rate_hz")}
+        single = {k: getattr(self, k) for k in SINGLE_SCAN_KEYS}
         given = [k for k, v in single.items() if v is not None]
         if self.scans is not None:
             if given:
                 raise ValueError(
                     f"give one scan as trace/retrace/line_rate_hz or several as scans, not both ({given[0]})"
                 )
-            seen = [(s.angle_deg, s.line_rate_hz) for s in self.scans]
-            twice = sorted({k for k in seen if seen.count(k) > 1})
-            if twice:
-                a, r = twice[0]
-                raise ValueError(
-                    f"scans: the scan at angle_deg {a:g} and line_rate_hz {r:g} is given "
-                    f"{seen.count(twice[0])} times: each pair of angle and line rate once (a speed "
-                    "series scans one angle at several rates)"
-                )
-        elif len(given) < 3:
-            missing = [k for k in single if k not in given]
-            raise ValueError(
-                f"missing {', '.join(missing)}: a scan needs trace, retrace and line_rate_hz (or give scans)"
-            )
+            known = [(s.angle_deg, s.given_line_rate_hz) for s in self.scans]
+            each_scan_once([k for k in known if None not in k])  # the files may say the rest
+        elif self.trace is None or self.retrace is None:
+            missing = [k for k in ("trace", "retrace") if single[k] is None]
+            raise ValueError(f"missing {', '.join(missing)}: a scan needs trace and retrace (or give scans)")
         else:
-            CalibrationPair(**single)  # the pair's own checks
+            CalibrationPair(**{k: v for k, v in single.items() if v is not None})  # the pair's own checks
         return self
 
     @property
@@ -183,8 +196,28 @@ class CalibrationImages(Strict):
         ``data.scans.N``)."""
         if self.scans is not None:
             return [(f"data.scans.{i}", s) for i, s in enumerate(self.scans)]
-        fields = ("trace", "retrace", "line_rate_hz", "angle_deg", "overscan", "lines")
-        return [("data", CalibrationPair(**{k: getattr(self, k) for k in fields}))]
+        single = {k: getattr(self, k) for k in SINGLE_SCAN_KEYS}
+        return [("data", CalibrationPair(**{k: v for k, v in single.items() if v is not None}))]
+
+
+#: the keys of ``data`` that give a single scan (``CalibrationPair``'s)
+SINGLE_SCAN_KEYS = ("trace", "retrace", "line_rate_hz", "angle_deg", "overscan", "lines")
+
+
+def each_scan_once(seen: list) -> None:
+    """Refuse a calibration's scans whose ``(angle_deg, line_rate_hz)`` repeat.
+
+    Raises:
+        ValueError: naming the angle, the rate and how often.
+    """
+    twice = sorted({k for k in seen if seen.count(k) > 1})
+    if twice:
+        a, r = twice[0]
+        raise ValueError(
+            f"scans: the scan at angle_deg {a:g} and line_rate_hz {r:g} is given "
+            f"{seen.count(twice[0])} times: each pair of angle and line rate once (a speed "
+            "series scans one angle at several rates)"
+        )
 
 
 #: the effects step A fits when a model names none (``asymmetry`` for a generalised PI only)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, ClassVar, Literal, Optional, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -97,11 +97,13 @@ class ImageFile(Strict):
         None, gt=0, description="Hz: lines (trace + retrace) per second; default: the file's, if any"
     )
     fast_axis: Literal["x", "y"] = Field(
-        "x", description="the image axis the scan lines run along; y: transposed, so that they are rows"
+        "x",
+        description="the image axis the scan lines run along; y: the stored columns, traced upward, "
+        "turned a quarter turn clockwise into rows (the last column becomes row 0)",
     )
     first_row: Optional[Literal["bottom", "top"]] = Field(
         None,
-        description="where row 0 lies: bottom (the lowest y, scanned first) or top (flipped); "
+        description="where the stored row 0 lies: bottom (the lowest y) or top (flipped); "
         "default: the file's (Gwyddion: top), else bottom",
     )
     direction: Optional[Literal["trace", "retrace"]] = Field(
@@ -122,17 +124,26 @@ class ImageFile(Strict):
 
 
 class ImagePair(Strict):
-    """A trace/retrace pair of image files and its line rate; an image's own ``direction`` and
-    ``line_rate_hz``, where given, must agree with the pair's."""
+    """A trace/retrace pair of image files and how it was scanned: its line rate and the
+    settings of :attr:`SCAN_DEFAULTS`. A setting left out is the one the files' own header
+    records (a Nanosurf .nid file's), else its default (the line rate has none); one given must
+    agree with the header's (``jaxafm.jobs.inputs.scan_settings``). An image's own ``direction``
+    and ``line_rate_hz``, where given, must agree with the pair's."""
+
+    #: the scan settings besides the line rate, with their defaults where the files do not say
+    SCAN_DEFAULTS: ClassVar[dict] = {}
 
     trace: ImageFile = Field(description="the trace image: a path, relative to the config file, or a mapping")
     retrace: ImageFile = Field(
         description="the retrace image: a path, relative to the config file, or a mapping"
     )
-    line_rate_hz: float = Field(gt=0, description="lines (trace + retrace) per second")
+    line_rate_hz: Optional[float] = Field(
+        None, gt=0, description="lines (trace + retrace) per second; default: the files' header's"
+    )
 
     @model_validator(mode="after")
     def _images_agree(self):
+        rates = {}
         for key in ("trace", "retrace"):
             image = getattr(self, key)
             if image.direction not in (None, key):
@@ -140,12 +151,20 @@ class ImagePair(Strict):
                     f"{key}.direction is {image.direction!r}, but the {key} key holds the {key} "
                     f"image: remove {key}.direction or swap the files"
                 )
-            if image.line_rate_hz is not None and not math.isclose(image.line_rate_hz, self.line_rate_hz):
-                raise ValueError(
-                    f"{key}.line_rate_hz = {image.line_rate_hz:g} Hz disagrees with line_rate_hz = "
-                    f"{self.line_rate_hz:g} Hz: give the pair's line rate once, as line_rate_hz"
-                )
+            if image.line_rate_hz is not None:
+                rates[f"{key}.line_rate_hz"] = image.line_rate_hz
+        if self.line_rate_hz is not None:
+            rates = {"line_rate_hz": self.line_rate_hz} | rates
+        if len(rates) > 1 and not all(math.isclose(r, next(iter(rates.values()))) for r in rates.values()):
+            said = ", ".join(f"{k} = {r:g} Hz" for k, r in rates.items())
+            raise ValueError(f"{said} disagree: give the pair's line rate once, as line_rate_hz")
         return self
+
+    @property
+    def given_line_rate_hz(self) -> Optional[float]:
+        """The line rate the config gives: the pair's, else an image's, else None."""
+        images = (self.trace.line_rate_hz, self.retrace.line_rate_hz)
+        return next((r for r in (self.line_rate_hz, *images) if r is not None), None)
 
 
 def _key(loc: tuple) -> str:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal, Optional, Union
+from typing import Annotated, Any, ClassVar, Literal, Optional, Union
 
 from pydantic import Field, model_validator
 
@@ -126,7 +126,14 @@ class ScanFiles(ImagePair):
     """One trace/retrace pair (``ImageFile``s: any format ``jaxafm.instrument.images.read_image``
     reads), both left to right, row 0 scanned first, and how fast it was scanned."""
 
-    overscan: float = Field(0.0, ge=0, le=1, description="fraction of the width scanned beyond each end")
+    SCAN_DEFAULTS: ClassVar[dict] = {"overscan": 0.0}
+
+    overscan: Optional[float] = Field(
+        None,
+        ge=0,
+        le=1,
+        description="fraction of the width scanned beyond each end; default: the header's, else 0",
+    )
 
 
 class ScanSimulation(Strict):

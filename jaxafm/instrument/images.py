@@ -35,6 +35,19 @@ if TYPE_CHECKING:
     from .afm import RasterScan
 
 FORMAT, VERSION = "jaxafm-image", 1
+#: A scan setting a config's pair gives (``angle_deg``, ...) -> the .nid header entry recording it
+#: (section ``[DataSet\\DataSetInfos\\Scan]``)
+NID_SCAN_ENTRIES = {
+    "line_rate_hz": "Time/Line",
+    "angle_deg": "Rotation",
+    "overscan": "Overscan",
+    "lines": "Scan direction",
+}
+_NID_UNITS = {
+    "Time/Line": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6},
+    "Rotation": {"\u00b0": 1.0, "deg": 1.0},
+    "Overscan": {"%": 1e-2},
+}
 #: Suffix -> AFMReader module and loader, with the channel it reads by default.
 AFMREADER_FORMATS = {
     ".spm": ("spm", "load_spm", "Height"),
@@ -182,9 +195,12 @@ def read_image(
         z_unit: the unit of the stored heights (``LENGTH_TO_NM``); default nm for a TIFF.
         line_rate_hz: lines (trace + retrace) per second, Hz; into ``meta``.
         fast_axis: the image axis the scan lines run along: "x" (rows; the default) or "y"
-            (columns: transposed, so that they are rows).
-        first_row: where row 0 (after ``fast_axis``) lies: "bottom" (the lowest y, scanned
-            first: jaxafm's order, the default for files that do not say) or "top" (flipped).
+            (the stored columns, traced upward: the image is turned a quarter turn clockwise,
+            ``x' = y, y' = -x``, so that they are rows traced along +x in a right-handed frame;
+            the stored image's last column becomes row 0, and a scan of its columns from left to
+            right is ``lines: down``).
+        first_row: where the stored row 0 lies: "bottom" (the lowest y: jaxafm's order, the
+            default for files that do not say) or "top" (flipped).
         direction: "trace" or "retrace"; into ``meta``.
 
     Returns:
@@ -255,15 +271,20 @@ def _as_given(stored: _Stored, path: Path, given: dict) -> AFMImage:
     meta |= {k: given[k] for k in ("line_rate_hz", "direction") if k in given}
     z = stored.z * LENGTH_TO_NM[_z_unit(stored, path, given.get("z_unit"), meta)]
     size, origin = stored.size_nm, stored.origin
-    if given.get("fast_axis") == "y":
-        z, origin = z.T, origin[::-1]
-        size = None if size is None else size[::-1]
-        meta["fast_axis"] = "y: transposed, the scan lines are the rows"
     _check_first_row(stored, path, given)
     if given.get("first_row", stored.first_row) == "top":
         z = z[::-1]
         meta["row_order"] = "flipped: row 0 is the bottom line"
+    turned = given.get("fast_axis") == "y"
+    if turned:  # x' = y, y' = -x: a rotation, so the frame stays right-handed (a transpose mirrors it)
+        z = np.rot90(z)
+        size = None if size is None else size[::-1]
+        meta["fast_axis"] = (
+            "y: turned a quarter turn clockwise, the stored columns (traced upward) are the rows"
+        )
     pixel = _pixel_size(path, z.shape, given.get("size_nm"), size)
+    if turned:  # where the stored image's last column, now row 0, lies
+        origin = (origin[1], -(origin[0] + (z.shape[0] - 1) * pixel[1]))
     if size is not None:
         said["size_nm"] = [float(v) for v in size]
     wanted = given | ({"size_nm": list(_size(given["size_nm"]))} if "size_nm" in given else {})
@@ -274,7 +295,7 @@ def _as_given(stored: _Stored, path: Path, given: dict) -> AFMImage:
 def _check_first_row(stored: _Stored, path: Path, given: dict) -> None:
     """Refuse a given ``first_row`` that contradicts the row order the instrument recorded in the
     file's header (a scan direction), as a contradicting height unit or size is refused."""
-    if "first_row" not in given or stored.first_row_said is None or given.get("fast_axis") == "y":
+    if "first_row" not in given or stored.first_row_said is None:
         return
     if given["first_row"] != stored.first_row:
         raise ValueError(
@@ -479,14 +500,36 @@ def _read_nid(path: Path, channel: Optional[str], direction: Optional[str]) -> _
         "channel": names[pick[0]],
         "direction": "trace" if frame == NID_FRAMES["trace"] else "retrace",
         "converted": f"x, y from {units['xy']} and z from {units['z']} to nm",
-        "instrument": {
-            k: scan[k] for k in ("Time/Line", "Scan direction", "Rotation", "Overscan") if k in scan
-        },
+        "instrument": {k: scan[k] for k in NID_SCAN_ENTRIES.values() if k in scan},
+        "scan": _nid_scan(scan),
     }
     size = tuple(float(h[f"Dim{k}Range"]) * LENGTH_TO_NM[units["xy"]] for k in (0, 1))
     first_row = {"Up": "bottom"}.get(up)  # Down: the file does not say where its row 0 lies
     said = None if first_row is None else f"Scan direction={up}"
     return _Stored(z.reshape(lines, points), units["z"], size, meta, first_row, first_row_said=said)
+
+
+def _nid_scan(scan: dict) -> dict:
+    """The scan settings a .nid header records, as a config pair's keys
+    (:data:`NID_SCAN_ENTRIES`), each ``{"value": ..., "header": "Rotation=-45 \u00b0"}``:
+    ``line_rate_hz`` = 1 / ``Time/Line`` (a line: its trace and its retrace), ``angle_deg`` =
+    ``Rotation`` (degrees anticlockwise), ``overscan`` = ``Overscan`` / 100 (of the width, at each
+    end of a line), ``lines`` = ``Scan direction`` (``Up``: the bottom line first). An entry the
+    header lacks, or whose value or unit is not one of these, is left out."""
+    recorded = {}
+    for key, entry in NID_SCAN_ENTRIES.items():
+        text = scan.get(entry, "").strip()
+        if entry == "Scan direction":
+            value = {"Up": "up", "Down": "down"}.get(text)
+        else:
+            m = re.fullmatch(r"([-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?)\s*(\S*)", text)
+            scale = _NID_UNITS[entry].get(m.group(2)) if m else None
+            value = None if scale is None else float(m.group(1)) * scale
+            if key == "line_rate_hz" and value is not None:
+                value = 1.0 / value if value > 0 else None
+        if value is not None:
+            recorded[key] = {"value": value, "header": f"{entry}={text}"}
+    return recorded
 
 
 def _nid_channels(path: Path, head: dict) -> list:

@@ -33,6 +33,7 @@ from ..config import (
     CalibrationSolver,
     SimulatedCalibration,
 )
+from ..config.calibrate import each_scan_once
 from ..identify.calibration_scan import CalibrationScan
 from ..identify.held_out import model_centres, nominal_centres, raw_errors
 from ..identify.identifiability import ellipse_quantile, point_predictions
@@ -55,7 +56,7 @@ from ..identify.step_a import (
 from ..instrument.afm import AFM, Raster, default_afm
 from ..model.io import save_model
 from .folder import Output
-from .inputs import read_image_pair
+from .inputs import read_image_pair, scan_settings
 
 
 def calibration_scans(
@@ -81,9 +82,11 @@ def read_calibration(
     """The measured trace/retrace pairs (``data`` of ``config_path``) as
     :class:`~jaxafm.identify.calibration_scan.CalibrationScan`s, with the nominal sensitivity
     given or its default (:func:`nominal_sensitivity`)."""
-    images, rasters = [], []
+    images, rasters, scanned, said = [], [], [], []
     for key, pair in spec.pairs:
         trace, retrace = read_image_pair(pair, config_path, key)
+        how, source = scan_settings(pair, (trace, retrace), config_path, key)
+        said.append(f"{key}: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items()))
         if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
             raise ValueError(
                 f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "
@@ -97,18 +100,25 @@ def read_calibration(
                 "the scans of one calibration must have one size and one pixel count"
             )
         images.append((trace, retrace))
+        scanned.append((how["angle_deg"], how["line_rate_hz"]))
+        try:
+            each_scan_once(scanned)  # with what the files' headers say
+        except ValueError as e:
+            raise ValueError(f"{config_path}: data: {e}") from None
         rasters.append(
             Raster(
                 trace.size,
                 trace.shape[1],
                 trace.shape[0],
-                line_rate=pair.line_rate_hz,
-                overscan=pair.overscan,
-                direction=pair.lines,
-                angle_deg=pair.angle_deg,
+                line_rate=how["line_rate_hz"],
+                overscan=how["overscan"],
+                direction=how["lines"],
+                angle_deg=how["angle_deg"],
             )
         )
     sensitivity = nominal_sensitivity(spec, rasters, log)
+    for line in said:  # once every check has passed: a refusal is the run's first line
+        log(line)
     return tuple(
         CalibrationScan(
             trace.z,

@@ -23,7 +23,7 @@ from ..diagnose.report import write
 from ..diagnose.scans import ScanPair, diagnose_scans
 from ..instrument.records import read_record
 from .folder import Output
-from .inputs import read_image_file, read_image_pair
+from .inputs import read_image_file, read_image_pair, scan_settings
 
 
 def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
@@ -154,11 +154,12 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
     pairs = []
     for i, p in enumerate(sc.pairs):
         tr, re = read_image_pair(p, config_path, f"scans.pairs[{i}]")
+        how, _ = scan_settings(p, (tr, re), config_path, f"scans.pairs[{i}]")
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
                 "images differ in size"
             )
-        dt = 1.0 / (2 * p.line_rate_hz * tr.shape[1] * (1 + 2 * p.overscan))  # s between two pixels
+        dt = 1.0 / (2 * how["line_rate_hz"] * tr.shape[1] * (1 + 2 * how["overscan"]))  # s between two pixels
         pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace.path))
     return pairs

@@ -5,6 +5,7 @@ the config key as the user wrote it and the file."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,55 @@ def read_image_pair(pair, config_path: Path, key: str) -> tuple:
             "step A needs both directions of each line"
         )
     return trace, retrace
+
+
+def scan_settings(pair, images: tuple, config_path: Path, key: str) -> dict:
+    """How a config's pair ``key`` was scanned: its ``line_rate_hz`` and the settings of its
+    ``SCAN_DEFAULTS`` (``angle_deg``, ``overscan``, ``lines``; those its schema has), each as
+    the config gives it, else as the images' own header records it (``meta["scan"]``: a Nanosurf
+    .nid file's ``Time/Line``, ``Rotation``, ``Overscan``, ``Scan direction``), else its default.
+
+    Arguments:
+        pair: the config's ``ImagePair``.
+        images: its (trace, retrace) ``AFMImage`` s, as :func:`read_image_pair` reads them.
+        config_path, key: named in errors (``data.scans.0``).
+
+    Returns:
+        ``({setting: value}, {setting: "given", "header" or "default"})``, every setting of the pair.
+
+    Raises:
+        ValueError: naming the config, the key, the values and the header entry: a given setting
+            that disagrees with the header's, trace and retrace headers that disagree, or no line
+            rate anywhere.
+    """
+    out, source = {}, {}
+    for name in ("line_rate_hz", *type(pair).SCAN_DEFAULTS):
+        given = pair.given_line_rate_hz if name == "line_rate_hz" else getattr(pair, name)
+        header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
+        recorded = {source: scan[name] for source, scan in header if name in scan}
+        said = "; ".join(f"{source}: {r['header']}, {name} {r['value']!r}" for source, r in recorded.items())
+        values = [r["value"] for r in recorded.values()]
+        if any(not _same(v, values[0]) for v in values):
+            raise ValueError(f"{config_path}: {key}: the trace's and the retrace's headers disagree ({said})")
+        if given is not None and values and not _same(given, values[0]):
+            raise ValueError(
+                f"{config_path}: {key}.{name} = {given!r} disagrees with the header ({said}): "
+                f"remove {name} to use the header's"
+            )
+        value = given if given is not None else values[0] if values else type(pair).SCAN_DEFAULTS.get(name)
+        if value is None:
+            raise ValueError(
+                f"{config_path}: {key}: missing line_rate_hz: the files' headers do not record how many "
+                "lines (trace + retrace) a second were scanned; give it, Hz"
+            )
+        out[name] = value
+        source[name] = "given" if given is not None else "header" if values else "default"
+    return out, source
+
+
+def _same(a, b) -> bool:
+    """Equal, numbers to the 4 digits a header prints."""
+    return math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-9) if isinstance(a, float | int) else a == b
 
 
 def read_model_and_posterior(spec: str, config_path: Path, key: str = "model") -> tuple:
