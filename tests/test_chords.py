@@ -56,6 +56,25 @@ def test_pits_spikes_and_clipped_pixels():
     assert chords.image.height == pytest.approx(150.0, rel=0.01)
 
 
+@pytest.mark.parametrize("pits", [False, True])
+def test_dust_taller_than_the_features_is_neither_their_height_nor_a_feature(pits):
+    """Specks of 3 x 3 px three times the features' height, over 1 % of the image (more than
+    the 0.5 % above the 99.5th percentile that sets the features' level), on the surface between
+    the features, standing up out of it (dust) on pillars and, for the pits, sunk into it."""
+    shape, radius = (104, 104), 9.0
+    z = _discs(shape, CENTRES, radius, 200.0) + np.random.default_rng(0).normal(0, 1.0, shape)
+    specks = [(r, c) for r in (4, 36, 68, 99) for c in (4, 36, 68, 99)]  # between the discs
+    for r, c in specks:
+        z[r - 1 : r + 2, c - 1 : c + 2] += 600.0
+    assert len(specks) * 9 > 0.01 * z.size
+    chords = find_chords(-z if pits else z, pits=pits)
+    assert chords.image.height == pytest.approx(200.0, rel=0.01)
+    assert len(chords.centres) == 9
+    for ends, f in zip(chords.ends, chords.feature):
+        centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
+        assert np.hypot(*(ends - centre).T) == pytest.approx(radius, abs=0.5)  # the noise: 1 nm of 200
+
+
 def test_features_cut_by_the_edge_and_spikes_are_not_features():
     shape = (104, 104)
     z = _discs(shape, CENTRES + [(50.0, 1.0)], 9.0, 100.0)  # a disc cut by the left edge
@@ -66,8 +85,20 @@ def test_features_cut_by_the_edge_and_spikes_are_not_features():
 
 def test_an_image_without_features_is_refused_by_name():
     flat = np.random.default_rng(1).normal(0, 1, (64, 64))
-    with pytest.raises(ValueError, match="scan.png: no feature level stands out"):
-        level(flat, pits=False, name="scan.png")
+    i, j = np.mgrid[:64, :64]
+    plane = 3.0 * i + 2.0 * j  # a tilt without noise: no feature (not its round-off)
+    for z in (flat, plane):
+        for pits in (False, True):
+            with pytest.raises(ValueError, match="scan.png: no feature level stands out"):
+                level(z, pits=pits, name="scan.png")
+    for z, but in (
+        (np.full((64, 64), -7.0), ""),
+        (np.where(i + j < 3, 100.0, -7.0), " but 6 at its extreme value"),
+    ):
+        with pytest.raises(
+            ValueError, match=f"scan.png: every pixel{but} has the height -7 nm: the image holds no"
+        ):
+            level(z, pits=False, name="scan.png")
 
 
 def test_background_design_is_the_legendre_products_up_to_the_order():

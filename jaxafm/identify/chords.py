@@ -10,14 +10,17 @@ line-to-line offsets), and a lattice of a few features gives hundreds of them.
 (a 2-D polynomial in Legendre form, :func:`background_design`), an offset ``o_l`` per scan line,
 and noise. ``B`` and ``o_l`` are fitted to the surface pixels only, which are found again after
 each fit (below half the feature height, and within five robust standard deviations of the
-surface), so the features never bend the background. What is left, divided by ``s``, is the
+surface), so the features never bend the background. The height ``s`` is the features' level:
+the median of the pixels above half the 99.5th percentile, unless dust taller than the features
+owns that percentile (:func:`_feature_level`). What is left, divided by ``s``, is the
 levelled image ``n``: about 0 on the surface and 1 on the features. Pixels that stand above (or
 below) all four of their neighbours by more than eight robust standard deviations of the surface
 and a quarter of the feature height (spikes), and pixels at the image's extreme value where a few share it (an
 amplifier's clipping), are outliers.
 
 **Features and chords** (:func:`find_chords`). A feature is a connected region where ``n > 1/2``
-that touches no image edge and is not much smaller than the others (a spike is). A chord is a run
+that touches no image edge and is not much smaller than the others (a spike is; the others'
+typical size is taken over the regions that are not specks of dust, :data:`SPECK`). A chord is a run
 of one scan line (or one pixel column) through a feature: its two ends are where ``n`` crosses
 1/2, interpolated linearly between the two pixels on either side. A chord shorter than half the
 feature's longest one grazes its rim, where the crossing is ill-defined, and is dropped, as is a
@@ -34,6 +37,9 @@ from skimage import filters
 
 #: a feature at most this fraction of the median feature's area is a spike or a fragment
 MIN_FEATURE_AREA = 0.3
+#: a region at most this fraction of the largest one's area is a speck (dust, a spike), not one
+#: of the lattice's features, and is left out of the typical feature's area
+SPECK = 0.1
 #: a chord shorter than this fraction of its feature's longest chord (same direction) grazes the rim
 MIN_CHORD = 0.5
 #: the background's polynomial order, Legendre in x and y (0: offset, 1: plane, 2: plus a bow)
@@ -107,6 +113,12 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
     s = -np.asarray(z, dtype=float) if pits else np.asarray(z, dtype=float)
     lines, pixels = s.shape
     clipped = _clipped(s)
+    if np.ptp(s[~clipped]) == 0:
+        but = f" but {clipped.sum()} at its extreme value" if clipped.any() else ""
+        raise ValueError(
+            f"{name}: every pixel{but} has the height {np.asarray(z)[~clipped].flat[0]:.6g} nm: the image "
+            "holds no features (an empty or saturated channel?)"
+        )
     design = background_design(s.shape, order)
     surface = ~clipped
     offsets = np.zeros(lines)
@@ -122,13 +134,12 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
         r = r - offsets[:, None]
         r -= np.median(r[surface])
         sd = _robust_sd(r[surface])
-        above = r[(r > 0.5 * np.percentile(r[~clipped], 99.5)) & ~clipped]
-        height = float(np.median(above)) if above.size else 0.0
+        height = _feature_level(r[~clipped], sd)
         new = (r < 0.5 * height) & (np.abs(r) < max(5 * sd, 0.02 * height)) & ~clipped
-        if np.array_equal(new, surface):
+        if np.array_equal(new, surface) or new.sum() <= design.shape[1]:  # converged, or no surface left
             break
         surface = new
-    if not height > 10 * sd:
+    if not height > max(10 * sd, 1e-6 * np.ptp(s)):  # the floor: features of round-off on a noiseless plane
         if (lines := _spanning(r)) >= 3:
             raise ValueError(
                 f"{name}: {lines} features run right across the image: it shows the lines of a 1-D "
@@ -144,6 +155,31 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
     spikes = _spikes(r, max(8 * sd, 0.25 * height))
     background = (s - r) * (-1.0 if pits else 1.0)
     return LevelledImage(r / height, background, height, surface, spikes | clipped, sd)
+
+
+def _feature_level(r: np.ndarray, sd: float) -> float:
+    """The features' level in the levelled heights ``r`` (nm, surface at 0): the median of the
+    pixels above half the 99.5th percentile. Where tall outliers (dust on the surface, 0.5 % of
+    the image or more) own that percentile, the level found is not within a quarter of the main
+    mode of the heights above the surface (:func:`_upper_mode`), and the pixels above 1.5 times
+    that mode are left out of the percentile."""
+    level = lambda v: float(np.median(v[v > 0.5 * np.percentile(v, 99.5)])) if v.size else 0.0
+    height, mode = level(r), _upper_mode(r, sd)
+    if mode > 0 and not 0.75 * mode < height < 1.25 * mode:
+        height = level(r[r < 1.5 * mode])
+    return height
+
+
+def _upper_mode(r: np.ndarray, sd: float, bins: int = 200) -> float:
+    """The most common height (nm) of the pixels above the surface (by five of its standard
+    deviations, and 1 % of the 99.5th percentile: not its round-off when it has no noise): a
+    histogram of ``bins`` bins, smoothed over five; 0 with too few pixels."""
+    v = r[r > max(5 * sd, 0.01 * np.percentile(r, 99.5))]
+    if v.size < 5 * bins:
+        return 0.0
+    hist, edges = np.histogram(v, bins=bins)
+    smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
+    return float(0.5 * (edges[:-1] + edges[1:])[np.argmax(smooth)])
 
 
 def _spanning(r: np.ndarray) -> int:
@@ -188,7 +224,8 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     spanning = _spanning(n)
     inside = ~np.isin(ids, edge)
-    typical = np.median(area[inside]) if inside.any() else 0.0
+    lattice = inside & (area > SPECK * area.max(initial=0.0, where=inside))  # not dust or spikes
+    typical = np.median(area[lattice]) if lattice.any() else 0.0
     keep = ids[inside & (area > MIN_FEATURE_AREA * typical)]
     centres = np.array(ndimage.center_of_mass(n > 0.5, labels, keep)).reshape(-1, 2)
     index = np.full(count + 1, -1)
