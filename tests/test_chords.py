@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from jaxafm.identify.chords import background_design, find_chords, level
 
@@ -73,6 +74,41 @@ def test_dust_taller_than_the_features_is_neither_their_height_nor_a_feature(pit
     for ends, f in zip(chords.ends, chords.feature):
         centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
         assert np.hypot(*(ends - centre).T) == pytest.approx(radius, abs=0.5)  # the noise: 1 nm of 200
+
+
+def test_scars_are_outliers_and_neither_features_nor_gaps_in_them():
+    """Scars, one and three lines tall, up and down, across features and on the surface
+    between them, taller than half the features: the nine discs stay nine, every scar pixel is
+    an outlier, and every chord kept lies on its drawn circle as on the clean image. Square
+    features with walls along the lines (a column's heights monotone across a wall) have no
+    scar."""
+    shape, radius = (104, 104), 9.0
+    z = _discs(shape, CENTRES, radius, 200.0)
+    scars = np.zeros(shape, bool)
+    for row, lines, start, length, step in [
+        (20, 1, 5, 40, 150.0),
+        (50, 3, 30, 50, -150.0),
+        (36, 1, 40, 30, 300.0),
+    ]:
+        scars[row : row + lines, start : start + length] = True
+        z[row : row + lines, start : start + length] += step
+    chords = find_chords(z, pits=False)
+    assert len(chords.centres) == 9
+    found = chords.image.scars
+    assert found[scars].all() and chords.image.outliers[scars].all()
+    # beyond a scar's ends, where it meets a wall, a pixel or two may go with it; nothing elsewhere
+    near = ndimage.binary_dilation(scars, structure=np.ones((1, 5), bool))
+    assert not (found & ~near).any()
+    for ends, f in zip(chords.ends, chords.feature):
+        centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
+        assert np.hypot(*(ends - centre).T) == pytest.approx(radius, abs=0.05)
+    rows, cols = np.mgrid[: shape[0], : shape[1]].astype(float)
+    squares = sum(  # walls 3 px wide; less than half of each line on a wall, so its offset is the surface's
+        200.0 * np.clip((11.0 - np.maximum(np.abs(rows - r0), np.abs(cols - c0))) / 3, 0, 1)
+        for r0, c0 in [(r, c) for r in (30.3, 72.6) for c in (30.7, 73.9)]
+    )
+    plain = find_chords(squares, pits=False)
+    assert len(plain.centres) == 4 and not plain.image.scars.any()
 
 
 def test_features_cut_by_the_edge_and_spikes_are_not_features():

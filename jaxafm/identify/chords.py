@@ -15,8 +15,10 @@ the median of the pixels above half the 99.5th percentile, unless dust taller th
 owns that percentile (:func:`_feature_level`). What is left, divided by ``s``, is the
 levelled image ``n``: about 0 on the surface and 1 on the features. Pixels that stand above (or
 below) all four of their neighbours by more than eight robust standard deviations of the surface
-and a quarter of the feature height (spikes), and pixels at the image's extreme value where a few share it (an
-amplifier's clipping), are outliers.
+and a quarter of the feature height (spikes), pixels at the image's extreme value where a few share it (an
+amplifier's clipping), and scars (runs along a line, at most three lines tall, that stand as far out of
+the lines around them: :func:`_scars`) are outliers; a scar's pixels are mended from the lines
+around them before the features are found (:meth:`LevelledImage.mended`).
 
 **Features and chords** (:func:`find_chords`). A feature is a connected region where ``n > 1/2``
 that touches no image edge and is not much smaller than the others (a spike is; the others'
@@ -30,6 +32,8 @@ chord with an outlier at either end.
 from __future__ import annotations
 
 import dataclasses
+import warnings
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -40,6 +44,10 @@ MIN_FEATURE_AREA = 0.3
 #: a region at most this fraction of the largest one's area is a speck (dust, a spike), not one
 #: of the lattice's features, and is left out of the typical feature's area
 SPECK = 0.1
+#: a scar is at most this many lines tall, and is found against this many lines each side of it
+SCAR_LINES = 3
+#: a scar runs along its line for at least this many pixels (a spike is shorter)
+SCAR_RUN = 8
 #: a chord shorter than this fraction of its feature's longest chord (same direction) grazes the rim
 MIN_CHORD = 0.5
 #: the background's polynomial order, Legendre in x and y (0: offset, 1: plane, 2: plus a bow)
@@ -55,8 +63,10 @@ class LevelledImage:
         background: the fitted background and line offsets (lines, pixels) nm.
         height: the features' height above (pillars) or depth below (pits) the surface, nm.
         surface: the pixels the background was fitted to (lines, pixels).
-        outliers: spikes and clipped pixels (lines, pixels).
+        outliers: spikes, scars and clipped pixels (lines, pixels).
         noise_nm: the surface's robust standard deviation, nm.
+        scars: the scars among the outliers (lines, pixels; :func:`_scars`), None where not
+            looked for.
     """
 
     levelled: np.ndarray
@@ -65,6 +75,14 @@ class LevelledImage:
     surface: np.ndarray
     outliers: np.ndarray
     noise_nm: float
+    scars: Optional[np.ndarray] = None
+
+    def mended(self) -> np.ndarray:
+        """``levelled`` with each scar's pixels replaced by the median of the lines around them
+        that are not scars (:func:`_column_median`): what the lines show there."""
+        if self.scars is None or not self.scars.any():
+            return self.levelled
+        return np.where(self.scars, _column_median(self.levelled, self.scars), self.levelled)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,9 +170,14 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
             f"{height:.3g} nm, surface noise {sd:.3g} nm): is it a lattice of "
             f"{'pits' if pits else 'pillars'}? (grating.pits)"
         )
-    spikes = _spikes(r, max(8 * sd, 0.25 * height))
+    spikes = _spikes(r, _outlier_step(sd, height))
     background = (s - r) * (-1.0 if pits else 1.0)
     return LevelledImage(r / height, background, height, surface, spikes | clipped, sd)
+
+
+def _outlier_step(sd: float, height: float) -> float:
+    """How far (nm) a spike or a scar stands out of what is around it."""
+    return max(8 * sd, 0.25 * height)
 
 
 def _feature_level(r: np.ndarray, sd: float) -> float:
@@ -198,6 +221,48 @@ def _spikes(r: np.ndarray, step: float) -> np.ndarray:
     return np.all(r - near > step, axis=0) | np.all(near - r > step, axis=0)
 
 
+def _scars(image: LevelledImage, labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Pixels of scars (the z feedback losing or regaining the surface for part of a line): at
+    most :data:`SCAR_LINES` lines tall, they stand out of the median of the lines around them
+    (:func:`_column_median`) by more than a spike does, for a run of at least :data:`SCAR_RUN`
+    pixels along the line; two such runs of one line less than ``2 SCAR_RUN`` pixels apart are
+    one scar (crossing a wall, where it may not stand out), and from there a scar reaches along
+    its line as far as it stands out by a quarter of that, across gaps of up to three pixels.
+    Found twice: the second time against the medians without the scars found the first time
+    (a scar's own lines may bend the median beside it, on a wall). A feature's wall is never
+    one: across a wall a column's heights are monotone, and the middle one of a monotone run is
+    its median. Looked for only where the features ``keep`` (of ``labels``) are taller than that
+    median's window: in a lattice of shorter ones a scar cannot be told from a row of features."""
+    boxes = ndimage.find_objects(labels)
+    tall = np.median([boxes[k - 1][0].stop - boxes[k - 1][0].start for k in keep]) if len(keep) else 0
+    scars = np.zeros(labels.shape, bool)
+    if tall <= 2 * SCAR_LINES + 1:
+        return scars
+    r = image.levelled * image.height
+    for _ in range(2):
+        off = np.abs(r - _column_median(r, scars)) / _outlier_step(image.noise_nm, image.height)
+        core = ndimage.binary_opening(off > 1, structure=np.ones((1, SCAR_RUN), bool)) | scars
+        core = ndimage.binary_closing(core, structure=np.ones((1, 2 * SCAR_RUN + 1), bool), border_value=0)
+        reach = ndimage.binary_closing(off > 0.25, structure=np.ones((1, 5), bool), border_value=0) | core
+        scars = ndimage.binary_propagation(core, structure=np.ones((1, 3), bool), mask=reach)
+        if not scars.any():
+            break
+    return scars
+
+
+def _column_median(r: np.ndarray, left_out: np.ndarray) -> np.ndarray:
+    """The median of each pixel's column over the lines around it, :data:`SCAR_LINES` each side
+    and its own (beyond the image's first and last line: those lines again), the ``left_out``
+    pixels left out (where all are: the pixel's own value)."""
+    k = SCAR_LINES
+    padded = np.pad(np.where(left_out, np.nan, r), ((k, k), (0, 0)), mode="edge")  # as the first line
+    window = np.stack([padded[i : i + r.shape[0]] for i in range(2 * k + 1)])
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN window: its own value below
+        median = np.nanmedian(window, axis=0)
+    return np.where(np.isnan(median), r, median)
+
+
 def _clipped(s: np.ndarray) -> np.ndarray:
     """Pixels at the image's highest or lowest value where a few (2 to 1 % of the image) share it:
     an amplifier's clipping; a plateau that many pixels share is the image's own level."""
@@ -217,16 +282,13 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
         ValueError: naming the image, when no feature level stands out of it (:func:`level`).
     """
     image = level(z, pits, name)
-    n = image.levelled
-    labels, count = ndimage.label(n > 0.5)
-    ids = np.arange(1, count + 1)
-    area = ndimage.sum_labels(np.ones_like(n), labels, ids)
-    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    labels, count, keep = _features(image.levelled)
+    scars = _scars(image, labels, keep)
+    image = dataclasses.replace(image, outliers=image.outliers | scars, scars=scars)
+    n = image.mended()  # a scar is neither a feature nor a gap in one
+    if scars.any():
+        labels, count, keep = _features(n)
     spanning = _spanning(n)
-    inside = ~np.isin(ids, edge)
-    lattice = inside & (area > SPECK * area.max(initial=0.0, where=inside))  # not dust or spikes
-    typical = np.median(area[lattice]) if lattice.any() else 0.0
-    keep = ids[inside & (area > MIN_FEATURE_AREA * typical)]
     centres = np.array(ndimage.center_of_mass(n > 0.5, labels, keep)).reshape(-1, 2)
     index = np.full(count + 1, -1)
     index[keep] = np.arange(len(keep))
@@ -235,6 +297,19 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     feature = np.concatenate([r[1] for r in runs])
     along = np.concatenate([np.full(len(r[1]), k == 0) for k, r in enumerate(runs)])
     return Chords(ends, feature, along, centres, image, spanning)
+
+
+def _features(n: np.ndarray) -> tuple:
+    """``(labels, count, keep)``: the regions where the levelled image ``n > 1/2`` and the
+    labels of those that are features (the module's rules)."""
+    labels, count = ndimage.label(n > 0.5)
+    ids = np.arange(1, count + 1)
+    area = ndimage.sum_labels(np.ones_like(n), labels, ids)
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    inside = ~np.isin(ids, edge)
+    lattice = inside & (area > SPECK * area.max(initial=0.0, where=inside))  # not dust or spikes
+    typical = np.median(area[lattice]) if lattice.any() else 0.0
+    return labels, count, ids[inside & (area > MIN_FEATURE_AREA * typical)]
 
 
 def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:
