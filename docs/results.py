@@ -1974,7 +1974,7 @@ def real_lattice_artefacts(results: Results) -> Table:
     off = {
         "none": "all on",
         "scars": "scars not looked for",
-        "dust": "height from the 99.5th percentile alone",
+        "dust": "height from the 99.5th percentile only (no mode check)",
     }
     rows = []
     for r in results(REAL_LATTICE_ARTEFACTS)["rows"]:

@@ -6,7 +6,8 @@ clean, so this experiment adds both to each image of a lattice, identifies it as
 ``configs/calibrate_nanosurf_NAME.yaml`` says (``jaxafm calibrate``'s own reading and step A),
 and compares the held-out features with the clean run's. It repeats the identification with
 the outlier handling of ``jaxafm.identify.chords`` switched off, one part at a time: scars not
-looked for, and the features' height taken as the 99.5th percentile alone. No truth is known:
+looked for, and the features' height from the 99.5th percentile without the check against the
+mode (the median above half of it, dust included). No truth is known:
 the held-out features, and the clean image's own result, are the check.
 
 The artefacts, drawn per image (seeded): ``--scars`` scars, each 1 to 3 lines tall, 40 to 120 px
@@ -63,7 +64,7 @@ def with_artefacts(z: np.ndarray, pits: bool, scars: int, dust: float, rng) -> n
 @contextmanager
 def handling(part: str):
     """``chords`` with one part of its outlier handling off: ``scars`` (none looked for),
-    ``dust`` (the height from the 99.5th percentile alone), or ``none`` off."""
+    ``dust`` (the height from the 99.5th percentile without the mode check), or ``none`` off."""
     saved = chords._scars, chords._upper_mode
     if part == "scars":
         chords._scars = lambda image, labels, keep: np.zeros(labels.shape, bool)

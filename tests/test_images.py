@@ -206,6 +206,19 @@ def test_a_pair_takes_how_it_was_scanned_from_the_header_and_refuses_a_contradic
         "overscan": 0.1,
         "lines": "down",
     }
+    odd = ("Time/Line=0.1667 s", "Rotation=-45 Deg", "Overscan=5")  # Overscan: per cent or a fraction?
+    odd = str(write_nid(tmp_path / "odd.nid", frames(3), scan=odd))
+    with pytest.raises(
+        ValueError, match=r"data\.scans\.0: jaxafm cannot read overscan from the header .*Overscan=5\b"
+    ):
+        settings(trace=odd, retrace=odd)
+    # given: it is used; a rate at the header's 4 digits and the same angle a turn on agree with it
+    assert settings(trace=odd, retrace=odd, overscan=0.05, line_rate_hz=6.0, angle_deg=315) == {
+        "line_rate_hz": 6.0,
+        "angle_deg": 315.0,
+        "overscan": 0.05,
+        "lines": "up",
+    }
     slower = str(
         write_nid(tmp_path / "slow.nid", frames(2), direction="Down", scan=("Time/Line=1 s", *other[1:]))
     )

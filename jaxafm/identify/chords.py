@@ -225,9 +225,9 @@ def _scars(image: LevelledImage, labels: np.ndarray, keep: np.ndarray) -> np.nda
     """Pixels of scars (the z feedback losing or regaining the surface for part of a line): at
     most :data:`SCAR_LINES` lines tall, they stand out of the median of the lines around them
     (:func:`_column_median`) by more than a spike does, for a run of at least :data:`SCAR_RUN`
-    pixels along the line; two such runs of one line less than ``2 SCAR_RUN`` pixels apart are
+    pixels along the line; two such runs of one line at most ``2 SCAR_RUN`` pixels apart are
     one scar (crossing a wall, where it may not stand out), and from there a scar reaches along
-    its line as far as it stands out by a quarter of that, across gaps of up to three pixels.
+    its line as far as it stands out by a quarter of that, across gaps of up to four pixels.
     Found twice: the second time against the medians without the scars found the first time
     (a scar's own lines may bend the median beside it, on a wall). A feature's wall is never
     one: across a wall a column's heights are monotone, and the middle one of a monotone run is

@@ -45,7 +45,7 @@ NID_SCAN_ENTRIES = {
 }
 _NID_UNITS = {
     "Time/Line": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6},
-    "Rotation": {"\u00b0": 1.0, "deg": 1.0},
+    "Rotation": {"\u00b0": 1.0, "deg": 1.0, "Deg": 1.0},
     "Overscan": {"%": 1e-2},
 }
 #: Suffix -> AFMReader module and loader, with the channel it reads by default.
@@ -515,7 +515,9 @@ def _nid_scan(scan: dict) -> dict:
     ``line_rate_hz`` = 1 / ``Time/Line`` (a line: its trace and its retrace), ``angle_deg`` =
     ``Rotation`` (degrees anticlockwise), ``overscan`` = ``Overscan`` / 100 (of the width, at each
     end of a line), ``lines`` = ``Scan direction`` (``Up``: the bottom line first). An entry the
-    header lacks, or whose value or unit is not one of these, is left out."""
+    header lacks is left out; one whose value or unit is not one of these is kept as
+    ``{"unread": ..., "header": ...}`` (``jaxafm.jobs.inputs.scan_settings`` refuses it unless
+    the config gives the setting)."""
     recorded = {}
     for key, entry in NID_SCAN_ENTRIES.items():
         text = scan.get(entry, "").strip()
@@ -529,6 +531,8 @@ def _nid_scan(scan: dict) -> dict:
                 value = 1.0 / value if value > 0 else None
         if value is not None:
             recorded[key] = {"value": value, "header": f"{entry}={text}"}
+        elif entry in scan:
+            recorded[key] = {"unread": text, "header": f"{entry}={text}"}
     return recorded
 
 

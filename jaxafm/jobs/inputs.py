@@ -76,7 +76,7 @@ def read_image_pair(pair, config_path: Path, key: str) -> tuple:
     return trace, retrace
 
 
-def scan_settings(pair, images: tuple, config_path: Path, key: str) -> dict:
+def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
     """How a config's pair ``key`` was scanned: its ``line_rate_hz`` and the settings of its
     ``SCAN_DEFAULTS`` (``angle_deg``, ``overscan``, ``lines``; those its schema has), each as
     the config gives it, else as the images' own header records it (``meta["scan"]``: a Nanosurf
@@ -100,11 +100,18 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> dict:
         given = pair.given_line_rate_hz if name == "line_rate_hz" else getattr(pair, name)
         header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
         recorded = {source: scan[name] for source, scan in header if name in scan}
+        unread = [f"{f}: {r['header']}" for f, r in recorded.items() if "unread" in r]
+        if unread and given is None:
+            raise ValueError(
+                f"{config_path}: {key}: jaxafm cannot read {name} from the header ({'; '.join(unread)}): "
+                f"give {name}"
+            )
+        recorded = {f: r for f, r in recorded.items() if "value" in r}
         said = "; ".join(f"{source}: {r['header']}, {name} {r['value']!r}" for source, r in recorded.items())
         values = [r["value"] for r in recorded.values()]
-        if any(not _same(v, values[0]) for v in values):
+        if any(not _same(v, values[0], name) for v in values):
             raise ValueError(f"{config_path}: {key}: the trace's and the retrace's headers disagree ({said})")
-        if given is not None and values and not _same(given, values[0]):
+        if given is not None and values and not _same(given, values[0], name):
             raise ValueError(
                 f"{config_path}: {key}.{name} = {given!r} disagrees with the header ({said}): "
                 f"remove {name} to use the header's"
@@ -120,9 +127,12 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> dict:
     return out, source
 
 
-def _same(a, b) -> bool:
-    """Equal, numbers to the 4 digits a header prints."""
-    return math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-9) if isinstance(a, float | int) else a == b
+def _same(a, b, name: str) -> bool:
+    """Equal: numbers to the 4 significant digits a header prints, ``angle_deg`` modulo 360."""
+    if not isinstance(a, float | int):
+        return a == b
+    turns = (-360, 0, 360) if name == "angle_deg" else (0,)
+    return any(math.isclose(a + turn, b, rel_tol=5e-4, abs_tol=1e-3) for turn in turns)
 
 
 def read_model_and_posterior(spec: str, config_path: Path, key: str = "model") -> tuple:
