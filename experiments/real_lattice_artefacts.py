@@ -5,10 +5,12 @@ line) and dust (specks taller than the features). The shipped Nanosurf lattices 
 clean, so this experiment adds both to each image of a lattice, identifies it as its
 ``configs/calibrate_nanosurf_NAME.yaml`` says (``jaxafm calibrate``'s own reading and step A),
 and compares the held-out features with the clean run's. It repeats the identification with
-the outlier handling of ``jaxafm.identify.chords`` switched off, one part at a time: scars not
-looked for, and the features' height from the 99.5th percentile without the check against the
-mode (the median above half of it, dust included). No truth is known:
-the held-out features, and the clean image's own result, are the check.
+the outlier handling of ``jaxafm.identify.chords`` switched off, one part at a time
+(:data:`HANDLING_OFF`): scars not looked for; the features' height from the 99.5th percentile
+without the check against the mode (the median above half of it, dust included); pixels beyond
+both of the lattice's levels (dust) not masked; a feature's chords kept when those left one way
+all lie on one side of it. No truth is known: the held-out features, and the clean image's own
+result, are the check.
 
 The artefacts, drawn per image (seeded): ``--scars`` scars, each 1 to 3 lines tall, 40 to 120 px
 long, 300 to 800 nm up or down, anywhere; dust over ``--dust`` of the image in specks of 3 x 3 px,
@@ -16,8 +18,12 @@ long, 300 to 800 nm up or down, anywhere; dust over ``--dust`` of the image in s
 
     python experiments/real_lattice_artefacts.py [--lattices round_pillars square_pits]
 
-writes experiments/results/real_lattice_artefacts/metrics.json (a table of docs/step_a.md) and
-``artefacts.png``, one image of each lattice as step A got it.
+writes experiments/results/real_lattice_artefacts/metrics.json (two tables of docs/step_a.md) and
+``artefacts.png``, one image of each lattice as step A got it. Where the loss with all handling
+on lies (``breakdown``): the model fitted to the images with artefacts and the one fitted to
+the clean images (identified here, as the committed run), each scored on the held-out chords of
+both: the model fitted to the clean images scored on the chords with artefacts measures what
+they do to the measurement, the other model on the clean chords what they do to the fit.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from jaxafm.config import CalibrateConfig
 from jaxafm.config.common import load_config
 from jaxafm.identify import chords
 from jaxafm.identify.fit import clear_caches
+from jaxafm.identify.held_out import held_out_errors, split_chords
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,28 +68,36 @@ def with_artefacts(z: np.ndarray, pits: bool, scars: int, dust: float, rng) -> n
     return z
 
 
+#: the parts of the outlier handling switched off, one at a time (``none``: all on)
+HANDLING_OFF = ("none", "scars", "dust", "dust_mask", "one_side")
+
+
 @contextmanager
 def handling(part: str):
     """``chords`` with one part of its outlier handling off: ``scars`` (none looked for),
-    ``dust`` (the height from the 99.5th percentile without the mode check), or ``none`` off."""
-    saved = chords._scars, chords._upper_mode
+    ``dust`` (the height from the 99.5th percentile without the mode check), ``dust_mask``
+    (pixels beyond both of the lattice's levels not masked), ``one_side`` (a feature's chords
+    kept when those left one way all lie on one side of it), or ``none`` off."""
+    saved = chords._scars, chords._upper_mode, chords._beyond, chords._straddling
     if part == "scars":
         chords._scars = lambda image, labels, keep: np.zeros(labels.shape, bool)
     elif part == "dust":
         chords._upper_mode = lambda r, sd, bins=200: 0.0
+    elif part == "dust_mask":
+        chords._beyond = lambda n: np.zeros(n.shape, bool)
+    elif part == "one_side":
+        chords._straddling = lambda ends, feature, centres, axis: (ends, feature)
     try:
         yield
     finally:
-        chords._scars, chords._upper_mode = saved
+        chords._scars, chords._upper_mode, chords._beyond, chords._straddling = saved
 
 
-def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict:
-    """The lattice's configured identification on its images with the artefacts, ``off`` part of
-    the outlier handling switched off."""
+def dirty_scans(lattice: str, scars: int, dust: float, seed: int) -> tuple:
+    """The lattice's config and its scans as ``jaxafm calibrate`` reads them, every image with
+    ``scars`` scars and dust over a fraction ``dust`` (drawn from ``seed``)."""
     path = ROOT / "configs" / f"calibrate_nanosurf_{lattice}.yaml"
     cfg = load_config(path, CalibrateConfig)
-    jax.clear_caches()
-    clear_caches()
     scans = read_calibration(cfg.data, cfg.grating, path, log=lambda *_: None)
     rng = np.random.default_rng(seed)
     scans = tuple(
@@ -93,14 +108,67 @@ def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict
         )
         for s in scans
     )
+    return cfg, scans
+
+
+def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict:
+    """The lattice's configured identification on its images with the artefacts, ``off`` part of
+    the outlier handling switched off."""
+    cfg, scans = dirty_scans(lattice, scars, dust, seed)
+    jax.clear_caches()
+    clear_caches()
     with handling(off):
         try:
-            ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None)
+            ident = identify_model(
+                scans, cfg.models[0], cfg.solver, cfg.grating, log=lambda *_: None, measured=True
+            )
         except ValueError as e:
-            return {"refused": str(e)[:300]}, scans
+            return {"refused": str(e)[:300]}, scans, None
         m = identification_metrics(ident)
         found = chords.find_chords(np.asarray(scans[0].trace), scans[0].pits)
-    return {k: m[k] for k in KEPT} | {"features_found": len(found.centres)}, scans
+    counts = {"features_found": len(found.centres), "features_with_chords": len(np.unique(found.feature))}
+    return {k: m[k] for k in KEPT} | counts, scans, ident
+
+
+def held_out_part(scans: tuple) -> list:
+    """The held-out features' chords of ``scans`` as step A splits them (``split_chords``)."""
+    return split_chords([(t, r[0]) for t, r in (s.feature_matches(False) for s in scans)], True)[1]
+
+
+def breakdown(lattice: str, dirty: tuple, args) -> dict:
+    """Where the loss lies: the held-out features' rms residual (nm) of the model fitted to the
+    images with artefacts and of the one fitted to the clean images, each scored on the held-out
+    chords of both (``dirty``: ``(scans, ident)`` with the artefacts, all handling on)."""
+    _, clean, ident = identify(lattice, 0, 0.0, "none", args.seed)  # no scar, no speck
+    out = {"lattice": lattice}
+    for model_name, model in (("dirty", dirty[1].model), ("clean", ident.model)):
+        for chords_name, scans in (("dirty", dirty[0]), ("clean", clean)):
+            e = held_out_errors(model, scans, held_out_part(scans))
+            out[f"model_{model_name}_chords_{chords_name}_nm"] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    return out
+
+
+def figure(shown: dict) -> None:
+    """``artefacts.png``: the trace image of each lattice in ``shown`` (name: scan) levelled as
+    step A got it, the scars found, the features with chords and those left without."""
+    fig, axes = plt.subplots(1, len(shown), figsize=(5 * len(shown), 4.9), squeeze=False)
+    for ax, (lattice, scan) in zip(axes[0], shown.items()):
+        found = chords.find_chords(np.asarray(scan.trace), scan.pits)
+        view = found.image.levelled
+        size = np.asarray(scan.raster.size) / 1000.0
+        ax.imshow(view, origin="lower", cmap="afmhot", vmin=-0.2, vmax=1.5, extent=(0, size[0], 0, size[1]))
+        ys, xs = np.nonzero(found.image.scars)
+        px = size / np.array(view.shape[::-1])
+        ax.plot(xs * px[0], ys * px[1], ",", color="cyan", alpha=0.6)
+        c = found.centres[:, ::-1] * px
+        chorded = np.isin(np.arange(len(c)), found.feature)
+        ax.plot(c[chorded, 0], c[chorded, 1], "+", color="lime", ms=10, mew=1.5)
+        ax.plot(c[~chorded, 0], c[~chorded, 1], "x", color="red", ms=9, mew=2)
+        ax.set(title=f"{lattice.replace('_', ' ')}: trace with scars and dust")
+        ax.set(xlabel="x (µm)", ylabel="y (µm)")
+    fig.suptitle("levelled as step A got it; scars found: cyan; features: + (with chords), x (left without)")
+    fig.tight_layout()
+    fig.savefig(OUT / "artefacts.png", dpi=110)
 
 
 def main() -> None:
@@ -111,7 +179,7 @@ def main() -> None:
     a.add_argument("--seed", type=int, default=0)
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    rows, shown = [], {}
+    rows, shown, parts = [], {}, []
     for lattice in args.lattices:
         clean = json.loads(
             (ROOT / f"experiments/results/calibrate_nanosurf_{lattice}/metrics.json").read_text()
@@ -119,28 +187,22 @@ def main() -> None:
         clean_row = {k: clean[f"gpi_{k}"] for k in KEPT}
         rows.append({"lattice": lattice, "images": "clean (the committed run)", **clean_row})
         print(rows[-1], flush=True)
-        for off in ("none", "scars", "dust"):
-            m, scans = identify(lattice, args.scars, args.dust, off, args.seed)
+        for off in HANDLING_OFF:
+            m, scans, ident = identify(lattice, args.scars, args.dust, off, args.seed)
             rows.append({"lattice": lattice, "images": "scars and dust", "handling_off": off, **m})
             print(rows[-1], flush=True)
-            shown[lattice] = scans[0]
-    doc = {"command": "python experiments/real_lattice_artefacts.py", "args": vars(args), "rows": rows}
+            if off == "none" and ident is not None:
+                shown[lattice] = scans[0]
+                parts.append(breakdown(lattice, (scans, ident), args))
+                print(parts[-1], flush=True)
+    doc = {
+        "command": "python experiments/real_lattice_artefacts.py",
+        "args": vars(args),
+        "rows": rows,
+        "breakdown": parts,
+    }
     (OUT / "metrics.json").write_text(json.dumps(doc, indent=1) + "\n")
-    fig, axes = plt.subplots(1, len(shown), figsize=(5 * len(shown), 4.6), squeeze=False)
-    for ax, (lattice, scan) in zip(axes[0], shown.items()):
-        found = chords.find_chords(np.asarray(scan.trace), scan.pits)
-        view = found.image.levelled
-        size = np.asarray(scan.raster.size) / 1000.0
-        ax.imshow(view, origin="lower", cmap="afmhot", vmin=-0.2, vmax=1.5, extent=(0, size[0], 0, size[1]))
-        ys, xs = np.nonzero(found.image.scars)
-        px = size / np.array(view.shape[::-1])
-        ax.plot(xs * px[0], ys * px[1], ",", color="cyan", alpha=0.6)
-        c = found.centres[:, ::-1] * px
-        ax.plot(c[:, 0], c[:, 1], "+", color="lime", ms=10, mew=1.5)
-        ax.set(title=f"{lattice}: trace with scars and dust\n(levelled; scars found: cyan; features: +)")
-        ax.set(xlabel="x (µm)", ylabel="y (µm)")
-    fig.tight_layout()
-    fig.savefig(OUT / "artefacts.png", dpi=110)
+    figure(shown)
     print(f"wrote {OUT / 'metrics.json'} and artefacts.png")
 
 

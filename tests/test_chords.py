@@ -1,10 +1,17 @@
 """Chords of lattice features against images drawn here in NumPy, where every edge is known."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import ndimage
 
+import jaxafm.data
 from jaxafm.identify.chords import background_design, find_chords, level
+from jaxafm.identify.held_out import chord_centres
+from jaxafm.instrument.images import read_image
+
+REAL = Path(jaxafm.data.__file__).parent / "real"
 
 
 def _discs(shape, centres, radius, height, wall=1.5):
@@ -74,6 +81,100 @@ def test_dust_taller_than_the_features_is_neither_their_height_nor_a_feature(pit
     for ends, f in zip(chords.ends, chords.feature):
         centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
         assert np.hypot(*(ends - centre).T) == pytest.approx(radius, abs=0.5)  # the noise: 1 nm of 200
+
+
+@pytest.mark.parametrize("pits", [False, True])
+def test_dust_on_a_features_wall_ends_no_chord(pits):
+    """Specks three times the features' height on the walls of the discs, too few to take the
+    features' level: a chord that crossed into a speck would end at its far side, up to its
+    width off the drawn circle. Pixels more than half the features' height beyond both the
+    surface and the features' level are outliers, and every chord kept lies on its circle."""
+    shape, radius = (104, 104), 9.0
+    z = _discs(shape, CENTRES, radius, 200.0) + np.random.default_rng(0).normal(0, 1.0, shape)
+    for r, c in CENTRES:  # one speck on each disc's left wall, one on its top wall
+        for i, j in ((round(r), round(c - radius)), (round(r + radius), round(c))):
+            z[i - 1 : i + 2, j - 1 : j + 2] += 600.0
+    chords = find_chords(-z if pits else z, pits=pits)
+    assert len(chords.centres) == 9
+    for ends, f in zip(chords.ends, chords.feature):
+        centre = np.array(min(CENTRES, key=lambda c: np.hypot(*(np.asarray(c) - chords.centres[f]))))
+        assert np.hypot(*(ends - centre).T) == pytest.approx(radius, abs=0.5)  # the noise: 1 nm of 200
+
+
+def _squares(shape, centres, half, height, wall=3.0, tilt_deg=0.0):
+    """Squares of side ``2 half`` px (at half height) at ``centres`` (row, col) px, turned by
+    ``tilt_deg``, ``height`` nm, with a linear wall ``wall`` px wide centred on the side."""
+    rows, cols = np.mgrid[: shape[0], : shape[1]].astype(float)
+    c, s = np.cos(np.deg2rad(tilt_deg)), np.sin(np.deg2rad(tilt_deg))
+    z = np.zeros(shape)
+    for r0, c0 in centres:
+        u, v = c * (cols - c0) + s * (rows - r0), -s * (cols - c0) + c * (rows - r0)
+        z = np.maximum(z, height * np.clip(0.5 - (np.maximum(np.abs(u), np.abs(v)) - half) / wall, 0, 1))
+    return z
+
+
+def test_a_feature_whose_chords_fix_one_coordinate_keeps_none():
+    """Scars along the top and bottom walls of one of nine squares (turned by 4 degrees) end
+    every one of its column chords: its line chords alone would leave its row free (a centre
+    from them is any point on a line). It keeps no chord; the other squares keep the chords
+    they have without the scars."""
+    shape, half = (104, 104), 9.5
+    noise = np.random.default_rng(1).normal(0, 1.0, shape)
+    clean = _squares(shape, CENTRES, half, 200.0, tilt_deg=4.0) + noise
+    z = clean.copy()
+    r0, c0 = CENTRES[4]
+    for row in (round(r0 - half), round(r0 + half)):
+        z[row - 1 : row + 1, round(c0) - 8 : round(c0) + 13] += 300.0
+    chords, before = find_chords(z, pits=False), find_chords(clean, pits=False)
+    assert len(chords.centres) == 9 and chords.image.scars.any()
+    middle = np.argmin(np.hypot(*(chords.centres - np.array([r0, c0])).T))
+    assert not (chords.feature == middle).any()
+    assert (before.feature == middle).sum() > 30  # it had chords both ways
+    # the other squares: the same chords, and the centres they give moved by no more than the
+    # scars' change to the levelling moves them (0.5 nm of the features' 200 nm moves a crossing
+    # of a 3 px wall by 0.0075 px)
+    others = CENTRES[:4] + CENTRES[5:]
+    a, b = _chord_centres(chords, others), _chord_centres(before, others)
+    np.testing.assert_array_equal(a[:, :2], b[:, :2])
+    np.testing.assert_allclose(a[:, 2:], b[:, 2:], atol=0.01)  # px
+
+
+def _chord_centres(chords, centres) -> np.ndarray:
+    """Per drawn centre, the nearest feature's chords along the lines and the columns and where
+    their midpoints put it: ``(lines, columns, mean column, mean row)``."""
+    out = []
+    for centre in centres:
+        mine = chords.feature == np.argmin(np.hypot(*(chords.centres - np.asarray(centre)).T))
+        lines, columns = chords.ends[mine & chords.along_lines], chords.ends[mine & ~chords.along_lines]
+        out.append((len(lines), len(columns), lines[..., 1].mean(), columns[..., 0].mean()))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("lattice, pits", [("square_pits", True), ("round_pillars", False)])
+def test_scars_and_dust_on_a_real_lattice_move_no_features_centre_by_a_pixel(lattice, pits):
+    """Two shipped Nanosurf lattices, trace and retrace, with 12 scars (1-3 lines tall, 40-120 px
+    long, 300-800 nm up or down) and 1 % of 3 x 3 px specks 1.5 um tall (holes on the pits) drawn
+    on each image: every feature that keeps chords is put by them (their midpoints, least
+    squares) within a pixel of where the clean image's put it (a feature's chords left along
+    one wall put it several pixels off), and most features keep chords."""
+    rng = np.random.default_rng(0)
+    for direction in ("trace", "retrace"):
+        z = read_image(REAL / f"lattice_{lattice}_nanosurf.nid", direction=direction).z
+        dirty = z.copy()
+        for _ in range(12):
+            tall, long = rng.integers(1, 4), rng.integers(40, 121)
+            i, j = rng.integers(0, z.shape[0] - tall), rng.integers(0, z.shape[1] - long)
+            dirty[i : i + tall, j : j + long] += rng.choice([-1, 1]) * rng.uniform(300, 800)
+        for _ in range(int(0.01 * z.size / 9)):
+            i, j = rng.integers(1, z.shape[0] - 1), rng.integers(1, z.shape[1] - 1)
+            dirty[i - 1 : i + 2, j - 1 : j + 2] += -1500.0 if pits else 1500.0
+        (_, before), (_, after) = (
+            chord_centres(c.ends, c.feature[:, None], c.along_lines, np.zeros(2))
+            for c in (find_chords(z, pits), find_chords(dirty, pits))
+        )
+        offset = np.min(np.hypot(*(after[:, None] - before[None]).T), axis=0)
+        assert len(after) > len(before) / 2
+        assert offset.max() < 1.0  # px
 
 
 def test_scars_are_outliers_and_neither_features_nor_gaps_in_them():

@@ -15,10 +15,12 @@ the median of the pixels above half the 99.5th percentile, unless dust taller th
 owns that percentile (:func:`_feature_level`). What is left, divided by ``s``, is the
 levelled image ``n``: about 0 on the surface and 1 on the features. Pixels that stand above (or
 below) all four of their neighbours by more than eight robust standard deviations of the surface
-and a quarter of the feature height (spikes), pixels at the image's extreme value where a few share it (an
-amplifier's clipping), and scars (runs along a line, at most three lines tall, that stand as far out of
-the lines around them: :func:`_scars`) are outliers; a scar's pixels are mended from the lines
-around them before the features are found (:meth:`LevelledImage.mended`).
+and a quarter of the feature height (spikes), pixels more than half the feature height beyond
+both the surface and the feature level (dust, a hole: no part of the lattice lies there), pixels
+at the image's extreme value where a few share it (an amplifier's clipping), and scars (runs
+along a line, at most three lines tall, that stand as far out of the lines around them:
+:func:`_scars`) are outliers; a scar's pixels are mended from the lines around them before the
+features are found (:meth:`LevelledImage.mended`).
 
 **Features and chords** (:func:`find_chords`). A feature is a connected region where ``n > 1/2``
 that touches no image edge and is not much smaller than the others (a spike is; the others'
@@ -26,7 +28,11 @@ typical size is taken over the regions that are not specks of dust, :data:`SPECK
 of one scan line (or one pixel column) through a feature: its two ends are where ``n`` crosses
 1/2, interpolated linearly between the two pixels on either side. A chord shorter than half the
 feature's longest one grazes its rim, where the crossing is ill-defined, and is dropped, as is a
-chord with an outlier at either end.
+chord with an outlier at either end. A feature's chords one way fix its centre across them where
+they lie on both sides of it (a lattice's features are point-symmetric: chords at mirrored lines
+balance); where outliers took all of them on one side, those left may run along a wall, and the
+feature keeps none that way. A feature without chords along the lines or along the columns keeps
+none: its chords do not fix its centre.
 """
 
 from __future__ import annotations
@@ -50,6 +56,9 @@ SCAR_LINES = 3
 SCAR_RUN = 8
 #: a chord shorter than this fraction of its feature's longest chord (same direction) grazes the rim
 MIN_CHORD = 0.5
+#: a pixel further than this (in feature heights) beyond the surface and the feature level is not
+#: the lattice's (:func:`_beyond`)
+BEYOND = 0.5
 #: the background's polynomial order, Legendre in x and y (0: offset, 1: plane, 2: plus a bow)
 BACKGROUND_ORDER = 2
 
@@ -172,7 +181,13 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
         )
     spikes = _spikes(r, _outlier_step(sd, height))
     background = (s - r) * (-1.0 if pits else 1.0)
-    return LevelledImage(r / height, background, height, surface, spikes | clipped, sd)
+    return LevelledImage(r / height, background, height, surface, spikes | clipped | _beyond(r / height), sd)
+
+
+def _beyond(n: np.ndarray) -> np.ndarray:
+    """Pixels of the levelled image ``n`` further than :data:`BEYOND` beyond both of the lattice's
+    levels (0 and 1): dust on the surface, a speck on a pillar, a hole in a pit's floor."""
+    return (n > 1 + BEYOND) | (n < -BEYOND)
 
 
 def _outlier_step(sd: float, height: float) -> float:
@@ -293,6 +308,9 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     index = np.full(count + 1, -1)
     index[keep] = np.arange(len(keep))
     runs = [_runs(n, labels, image.outliers, index, along_lines) for along_lines in (True, False)]
+    runs = [_straddling(*run, centres, axis) for axis, run in enumerate(runs)]
+    both = np.intersect1d(runs[0][1], runs[1][1])  # the features whose chords fix both coordinates
+    runs = [(e[np.isin(f, both)], f[np.isin(f, both)]) for e, f in runs]
     ends = np.concatenate([r[0] for r in runs])
     feature = np.concatenate([r[1] for r in runs])
     along = np.concatenate([np.full(len(r[1]), k == 0) for k, r in enumerate(runs)])
@@ -310,6 +328,17 @@ def _features(n: np.ndarray) -> tuple:
     lattice = inside & (area > SPECK * area.max(initial=0.0, where=inside))  # not dust or spikes
     typical = np.median(area[lattice]) if lattice.any() else 0.0
     return labels, count, ids[inside & (area > MIN_FEATURE_AREA * typical)]
+
+
+def _straddling(ends: np.ndarray, feature: np.ndarray, centres: np.ndarray, axis: int) -> tuple:
+    """``(ends, feature)`` of the chords (along the lines: ``axis`` 0, their rows; along the
+    columns: 1) of the features that have chords on both sides of their ``centres``."""
+    side = np.sign(ends[:, 0, axis] - centres[feature, axis])
+    below, above = np.zeros((2, len(centres)), bool)
+    below[feature[side <= 0]] = True  # a chord through the centre balances itself
+    above[feature[side >= 0]] = True
+    keep = (below & above)[feature]
+    return ends[keep], feature[keep]
 
 
 def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:
