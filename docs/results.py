@@ -2023,6 +2023,13 @@ def real_lattice_artefacts_breakdown(results: Results) -> Table:
             q(b["model_dirty_chords_clean_nm"], "nm"),
             q(b["model_clean_chords_dirty_nm"], "nm"),
             q(b["model_clean_chords_clean_nm"], "nm"),
+            ", ".join(
+                f"{tuple(ij)} {image.split()[-1]} {q(nm, 'nm', 0)}" for image, ij, nm in b["worst_held_out"]
+            ),
+            "; ".join(
+                f"{image.split()[-1]} {', '.join(str(tuple(ij)) for ij in sites) or 'none'}"
+                for image, sites in b["training_sites_lost"].items()
+            ),
         ]
         for b in results(REAL_LATTICE_ARTEFACTS)["breakdown"]
     ]
@@ -2030,6 +2037,8 @@ def real_lattice_artefacts_breakdown(results: Results) -> Table:
     header += [
         "fitted to the clean images: on the held-out chords with scars and dust",
         "on the clean image's",
+        "fitted with scars and dust: its worst held-out features on the clean chords (i, j)",
+        "training sites (i + j even) left without chords by scars and dust",
     ]
     return Table(
         header,

@@ -45,7 +45,7 @@ from jaxafm.config import CalibrateConfig
 from jaxafm.config.common import load_config
 from jaxafm.identify import chords
 from jaxafm.identify.fit import clear_caches
-from jaxafm.identify.held_out import held_out_errors, split_chords
+from jaxafm.identify.held_out import held_out_errors, model_centres, split_chords
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -132,7 +132,8 @@ def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict
 
 def held_out_part(scans: tuple) -> list:
     """The held-out features' chords of ``scans`` as step A splits them (``split_chords``)."""
-    return split_chords([(t, r[0]) for t, r in (s.feature_matches(False) for s in scans)], True)[1]
+    images = matched_images(scans)
+    return split_chords(list(zip(images[::2], images[1::2])), True)[1]
 
 
 def breakdown(lattice: str, dirty: tuple, args) -> dict:
@@ -145,7 +146,30 @@ def breakdown(lattice: str, dirty: tuple, args) -> dict:
         for chords_name, scans in (("dirty", dirty[0]), ("clean", clean)):
             e = held_out_errors(model, scans, held_out_part(scans))
             out[f"model_{model_name}_chords_{chords_name}_nm"] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-    return out
+    return out | worst_features(dirty[1].model, clean, dirty[0])
+
+
+def worst_features(model, clean: tuple, dirty: tuple, count: int = 4) -> dict:
+    """Where ``model`` (fitted to the images with artefacts) misplaces the clean images' held-out
+    features most: the ``count`` worst (image, lattice indices (i, j), error nm), and per image
+    the training sites (even i + j) that have chords in the clean image but none with the
+    artefacts."""
+    names = [f"scan {k} {image}" for k in range(len(clean)) for image in ("trace", "retrace")]
+    keyed = [image for images in model_centres(model, clean, held_out_part(clean)) for image in images]
+    errors = []
+    for name, (keys, centres) in zip(names, keyed):
+        e = centres - np.asarray(model.lattice.sites(np.asarray(keys, dtype=float)))
+        errors += [(name, [int(k) for k in key], float(np.hypot(*d))) for key, d in zip(keys, e)]
+    lost = {}
+    for name, c, d in zip(names, matched_images(clean), matched_images(dirty)):
+        sites = [{tuple(map(int, ij)) for ij in f.chord_indices() if sum(ij) % 2 == 0} for f in (c, d)]
+        lost[name] = sorted(sites[0] - sites[1])
+    return {"worst_held_out": sorted(errors, key=lambda r: -r[2])[:count], "training_sites_lost": lost}
+
+
+def matched_images(scans: tuple) -> list:
+    """Every image's features as step A matches them: per scan its trace's, then its retrace's."""
+    return [f for t, r in (s.feature_matches(False) for s in scans) for f in (t, r[0])]
 
 
 def figure(shown: dict) -> None:
