@@ -111,9 +111,10 @@ def dirty_scans(lattice: str, scars: int, dust: float, seed: int) -> tuple:
     return cfg, scans
 
 
-def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict:
+def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> tuple:
     """The lattice's configured identification on its images with the artefacts, ``off`` part of
-    the outlier handling switched off."""
+    the outlier handling switched off: ``(metrics, scans, identification)``, the last ``None``
+    where step A refused (the metrics say why)."""
     cfg, scans = dirty_scans(lattice, scars, dust, seed)
     jax.clear_caches()
     clear_caches()
@@ -130,9 +131,9 @@ def identify(lattice: str, scars: int, dust: float, off: str, seed: int) -> dict
     return {k: m[k] for k in KEPT} | counts, scans, ident
 
 
-def held_out_part(scans: tuple) -> list:
-    """The held-out features' chords of ``scans`` as step A splits them (``split_chords``)."""
-    images = matched_images(scans)
+def held_out_part(images: list) -> list:
+    """The held-out features' chords of the scans whose :func:`matched_images` are ``images``,
+    as step A splits them (``split_chords``)."""
     return split_chords(list(zip(images[::2], images[1::2])), True)[1]
 
 
@@ -141,27 +142,30 @@ def breakdown(lattice: str, dirty: tuple, args) -> dict:
     images with artefacts and of the one fitted to the clean images, each scored on the held-out
     chords of both (``dirty``: ``(scans, ident)`` with the artefacts, all handling on)."""
     _, clean, ident = identify(lattice, 0, 0.0, "none", args.seed)  # no scar, no speck
+    images = {"dirty": matched_images(dirty[0]), "clean": matched_images(clean)}
+    held = {name: held_out_part(found) for name, found in images.items()}
     out = {"lattice": lattice}
     for model_name, model in (("dirty", dirty[1].model), ("clean", ident.model)):
         for chords_name, scans in (("dirty", dirty[0]), ("clean", clean)):
-            e = held_out_errors(model, scans, held_out_part(scans))
+            e = held_out_errors(model, scans, held[chords_name])
             out[f"model_{model_name}_chords_{chords_name}_nm"] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-    return out | worst_features(dirty[1].model, clean, dirty[0])
+    return out | worst_features(dirty[1].model, clean, held["clean"], images)
 
 
-def worst_features(model, clean: tuple, dirty: tuple, count: int = 4) -> dict:
-    """Where ``model`` (fitted to the images with artefacts) misplaces the clean images' held-out
-    features most: the ``count`` worst (image, lattice indices (i, j), error nm), and per image
-    the training sites (even i + j) that have chords in the clean image but none with the
-    artefacts."""
+def worst_features(model, clean: tuple, held: list, images: dict, count: int = 4) -> dict:
+    """Where ``model`` (fitted to the images with artefacts) misplaces the held-out features of
+    the ``clean`` scans (``held``: their chords) most: the ``count`` worst (image, lattice
+    indices (i, j), error nm), and per image the training sites (even i + j) that have chords in
+    the clean image but none with the artefacts (``images``: each set's
+    :func:`matched_images`)."""
     names = [f"scan {k} {image}" for k in range(len(clean)) for image in ("trace", "retrace")]
-    keyed = [image for images in model_centres(model, clean, held_out_part(clean)) for image in images]
+    keyed = [image for scan in model_centres(model, clean, held) for image in scan]
     errors = []
     for name, (keys, centres) in zip(names, keyed):
         e = centres - np.asarray(model.lattice.sites(np.asarray(keys, dtype=float)))
         errors += [(name, [int(k) for k in key], float(np.hypot(*d))) for key, d in zip(keys, e)]
     lost = {}
-    for name, c, d in zip(names, matched_images(clean), matched_images(dirty)):
+    for name, c, d in zip(names, images["clean"], images["dirty"]):
         sites = [{tuple(map(int, ij)) for ij in f.chord_indices() if sum(ij) % 2 == 0} for f in (c, d)]
         lost[name] = sorted(sites[0] - sites[1])
     return {"worst_held_out": sorted(errors, key=lambda r: -r[2])[:count], "training_sites_lost": lost}
