@@ -2048,6 +2048,40 @@ def real_lattice_artefacts_breakdown(results: Results) -> Table:
     )
 
 
+@table("real_lattice_artefacts_predicted")
+def real_lattice_artefacts_predicted(results: Results) -> Table:
+    """How far the fit with scars and dust itself predicts its held-out features' errors."""
+    rows = [
+        [
+            b["lattice"].replace("_", " "),
+            q(b["predicted_sd_median_nm"], "nm", 0),
+            "; ".join(
+                f"{tuple(ij)} {image.split()[-1]}: {q(nm, 'nm', 0)} off, predicted {q(sd, 'nm', 0)}, d² {d2:.1f}"
+                for image, ij, nm, sd, d2 in b["predicted_worst"]
+            ),
+            f"{b['predicted_bound_d2']:.1f}",
+        ]
+        for b in results(REAL_LATTICE_ARTEFACTS)["breakdown"]
+    ]
+    header = [
+        "lattice",
+        "a held-out feature's predicted error, median",
+        "the held-out features furthest out by their predicted covariance (i, j)",
+        "the bound on the largest d² (99 %)",
+    ]
+    return Table(
+        header,
+        rows,
+        [REAL_LATTICE_ARTEFACTS],
+        "The model fitted with scars and dust, all outlier handling on; each held-out feature's error on "
+        "its own chords and its predicted covariance from the training chords, as step A's validation "
+        "gives them; predicted error: the root of the covariance's trace (both axes); d² the squared "
+        "Mahalanobis distance; the bound: the chi-square quantile of two degrees of freedom at "
+        "1 - 0.01 / n for n held-out features (Bonferroni: the largest of n exceeds it in at most 1 % of "
+        "lattices).",
+    )
+
+
 def preisach_levels(seed: int) -> Callable[[Results], Table]:
     """The table of ``experiments/step_a_preisach_levels.py`` on case ``seed``."""
 

@@ -23,7 +23,8 @@ writes experiments/results/real_lattice_artefacts/metrics.json (two tables of do
 on lies (``breakdown``): the model fitted to the images with artefacts and the one fitted to
 the clean images (identified here, as the committed run), each scored on the held-out chords of
 both: the model fitted to the clean images scored on the chords with artefacts measures what
-they do to the measurement, the other model on the clean chords what they do to the fit.
+they do to the measurement, the other model on the clean chords what they do to the fit; and how
+far the fit with artefacts itself predicts its held-out features' errors (``predicted_errors``).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ from jaxafm.config.common import load_config
 from jaxafm.identify import chords
 from jaxafm.identify.fit import clear_caches
 from jaxafm.identify.held_out import held_out_errors, model_centres, split_chords
+from jaxafm.identify.identifiability import point_predictions
+from jaxafm.identify.stages import chord_data
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,7 +152,40 @@ def breakdown(lattice: str, dirty: tuple, args) -> dict:
         for chords_name, scans in (("dirty", dirty[0]), ("clean", clean)):
             e = held_out_errors(model, scans, held[chords_name])
             out[f"model_{model_name}_chords_{chords_name}_nm"] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-    return out | worst_features(dirty[1].model, clean, held["clean"], images)
+    out |= worst_features(dirty[1].model, clean, held["clean"], images)
+    return out | predicted_errors(dirty[1], dirty[0], held["dirty"])
+
+
+#: the family-wise level at which :func:`predicted_errors` bounds the held-out points' distances
+FAMILY_LEVEL = 0.99
+
+
+def predicted_errors(ident, scans: tuple, held: list, count: int = 4) -> dict:
+    """How the fit itself predicts the errors of its held-out features (``held``: their chords on
+    ``scans``), as step A's validation does (``point_predictions`` from its training chords): the
+    median predicted sd (nm, the root of the covariance's trace) over the held-out points, and
+    the ``count`` points furthest out, each with its error and predicted sd (nm) and its squared
+    Mahalanobis distance ``d2`` against the bound a ``FAMILY_LEVEL`` ellipse sets for the largest of
+    ``n`` points (the chi-square quantile of two degrees of freedom at ``1 - (1 - level) / n``)."""
+    got = point_predictions(ident.model, scans, ident.chords, chord_data(held, scans, 1))
+    sd = np.sqrt(np.trace(got.covariance, axis1=1, axis2=2))
+    d2 = np.einsum("pi,pij,pj->p", got.offsets, np.linalg.inv(got.covariance), got.offsets)
+    names = [f"scan {k} {image}" for k in range(len(scans)) for image in ("trace", "retrace")]
+    worst = [
+        (
+            names[int(got.keys[i, 0])],
+            [int(v) for v in got.keys[i, 1:]],
+            float(np.hypot(*got.offsets[i])),
+            float(sd[i]),
+            float(d2[i]),
+        )
+        for i in np.argsort(-d2)[:count]
+    ]
+    return {
+        "predicted_sd_median_nm": float(np.median(sd)),
+        "predicted_worst": worst,
+        "predicted_bound_d2": float(-2.0 * np.log((1.0 - FAMILY_LEVEL) / len(d2))),
+    }
 
 
 def worst_features(model, clean: tuple, held: list, images: dict, count: int = 4) -> dict:
