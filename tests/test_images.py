@@ -194,6 +194,11 @@ def test_a_pair_takes_how_it_was_scanned_from_the_header_and_refuses_a_contradic
             ValueError, match=rf"data\.scans\.0\.{key} = .*disagrees with .*{re.escape(entry)}"
         ):
             settings(**real, **{key: value})
+    # a rate given with an image is named as the config gives it
+    with pytest.raises(
+        ValueError, match=r"data\.scans\.0\.trace\.line_rate_hz = 1\.0 disagrees.*remove trace\."
+    ):
+        settings(trace={"path": str(NID_FILE), "line_rate_hz": 1.0}, retrace=str(NID_FILE))
     frames = lambda seed: {
         f: {"Topography": np.random.default_rng([seed, i]).integers(-(2**15), 2**15, (6, 8))}
         for i, f in enumerate(("Scan forward", "Scan backward"))
@@ -227,7 +232,9 @@ def test_a_pair_takes_how_it_was_scanned_from_the_header_and_refuses_a_contradic
     for name, z in (("t.tif", np.eye(6, 8)), ("r.tif", np.eye(6, 8)[::-1])):
         tifffile.imwrite(tmp_path / name, z)
     tiffs = {k: {"path": str(tmp_path / f"{k[0]}.tif"), "size_nm": [800, 600]} for k in ("trace", "retrace")}
-    with pytest.raises(ValueError, match=r"data\.scans\.0: missing line_rate_hz: the files' headers do not"):
+    with pytest.raises(
+        ValueError, match=r"data\.scans\.0: missing line_rate_hz: the files \(.*t\.tif and .*r\.tif\) do not"
+    ):
         settings(**tiffs)
     assert resolved(**tiffs, line_rate_hz=1.0) == (
         {"line_rate_hz": 1.0, **CalibrationPair.SCAN_DEFAULTS},
@@ -251,7 +258,9 @@ def test_image_format_round_trips_exactly_and_never_overwrites(tmp_path):
     back = load_image(path)
     assert np.array_equal(back.z, im.z) and back.pixel_size == im.pixel_size
     assert back.origin == im.origin and back.meta == im.meta
-    assert read_image(path).meta == im.meta
+    # read as a file, with the scan settings it records as a header would (scan_settings reads them)
+    scan = {"line_rate_hz": {"value": 1.5, "header": "meta line_rate_hz=1.5"}}
+    assert read_image(path).meta == im.meta | {"scan": scan}
     with pytest.raises(FileExistsError, match="overwrite=True"):
         save_image(im, path)
     doc = json.loads(str(np.load(path)["meta_json"]))
@@ -339,6 +348,45 @@ def test_scan_becomes_an_image_with_its_metadata(tmp_path):
     assert np.allclose(im.x, -1000 + 125 + 250 * np.arange(8))
     back = load_image(save_image(im, tmp_path / "scan.npz"))
     assert np.array_equal(back.z, im.z) and back.meta == im.meta
+
+
+def test_a_saved_scan_is_read_back_with_how_it_was_scanned(tmp_path):
+    """A pair jaxafm saved (``from_scan``, ``save_image``) needs no scan settings in the config:
+    its line rate, angle, over-scan and line order are the raster's, from the files; one given
+    against them is refused naming the file's entry."""
+    from jaxafm.config.calibrate import CalibrationPair
+
+    afm = default_afm()
+    raster = Raster((2000.0, 1000.0), 8, 4, line_rate=2.5, overscan=0.05, direction="down", angle_deg=90.0)
+    scan = raster_scan(
+        afm,
+        Grating(jnp.asarray(500.0), jnp.asarray(50.0)),
+        afm.initial_state(),
+        raster,
+        key=jax.random.key(0),
+    )
+    files = {
+        k: str(save_image(from_scan(scan, raster, k), tmp_path / f"{k}.npz")) for k in ("trace", "retrace")
+    }
+    config = tmp_path / "c.yaml"
+    resolved = lambda **given: scan_settings(
+        (p := CalibrationPair(**files, **given)), read_image_pair(p, config, "data"), config, "data"
+    )
+    assert resolved() == (
+        {"line_rate_hz": 2.5, "angle_deg": 90.0, "overscan": 0.05, "lines": "down"},
+        {k: "header" for k in ("line_rate_hz", "angle_deg", "overscan", "lines")},
+    )
+    with pytest.raises(ValueError, match=r"data\.overscan = 0\.1 disagrees with .*meta overscan=0\.05"):
+        resolved(overscan=0.1)
+    # the same files twice: the repeat, found from the files, names both scans
+    from jaxafm.config import CalibrationImages, CalibrationLattice
+    from jaxafm.jobs.calibrate import read_calibration
+
+    twice = CalibrationImages(scans=[files, files])
+    with pytest.raises(
+        ValueError, match=r"line_rate_hz 2\.5 is given 2 times \(data\.scans\.0 and data\.scans\.1\)"
+    ):
+        read_calibration(twice, CalibrationLattice(pitch_nm=500.0), config, log=lambda *_: None)
 
 
 @pytest.mark.parametrize(

@@ -491,9 +491,8 @@ def test_a_speed_series_with_one_speed_twice_is_refused_before_the_run(tmp_path)
     pair = "{trace: a_trace.npz, retrace: a_retrace.npz, line_rate_hz: 1, angle_deg: 0}"
     proc = _calibrate(tmp_path, f"{{scans: [{pair}, {pair}]}}")
     assert proc.returncode == 2, proc.stderr[-2000:]
-    assert "data: scans:" in proc.stderr and "line_rate_hz 1 is given 2 times" in proc.stderr, proc.stderr[
-        -2000:
-    ]
+    said = "line_rate_hz 1 is given 2 times (scans.0 and scans.1)"
+    assert "data: scans:" in proc.stderr and said in proc.stderr, proc.stderr[-2000:]
     assert not (tmp_path / "out").exists()
 
 

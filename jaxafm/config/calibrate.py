@@ -182,7 +182,8 @@ class CalibrationImages(Strict):
                     f"give one scan as trace/retrace/line_rate_hz or several as scans, not both ({given[0]})"
                 )
             known = [(s.angle_deg, s.given_line_rate_hz) for s in self.scans]
-            each_scan_once([k for k in known if None not in k])  # the files may say the rest
+            given = [i for i, k in enumerate(known) if None not in k]  # the files may say the rest
+            each_scan_once([known[i] for i in given], [f"scans.{i}" for i in given])
         elif self.trace is None or self.retrace is None:
             missing = [k for k in ("trace", "retrace") if single[k] is None]
             raise ValueError(f"missing {', '.join(missing)}: a scan needs trace and retrace (or give scans)")
@@ -204,18 +205,20 @@ class CalibrationImages(Strict):
 SINGLE_SCAN_KEYS = ("trace", "retrace", "line_rate_hz", "angle_deg", "overscan", "lines")
 
 
-def each_scan_once(seen: list) -> None:
-    """Refuse a calibration's scans whose ``(angle_deg, line_rate_hz)`` repeat.
+def each_scan_once(seen: list, keys: list) -> None:
+    """Refuse a calibration's scans whose ``(angle_deg, line_rate_hz)`` ``seen`` repeat; ``keys``
+    name each scan as the config wrote it (``scans.0``).
 
     Raises:
-        ValueError: naming the angle, the rate and how often.
+        ValueError: naming the angle, the rate, how often and the scans.
     """
     twice = sorted({k for k in seen if seen.count(k) > 1})
     if twice:
         a, r = twice[0]
+        named = " and ".join(k for k, s in zip(keys, seen) if s == twice[0])
         raise ValueError(
             f"scans: the scan at angle_deg {a:g} and line_rate_hz {r:g} is given "
-            f"{seen.count(twice[0])} times: each pair of angle and line rate once (a speed "
+            f"{seen.count(twice[0])} times ({named}): each pair of angle and line rate once (a speed "
             "series scans one angle at several rates)"
         )
 

@@ -143,7 +143,6 @@ class ImagePair(Strict):
 
     @model_validator(mode="after")
     def _images_agree(self):
-        rates = {}
         for key in ("trace", "retrace"):
             image = getattr(self, key)
             if image.direction not in (None, key):
@@ -151,20 +150,24 @@ class ImagePair(Strict):
                     f"{key}.direction is {image.direction!r}, but the {key} key holds the {key} "
                     f"image: remove {key}.direction or swap the files"
                 )
-            if image.line_rate_hz is not None:
-                rates[f"{key}.line_rate_hz"] = image.line_rate_hz
-        if self.line_rate_hz is not None:
-            rates = {"line_rate_hz": self.line_rate_hz} | rates
+        rates = self.given_line_rates
         if len(rates) > 1 and not all(math.isclose(r, next(iter(rates.values()))) for r in rates.values()):
             said = ", ".join(f"{k} = {r:g} Hz" for k, r in rates.items())
             raise ValueError(f"{said} disagree: give the pair's line rate once, as line_rate_hz")
         return self
 
     @property
+    def given_line_rates(self) -> dict:
+        """The line rates the config gives, by the key it gives each under (``line_rate_hz``, the
+        pair's, first; ``trace.line_rate_hz``, ``retrace.line_rate_hz``)."""
+        rates = {"line_rate_hz": self.line_rate_hz}
+        rates |= {f"{k}.line_rate_hz": getattr(self, k).line_rate_hz for k in ("trace", "retrace")}
+        return {k: r for k, r in rates.items() if r is not None}
+
+    @property
     def given_line_rate_hz(self) -> Optional[float]:
         """The line rate the config gives: the pair's, else an image's, else None."""
-        images = (self.trace.line_rate_hz, self.retrace.line_rate_hz)
-        return next((r for r in (self.line_rate_hz, *images) if r is not None), None)
+        return next(iter(self.given_line_rates.values()), None)
 
 
 def _key(loc: tuple) -> str:

@@ -43,6 +43,14 @@ NID_SCAN_ENTRIES = {
     "overscan": "Overscan",
     "lines": "Scan direction",
 }
+#: A scan setting a config's pair gives -> the ``meta`` key a jaxafm image records it under
+#: (:func:`from_scan`)
+SAVED_SCAN_ENTRIES = {
+    "line_rate_hz": "line_rate_hz",
+    "angle_deg": "angle_deg",
+    "overscan": "overscan",
+    "lines": "scan_direction",
+}
 _NID_UNITS = {
     "Time/Line": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "\u00b5s": 1e-6},
     "Rotation": {"\u00b0": 1.0, "deg": 1.0, "Deg": 1.0},
@@ -143,6 +151,7 @@ def from_scan(scan: RasterScan, raster, direction: str = "trace", meta: Optional
         "line_rate_hz": raster.line_rate,
         "scan_direction": raster.direction,
         "overscan": raster.overscan,
+        "angle_deg": raster.angle_deg,
         "start_time_s": float(np.min(getattr(scan, f"t_{direction}"))),
         **(meta or {}),
     }
@@ -254,7 +263,10 @@ def _read(path: Path, channel: Optional[str], direction: Optional[str] = None) -
         return _read_tiff(path)
     if suffix == ".npz":
         image = load_image(path)
-        return _Stored(image.z, "nm", image.size, image.meta, "bottom", image.origin)
+        scan = image.meta.get("scan") or _saved_scan(image.meta)
+        return _Stored(
+            image.z, "nm", image.size, image.meta | ({"scan": scan} if scan else {}), "bottom", image.origin
+        )
     if suffix == ".gwy":
         return _read_gwy(path, channel)
     if suffix in AFMREADER_FORMATS:
@@ -534,6 +546,16 @@ def _nid_scan(scan: dict) -> dict:
         elif entry in scan:
             recorded[key] = {"unread": text, "header": f"{entry}={text}"}
     return recorded
+
+
+def _saved_scan(meta: dict) -> dict:
+    """The scan settings a jaxafm image records in its ``meta`` (:data:`SAVED_SCAN_ENTRIES`), as
+    :func:`_nid_scan` gives a .nid header's: ``{"value": ..., "header": "meta overscan=0.1"}``."""
+    return {
+        key: {"value": meta[entry], "header": f"meta {entry}={meta[entry]!r}"}
+        for key, entry in SAVED_SCAN_ENTRIES.items()
+        if meta.get(entry) is not None
+    }
 
 
 def _nid_channels(path: Path, head: dict) -> list:

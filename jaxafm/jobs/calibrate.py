@@ -102,7 +102,7 @@ def read_calibration(
         images.append((trace, retrace))
         scanned.append((how["angle_deg"], how["line_rate_hz"]))
         try:
-            each_scan_once(scanned)  # with what the files' headers say
+            each_scan_once(scanned, [k for k, _ in spec.pairs])  # with what the files' headers say
         except ValueError as e:
             raise ValueError(f"{config_path}: data: {e}") from None
         rasters.append(

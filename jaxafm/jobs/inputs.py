@@ -96,8 +96,12 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
             rate anywhere.
     """
     out, source = {}, {}
+    files = " and ".join(im.meta["source"] for im in images)
     for name in ("line_rate_hz", *type(pair).SCAN_DEFAULTS):
         given = pair.given_line_rate_hz if name == "line_rate_hz" else getattr(pair, name)
+        written = (
+            next(iter(pair.given_line_rates), name) if name == "line_rate_hz" else name
+        )  # as the config has it
         header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
         recorded = {source: scan[name] for source, scan in header if name in scan}
         unread = [f"{f}: {r['header']}" for f, r in recorded.items() if "unread" in r]
@@ -113,13 +117,13 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
             raise ValueError(f"{config_path}: {key}: the trace's and the retrace's headers disagree ({said})")
         if given is not None and values and not _same(given, values[0], name):
             raise ValueError(
-                f"{config_path}: {key}.{name} = {given!r} disagrees with the header ({said}): "
-                f"remove {name} to use the header's"
+                f"{config_path}: {key}.{written} = {given!r} disagrees with the header ({said}): "
+                f"remove {written} to use the header's"
             )
         value = given if given is not None else values[0] if values else type(pair).SCAN_DEFAULTS.get(name)
         if value is None:
             raise ValueError(
-                f"{config_path}: {key}: missing line_rate_hz: the files' headers do not record how many "
+                f"{config_path}: {key}: missing line_rate_hz: the files ({files}) do not record how many "
                 "lines (trace + retrace) a second were scanned; give it, Hz"
             )
         out[name] = value
