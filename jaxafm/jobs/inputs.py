@@ -92,16 +92,17 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
 
     Raises:
         ValueError: naming the config, the key, the values and the header entry: a given setting
-            that disagrees with the header's, trace and retrace headers that disagree, or no line
-            rate anywhere.
+            that disagrees with the header's, trace and retrace headers that disagree, no line
+            rate anywhere, or an angle or line order left to the header of an image that
+            ``fast_axis: y`` turns (the header's are the stored image's, :data:`TURNED`).
     """
     out, source = {}, {}
     files = " and ".join(im.meta["source"] for im in images)
+    turned = any("fast_axis" in im.meta for im in images)
     for name in ("line_rate_hz", *type(pair).SCAN_DEFAULTS):
-        given = pair.given_line_rate_hz if name == "line_rate_hz" else getattr(pair, name)
-        written = (
-            next(iter(pair.given_line_rates), name) if name == "line_rate_hz" else name
-        )  # as the config has it
+        rate = name == "line_rate_hz"
+        given = pair.given_line_rate_hz if rate else getattr(pair, name)
+        written = next(iter(pair.given_line_rates), name) if rate else name  # the key as the config has it
         header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
         recorded = {source: scan[name] for source, scan in header if name in scan}
         unread = [f"{f}: {r['header']}" for f, r in recorded.items() if "unread" in r]
@@ -112,6 +113,13 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
             )
         recorded = {f: r for f, r in recorded.items() if "value" in r}
         said = "; ".join(f"{source}: {r['header']}, {name} {r['value']!r}" for source, r in recorded.items())
+        if turned and name in TURNED and recorded:
+            if given is None:
+                raise ValueError(
+                    f"{config_path}: {key}: the header's {name} ({said}) is the stored image's, before "
+                    f"the quarter turn fast_axis: y makes: give {name} for the turned image"
+                )
+            recorded = {}  # the given one is the turned image's; the header's is not comparable
         values = [r["value"] for r in recorded.values()]
         if any(not _same(v, values[0], name) for v in values):
             raise ValueError(f"{config_path}: {key}: the trace's and the retrace's headers disagree ({said})")
@@ -129,6 +137,11 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
         out[name] = value
         source[name] = "given" if given is not None else "header" if values else "default"
     return out, source
+
+
+#: the scan settings a header records of the image as stored that a quarter turn (``fast_axis: y``)
+#: changes: the line direction's angle, and which line came first
+TURNED = ("angle_deg", "lines")
 
 
 def _same(a, b, name: str) -> bool:
