@@ -289,6 +289,7 @@ def test_cli_diagnoses_scan_files(tmp_path):
     out = tmp_path / "out"
     result = runner.invoke(app, ["diagnose", str(cfg), "--out", str(out)])
     assert result.exit_code == 0, result.output
+    assert "scans.pairs[1]: scanned line_rate_hz 4.0 (given), overscan 0.1 (given)" in result.output
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["verdict"]["effect"] == "feedback_lag"
     assert doc["candidates"][0]["fitted"]["tau_s"] == pytest.approx(1e-3, rel=0.1)

@@ -154,7 +154,8 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
     pairs = []
     for i, p in enumerate(sc.pairs):
         tr, re = read_image_pair(p, config_path, f"scans.pairs[{i}]")
-        how, _ = scan_settings(p, (tr, re), config_path, f"scans.pairs[{i}]")
+        how, source = scan_settings(p, (tr, re), config_path, f"scans.pairs[{i}]")
+        log(f"scans.pairs[{i}]: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items()))
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
