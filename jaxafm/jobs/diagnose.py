@@ -151,11 +151,13 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
             noise_nm=s.noise_nm,
             sample=s.sample,
         )
-    pairs = []
+    pairs, said = [], []
     for i, p in enumerate(sc.pairs):
         tr, re = read_image_pair(p, config_path, f"scans.pairs[{i}]")
         how, source = scan_settings(p, (tr, re), config_path, f"scans.pairs[{i}]")
-        log(f"scans.pairs[{i}]: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items()))
+        said.append(
+            f"scans.pairs[{i}]: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items())
+        )
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "
@@ -163,4 +165,6 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
             )
         dt = 1.0 / (2 * how["line_rate_hz"] * tr.shape[1] * (1 + 2 * how["overscan"]))  # s between two pixels
         pairs.append(ScanPair(np.asarray(tr.z), np.asarray(re.z), tuple(tr.pixel_size), dt, p.trace.path))
+    for line in said:  # once every pair has passed: a refusal is the run's first line
+        log(line)
     return pairs
