@@ -170,7 +170,7 @@ def predicted_errors(ident, scans: tuple, held: list, count: int = 4) -> dict:
     got = point_predictions(ident.model, scans, ident.chords, chord_data(held, scans, 1))
     sd = np.sqrt(np.trace(got.covariance, axis1=1, axis2=2))
     d2 = np.einsum("pi,pij,pj->p", got.offsets, np.linalg.inv(got.covariance), got.offsets)
-    names = [f"scan {k} {image}" for k in range(len(scans)) for image in ("trace", "retrace")]
+    names = image_names(scans)
     worst = [
         (
             names[int(got.keys[i, 0])],
@@ -194,7 +194,7 @@ def worst_features(model, clean: tuple, held: list, images: dict, count: int = 4
     indices (i, j), error nm), and per image the training sites (even i + j) that have chords in
     the clean image but none with the artefacts (``images``: each set's
     :func:`matched_images`)."""
-    names = [f"scan {k} {image}" for k in range(len(clean)) for image in ("trace", "retrace")]
+    names = image_names(clean)
     keyed = [image for scan in model_centres(model, clean, held) for image in scan]
     errors = []
     for name, (keys, centres) in zip(names, keyed):
@@ -205,6 +205,11 @@ def worst_features(model, clean: tuple, held: list, images: dict, count: int = 4
         sites = [{tuple(map(int, ij)) for ij in f.chord_indices() if sum(ij) % 2 == 0} for f in (c, d)]
         lost[name] = sorted(sites[0] - sites[1])
     return {"worst_held_out": sorted(errors, key=lambda r: -r[2])[:count], "training_sites_lost": lost}
+
+
+def image_names(scans: tuple) -> list:
+    """Every image's name in :func:`matched_images`' order: ``scan K trace``, ``scan K retrace``."""
+    return [f"scan {k} {image}" for k in range(len(scans)) for image in ("trace", "retrace")]
 
 
 def matched_images(scans: tuple) -> list:

@@ -56,7 +56,7 @@ from ..identify.step_a import (
 from ..instrument.afm import AFM, Raster, default_afm
 from ..model.io import save_model
 from .folder import Output
-from .inputs import read_image_pair, scan_settings
+from .inputs import read_image_pair, scan_settings, settings_line
 
 
 def calibration_scans(
@@ -86,7 +86,7 @@ def read_calibration(
     for key, pair in spec.pairs:
         trace, retrace = read_image_pair(pair, config_path, key)
         how, source = scan_settings(pair, (trace, retrace), config_path, key)
-        said.append(f"{key}: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items()))
+        said.append(settings_line(key, how, source))
         if trace.shape != retrace.shape or not np.allclose(trace.size, retrace.size):
             raise ValueError(
                 f"trace {trace.meta['source']} ({trace.shape} px, {trace.size} nm) and retrace "

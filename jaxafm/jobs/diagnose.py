@@ -23,7 +23,7 @@ from ..diagnose.report import write
 from ..diagnose.scans import ScanPair, diagnose_scans
 from ..instrument.records import read_record
 from .folder import Output
-from .inputs import read_image_file, read_image_pair, scan_settings
+from .inputs import read_image_file, read_image_pair, scan_settings, settings_line
 
 
 def run(cfg: DiagnoseConfig, config_path: Path, out: Output, log=print) -> dict:
@@ -155,9 +155,7 @@ def _scan_pairs(sc: DiagnoseScans, config_path: Path, log) -> list:
     for i, p in enumerate(sc.pairs):
         tr, re = read_image_pair(p, config_path, f"scans.pairs[{i}]")
         how, source = scan_settings(p, (tr, re), config_path, f"scans.pairs[{i}]")
-        said.append(
-            f"scans.pairs[{i}]: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items())
-        )
+        said.append(settings_line(f"scans.pairs[{i}]", how, source))
         if tr.shape != re.shape:
             raise ValueError(
                 f"{config_path}: scans.pairs[{i}]: the trace ({tr.shape}) and retrace ({re.shape}) "

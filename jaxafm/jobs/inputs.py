@@ -99,11 +99,11 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
     out, source = {}, {}
     files = " and ".join(im.meta["source"] for im in images)
     turned = any("fast_axis" in im.meta for im in images)
-    for name in ("line_rate_hz", *type(pair).SCAN_DEFAULTS):
-        rate = name == "line_rate_hz"
-        given = pair.given_line_rate_hz if rate else getattr(pair, name)
-        written = next(iter(pair.given_line_rates), name) if rate else name  # the key as the config has it
-        header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
+    header = [(im.meta["source"], im.meta.get("scan", {})) for im in images]
+    # each setting's key as the config gives it and its value there (a rate: the pair's or an image's)
+    givens = [next(iter(pair.given_line_rates.items()), ("line_rate_hz", None))]
+    givens += [(name, getattr(pair, name)) for name in type(pair).SCAN_DEFAULTS]
+    for name, (written, given) in zip(("line_rate_hz", *type(pair).SCAN_DEFAULTS), givens):
         recorded = {source: scan[name] for source, scan in header if name in scan}
         unread = [f"{f}: {r['header']}" for f, r in recorded.items() if "unread" in r]
         if unread and given is None:
@@ -137,6 +137,12 @@ def scan_settings(pair, images: tuple, config_path: Path, key: str) -> tuple:
         out[name] = value
         source[name] = "given" if given is not None else "header" if values else "default"
     return out, source
+
+
+def settings_line(key: str, how: dict, source: dict) -> str:
+    """How the pair ``key`` was scanned and where each setting came from, for the run's log
+    (:func:`scan_settings`' two dicts)."""
+    return f"{key}: scanned " + ", ".join(f"{k} {v} ({source[k]})" for k, v in how.items())
 
 
 #: the scan settings a header records of the image as stored that a quarter turn (``fast_axis: y``)
