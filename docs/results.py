@@ -253,6 +253,7 @@ BENCH_RENDER = Run("bench_render/metrics.json", "python experiments/bench_render
 GRATING_SCAN = Run("simulated_grating_scan/metrics.json", "python experiments/simulated_grating_scan.py")
 PIEZO_FIT = Run("piezo_sine_1hz/metrics.json", "jaxafm fit configs/piezo_sine_1hz.yaml")
 BENCH_BAND = Run("bench_band/bench.json", "python experiments/bench_band.py")
+BENCH_BLAS = Run("bench_blas_threads/bench.json", "python experiments/bench_blas_threads.py")
 BENCH_SUITE = Run("bench_suite/suite.json", "python experiments/bench_suite.py")
 BENCH_SUITE_TRIAL = Run("bench_suite/trial.json", "python experiments/bench_suite.py --trial")
 CROSS_RECORD = Run("cross_record/metrics.json", "python experiments/cross_record.py")
@@ -3486,6 +3487,29 @@ def bench_suite_trial(results: Results) -> Table:
     header = ["program", "lowering", "XLA compiling", "a run", "loops in the compiled program"]
     note = "XLA on one thread, as in a test worker; four particles vmapped; a run: the median of three."
     return Table(header, rows, [BENCH_SUITE_TRIAL], note)
+
+
+@table("bench_blas_threads")
+def bench_blas_threads(results: Results) -> Table:
+    """Two loops written with two libraries' BLAS and with one: their wall times side by side."""
+    m = results(BENCH_BLAS)
+    rows = []
+    for loop in m["loops"]:
+        (mixed, a), (one, b) = loop["variants"].items()
+        rows.append(
+            [
+                f"{loop['loop']} ({loop['problem']})",
+                f"{mixed}: {q(1e3 * a['median_s'], 'ms', 0)} ({q(1e3 * a['max_s'], 'ms', 0)} worst)",
+                f"{one}: {q(1e3 * b['median_s'], 'ms', 0)} ({q(1e3 * b['max_s'], 'ms', 0)} worst)",
+                q(a["median_s"] / b["median_s"], "×", 1),
+            ]
+        )
+    header = ["loop", "two libraries", "one library", "ratio of the medians"]
+    note = (
+        f"{m['repeats']} calls of each variant in a row, after a second without work; the same "
+        "matrices and the same results in both (to round-off)."
+    )
+    return Table(header, rows, [BENCH_BLAS], note)
 
 
 BAND_METHODS = (("ar1", "AR(1), the default"), ("blocks", "blocks"), ("iid", "i.i.d., the naive band"))

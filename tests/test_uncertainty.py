@@ -34,12 +34,14 @@ def test_leave_group_out_equals_the_refit_without_the_group():
             np.testing.assert_allclose(left[k], J[g == k] @ theta_k - y[g == k], rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("rows, per", [(90, 3), (91, 3), (90, 21)])
-def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit(rows, per):
+@pytest.mark.parametrize("rows, per, slab", [(90, 3, 2048), (91, 3, 2048), (91, 3, 12), (90, 21, 2048)])
+def test_leave_group_out_of_groups_smaller_than_the_parameters_equals_the_refit(rows, per, slab, monkeypatch):
     """12 parameters, a ridge prior: groups of 3 rows (the direct (b, b) form, not Woodbury's
-    (k, k)), the same with a last group of 1 (two sizes, each solved together), and groups of
-    21 rows with a last one of 6 (too few small groups for the direct form: Woodbury's for all);
-    the closed form against a refit of the other groups' rows."""
+    (k, k)), the same with a last group of 1 (two sizes, each solved together), the same with
+    ``J S^T`` made 12 rows (4 groups) at a time, and groups of 21 rows with a last one of 6 (too
+    few small groups for the direct form: Woodbury's for all); the closed form against a refit of
+    the other groups' rows."""
+    monkeypatch.setattr(uncertainty, "DIRECT_ROWS", slab)
     rng = np.random.default_rng(3)
     J = rng.normal(size=(rows, 12))
     y = J @ rng.normal(size=12) + 0.3 * rng.normal(size=rows)
@@ -131,4 +133,22 @@ def test_the_blocked_backward_filter_equals_lfilter_run_backwards(rows, rho):
     a single row."""
     J = np.random.default_rng(rows).normal(size=(rows, 7))
     expected = lfilter([1.0], [1.0, -rho], J[::-1], axis=0)[::-1]
-    np.testing.assert_allclose(uncertainty.backward_filter(J, rho), expected, rtol=1e-10, atol=1e-12)
+    A = np.concatenate([a for _, a in uncertainty.backward_blocks(J, rho)][::-1])
+    np.testing.assert_allclose(A, expected, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("rows", [1000, 2500])
+def test_the_ar1_covariance_summed_by_slabs_is_the_dense_sandwich(rows):
+    """``H^-1 (s_w^2 A^T A + s^2 P) H^-1`` with ``A`` from SciPy's ``lfilter`` over the reversed
+    rows, all of it at once, against the covariance whose ``A^T A`` is summed a slab of rows at a
+    time: a record shorter than a slab, and one of two slabs and part of a third."""
+    rng = np.random.default_rng(rows)
+    J = rng.normal(size=(rows, 5))
+    r = lfilter([1.0], [1.0, -0.9], rng.normal(size=rows))  # AR(1) residuals
+    prior = np.mean(r**2) * np.eye(5)
+    H = J.T @ J + prior
+    rho = np.corrcoef(r[:-1], r[1:])[0, 1]
+    A = lfilter([1.0], [1.0, -rho], J[::-1], axis=0)[::-1]
+    Hinv = np.linalg.inv(H)
+    want = Hinv @ (np.mean((r[1:] - rho * r[:-1]) ** 2) * A.T @ A + np.mean(r**2) * prior) @ Hinv
+    np.testing.assert_allclose(uncertainty._ar1_covariance(J, r, prior, H), want, rtol=1e-10)

@@ -41,7 +41,6 @@ parameters, centred on the start).
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from ..model.posterior import METHODS, Posterior
 
@@ -72,31 +71,37 @@ def leave_group_out(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None
     ``e_g = (I - J_g H^-1 J_g^T)^-1 r_g``, by one of two equal forms: the Woodbury identity
     ``(I - J_g H^-1 J_g^T)^-1 = I + J_g (H - J_g^T J_g)^-1 J_g^T``, a (k, k) solve for each group
     (``k`` parameters); or, for the groups of ``b < k`` rows when they are many enough that
-    forming ``W = S J^T`` once (``S^T S = H^-1``, :func:`_half_inverse`: ``n k^2`` products for
+    forming ``W = S J^T`` (``S^T S = H^-1``, :func:`_half_inverse`: ``n k^2`` products for
     ``n`` rows) costs less than their (k, k) solves (``k^3 / 3`` each), ``J_g H^-1 J_g^T =
-    W_g^T W_g`` and a (b, b) solve each, the groups of one size solved together. (A
+    W_g^T W_g`` and a (b, b) solve each, the groups of one size solved together, ``W`` made
+    :data:`DIRECT_ROWS` rows at a time. (A
     1,276-parameter Preisach plane on 4,000 samples in groups of a few rows: 478 s by Woodbury
     alone.) With a positive definite ``prior`` every matrix solved is positive definite
-    (``H - J_g^T J_g`` is at least the prior) and solved directly (Cholesky; the stacked small
-    ones by LU); without, by least squares (either may then be singular). ``H``: the
-    Gauss-Newton Hessian ``J^T J + prior`` (:func:`hessian`), if the caller has it already."""
+    (``H - J_g^T J_g`` is at least the prior) and solved directly (LU); without, by least
+    squares (either may then be singular). ``H``: the Gauss-Newton Hessian ``J^T J + prior``
+    (:func:`hessian`), if the caller has it already. Every product and solve here is NumPy's, one
+    library's threads (docs/development.md, "One BLAS in a loop")."""
     n, k = J.shape
     H = hessian(J, prior) if H is None else H
-    solve = _cholesky_solve if prior is not None else lambda a, b: np.linalg.lstsq(a, b, rcond=None)[0]
+    solve = np.linalg.solve if prior is not None else lambda a, b: np.linalg.lstsq(a, b, rcond=None)[0]
     order = np.argsort(groups, kind="stable")
     names, first = np.unique(np.asarray(groups)[order], return_index=True)
     rows_of = dict(zip(names, np.split(order, first[1:])))
     small = {g: rows for g, rows in rows_of.items() if len(rows) < k}
     out = {}
     if len(small) * k > 3 * n:  # the direct form for the small groups
-        W = _half_inverse(H, prior is not None) @ J.T  # (k, n): J H^-1 J^T = W^T W
+        S = _half_inverse(H, prior is not None)  # J H^-1 J^T = (J S^T)(J S^T)^T
         for size in {len(rows) for rows in small.values()}:
             same = [g for g, rows in small.items() if len(rows) == size]
             idx = np.stack([small[g] for g in same])  # (groups, b)
-            Wg, rg = W[:, idx], r[idx]
-            a = np.eye(size) - np.einsum("kgi,kgj->gij", Wg, Wg)
-            e = np.linalg.solve(a, rg[..., None])[..., 0] if prior is not None else _lstsq_each(a, rg)
-            out |= dict(zip(same, e))
+            step = max(1, DIRECT_ROWS // size)
+            for part in range(0, len(same), step):  # J S^T a slab of rows at a time, never (n, k)
+                rows = idx[part : part + step]
+                V = (J[rows.ravel()] @ S.T).reshape(*rows.shape, -1)  # (groups, b, k)
+                a = np.eye(size) - V @ V.transpose(0, 2, 1)
+                rg = r[rows]
+                e = np.linalg.solve(a, rg[..., None])[..., 0] if prior is not None else _lstsq_each(a, rg)
+                out |= dict(zip(same[part : part + step], e))
         rows_of = {g: rows for g, rows in rows_of.items() if g not in out}
     for g, rows in rows_of.items():
         Jg, rg = J[rows], r[rows]
@@ -104,13 +109,16 @@ def leave_group_out(J: np.ndarray, r: np.ndarray, groups: np.ndarray, prior=None
     return {g: out[g] for g in names}
 
 
+#: rows of ``J S^T`` that :func:`leave_group_out`'s direct form holds at a time
+DIRECT_ROWS = 2048
+
+
 def _half_inverse(H: np.ndarray, definite: bool) -> np.ndarray:
     """``S`` (k, k) with ``S^T S = H^-1``: ``L^-1`` for ``H = L L^T`` when ``H`` is positive
     definite, else ``diag(lambda^-1/2) V^T`` over the eigenvalues ``lambda`` above round-off (the
     pseudo-inverse's)."""
     if definite:
-        L = scipy.linalg.cholesky(H, lower=True)
-        return scipy.linalg.solve_triangular(L, np.eye(len(H)), lower=True)
+        return np.linalg.inv(np.linalg.cholesky(H))
     lam, V = np.linalg.eigh(H)
     keep = lam > len(H) * np.finfo(float).eps * lam.max()
     return V[:, keep].T / np.sqrt(lam[keep])[:, None]
@@ -119,11 +127,6 @@ def _half_inverse(H: np.ndarray, definite: bool) -> np.ndarray:
 def _lstsq_each(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``lstsq(a_g, b_g)`` for each of the stacked matrices ``a`` (g, b, b) and vectors ``b`` (g, b)."""
     return np.stack([np.linalg.lstsq(ag, bg, rcond=None)[0] for ag, bg in zip(a, b)])
-
-
-def _cholesky_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a^-1 b`` for a positive definite ``a`` (its lower triangle read)."""
-    return scipy.linalg.cho_solve(scipy.linalg.cho_factor(a, lower=True), b)
 
 
 def correlation_length(r: np.ndarray) -> int:
@@ -174,31 +177,42 @@ def _ar1_covariance(J: np.ndarray, r: np.ndarray, prior: np.ndarray, H: np.ndarr
     covariance of the residuals' lag-1 autocorrelation ``rho`` and innovation variance
     ``s_w^2``. ``Sigma = s_w^2 L^-1 L^-T`` for the whitening ``(L x)_t = x_t - rho x_{t-1}``,
     so ``J^T Sigma J = s_w^2 A^T A`` with ``A = L^-T J``, the backward filter
-    ``A_t = J_t + rho A_{t+1}`` (:func:`backward_filter`)."""
+    ``A_t = J_t + rho A_{t+1}`` (:func:`backward_blocks`), summed :data:`GRAM_ROWS` rows at a
+    time: ``A`` (n, k) is never stored."""
     rho = float(np.corrcoef(r[:-1], r[1:])[0, 1])
     sw2 = float(np.mean((r[1:] - rho * r[:-1]) ** 2))
-    A = backward_filter(J, rho)
+    gram, slab = np.zeros((J.shape[1], J.shape[1])), []
+    for start, a in backward_blocks(J, rho):
+        slab.append(a)
+        if start % GRAM_ROWS == 0:  # every GRAM_ROWS rows, and the first block
+            A = np.concatenate(slab[::-1])
+            gram += A.T @ A
+            slab = []
     Hinv = np.linalg.inv(H)
-    C = Hinv @ (sw2 * A.T @ A + np.mean(r**2) * prior) @ Hinv
+    C = Hinv @ (sw2 * gram + np.mean(r**2) * prior) @ Hinv
     return 0.5 * (C + C.T)
 
 
-def backward_filter(J: np.ndarray, rho: float, block: int = 64) -> np.ndarray:
+#: rows of the backward filter's output that :func:`_ar1_covariance` holds at a time
+GRAM_ROWS = 1024
+
+
+def backward_blocks(J: np.ndarray, rho: float, block: int = 64):
     """``A`` (n, k) with ``A_t = J_t + rho A_{t+1}`` (``A_n = 0`` beyond the last row), ``block``
-    rows at a time from the end: within a block ``A_t = sum_{s >= t} rho^(s - t) J_s`` over its
-    rows plus ``rho^(b - t) A_b`` from the block after (``b`` its first row), one (block, block)
-    triangular Toeplitz product per block: the same numbers as ``scipy.signal.lfilter`` run
-    backwards over the rows, by matrix products instead of its sample-by-sample recursion."""
+    rows at a time from the end, each yielded as ``(start, A[start : start + block])``: within a
+    block ``A_t = sum_{s >= t} rho^(s - t) J_s`` over its rows plus ``rho^(b - t) A_b`` from the
+    block after (``b`` its first row), one (block, block) triangular Toeplitz product per block:
+    the same numbers as ``scipy.signal.lfilter`` run backwards over the rows, by matrix products
+    instead of its sample-by-sample recursion. ``block`` divides :data:`GRAM_ROWS`."""
     n = len(J)
     i = np.arange(block)
     powers = rho ** np.maximum(i[None, :] - i[:, None], 0)
     M = np.where(i[None, :] >= i[:, None], powers, 0.0)  # M[t, s] = rho^(s - t), s >= t
     carry = rho ** (block - i)  # rho^(b - t): what the next block's first row adds
-    A = np.empty_like(J, dtype=float)
     after = np.zeros(J.shape[1])
     for start in range(((n - 1) // block) * block, -1, -block):
         rows = slice(start, min(start + block, n))
         m = rows.stop - start
-        A[rows] = M[:m, :m] @ J[rows] + np.outer(carry[:m], after)  # after = 0 for the short last block
-        after = A[start]
-    return A
+        a = M[:m, :m] @ J[rows] + np.outer(carry[:m], after)  # after = 0 for the short last block
+        after = a[0]
+        yield start, a

@@ -165,9 +165,18 @@ def band(model, posterior: Optional[Posterior], u, t=None, history=None, level: 
 
 def linear_band(y: np.ndarray, G: np.ndarray, posterior: Posterior, level: float = 0.9) -> Band:
     """The band about the prediction ``y`` (T,) nm whose Jacobian with respect to the
-    posterior's raw parameters is ``G`` (T, k) (module docstring)."""
-    var = np.sum((G @ posterior.covariance) * G, axis=1) + posterior.residual_sd_nm**2  # g^T C g
-    return Band(np.asarray(y), np.sqrt(var), check_level(level))
+    posterior's raw parameters is ``G`` (T, k) (module docstring): ``g_t^T C g_t`` a block of
+    :data:`BAND_ROWS` rows at a time, so that no (T, k) product is stored beside ``G``."""
+    G, C = np.asarray(G), posterior.covariance
+    var = np.empty(len(G))
+    for start in range(0, len(G), BAND_ROWS):
+        g = G[start : start + BAND_ROWS]
+        var[start : start + BAND_ROWS] = np.einsum("ij,ij->i", g @ C, g)
+    return Band(np.asarray(y), np.sqrt(var + posterior.residual_sd_nm**2), check_level(level))
+
+
+#: rows of a band's Jacobian taken at a time by :func:`linear_band`
+BAND_ROWS = 1024
 
 
 def linearise(model, input_span_v: float, output_range_nm: float, u, t=None, history=None) -> tuple:
