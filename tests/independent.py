@@ -26,12 +26,13 @@ Hysteresis (one per axis, the truth's class):
 
       R[n] = +1 if u[n] >= alpha,  -1 if u[n] <= beta,  R[n-1] otherwise
 
-  one relay per cell of an ``n x n`` grid over ``[u_lo, u_hi] = [-10, 10] V`` (n = 100; lower
-  triangle, diagonal cells included), placed at a fixed random point of its cell (a stratified
-  sample of the plane, so that a row of relays does not switch at once and the output has no
-  staircase of 30 nm steps; a diagonal cell's point is mirrored into alpha >= beta and weighs half
-  a cell). Output ``y[n] = offset + scale * sum_k mu_k A_k R_k[n] / sum_k mu_k A_k`` (``A_k`` the
-  cell's area), the density ``mu`` in centre ``c = (alpha + beta) / 2`` and half-width
+  one relay per cell of an ``n x n`` grid over ``[u_lo, u_hi] = [-10, 10] V`` (n = 100, or
+  ``make_case``'s ``relays``; lower triangle, diagonal cells included), placed at a fixed random
+  point of its cell (a stratified sample of the plane, so that a row of relays does not switch
+  at once and the output has no staircase of 30 nm steps; a diagonal cell's point is mirrored
+  into alpha >= beta and weighs half a cell). Output
+  ``y[n] = offset + scale * sum_k mu_k A_k R_k[n] / sum_k mu_k A_k`` (``A_k`` the cell's area),
+  the density ``mu`` in centre ``c = (alpha + beta) / 2`` and half-width
   ``h = (alpha - beta) / 2``::
 
       mu = exp(-(c - c0)^2 / (2 sc^2) - (h - h0)^2 / (2 sh^2))
@@ -87,7 +88,7 @@ amplitude (minor loops, some nested) at 1.5-5 Hz; y the same at 1-3 Hz with its 
 from __future__ import annotations
 
 import numpy as np
-from scipy import signal
+from scipy import signal, special
 
 FS = 1000.0  # Hz
 DURATION = 6.0  # s
@@ -193,6 +194,38 @@ def preisach_operator(
         state = np.where(un >= alpha, 1.0, np.where(un <= beta, -1.0, state))
         out[k] = state @ mu
     return offset + scale * out
+
+
+def preisach_continuous(
+    u, c0=0.0, sc=4.0, h0=1.5, sh=0.8, scale=1.0, offset=0.0, u_range=U_RANGE, widths: int = 400
+) -> np.ndarray:
+    """The same Preisach output (T,) with the density continuous over the plane instead of
+    sampled by one relay a cell: the limit of :func:`preisach_operator` as its grid refines.
+    In centre ``c`` and half-width ``h`` (``d alpha d beta = 2 dc dh``; the plane ``|c| <= L(h)
+    = u_hi - h`` for the symmetric range), the relays of half-width ``h`` are all set by one play
+    of radius ``h`` (``R = sign(p_h - c)``, the play started at ``u[0]`` as the relays' start
+    state), so their weighted sum is a closed form in the error function::
+
+        N_h(p) = int_{-L}^{L} g(c) sign(p - c) dc = 2 E(clip(p, -L, L)) - E(-L) - E(L),
+
+    ``g`` the Gaussian in ``c``, ``E`` its integral (``sc sqrt(pi / 2) erf((c - c0) / (sqrt(2) sc))``);
+    ``h`` by the midpoint rule over ``widths`` half-widths. Output
+    ``offset + scale * int G(h) N_h dh / int G(h) N_h(+inf) dh``, ``G`` the Gaussian in ``h``."""
+    lo, hi = u_range
+    if lo != -hi:
+        raise ValueError(f"preisach_continuous takes a range symmetric about 0 V, got {u_range}")
+    h = (np.arange(widths) + 0.5) * hi / widths
+    half = hi - h  # the plane's half-extent in c at each half-width
+    erf_int = lambda c: sc * np.sqrt(np.pi / 2) * special.erf((c - c0) / (np.sqrt(2) * sc))
+    weight = np.exp(-((h - h0) ** 2) / (2 * sh**2))
+    u = np.asarray(u, float)
+    n, p = np.empty(u.size), np.full(widths, u[0])
+    for k, uk in enumerate(u):  # the plays of play_operators, one sample at a time (no (T, widths) array)
+        p = np.maximum(uk - h, np.minimum(uk + h, p))
+        n[k] = 2 * erf_int(np.clip(p, -half, half)) @ weight
+    n -= (erf_int(-half) + erf_int(half)) @ weight
+    total = weight @ (erf_int(half) - erf_int(-half))
+    return offset + scale * n / total
 
 
 def preisach_major_fraction(c0, sc, h0, sh, a=U_MAX, n=100, u_range=U_RANGE):
@@ -408,6 +441,7 @@ def make_case(
     magnitude=None,
     oversample=OVERSAMPLE,
     wander=None,
+    relays=100,
 ) -> dict:
     """One record: ``t`` (T,) s, ``u`` (T, 2) V, ``d`` (T, 2) nm and ``truth`` (every parameter).
 
@@ -415,6 +449,9 @@ def make_case(
     ``magnitude``). ``hysteresis``: "pi" or "preisach" (asymmetry always uses "pi").
     ``drive``: ``(t, u)``, default :data:`DRIVE`. ``wander`` (a drift only): ``None``, a kind of
     :data:`WANDERS` at the level's size, or ``{"kind": ..., "sigma": ..., "tau_s": ...}``.
+    ``relays``: a Preisach truth's grid, ``relays x relays`` cells over ``U_RANGE``, or ``None``
+    for its density continuous over the plane (:func:`preisach_continuous`): the same scanner
+    with less switching roughness, or none, the noise and every other draw the same.
     """
     if effect is not None and effect not in EFFECTS:
         raise ValueError(f"unknown effect {effect!r}; known: {EFFECTS}")
@@ -436,7 +473,8 @@ def make_case(
             h[:, i] = pi_operator(uf[:, i], p["radii"], p["weights"])
         else:
             p = _preisach_truth(r_hyst)
-            h[:, i] = preisach_operator(uf[:, i], p["c0"], p["sc"], p["h0"], p["sh"], p["scale"])
+            args = (uf[:, i], p["c0"], p["sc"], p["h0"], p["sh"], p["scale"])
+            h[:, i] = preisach_continuous(*args) if relays is None else preisach_operator(*args, n=relays)
         axes.append(p)
     half_range = np.array([p["gain_nm_per_v"] * U_MAX for p in axes])
     offsets = r_hyst.uniform(-100, 100, 2)

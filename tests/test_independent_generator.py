@@ -193,6 +193,21 @@ def test_make_case_truth_and_control():
         assert 0.10 <= axis["width_fraction"] <= 0.25
 
 
+def test_the_relay_grid_converges_to_the_continuous_density_as_it_refines():
+    """The same Preisach case on grids of 100 and 200 cells a side and with the density
+    continuous over the plane (a closed form in the error function, one play per relay width):
+    the same draws (density, offsets, noise), and the grid's output converges to the continuous
+    one, as a stratified sample of a smooth density does (each relay's jump, at a random point
+    of its cell, smaller on the finer grid); what the 100-cell grid adds is small against the
+    output's span but not against the 2 nm noise."""
+    short = make_drive(0.5, 1000.0)
+    got = {n: make_case(None, "control", 5, "preisach", drive=short, relays=n) for n in (100, 200, None)}
+    assert got[100]["truth"] == got[None]["truth"]
+    rough = {n: np.sqrt(np.mean((got[n]["d"] - got[None]["d"]) ** 2)) for n in (100, 200)}
+    assert rough[100] > 2 * rough[200] > 0
+    assert 0.5 < rough[100] < 0.01 * np.ptp(got[None]["d"])
+
+
 @pytest.mark.parametrize("kind", ["walk", "ou"])
 def test_drift_wander_spreads_as_its_process_says(kind):
     """Over 2000 draws at uneven times: a walk of sigma nm/sqrt(s) has variance sigma^2 t; an
