@@ -274,7 +274,9 @@ WANDERING = Run("independent_check_wandering/summary.json", WANDERING_COMMAND)
 REPORTED = Run(
     "independent_check_wandering/reported.json", "python experiments/independent_check.py --reported"
 )
-PREISACH_RUNG = Run("independent_check_wandering/preisach_rung.json", "python experiments/preisach_rung.py")
+PREISACH_RUNG = Run(
+    "independent_check_wandering/preisach_rung.json", "python experiments/preisach_rung.py --nodes 5 7 9 13"
+)
 STABILITY = Run("stability/summary.json", "python experiments/stability.py")
 STABILITY_ROWS = (
     Run("stability/rows-1-of-2.json", "python experiments/stability.py --shard 1/2"),
@@ -3328,6 +3330,20 @@ def independent_preisach_rung(results: Results) -> Table:
     ]
     note = "The diagnosis's Preisach rung, 20 levels, fitted on the first 60 % and scored on the rest, both axes."
     return Table(header, rows, [PREISACH_RUNG], note)
+
+
+@table("independent_preisach_rung_nodes")
+def independent_preisach_rung_nodes(results: Results) -> Table:
+    m = results(PREISACH_RUNG)
+    rows = [
+        [
+            f"{nodes} (the diagnosis's)" if int(nodes) == m["nodes"] else nodes,
+            *(q(r[f"{v}_gap_nm"], "nm", 2) for v in ("record", "relays", "continuous")),
+        ]
+        for nodes, r in m["by_nodes"].items()
+    ]
+    header = ["profile nodes", "the record", "less the noise", "the density continuous, no noise"]
+    return Table(header, rows, [PREISACH_RUNG], "Held-out gaps, median over the same controls.")
 
 
 @table("independent_reported")

@@ -15,15 +15,19 @@ scored on its last 40 %:
 
 Beside them, the report's noise floor estimated from each held-out output
 (``jaxafm.diagnose.report.noise_floor_nm``) and the relays' switching roughness (the record less
-noise, less the continuous output; rms on the held-out part).
+noise, less the continuous output; rms on the held-out part). With ``--nodes``, the same for a
+rung whose profile has each of those numbers of nodes (``jaxafm.diagnose.plant.PROFILE_NODES``,
+5 in the diagnosis), each one's medians.
 
-    python experiments/preisach_rung.py          # ~5 minutes on one core
+    python experiments/preisach_rung.py --nodes 5 7 9 13     # ~10 minutes on one core
 
-Writes ``experiments/results/independent_check_wandering/preisach_rung.json``. Units: nm.
+Writes ``experiments/results/independent_check_wandering/preisach_rung.json``: per case at the
+diagnosis's nodes, and the medians at every count. Units: nm.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -31,6 +35,7 @@ import benchutil  # noqa: F401  (puts tests/ on sys.path)
 import numpy as np
 from independent import DRIVE, case_noise, make_case, wandering_cases
 
+from jaxafm.diagnose import plant
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose.report import noise_floor_nm
 from jaxafm.instrument.records import Record
@@ -62,20 +67,30 @@ def case_row(case: dict) -> dict:
     return row
 
 
+def medians(rows: list) -> dict:
+    """Every number's median over the cases ``rows``."""
+    return {k: float(np.median([r[k] for r in rows])) for k in rows[0] if k != "seed"}
+
+
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--nodes", type=int, nargs="+", default=[plant.PROFILE_NODES], help="profile nodes")
+    args = ap.parse_args()
     controls = [c for c in wandering_cases() if c["effect"] is None and c["truth_hysteresis"] == "preisach"]
-    rows = []
-    for case in controls:
-        rows.append(case_row(case))
-        print(
-            json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in rows[-1].items()}),
-            flush=True,
-        )
-    keys = [k for k in rows[0] if k != "seed"]
-    out = {"cases": rows, "median": {k: float(np.median([r[k] for r in rows])) for k in keys}}
+    diagnosis_nodes, out = plant.PROFILE_NODES, {"nodes": plant.PROFILE_NODES, "by_nodes": {}}
+    for nodes in args.nodes:
+        plant.PROFILE_NODES = nodes
+        rows = []
+        for case in controls:
+            rows.append(case_row(case))
+            print(json.dumps({"nodes": nodes} | {k: round(v, 3) for k, v in rows[-1].items()}), flush=True)
+        out["by_nodes"][str(nodes)] = medians(rows)
+        if nodes == diagnosis_nodes:
+            out |= {"cases": rows, "median": medians(rows)}
+    plant.PROFILE_NODES = diagnosis_nodes
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "preisach_rung.json").write_text(json.dumps(out, indent=1))
-    print(json.dumps(out["median"], indent=1))
+    print(json.dumps(out["by_nodes"], indent=1))
 
 
 if __name__ == "__main__":

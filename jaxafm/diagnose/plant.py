@@ -47,6 +47,7 @@ CREEP_PER_DECADE = 2  # creep lags per decade of time
 LAG0_S = 1e-3  # the rate-dependence lag a candidate starts from
 GAMMA0 = 1e-4  # the creep rate (per decade) a candidate starts from
 MAX_DAMPING = 0.7  # a mode rings (has a resonant peak) only below 1/sqrt(2); above, it is a lag
+PROFILE_NODES = 5  # a factorised Preisach's profile over the relays' centres (docs/diagnosis.md)
 # What a raw parameter of 1 stands for: 1 % (of coupling, of the creep per decade, of the
 # output range for bow, drift and creep start, scaled as RecordScales says), and a 10 ms lag.
 RELATIVE_SCALE = 0.01
@@ -326,7 +327,9 @@ def nominal_plant(
             ) from None
         hist = None if history is None else history[:, i]
         if kind == "preisach":
-            h = _alternating_start(FactorizedPreisach.from_plane(h), u[:, i], d[:, i], train, hist)
+            h = _alternating_start(
+                FactorizedPreisach.from_plane(h, PROFILE_NODES), u[:, i], d[:, i], train, hist
+            )
         axes.append(Axis(_nnls_start(h, u[:, i], d[:, i], train, hist)))
     plant = Plant.of(tuple(axes))
     for name in ("rate_dependence", "creep", "coupling", "bow", "drift"):
