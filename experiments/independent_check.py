@@ -336,10 +336,10 @@ def with_floor(row: dict) -> dict:
     row["shrink_above_floor_pct"] = None if base is None else shrink(base)
     row["shrink_ceiling_pct"] = None if base is None else ceiling(base, best)
     row["shrink_above_floor_ceiling_pct"] = None if base is None else shrink(base, best)
-    generator = {"floor": row["generator_floor_nm"]}
-    row["shrink_above_generator_floor_pct"] = None if base is None else shrink(base, **generator)
+    generator = row["generator_floor_nm"]
+    row["shrink_above_generator_floor_pct"] = None if base is None else shrink(base, final, generator)
     row["shrink_above_generator_floor_ceiling_pct"] = (
-        None if base is None else shrink(base, float(np.hypot(best, rough)), **generator)
+        None if base is None else shrink(base, float(np.hypot(best, rough)), generator)
     )
     return row
 

@@ -55,10 +55,9 @@ def case_row(case: dict) -> dict:
     """One control's gaps and floors on its three versions (module docstring)."""
     seed = case["seed"]
     record = make_case(None, "control", seed, "preisach")["d"]
-    relays = record - case_noise(record.shape, seed)
-    continuous = make_case(None, "control", seed, "preisach", relays=None)["d"] - case_noise(
-        record.shape, seed
-    )
+    noise = case_noise(record.shape, seed)
+    relays = record - noise
+    continuous = make_case(None, "control", seed, "preisach", relays=None)["d"] - noise
     row = {"seed": seed}
     for name, d in (("record", record), ("relays", relays), ("continuous", continuous)):
         row[f"{name}_gap_nm"], row[f"{name}_floor_nm"] = rung_gap_nm(d)
