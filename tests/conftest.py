@@ -22,9 +22,12 @@ cores, each one's programs spreading over both cores made them contend (the suit
 7 min 56 s with the threads left to XLA, 7 min 24 s with one each, in one session; the same
 tests and results).
 
-The longest modules are collected first (:data:`LONGEST_FIRST`): ``--dist loadfile`` hands whole
-modules to the two workers in collection order, so the long ones start together and the short
-ones fill in at the end, instead of one worker finishing a long module alone.
+The longest modules are collected first (:data:`LONGEST_FIRST`), and ``--no-loadscope-reorder``
+(``pyproject.toml``) keeps that order: ``--dist loadfile`` hands whole modules to the two workers
+in it, each worker the next module when its last is nearly done, so the long ones start early and
+the short ones fill in at the end, instead of one worker finishing a long module alone. Without
+that option pytest-xdist orders the modules by their number of tests, which puts modules of a few
+long tests (test_step_a_wide_loop, test_diagnose_independent) last.
 """
 
 import os
@@ -58,15 +61,20 @@ os.environ.update(_SETTINGS)  # the processes the tests start share it
 
 #: modules by their measured time in one suite (s, ``--durations=0``, 2 workers), longest first
 LONGEST_FIRST = (
-    "test_positioning.py",  # 115
-    "test_diagnose_record.py",  # 115
-    "test_diagnose_independent.py",  # 90
-    "test_study.py",  # 84
-    "test_diagnose.py",  # 70
-    "test_step_a.py",  # 68
-    "test_diagnose_scans.py",  # 53
-    "test_distributed.py",  # 51
-    "test_step_a_sets.py",  # 42
+    "test_study.py",  # 141
+    "test_positioning.py",  # 139
+    "test_diagnose_independent.py",  # 113
+    "test_step_a_sets.py",  # 101
+    "test_step_a.py",  # 98
+    "test_step_a_wide_loop.py",  # 82
+    "test_diagnose_record.py",  # 71
+    "test_diagnose.py",  # 56
+    "test_distributed.py",  # 55
+    "test_time_parallel.py",  # 53
+    "test_diagnose_scans.py",  # 51
+    "test_fit.py",  # 39
+    "test_step_a_independent.py",  # 38
+    "test_wander.py",  # 38
 )
 
 

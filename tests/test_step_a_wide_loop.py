@@ -1,5 +1,5 @@
 """Step A on a scanner whose hysteresis loop is wide: the retrace indexed by the feature fit.
-Its own module so that ``--dist loadfile`` can hand it to whichever worker is free at the end."""
+Its own module so that ``--dist loadfile`` can hand it to one worker and test_step_a to the other."""
 
 import dataclasses
 
