@@ -274,6 +274,12 @@ WANDERING = Run("independent_check_wandering/summary.json", WANDERING_COMMAND)
 REPORTED = Run(
     "independent_check_wandering/reported.json", "python experiments/independent_check.py --reported"
 )
+WANDERING_NODES7 = Run(
+    "independent_check_wandering_nodes7/summary.json",
+    "python experiments/independent_check.py --wandering --truth preisach --effects drift creep "
+    "--profile-nodes 7 --shard 1/2 --out experiments/results/independent_check_wandering_nodes7 "
+    "(and --shard 2/2; then --effects control, --shard 1/2 and 2/2)",
+)
 PREISACH_RUNG = Run(
     "independent_check_wandering/preisach_rung.json", "python experiments/preisach_rung.py --nodes 5 7 9 13"
 )
@@ -3344,6 +3350,38 @@ def independent_preisach_rung_nodes(results: Results) -> Table:
     ]
     header = ["profile nodes", "the record", "less the noise", "the density continuous, no noise"]
     return Table(header, rows, [PREISACH_RUNG], "Held-out gaps, median over the same controls.")
+
+
+@table("independent_wandering_nodes")
+def independent_wandering_nodes(results: Results) -> Table:
+    rows = []
+    for label, run in (("5 (the diagnosis's)", WANDERING), ("7", WANDERING_NODES7)):
+        s = results(run)["different"]  # the symmetric PI nominal on the Preisach truths
+        rows.append(
+            [
+                label,
+                *(_share(s[f"top1_{lv}_pct"], s[f"cases_{lv}"]) for lv in ("low", "middle", "high")),
+                f"{s['controls_flagged']}/{s['controls']}",
+                q(s["median_shrink_above_floor_correct_pct"], "%"),
+                q(s["median_shrink_above_generator_floor_correct_pct"], "%"),
+            ]
+        )
+    header = [
+        "profile nodes",
+        "named low",
+        "named middle",
+        "named high",
+        "controls flagged",
+        "median shrink above the estimated floor",
+        "above the generator's floor",
+    ]
+    ceiling = results(WANDERING)["different"]["median_shrink_above_generator_floor_ceiling_correct_pct"]
+    note = (
+        "The wandering check's 64 Preisach-truth cases (54 drifts and creeps, 10 controls); median "
+        "shrink of the correctly named, their own step (an exact model of the actuator, above the "
+        f"generator's floor: {q(ceiling, '%')})."
+    )
+    return Table(header, rows, [WANDERING, WANDERING_NODES7], note)
 
 
 @table("independent_reported")

@@ -30,6 +30,9 @@ confusion.png.
         # drifts that wander (random walk, Ornstein-Uhlenbeck) and creep, half on Preisach truths,
         # symmetric PI nominal (independent.wandering_cases: 108 cases + 20 controls, ~2 h on 2 cores),
         # into experiments/results/independent_check_wandering/
+    python experiments/independent_check.py --wandering --truth preisach --effects drift creep \
+        --profile-nodes 7 --shard 1/2 --out experiments/results/independent_check_wandering_nodes7
+        # and --shard 2/2 beside it: the Preisach truths' cases, the Preisach rung with 7 profile nodes
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ from independent import (
 )
 from scipy.linalg import cho_factor, cho_solve
 
+from jaxafm.diagnose import plant
 from jaxafm.diagnose import record as D
 from jaxafm.diagnose.report import above_floor, noise_floor_nm
 from jaxafm.instrument.records import Record
@@ -404,8 +408,9 @@ def by_wander(rows: list) -> dict:
 
 def figure(summary: dict, path: Path) -> None:
     labels = summary["labels"]
-    fig, axes = plt.subplots(2, 3, figsize=(19, 12.5))
-    for row, cls in zip(axes, CLASSES):
+    classes = [c for c in CLASSES if summary[c]["cases"]]  # a selection may hold one class only
+    fig, axes = plt.subplots(len(classes), 3, figsize=(19, 12.5 if len(classes) == 2 else 7.5), squeeze=False)
+    for row, cls in zip(axes, classes):
         s = summary[cls]
         for ax, lv in zip(row, LEVELS):
             m = np.array(s["confusion"][lv]) + np.array(s["confusion"]["control"])
@@ -426,7 +431,7 @@ def figure(summary: dict, path: Path) -> None:
                 f"top-1 {acc_s}; controls flagged {s['controls_flagged']}/{s['controls']}",
             )
     fig.suptitle("jaxafm record diagnosis on the independent generator's records", fontsize=14)
-    fig.tight_layout()
+    fig.tight_layout(rect=None if len(classes) == 2 else (0, 0, 1, 0.94))  # room for the suptitle
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
@@ -447,6 +452,19 @@ def main() -> None:
         choices=("pi", "preisach"),
         default=None,
         help="run only the cases with this nominal kind (writes cases-KIND-....json beside the others)",
+    )
+    ap.add_argument(
+        "--truth",
+        choices=("pi", "preisach"),
+        default=None,
+        help="run only the cases whose truth has this hysteresis class",
+    )
+    ap.add_argument(
+        "--profile-nodes",
+        type=int,
+        default=None,
+        help="the diagnosis's factorised Preisach rung with this many profile nodes "
+        "(jaxafm.diagnose.plant.PROFILE_NODES; give a --out of its own)",
     )
     ap.add_argument(
         "--shard",
@@ -477,7 +495,9 @@ def main() -> None:
         return reported(args.out)
     k, n = (int(v) for v in args.shard.split("/"))
     # the selection in the file's name, so that shards of different selections never overwrite each other
-    tag = "".join(f"-{v}" for v in [args.nominal, *(args.levels or []), *(args.effects or [])] if v)
+    tag = "".join(
+        f"-{v}" for v in [args.nominal, args.truth, *(args.levels or []), *(args.effects or [])] if v
+    )
     saved = args.out / (f"cases{tag}.json" if n == 1 else f"cases{tag}-{k}-of-{n}.json")
     if not args.summarise:
         rows = []  # this run's (the summary below merges every cases*.json in the folder)
@@ -492,6 +512,10 @@ def main() -> None:
             todo = [c for c in todo if c["level"] in args.levels]
         if args.nominal:
             todo = [c for c in todo if c["nominal_kind"] == args.nominal]
+        if args.truth:
+            todo = [c for c in todo if c["truth_hysteresis"] == args.truth]
+        if args.profile_nodes:
+            plant.PROFILE_NODES = args.profile_nodes
         todo = todo[: args.limit][k - 1 :: n]
         candidates = CANDIDATES
         for i, case in enumerate(todo):
