@@ -137,7 +137,7 @@ def source(run: Run) -> Link:
     return Link(f"`{run.command}`", run.file)
 
 
-Cell = Union[str, Link]
+Cell = Union[str, Link, tuple]  # a tuple: several links, one after the other
 
 
 @dataclass
@@ -173,6 +173,8 @@ def relative(target: str, page: str) -> str:
 
 def cell(c: Cell, page: str) -> str:
     """A cell's Markdown on ``page``."""
+    if isinstance(c, tuple):
+        return "; ".join(cell(link, page) for link in c)
     return c if isinstance(c, str) else f"[{c.text}]({relative(c.target, page)})"
 
 
@@ -239,6 +241,7 @@ STUDY_CLASSES_WIDE_LOOP = Run(
 )
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
+STUDY_NO_LEARNING = Run("study_no_learning/metrics.json", "jaxafm study configs/study_no_learning.yaml")
 STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
 PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
 BENCH_STUDY = Run("bench_study/bench.json", "python experiments/bench_study.py")
@@ -320,12 +323,13 @@ DIAGNOSE_REAL = (
 
 @dataclass(frozen=True)
 class Goal:
-    """One goal checked on one run: its wording, the page that explains it, the result as a
-    sentence of formatted numbers, and whether it is met (``None``: measured, no goal)."""
+    """One goal checked on one run (or a tuple of runs, whose files the result and the verdict
+    then take as a tuple): its wording, the page that explains it, the result as a sentence of
+    formatted numbers, and whether it is met (``None``: measured, no goal)."""
 
     name: str
     goal: str
-    run: Run
+    run: Union[Run, tuple]
     page: str
     result: Callable[[Any], str]
     met: Callable[[Any], Optional[bool]] = field(default=lambda m: None)
@@ -1144,6 +1148,21 @@ GOALS.append(
         lambda m: m["AB_learning"]["learnt_ratio"] <= 0.5,
     )
 )
+GOALS.append(
+    Goal(
+        "study_learning_cost",
+        "learning while positioning adds at most 20 % to a study's time (study.yaml against "
+        "study_no_learning.yaml, the same study without it, run one after the other)",
+        (STUDY, STUDY_NO_LEARNING),
+        "docs/study.md#what-learning-costs",
+        lambda m: (
+            f"{q(m[0]['wall_s'] / 60, 'min')} with learning against {q(m[1]['wall_s'] / 60, 'min')} without "
+            f"({q(100 * (m[0]['wall_s'] / m[1]['wall_s'] - 1), '%')}); the trials alone "
+            f"{q(m[0]['trials_s'], 's', 0)} against {q(m[1]['trials_s'], 's', 0)}"
+        ),
+        lambda m: m[0]["wall_s"] <= 1.2 * m[1]["wall_s"],
+    )
+)
 #: The README's short table: the positioning goals and the real data.
 README_GOALS = (
     "step_a_linearity",
@@ -1176,9 +1195,11 @@ def goals_table(names: Optional[Sequence[str]]) -> Callable[[Results], Table]:
         rows = []
         for g in GOALS:
             if names is None or g.name in names:
-                data = results(g.run)
+                runs = g.run if isinstance(g.run, tuple) else (g.run,)
+                data = tuple(map(results, runs)) if isinstance(g.run, tuple) else results(g.run)
                 page = Link(PAGE_TITLES[Path(g.page.partition("#")[0]).stem], g.page)
-                rows.append([g.goal, g.result(data), verdict(g.met(data)), source(g.run), page])
+                links = tuple(map(source, runs))
+                rows.append([g.goal, g.result(data), verdict(g.met(data)), links, page])
         return Table(["goal", "result", "", "run", "page"], rows, [])
 
     return make
@@ -2615,7 +2636,7 @@ TABLES["study_classes_per_class"] = study_truth_classes(STUDY_CLASSES)
 TABLES["study_classes_0_90_condition_y_per_class"] = study_truth_classes(STUDY_CLASSES_0_90_CY)
 TABLES["study_classes_0_90_wide_loop_per_class"] = study_truth_classes(STUDY_CLASSES_WIDE_LOOP)
 for _name, _run, _wall in (
-    ("study", STUDY, False),
+    ("study", STUDY, True),
     ("study_wide", STUDY_WIDE, True),
     ("study_classes", STUDY_CLASSES, True),
     ("study_classes_0_90_condition_y", STUDY_CLASSES_0_90_CY, True),
@@ -2648,6 +2669,27 @@ def study_push_learning(results: Results) -> Table:
         if any(f.get(k) for f in fails)
     ]
     return Table(["", "pushes as commanded (study.yaml)", "pushes that learn"], rows, list(runs))
+
+
+@table("study_learning_cost")
+def study_learning_cost(results: Results) -> Table:
+    """study_no_learning.yaml beside study.yaml, run one after the other: what learning while
+    positioning costs in time and what it changes."""
+    runs = (STUDY_NO_LEARNING, STUDY)
+    m = [results(r) for r in runs]
+    rows = [
+        ["wall time of the command"] + [q(f["wall_s"] / 60, "min") for f in m],
+        [f"of it, step A and the surveys of the {count(m[0]['scanners'])} scanners"]
+        + [q(f["step_a_and_surveys_s"], "s", 0) for f in m],
+        ["of it, the trials"] + [q(f["trials_s"], "s", 0) for f in m],
+        ["A+B median"] + [q(f["AB_error_median_nm"], "nm") for f in m],
+        ["A+B p95"] + [q(f["AB_error_p95_nm"], "nm") for f in m],
+        ["A+B within 0.1 R"] + [q(f["AB_success_pct"], "%") for f in m],
+        ["A+B+C within 0.1 R"] + [q(f["ABC_success_pct"], "%") for f in m],
+        ["local scan lines, mean"] + [q(f["ABC_lines_mean"], "", 2) for f in m],
+        ["push within 1 R after the checks"] + [q(f["push_success_pct"], "%") for f in m],
+    ]
+    return Table(["", "without learning", "learning from step C's finds (study.yaml)"], rows, list(runs))
 
 
 def position_coverage(run: Run) -> Callable[[Results], Table]:

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from jaxafm.cli import app
 from jaxafm.jobs import read_manifest
+from jaxafm.jobs.study import WALL_TIMES
 
 
 def _gloo() -> bool:
@@ -65,9 +66,9 @@ def chunks(out) -> dict:
 
 
 def metrics(out) -> str:
-    """``metrics.json`` but the wall time, as text (NaN equals NaN)."""
+    """``metrics.json`` but the wall times, as text (NaN equals NaN)."""
     doc = json.loads((out / "metrics.json").read_text())
-    return json.dumps({k: v for k, v in doc.items() if k != "wall_s"})
+    return json.dumps({k: v for k, v in doc.items() if k not in WALL_TIMES})
 
 
 def assert_identical(got: dict, want: dict, where: str) -> None:

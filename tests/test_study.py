@@ -236,6 +236,11 @@ def test_outputs_and_trial_file(baseline):
     assert 0 < metrics["AB_ran_pct"] <= 100  # one of the two drawn scanners may miss landmarks
     scanners = json.loads((out / "scanners.json").read_text())
     assert [scanners[s]["truth_class"] for s in ("0", "1")] == CLASSES
+    # the run's time in two parts, each scanner's and their sums, within the whole command's
+    for k in ("step_a_and_surveys_s", "trials_s"):
+        assert all(v[k] > 0 for v in scanners.values())
+        assert metrics[k] == pytest.approx(sum(v[k] for v in scanners.values()))
+    assert metrics["step_a_and_surveys_s"] + metrics["trials_s"] <= metrics["wall_s"]
     for s, truth in enumerate(CLASSES):  # each class's success from its scanner's trials
         mine = table["scanner"] == s
         ok = table["AB_error_nm"][mine] <= 0.1 * table["radius_nm"][mine]

@@ -290,7 +290,9 @@ def run(
     ) as bar:
         for s in sorted({c[0] for c in todo}):
             bar.set_postfix_str(f"scanner {s}: step A and surveys")
+            began = time.perf_counter()
             surveys, now = prepare_scanner(cfg, config_path, s, scanners[s], out, log)
+            now["step_a_and_surveys_s"] = time.perf_counter() - began
             kept = info.get(str(s), {})
             # a resumed scanner keeps its identification time
             info[str(s)] = (
@@ -299,12 +301,15 @@ def run(
             _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
             bar.set_postfix_str(f"scanner {s}: trials")
             mine = [c for c in todo if c[0] == s]
+            began = time.perf_counter()
             earlier = _kept_observed(cfg, out, draws, s, mine[0][1]) if cfg.learning else NOTHING_OBSERVED
             for _, a, b in mine:
                 r = run_chunk(surveys, {k: v[a:b] for k, v in draws.items()}, mesh, settings, earlier)
                 earlier = with_chunk_observed(earlier, r, push[a:b]) if cfg.learning else NOTHING_OBSERVED
                 _save(out, chunk_file(a, b), lambda f: np.savez(f, **r))
                 bar.update(b - a)
+            info[str(s)]["trials_s"] = time.perf_counter() - began
+            _save(out, "scanners.json", lambda f: f.write_text(json.dumps(info, indent=1)))
     return _summarise_on_process_0(cfg, out, draws, info, time.perf_counter() - start, log)
 
 
@@ -371,6 +376,11 @@ def load_results(cfg: StudyConfig, out: Output, draws: dict) -> dict:
     return draws | {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+#: the metrics that are this machine's wall-clock seconds (s), not results: the whole command's, and
+#: summed over the scanners, their step A and surveys' and their trials' (each scanner's in
+#: ``scanners.json``, as the run that made them took them)
+WALL_TIMES = ("wall_s", "step_a_and_surveys_s", "trials_s")
+
 STAGE_LABELS = {"open_loop": "open loop", "A": "A", "B": "B", "AB": "A+B", "ABC": "A+B+C", "push": "push"}
 
 
@@ -401,6 +411,7 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
         "scanners": cfg.scanners,
         "trials_per_scanner": cfg.trials_per_scanner,
         "wall_s": seconds,
+        **{k: sum(v.get(k, 0.0) for v in info.values()) for k in WALL_TIMES[1:]},
         "push_tolerance_radii": tol,
     }
     for label, s in rows.items():
