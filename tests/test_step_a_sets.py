@@ -176,6 +176,32 @@ def test_an_image_stage_that_worsens_the_held_out_features_is_not_kept(monkeypat
     assert "REJECTED: the held-out features got worse (10.00 -> 50.00 nm)" in ident.stages[1].message
 
 
+def test_with_no_site_held_out_the_training_features_judge_an_image_stage(monkeypatch):
+    """``hold_out: false`` leaves no held-out feature: the training features (every site) judge
+    an image stage by the same rule, and the held-out residual stays NaN."""
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    after_each_stage, judged = iter([10.0, 50.0]), []
+
+    def training_rms(model, fitted, part):
+        judged.append(sum(len(ij) for images in part for _, ij, _ in images))
+        return next(after_each_stage)
+
+    monkeypatch.setattr(staged_fit, "held_out_rms", training_rms)
+    monkeypatch.setattr(staged_fit, "validate", lambda *a: {})
+    ident = staged_fit.identify(
+        scans,
+        ScanModelSpec(kind="pi", effects=(), operators=4),
+        FitPlan(max_steps=3, blur_px=(1.5,), select=False, hold_out=False),
+        log=lambda *_: None,
+    )
+    trace, retraces = scans[0].feature_matches()
+    every, _ = held_out.split_chords([[trace, retraces[0]]], False)
+    assert judged == [sum(len(ij) for _, ij, _ in every[0])] * 2  # every chord of the scan
+    assert ident.accepted == (True, False) and np.isnan(ident.held_out_nm).all()
+    assert eqx.tree_equal(ident.model, ident.stages[0].model)
+    assert "REJECTED: the training features got worse (10.00 -> 50.00 nm)" in ident.stages[1].message
+
+
 @functools.cache
 def _small_fit():
     """A four-play PI with coupling and creep fitted to the features of one 0-degree scan of the

@@ -300,7 +300,7 @@ class CalibrationSolver(Strict):
     hold_out: bool = Field(
         True,
         description="hold out half the lattice sites (a checkerboard) to validate the fit and to "
-        "refuse an image stage that worsens them",
+        "refuse an image stage that worsens them; false: the training features judge the image stages",
     )
     select: bool = Field(
         True,

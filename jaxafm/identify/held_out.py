@@ -5,10 +5,11 @@ image around them are held out (:func:`split_chords`, :func:`split_masks`), so t
 row and column keeps features for both axes. A fitted model is scored by how far it misplaces
 the held-out features (:func:`held_out_errors`, :func:`held_out_rms`): each feature's centre is
 where its chords' midpoints put it, the chords placed where the model's tip was when it crossed
-them (:func:`chord_centres`), less its lattice site. A stage that worsens that beyond its
-uncertainty is not kept (:func:`judge_stage`). The same centres at the images' nominal pixel
-positions, on the lattice that fits the training features best, are the raw image's score
-(:func:`raw_errors`); :func:`validate` puts both side by side for the metrics.
+them (:func:`chord_centres`), less its lattice site. An image stage that worsens that beyond its
+uncertainty is not kept (:func:`judge_stage`; with no site held out, the training features
+judge). The same centres at the images' nominal pixel positions, on the lattice that fits the
+training features best, are the raw image's score (:func:`raw_errors`); :func:`validate` puts
+both side by side for the metrics.
 """
 
 from __future__ import annotations
@@ -73,17 +74,25 @@ def held_out_image(model: ScanModel, scans: tuple, kernel: Array, held: tuple) -
     return 100 * float(np.sqrt(np.sum(r**2) / sum(float(jnp.sum(h)) for h in held)))
 
 
-def judge_stage(before: list, after: float, test: list) -> tuple:
-    """``(keep, words)``: an image stage is kept unless it raises the held-out feature residual
-    (nm) beyond the best so far over all scans (``before``) by more than that residual's own
-    uncertainty, 3 / sqrt(2 n) of it for n held-out features (the standard error of an rms is
-    about rms / sqrt(2 n)): a stage that left the chord fit's valley misplaces the features
-    by a large part of a pitch, far beyond that."""
-    n = sum(len(np.unique(ij, axis=0)) for images in test for _, ij, _ in images)
+def judge_stage(before: list, after: float, features: list, which: str = "held-out") -> tuple:
+    """``(keep, words)``: an image stage is kept unless it raises the feature residual (nm) of
+    ``features`` (:func:`split_chords`'s ``test``, or its ``train`` when no site is held out;
+    ``which`` names them) beyond the best so far over all scans (``before``) by more than that
+    residual's own uncertainty, 3 / sqrt(2 n) of it for n features (the standard error of an rms is
+    about rms / sqrt(2 n)): a stage that left the chord fit's valley misplaces the features by a
+    large part of a pitch, far beyond that. The training features were fitted by the chord stage
+    and not by the image stages, so they judge an image stage as held-out ones do, only less
+    sharply: an image stage that brings the tip path closer brings them closer too."""
+    n = sum(len(np.unique(ij, axis=0)) for images in features for _, ij, _ in images)
     best = min(before, default=np.inf)
     if not n or after <= best * (1 + 3 / np.sqrt(2 * n)) or not np.isfinite(best):
         return True, ""
-    return False, f"; REJECTED: the held-out features got worse ({best:.2f} -> {after:.2f} nm)"
+    return False, f"; REJECTED: the {which} features got worse ({best:.2f} -> {after:.2f} nm)"
+
+
+def holds_features(part: list) -> bool:
+    """Whether :func:`split_chords`'s ``part`` holds any chord."""
+    return any(len(ij) for images in part for _, ij, _ in images)
 
 
 def chord_centres(tips: np.ndarray, ij: np.ndarray, along: np.ndarray, slope) -> tuple:

@@ -35,6 +35,7 @@ from .held_out import (
     held_out_errors,
     held_out_image,
     held_out_rms,
+    holds_features,
     judge_stage,
     split_chords,
     split_masks,
@@ -69,7 +70,8 @@ class Identification:
             each blur), in order.
         seconds: the whole identification's wall time (s).
         accepted: per stage, whether its result was kept (an image stage that worsens the
-            held-out features is not, :func:`~jaxafm.identify.held_out.judge_stage`).
+            held-out features, or the training features when no site is held out, is not,
+            :func:`~jaxafm.identify.held_out.judge_stage`).
         held_out_nm: per stage, the held-out features' rms residual (nm) after it
             (:func:`~jaxafm.identify.held_out.held_out_rms`); NaN when no feature is held out.
         validation: the held-out features' summary (:func:`~jaxafm.identify.held_out.validate`)
@@ -131,12 +133,13 @@ def identify(
     are fitted together; the first one's chord fit fixes how the others' lattice indices line
     up with its own (:meth:`_StagedFit.align`). Half the lattice's sites are held out
     (``plan.hold_out``, :mod:`~jaxafm.identify.held_out`), and an image stage is kept only if it
-    does not worsen the held-out features' residual beyond its uncertainty: a slip by a pitch
-    shows there first. The chord stages fit scans with up to ``plan.coarsen`` pixels of a line
-    averaged into one (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.coarse`), the
-    image stages the whole scans. Never returns a silently bad fit: each stage's convergence,
-    acceptance and loss are in the result, a stage whose loss is not finite raises, and the
-    fitted model is checked (:func:`~jaxafm.identify.plausibility.implausible`).
+    does not worsen the held-out features' residual beyond its uncertainty (the training
+    features' when none is held out): a slip by a pitch shows there first. The chord stages fit
+    scans with up to ``plan.coarsen`` pixels of a line averaged into one
+    (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.coarse`), the image stages the whole
+    scans. Never returns a silently bad fit: each stage's convergence, acceptance and loss are in
+    the result, a stage whose loss is not finite raises, and the fitted model is checked
+    (:func:`~jaxafm.identify.plausibility.implausible`).
 
     Arguments:
         scans: a :class:`~jaxafm.identify.calibration_scan.CalibrationScan` or several, of one
@@ -246,7 +249,7 @@ class _StagedFit:
     kinds: list = dataclasses.field(default_factory=list)
     accepted: list = dataclasses.field(default_factory=list)
     held_nm: list = dataclasses.field(default_factory=list)
-    comparable: list = dataclasses.field(default_factory=list)  # held_nm of stages on every scan
+    comparable: list = dataclasses.field(default_factory=list)  # judged residual of stages on every scan
 
     def run(self, stage: Stage, limit: int, i: int, total: int) -> None:
         """Stage ``i`` of ``total``: fit it from the model so far, judge it, log and record it."""
@@ -274,10 +277,12 @@ class _StagedFit:
             if fit.converged
             else f"{solver}: did NOT converge in {fit.steps} steps (max_steps={limit}); last loss {fit.loss:.3e}"
         ) + matched
-        error = held_out_rms(fit.model, fitted, self.test[: len(fitted)])
-        keep, verdict = judge_stage(self.comparable, error, self.test) if images else (True, "")
-        if not np.isnan(error):
-            message += f", held-out features {error:.2f} nm" + verdict
+        which, features = ("held-out", self.test) if holds_features(self.test) else ("training", self.train)
+        judged = held_out_rms(fit.model, fitted, features[: len(fitted)])
+        error = judged if features is self.test else float("nan")
+        keep, verdict = judge_stage(self.comparable, judged, features, which) if images else (True, "")
+        if not np.isnan(judged):
+            message += f", {which} features {judged:.2f} nm" + verdict
         if images and self.masks[1] is not None:
             held = held_out_image(fit.model, level, kernel, self.masks[1])
             message += f", held-out image {held:.3f} % of depth"
@@ -290,7 +295,7 @@ class _StagedFit:
         self.kinds.append(stage.kind)
         self.held_nm.append(error)
         if len(fitted) == len(self.scans):
-            self.comparable.append(error)
+            self.comparable.append(judged)
         self.log(f"  stage {i + 1}/{total} {name}: {message}, {seconds:.1f} s")
 
     def fall_back(self) -> list:
