@@ -18,8 +18,8 @@ from jaxafm.config import CalibrationImages, CalibrationLattice, CalibrationMode
 from jaxafm.identify import features, held_out, staged_fit
 from jaxafm.identify.calibration_scan import CalibrationScan
 from jaxafm.identify.plausibility import implausible
-from jaxafm.identify.scan_model import ScanModelSpec
-from jaxafm.identify.stages import FitPlan
+from jaxafm.identify.scan_model import DELAY_RESTART_S, ScanModelSpec
+from jaxafm.identify.stages import FitPlan, StageKind
 from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import AFM, Raster, default_afm, raster_scan
 from jaxafm.instrument.samples import Grating as LineGrating
@@ -200,6 +200,34 @@ def test_with_no_site_held_out_the_training_features_judge_an_image_stage(monkey
     assert ident.accepted == (True, False) and np.isnan(ident.held_out_nm).all()
     assert eqx.tree_equal(ident.model, ident.stages[0].model)
     assert "REJECTED: the training features got worse (10.00 -> 50.00 nm)" in ident.stages[1].message
+
+
+def test_an_image_stage_after_the_chords_renders_edges_as_late_as_the_chords_saw_them(monkeypatch):
+    """The chord stage fits the edge delay, not the feedback lag it renders with; the image stage
+    starts from the lag that delays a sharp step's half-height crossing by that delay (closed
+    form for a first-order lag: ``1 - exp(-t / tau) = 1/2``), found here on a finely sampled step."""
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    starts, fit_stage = [], staged_fit.fit_stage
+
+    def recording(stage, model, *args):
+        starts.append((stage.kind, model))
+        return fit_stage(stage, model, *args)
+
+    monkeypatch.setattr(staged_fit, "fit_stage", recording)
+    monkeypatch.setattr(staged_fit, "validate", lambda *a: {})
+    ident = staged_fit.identify(
+        scans,
+        ScanModelSpec(kind="pi", effects=("feedback_lag",), operators=4),
+        FitPlan(max_steps=3, blur_px=(1.5,), select=False),
+        log=lambda *_: None,
+    )
+    delay = float(ident.stages[0].model.edge_delay)
+    assert delay > 2 * DELAY_RESTART_S, delay  # a delay the chords fitted, not the floor
+    image_start = next(model for kind, model in starts if kind is StageKind.IMAGES)
+    t = np.linspace(0.0, 20 * delay, 200_001)
+    z = np.asarray(image_start.feedback(jnp.asarray((t > 0).astype(float)), jnp.asarray(t)))
+    crossing = np.interp(0.5, z, t)  # z rises monotonically
+    np.testing.assert_allclose(crossing, delay, atol=2 * (t[1] - t[0]))
 
 
 @functools.cache

@@ -330,11 +330,20 @@ class _StagedFit:
         """``(fit, kernel, note)``: the stage fitted on the scans ``level`` (an image stage's
         blur kernel, else ``None``; a note for its message), its retrace matchings chosen first
         for the scans ``matching`` (:meth:`_matched`); with ``ladder``, the model ladder climbed
-        from there (:meth:`_ladder`)."""
+        from there (:meth:`_ladder`). An image stage that starts from a chord stage's model starts
+        from the feedback lag its edge delay implies (:meth:`~jaxafm.identify.scan_model.ScanModel.lag_from_edges`)."""
         if stage.kind is StageKind.IMAGES:
             self.masks = self.masks or self._masks(level)
             kernel = jnp.asarray(stage.kernel())
-            return fit_stage(stage, self.model, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
+            kept = [kind for kind, ok in zip(self.kinds, self.accepted) if ok]
+            start = self.model
+            if kept[-1] is StageKind.CHORDS and start.feedback is not None:
+                start = start.lag_from_edges()
+                self.log(
+                    f"    the chords' edge delay {1e3 * float(start.edge_delay):.2f} ms: the feedback "
+                    f"lag starts at {1e3 * float(start.feedback.tau):.2f} ms"
+                )
+            return fit_stage(stage, start, level, (kernel, self.masks[0]), self.plan, limit), kernel, ""
         notes = []
         for k in matching:
             fit, note = self._matched(stage, level, limit, k)
