@@ -311,6 +311,22 @@ def test_local_scan_gives_up_cleanly_without_a_particle(drifting):
     assert float(res.seconds) > n_search * 2 * spec.line_time  # every line cost its real duration
 
 
+def test_a_search_that_finds_nothing_widens_until_it_finds_the_particle(drifting):
+    # the guess is 100 nm off along x with the drift's (30, -20) nm: a search line of the default
+    # margin (40 nm) shows the particle whole out to R + r + margin = 80 nm off (R = 30 nm, tip
+    # radius r = 10 nm), a line of the once-widened search out to 120 nm
+    pos, stand = drifting
+    spec, R, centre = LocalScan(widenings=1), 30.0, jnp.array([300.0, -200.0])
+    guess = centre + jnp.array([70.0, 20.0])
+    res, xy = find_and_go(
+        pos, Particles(centre[None], jnp.array([R])), stand, guess, jnp.asarray(R), jax.random.key(5), spec
+    )
+    first = 2 * int(np.ceil(spec.margin / (1.5 * np.sqrt(R**2 + 2 * R * 10.0)))) + 1  # lines 58 nm apart
+    assert int(np.sum(np.asarray(res.phases) == 0)) > first  # the first search found nothing
+    assert bool(res.found)
+    assert float(jnp.linalg.norm(xy - centre)) < 0.1 * R
+
+
 def test_local_scan_rejects_a_radius_that_is_not_positive(drifting):
     pos, stand = drifting
     with pytest.raises(ValueError, match="particle radius R"):

@@ -102,6 +102,14 @@ class LocalScanSpec(Strict):
         description="how far beyond its expected place to search (keep a line clear of the neighbouring "
         "particles: its pulse is taken from the first to the last sample above half height)",
     )
+    widenings: int = Field(
+        0,
+        ge=0,
+        le=4,
+        description="a search that finds nothing starts again with twice the margin, this many times "
+        "at most (within max_lines): for a scanner whose model errs beyond the margin, on a sample "
+        "whose particles lie further apart than the widest margin",
+    )
     max_lines: int = Field(24, ge=3, le=1000)
     height_tolerance: float = Field(
         0.25,

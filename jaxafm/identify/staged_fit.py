@@ -280,7 +280,10 @@ class _StagedFit:
         which, features = ("held-out", self.test) if holds_features(self.test) else ("training", self.train)
         judged = held_out_rms(fit.model, fitted, features[: len(fitted)])
         error = judged if features is self.test else float("nan")
-        keep, verdict = judge_stage(self.comparable, judged, features, which) if images else (True, "")
+        pixel_nm = max(max(scan.raster.pixel_size) for scan in fitted)
+        keep, verdict = (
+            judge_stage(self.comparable, judged, features, which, pixel_nm) if images else (True, "")
+        )
         if not np.isnan(judged):
             message += f", {which} features {judged:.2f} nm" + verdict
         if images and self.masks[1] is not None:

@@ -66,6 +66,7 @@ def local_scan_settings(spec: LocalScanSpec) -> LocalScan:
         spec.points,
         spec.line_time_s,
         margin=spec.margin_nm,
+        widenings=spec.widenings,
         max_lines=spec.max_lines,
         height_tolerance=spec.height_tolerance,
         centre_tolerance=spec.centre_tolerance,

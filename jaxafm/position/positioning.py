@@ -149,7 +149,10 @@ class LocalScan(eqx.Module):
     """The local scan's settings: ``points`` per line, each line scanned there and back in
     ``line_time`` s per direction (the mean of both cancels the feedback lag), a move of
     ``move_time`` s to each line; the search reaches ``margin`` nm beyond the particle's
-    expected place, a line through the estimate ``line_margin`` nm beyond the particle's reach
+    expected place (a search that finds nothing starts again from there with twice the margin,
+    up to ``widenings`` times: an error beyond the margin is found rather than given up on, and
+    what it finds teaches the moves after it), a line through the estimate ``line_margin`` nm
+    beyond the particle's reach
     (short: the move from its end to the centre found crosses the frame's scale error over that
     length); at most ``max_lines`` lines in all. A line is *centred* when its pulse's
     middle lies within ``centre_tolerance`` R, or ``centre_floor`` nm if more, of the line's
@@ -176,16 +179,22 @@ class LocalScan(eqx.Module):
     move_time: float = eqx.field(static=True, default=0.05)
     margin: float = eqx.field(static=True, default=40.0)
     line_margin: float = eqx.field(static=True, default=40.0)
+    widenings: int = eqx.field(static=True, default=0)
     max_lines: int = eqx.field(static=True, default=24)
     height_tolerance: float = eqx.field(static=True, default=0.25)
     centre_tolerance: float = eqx.field(static=True, default=0.1)
     centre_floor: float = eqx.field(static=True, default=1.0)
     condition_y: bool = eqx.field(static=True, default=False)
 
-    def half_length(self, radius: Array, tip: Tip, search: bool = True) -> Array:
+    def half_length(self, radius: Array, tip: Tip, search: bool = True, widened: Array = 0) -> Array:
         """Half the length of a line, nm: the imaged particle's reach plus the search margin
-        (``search``), or plus ``line_margin`` (a line through the estimate)."""
-        return 2 * (radius + tip.radius) + jnp.where(search, self.margin, self.line_margin)
+        (``search``; doubled ``widened`` times), or plus ``line_margin`` (a line through the
+        estimate)."""
+        return 2 * (radius + tip.radius) + jnp.where(search, self.search_margin(widened), self.line_margin)
+
+    def search_margin(self, widened: Array = 0) -> Array:
+        """The search's margin, nm, after ``widened`` searches that found nothing."""
+        return self.margin * 2.0**widened
 
 
 class ScanResult(eqx.Module):
@@ -284,8 +293,9 @@ def local_scan(
     ``1 + spec.height_tolerance`` of a centred line's 2R, verify the centre; a search line
     never confirms (its middle carries the frame's error over the search margin's
     length, so a centred one still left the tip 0.1 R off). A line that
-    loses the particle restarts the search from the estimate. At most
-    ``spec.max_lines`` lines: then ``found`` is false. Returns ``(ScanResult, stand)``.
+    loses the particle restarts the search from the estimate. A search whose lines, out to
+    the margin, show nothing starts again with twice the margin, up to ``spec.widenings``
+    times; then, or after ``spec.max_lines`` lines, ``found`` is false. Returns ``(ScanResult, stand)``.
     """
     radius = jnp.asarray(radius, dtype=float)
     if checks.is_concrete(radius):
@@ -295,7 +305,21 @@ def local_scan(
     t0 = stand.afm.scanner.t
     empty = jnp.zeros((spec.max_lines, 2))
     start = _Search(
-        stand, key, 0, 0, guess, guess, 0, False, False, False, 0, empty, empty, jnp.full(spec.max_lines, -1)
+        stand,
+        key,
+        0,
+        0,
+        0,
+        guess,
+        guess,
+        0,
+        False,
+        False,
+        False,
+        0,
+        empty,
+        empty,
+        jnp.full(spec.max_lines, -1),
     )
     end = lax.while_loop(lambda c: ~c.done, line.next, start)
     result = ScanResult(
@@ -307,14 +331,16 @@ def local_scan(
 class _Search(NamedTuple):
     """The local scan's state from line to line: where things stand, the key, the ``phase`` (0
     search, 1 along y, 2 along x through the estimate), the search line ``k`` from ``origin``,
-    the ``estimate``, the ``lines`` scanned, whether it is ``done`` (and ``verified``), whether
-    the last line confirmed the estimate (``confirmed``), the lines along y since the last
-    search line (``y_lines``), and each line's ``starts``, ``ends``, ``phases``."""
+    the searches ``widened`` (:attr:`LocalScan.widenings`), the ``estimate``, the ``lines``
+    scanned, whether it is ``done`` (and ``verified``), whether the last line confirmed the
+    estimate (``confirmed``), the lines along y since the last search line (``y_lines``), and
+    each line's ``starts``, ``ends``, ``phases``."""
 
     stand: Stand
     key: Array
     phase: Array
     k: Array
+    widened: Array
     origin: Array
     estimate: Array
     lines: Array
@@ -367,7 +393,7 @@ class _Line(NamedTuple):
         key, sub = jax.random.split(c.key)
         centre = jnp.where(c.phase == 0, c.origin + _offset(c.k) * self.spacing * ey, c.estimate)
         along = jnp.where(c.phase == 1, ey, ex)
-        L = spec.half_length(radius, self.pos.afm.tip, search=c.phase == 0)
+        L = spec.half_length(radius, self.pos.afm.tip, search=c.phase == 0, widened=c.widened)
         h, start, end, stand = self.scan(c.stand, centre, along, L, sub)
         unit = jnp.linspace(-1.0, 1.0, spec.points)
         f1, mid1, z1 = pulse(h[0], unit * L, radius)
@@ -382,18 +408,20 @@ class _Line(NamedTuple):
         confirms = centred & (c.phase > 0) & ~(spec.condition_y & (c.phase == 1) & (c.y_lines == 0))
         verified = confirms & c.confirmed
         # seen: on to a line along the other axis (after the search: along y); lost: search from the estimate
-        n_search = 2 * jnp.ceil(spec.margin / self.spacing) + 1
+        n_search = 2 * jnp.ceil(spec.search_margin(c.widened) / self.spacing) + 1
         exhausted = (c.phase == 0) & ~seen & (c.k + 1 >= n_search)
+        widen = exhausted & (c.widened < spec.widenings)  # again from the origin, twice as far
         n = c.lines + 1
         return _Search(
             stand,
             key,
             jnp.where(seen, jnp.where(c.phase == 1, 2, 1), 0),
-            jnp.where(seen | (c.phase > 0), 0, c.k + 1),
+            jnp.where(seen | (c.phase > 0) | widen, 0, c.k + 1),
+            c.widened + widen,
             jnp.where(seen | (c.phase == 0), c.origin, c.estimate),
             jnp.where(seen, centre + mid * along, c.estimate),
             n,
-            verified | exhausted | (n >= spec.max_lines),
+            verified | (exhausted & ~widen) | (n >= spec.max_lines),
             verified,
             confirms,
             jnp.where(c.phase == 0, 0, c.y_lines + (c.phase == 1)),

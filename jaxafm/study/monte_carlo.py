@@ -631,7 +631,7 @@ def failure_modes(r: dict, margin_nm: float, max_lines: int, tolerance_radii: fl
     A+B: step A refused its model (:func:`~jaxafm.identify.plausibility.implausible`), the survey
     found too few landmarks for a map, the particle lay outside the survey image,
     the target lay outside the landmarks found (the map extrapolated), or the error left is beyond
-    the local scan's search margin (``margin_nm``). A+B+C: the search found no particle, the
+    the local scan's widest search margin (``margin_nm``). A+B+C: the search found no particle, the
     verification did not pass within ``max_lines``, or it passed on a centre more than 0.1 R off.
     Push: withheld (its odds below ``learning.min_push_odds``), the tip missed the particle, or
     the particle ended more than ``tolerance_radii`` R from its goal: short or long (along the
