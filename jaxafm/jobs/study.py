@@ -457,9 +457,8 @@ def summarise(cfg: StudyConfig, out: Output, draws: dict, info: dict, seconds: f
             | {f"{key}_success_pct": 100 * float(np.mean(ok[truth == c])) for key, ok in successes.items()}
             for c in cfg.truth_classes
         }
-    modes = failure_modes(
-        r, cfg.local_scan.margin_nm * 2**cfg.local_scan.widenings, cfg.local_scan.max_lines, tol
-    )
+    widest = float(local_scan_settings(cfg.local_scan).search_margin(cfg.local_scan.widenings))
+    modes = failure_modes(r, widest, cfg.local_scan.max_lines, tol)
     metrics["failure_modes"] = modes
     out.write("trials.npz", lambda f: np.savez_compressed(f, **r))
     out.write("trials.csv", lambda f: write_columns(f, r))
