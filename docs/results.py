@@ -2854,7 +2854,7 @@ TABLES["study_0_90_per_scanner"] = per_scanner_0_90(
 )
 TABLES["study_wide_0_90_per_scanner"] = per_scanner_0_90(
     (STUDY_WIDE, STUDY_WIDE_0_90_CY, STUDY_WIDE_LOOP),
-    ("0°", "0° + 90°", "+ wide_loop"),
+    ("0°, wide_loop", "0° + 90°", "0° + 90°, wide_loop"),
     ("study_wide", "study_wide_0_90_condition_y", "study_wide_0_90_wide_loop"),
 )
 TABLES["study_classes_0_90_per_scanner"] = per_scanner_0_90(

@@ -28,7 +28,7 @@ from typing import Optional
 import jax.numpy as jnp
 import numpy as np
 
-from .calibration_scan import CalibrationScan, check_scan_set, drive_range, one_pitch_back, reversal_lag
+from .calibration_scan import CalibrationScan, check_scan_set, drive_range, one_pitch_back
 from .fit import FitResult
 from .held_out import (
     fitted_parameters,
@@ -400,18 +400,20 @@ class _StagedFit:
         for a branch separation a pitch off near the reversal, where the loop closes, which no
         scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the right
         match's). Scan 0 is fitted alone (the first stage), a later scan with the others, its
-        indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` a
-        matching whose retrace sees the pillars at the reversal more than ``WIDE_LAG`` pitches
-        earlier than the trace starts from a uniform loop scaled to its features
+        indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
+        pitch-back matching (the retrace a pitch further behind the trace at the reversal than
+        the first matching) starts from a uniform loop scaled to its features
         (:func:`~jaxafm.identify.scan_model.start_loop`): from the nominal model's narrow loop
-        the chord fit does not reach it. Returns the fit and a note for the stage's message
-        (empty with one match)."""
+        the chord fit does not reach it. The line reversal's own matchings start from the
+        nominal model, so ``wide_loop`` adds a matching and changes no other. Returns the fit
+        and a note for the stage's message (empty with one match)."""
         trace, scan = self.found[k][0], self.scans[k]
         shift = 0 if self.shifts is None else self.shifts[k]
+        back = one_pitch_back(trace, self.retraces[k][0], scan.pitch_px).ij if self.plan.wide_loop else None
         tried = []
         for retrace in self.retraces[k]:
             start = self.model
-            if self.plan.wide_loop and reversal_lag(trace, retrace, scan.pitch_px) > WIDE_LAG:
+            if back is not None and np.array_equal(retrace.ij, back):
                 start = start_loop(
                     start, scan, *(dataclasses.replace(f, ij=f.ij + shift) for f in (trace, retrace))
                 )
@@ -427,9 +429,7 @@ class _StagedFit:
             best = 0
         others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
         which = ("nearer", "other")[min(best, 1)]
-        if self.plan.wide_loop and np.array_equal(
-            tried[best][1].ij, one_pitch_back(trace, self.retraces[k][0], scan.pitch_px).ij
-        ):
+        if back is not None and np.array_equal(tried[best][1].ij, back):
             which = "pitch-back"
         name = "retrace" if k == 0 else f"{scan.name}'s retrace"
         note = (
@@ -457,11 +457,6 @@ def _shifted(part: list, shift) -> list:
 
 #: how many times better another retrace matching must fit than the first one to be taken
 MATCH_RATIO = 2.0
-#: the displacement at the line reversal (pitches) beyond which, with ``FitPlan.wide_loop``, a
-#: matching's chord fit starts from a loop fitted to its features (``start_loop``): past a pitch
-#: the retrace shows the next pillar at a column nearer each trace pillar's than its own, and
-#: from the nominal start's narrow loop the chord fit ends hundreds of nm off
-WIDE_LAG = 1.0
 
 
 def _lattice_shifts(model: ScanModel, scans: tuple, found: list) -> list:
