@@ -12,6 +12,7 @@ import textwrap
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
 
 def subplots(
@@ -31,6 +32,15 @@ def subplots(
     """
     fig = Figure(figsize=figsize, constrained_layout=constrained_layout)
     return fig, fig.subplots(nrows, ncols, **kw)
+
+
+def _plain_log_ticks(axis) -> None:
+    """Label a log axis at 1, 2 and 5 times each power of ten in plain numbers (``20``, not
+    ``2 x 10^1``) and leave its minor ticks unlabelled, so that an axis spanning less than two
+    decades reads without overlapping labels. ``axis``: ``ax.xaxis`` or ``ax.yaxis``."""
+    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FormatStrFormatter("%g"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def actuator_fit(record, predictions: dict, split: int, path, title: str = "") -> None:
@@ -649,6 +659,7 @@ def learning_curve(rounds: dict, path, title: str = "") -> None:
         yscale="log",
         title=f"rounds of {rounds['round_trials']}; thin: one scanner each",
     )
+    _plain_log_ticks(ax.yaxis)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     first = {s: e[0] for s, e in rounds["per_scanner"].items()}
@@ -671,6 +682,8 @@ def learning_curve(rounds: dict, path, title: str = "") -> None:
         ylabel="aimed by 10 finds or more, median [nm]",
         title="per scanner" + (f" (never 10 finds: {', '.join(map(str, never))})" if never else ""),
     )
+    _plain_log_ticks(bx.xaxis)
+    _plain_log_ticks(bx.yaxis)
     bx.grid(True, which="both", alpha=0.3)
     bx.legend(fontsize=8)
     fig.suptitle(title or "A+B moves learning from step C's finds")

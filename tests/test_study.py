@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import yaml
 from jax.sharding import Mesh
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from typer.testing import CliRunner
 
 from jaxafm.cli import app
@@ -26,6 +27,7 @@ from jaxafm.jobs import Output
 from jaxafm.jobs import study as job
 from jaxafm.jobs.run import workspace_layout
 from jaxafm.model.io import save_model
+from jaxafm.plots import _plain_log_ticks, subplots
 from jaxafm.position import survey
 from jaxafm.position.online import learn_field, learn_push, quadratic
 from jaxafm.study import monte_carlo as study
@@ -461,6 +463,26 @@ def test_learning_rounds_by_hand():
     assert got["learnt_scanners"] == [0, 1] and got["unlearnt_scanners"] == [2]
     assert got["first_round_median_nm"] == 60.0 and got["learnt_median_nm"] == 35.0  # (40, 60, 80); (20, 50)
     assert got["learnt_ratio"] == pytest.approx(35.0 / 60.0)
+
+
+@pytest.mark.parametrize("span", [(3.0, 60.0), (2.0, 120.0), (0.5, 800.0)])
+def test_log_axis_labels_are_plain_numbers_that_do_not_overlap(span):
+    # the learning figure's axes span one to three decades of nm; matplotlib's default labels
+    # the minor ticks of such an axis in 2 x 10^1 form, overlapping each other
+    fig, ax = subplots(figsize=(4, 3))
+    FigureCanvasAgg(fig)
+    ax.set(xscale="log", xlim=span)
+    _plain_log_ticks(ax.xaxis)
+    renderer = fig.canvas.get_renderer()
+    fig.canvas.draw()
+    lo, hi = span
+    shown = [t for t in ax.get_xticklabels(which="both") if t.get_visible() and t.get_text()]
+    labels = [t for t in shown if lo <= t.get_position()[0] <= hi]
+    expected = sorted(m * 10.0**k for k in range(-1, 4) for m in (1, 2, 5) if lo <= m * 10.0**k <= hi)
+    assert sorted(float(t.get_text()) for t in labels) == pytest.approx(expected)
+    boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda b: b.x0)
+    assert len(boxes) >= 3
+    assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:]))
 
 
 def test_a_rounds_push_odds_come_from_the_scanners_earlier_pushes():
