@@ -789,6 +789,12 @@ CALIBRATE = [
         (file("volts.txt"),),
     ),
     case(
+        "calibrate-data-grating.pitch_nm-missing",
+        "calibrate-data",
+        {"grating": {"pits": False}},
+        (key("grating.pitch_nm"), "datasheet"),
+    ),
+    case(
         "calibrate-data-and-simulate",
         "calibrate-data",
         {"simulate": {"pixels": 32}},

@@ -341,6 +341,21 @@ def test_calibrate_never_replaces_a_users_validation_figure(tmp_path):
     assert result.exit_code == 2 and "validation_gpi.png" in result.output, result.output
 
 
+@pytest.mark.parametrize("figure", ["errors.png", "push_odds.png", "learning.png", "position_coverage.png"])
+def test_study_never_replaces_a_users_figure(tmp_path, figure):
+    """Every figure a study may draw (``jaxafm.jobs.study.summarise``: the push's odds, the
+    learning curve and the positions' coverage with ``learning`` and a push) is one of its
+    planned outputs: a user's file of that name stops it before any work, with --overwrite too,
+    instead of at the end of a long study."""
+    cfg = config(tmp_path, STUDY)
+    out = tmp_path / "o"
+    out.mkdir()
+    before = mine(out, {figure: "my own figure"})
+    result = command("study", cfg, out, "--overwrite")
+    assert unchanged(out, before)
+    assert result.exit_code == 2 and figure in result.output and "trials" not in result.output, result.output
+
+
 @pytest.mark.parametrize("interrupt", [True, False], ids=["ctrl-c", "finished"])
 def test_a_file_saved_during_a_study_stays_the_users(tmp_path, monkeypatch, interrupt):
     """Items 2 and 3 of issue 41: the user saves notes.txt into the folder while a study runs;

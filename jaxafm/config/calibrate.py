@@ -402,6 +402,11 @@ class CalibrateConfig(Strict):
     def _one_source(self):
         if (self.data is None) == (self.simulate is None):
             raise ValueError("give exactly one of 'data' (measured trace/retrace images) and 'simulate'")
+        if self.data is not None and "pitch_nm" not in self.grating.model_fields_set:
+            raise ValueError(
+                "grating.pitch_nm: measured images need their lattice's pitch in nm (from its datasheet; "
+                "the default, 1000 nm, is the simulated lattice's); give it, e.g. grating: {pitch_nm: 10000}"
+            )
         names = [m.name for m in self.models]
         if len(set(names)) != len(names):
             raise ValueError(f"model names must be unique, got {names}")
