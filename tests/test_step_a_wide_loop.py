@@ -8,7 +8,7 @@ import pytest
 
 from jaxafm.config import CalibrationLattice, SimulatedCalibration
 from jaxafm.identify import staged_fit
-from jaxafm.identify.calibration_scan import _retrace_matches, one_pitch_back, reversal_lag
+from jaxafm.identify.calibration_scan import _retrace_matches, one_pitch_back
 from jaxafm.identify.features import LatticeFeatures
 from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model, start_lattice, start_loop
 from jaxafm.identify.staged_fit import identify
@@ -16,6 +16,17 @@ from jaxafm.identify.stages import FitPlan
 from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import calibrate
+
+
+def reversal_lag(trace: LatticeFeatures, retrace: LatticeFeatures, pitch_px: tuple) -> float:
+    """How much earlier along the line the retrace sees the pillars of the trace's last half
+    pitch, under the matching of ``retrace``'s indices (:meth:`CalibrationScan.feature_matches`):
+    the median over the pillars both show of the trace's column less the retrace's, in pitches
+    (nan where the retrace shows none of them)."""
+    turn = trace.rc[:, 1] > trace.rc[:, 1].max() - 0.5 * pitch_px[0]
+    col = {tuple(ij): c for ij, c in zip(retrace.ij, retrace.rc[:, 1])}
+    lags = [c - col[tuple(ij)] for ij, c in zip(trace.ij[turn], trace.rc[turn, 1]) if tuple(ij) in col]
+    return float(np.median(lags) / pitch_px[0]) if lags else float("nan")
 
 
 def test_a_wide_loop_retrace_is_indexed_by_the_feature_fit_not_its_nearest_feature():

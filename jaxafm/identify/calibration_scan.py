@@ -178,17 +178,6 @@ def one_pitch_back(ft: LatticeFeatures, fr: LatticeFeatures, pitch_px: tuple) ->
     return dataclasses.replace(fr, ij=fr.ij + steps[np.argmax(counts)])
 
 
-def reversal_lag(trace: LatticeFeatures, retrace: LatticeFeatures, pitch_px: tuple) -> float:
-    """How much earlier along the line the retrace sees the pillars of the trace's last half
-    pitch, under the matching of ``retrace``'s indices (:meth:`CalibrationScan.feature_matches`):
-    the median over the pillars both show of the trace's column less the retrace's, in pitches
-    (nan where the retrace shows none of them)."""
-    turn = trace.rc[:, 1] > trace.rc[:, 1].max() - 0.5 * pitch_px[0]
-    col = {tuple(ij): c for ij, c in zip(retrace.ij, retrace.rc[:, 1])}
-    lags = [c - col[tuple(ij)] for ij, c in zip(trace.ij[turn], trace.rc[turn, 1]) if tuple(ij) in col]
-    return float(np.median(lags) / pitch_px[0]) if lags else float("nan")
-
-
 def coarse_pixels(rc: np.ndarray, factor: int) -> np.ndarray:
     """Fractional pixels (n, 2) (row, col) of a scan in its :meth:`CalibrationScan.coarse` scan:
     the rows stay, a column ``c`` becomes ``(c + 1/2) / factor - 1/2``."""
