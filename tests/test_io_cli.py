@@ -122,6 +122,31 @@ def test_config_errors_name_key_and_value(tmp_path, text, match):
     assert str(f) in str(e.value)
 
 
+@pytest.mark.parametrize(
+    "config, command, schema",
+    [
+        ("calibrate_nanosurf_square_pits.yaml", "calibrate", "CalibrateConfig"),
+        ("study.yaml", "study", "StudyConfig"),
+        ("paper.yaml", "run", "RunConfig"),
+    ],
+)
+def test_a_config_read_without_its_schema_says_which_command_it_is_for(config, command, schema):
+    """load_config without a schema reads a file as ``jaxafm fit``'s; a shipped config of another
+    command fails that and the error says which command's config it is and how to read it."""
+    with pytest.raises(ConfigError) as e:
+        load_config(ROOT / "configs" / config)
+    message = str(e.value)
+    assert f"valid config of `jaxafm {command}` (load_config(path, {schema}))" in message
+    assert message.count("valid config of") == 1 and " and `jaxafm" not in message
+
+
+def test_a_broken_fit_config_gets_no_other_commands_hint(tmp_path):
+    f = write(tmp_path / "c.yaml", "simulate: {}\ntrain_fraction: 1.5\nmodels: [{name: a, kind: pi}]\n")
+    with pytest.raises(ConfigError, match="train_fraction") as e:
+        load_config(f)
+    assert "valid config of" not in str(e.value)
+
+
 def test_config_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "nope.yaml")

@@ -197,7 +197,7 @@ def load_config(path: Union[str, Path], schema: Optional[type] = None):
     Arguments:
         path: the YAML file.
         schema: the command's schema, e.g. ``RunConfig``; default ``ActuatorFitConfig``
-            (``jaxafm fit``).
+            (``jaxafm fit``): a file that fails it but passes another command's schema says which.
 
     Returns:
         The validated ``schema`` instance.
@@ -205,7 +205,8 @@ def load_config(path: Union[str, Path], schema: Optional[type] = None):
     Raises:
         ConfigError: naming the file, and for each wrong key the key, the value and what is allowed.
     """
-    if schema is None:
+    defaulted = schema is None
+    if defaulted:
         from .fit import ActuatorFitConfig as schema
     path = Path(path)
     if not path.is_file():
@@ -222,7 +223,34 @@ def load_config(path: Union[str, Path], schema: Optional[type] = None):
     try:
         return schema.model_validate(raw)
     except ValidationError as e:
-        raise ConfigError(_format(e, path)) from None
+        raise ConfigError(_format(e, path) + (_schema_hint(raw) if defaulted else "")) from None
+
+
+def _schema_hint(raw: dict) -> str:
+    """For a config read without a schema (so as ``jaxafm fit``'s) that fails it: the commands whose
+    schema it passes, and how to read it as theirs (empty where none does)."""
+    from . import apply, calibrate, diagnose, run, study
+
+    schemas = {
+        "calibrate": calibrate.CalibrateConfig,
+        "run": run.RunConfig,
+        "study": study.StudyConfig,
+        "diagnose": diagnose.DiagnoseConfig,
+        "predict": apply.PredictConfig,
+        "compensate": apply.CompensateConfig,
+    }
+    fits = []
+    for command, schema in schemas.items():
+        try:
+            schema.model_validate(raw)
+        except ValidationError:
+            continue
+        fits.append(f"`jaxafm {command}` (load_config(path, {schema.__name__}))")
+    if not fits:
+        return ""
+    return (
+        "\n(read as a `jaxafm fit` config, the default; it is a valid config of " + " and ".join(fits) + ")"
+    )
 
 
 def resolve_data_path(spec: str, config_path: Path) -> Path:
