@@ -259,6 +259,7 @@ BENCH_BAND = Run("bench_band/bench.json", "python experiments/bench_band.py")
 BENCH_BLAS = Run("bench_blas_threads/bench.json", "python experiments/bench_blas_threads.py")
 BENCH_SUITE = Run("bench_suite/suite.json", "python experiments/bench_suite.py")
 BENCH_SUITE_TRIAL = Run("bench_suite/trial.json", "python experiments/bench_suite.py --trial")
+BENCH_SUITE_FLAGS = Run("bench_suite/flags.json", "python experiments/bench_suite.py --flags")
 CROSS_RECORD = Run("cross_record/metrics.json", "python experiments/cross_record.py")
 PREDICT = Run("predict_piezo/metrics.json", "jaxafm predict configs/predict_piezo.yaml")
 COMPENSATE = Run("compensate_piezo/metrics.json", "jaxafm compensate configs/compensate_piezo.yaml")
@@ -3614,15 +3615,18 @@ def bench_suite(results: Results) -> Table:
     def row(name: str, r: dict) -> list:
         c = _compiling(r)
         cells = [count(r["tests"]), q(r["wall_s"], "s", 0), q(c, "s", 0), q(100 * c / r["wall_s"], "%", 0)]
-        return [name, *cells, q(r["backend_s"], "s", 0)]
+        small = f"{count(r['small_programs'])} of {count(r['programs'])}: {q(r['small_backend_s'], 's', 0)}"
+        return [name, *cells, q(r["backend_s"], "s", 0), small]
 
     rows = [row(f"`{r['module'].removeprefix('tests/')}`", r) for r in mods[:SUITE_ROWS]]
     rows += [row(f"the other {len(mods) - SUITE_ROWS} modules", rest), row("all", total)]
-    header = ["module", "tests", "wall time", "compiling", "share", "of it, XLA's backend"]
+    header = ["module", "tests", "wall time", "compiling", "share", "of it, XLA's backend", "small programs"]
     note = (
         f"`pytest -q -n 2` on 2 cores: the suite took {q(m['suite_wall_s'], 's', 0)}; a test's wall time is "
         "pytest's (setup, call, teardown), in the worker that ran it; compiling is JAX's own events "
-        "(tracing, lowering to MLIR, XLA's backend), not counting the `jaxafm` processes some tests start."
+        "(tracing, lowering to MLIR, XLA's backend), not counting the `jaxafm` processes some tests start; "
+        "small programs: those XLA compiled in under 0.3 s (one eager array operation, or a few), of all "
+        "it compiled, and their XLA time."
     )
     return Table(header, rows, [BENCH_SUITE], note)
 
@@ -3645,6 +3649,36 @@ def bench_suite_trial(results: Results) -> Table:
     header = ["program", "lowering", "XLA compiling", "a run", "loops in the compiled program"]
     note = "XLA on one thread, as in a test worker; four particles vmapped; a run: the median of three."
     return Table(header, rows, [BENCH_SUITE_TRIAL], note)
+
+
+@table("bench_suite_flags")
+def bench_suite_flags(results: Results) -> Table:
+    """The corrective-push test's program compiled under each of XLA's CPU flags tried, beside none."""
+    m = results(BENCH_SUITE_FLAGS)
+    rows = []
+    for r in m["rows"]:
+        if "same" not in r:
+            same = "the reference"
+        elif r["same"]:
+            same = "bit for bit the same"
+        else:
+            same = f"within {r['largest_difference']:.0e}"
+        rows.append(
+            [
+                f"`{r['flags']}`" if r["flags"] else "none",
+                q(r["lower_s"], "s", 1),
+                f"{q(r['compile_s'], 's', 1)} ({span(r['compile_runs'], 's')})",
+                q(1e3 * r["run_s"], "ms", 0),
+                same,
+            ]
+        )
+    header = ["XLA flag", "lowering", "XLA compiling (its range)", "a run", "results"]
+    note = (
+        f"Each compile a fresh process, XLA on one thread as in a test worker; {m['rounds']} rounds, each "
+        "compiling without flags and with each flag in an order drawn anew; the medians over the rounds; "
+        "four particles vmapped; a run: the median of three."
+    )
+    return Table(header, rows, [BENCH_SUITE_FLAGS], note)
 
 
 @table("bench_blas_threads")
