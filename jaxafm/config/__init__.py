@@ -57,10 +57,22 @@ from .run import (
 )
 from .study import STUDY_PARAMETERS, Distribution, StudyConfig
 
+#: ``jaxafm`` command -> its config schema (``jaxafm fit``'s first: :func:`load_config`'s default)
+SCHEMAS = {
+    "fit": ActuatorFitConfig,
+    "calibrate": CalibrateConfig,
+    "run": RunConfig,
+    "study": StudyConfig,
+    "diagnose": DiagnoseConfig,
+    "predict": PredictConfig,
+    "compensate": CompensateConfig,
+}
+
 __all__ = [
     "EFFECTS",
     "LENGTH_TO_NM",
     "MODEL_EFFECTS",
+    "SCHEMAS",
     "SOLVERS",
     "STUDY_PARAMETERS",
     "VOLTAGE_TO_V",

@@ -229,18 +229,10 @@ def load_config(path: Union[str, Path], schema: Optional[type] = None):
 def _schema_hint(raw: dict) -> str:
     """For a config read without a schema (so as ``jaxafm fit``'s) that fails it: the commands whose
     schema it passes, and how to read it as theirs (empty where none does)."""
-    from . import apply, calibrate, diagnose, run, study
+    from . import SCHEMAS
 
-    schemas = {
-        "calibrate": calibrate.CalibrateConfig,
-        "run": run.RunConfig,
-        "study": study.StudyConfig,
-        "diagnose": diagnose.DiagnoseConfig,
-        "predict": apply.PredictConfig,
-        "compensate": apply.CompensateConfig,
-    }
     fits = []
-    for command, schema in schemas.items():
+    for command, schema in list(SCHEMAS.items())[1:]:  # not fit's, which it failed
         try:
             schema.model_validate(raw)
         except ValidationError:

@@ -20,7 +20,6 @@ class Job:
 
     Attributes:
         name: the ``jaxafm`` sub-command, and the module of :mod:`jaxafm.jobs` that holds its ``run``.
-        schema: its config schema (:mod:`jaxafm.config`).
         outputs: every file it may write, as paths relative to its output folder; a ``*`` stands
             for any characters within one name (``chunks/trials_*_*.npz``), never for a folder.
         per_model: the files it writes per configured model (its config's ``models``), with
@@ -30,10 +29,14 @@ class Job:
     """
 
     name: str
-    schema: type
     outputs: tuple
     per_model: tuple = ()
     resumable: bool = False
+
+    @property
+    def schema(self) -> type:
+        """Its config schema (:data:`jaxafm.config.SCHEMAS`)."""
+        return config.SCHEMAS[self.name]
 
     @property
     def run(self) -> Callable:
@@ -64,16 +67,14 @@ class Job:
 JOBS = {
     job.name: job
     for job in (
-        Job("fit", config.ActuatorFitConfig, ("metrics.json", "fit.png"), per_model=("model_{name}.json",)),
+        Job("fit", ("metrics.json", "fit.png"), per_model=("model_{name}.json",)),
         Job(
             "calibrate",
-            config.CalibrateConfig,
             ("metrics.json", "compensation.png"),
             per_model=("model_{name}.json", "validation_{name}.png"),
         ),
         Job(
             "run",
-            config.RunConfig,
             (
                 "metrics.json",
                 "trials.npz",
@@ -86,7 +87,6 @@ JOBS = {
         ),
         Job(
             "study",
-            config.StudyConfig,
             (
                 "metrics.json",
                 "trials.npz",
@@ -103,12 +103,10 @@ JOBS = {
         ),
         Job(
             "diagnose",
-            config.DiagnoseConfig,
             ("metrics.json", "diagnosis.json", "residuals.png", "report.md"),
         ),
         Job(
             "predict",
-            config.PredictConfig,
             (
                 "metrics.json",
                 "prediction.csv",
@@ -120,7 +118,6 @@ JOBS = {
         ),
         Job(
             "compensate",
-            config.CompensateConfig,
             (
                 "metrics.json",
                 "drive.csv",
