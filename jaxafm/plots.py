@@ -379,7 +379,7 @@ def study_errors(errors: dict, radii: np.ndarray, path) -> None:
             s,
             np.arange(1, s.size + 1) / e.size,
             where="post",
-            label=f"{name} (median {np.median(s):.2g} nm, {ok.mean():.0%} ran)",
+            label=f"{name} (median {np.median(s):.2g} nm, {100 * ok.mean():.1f} % ran)",  # as the stage table
         )
         bx.hist(rel[name][ok], bins=bins, histtype="step", lw=1.5, label=name)
     ax.set(
