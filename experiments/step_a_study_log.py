@@ -1,0 +1,72 @@
+"""Step A of chosen scanners of a study, identified again with its log: what each stage did (its
+loss, the retrace matchings it compared and their losses, the training features), where a
+study, which keeps only the model, says nothing of it.
+
+Each scanner is the study's own (``jaxafm.jobs.study.scanner_draws`` of the config), scanned and
+identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
+``jaxafm.jobs.run.identify_scanner``); ``--max-steps`` replaces the config's
+``calibration.solver.max_steps`` (one number, or one per stage, comma-separated).
+
+    python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6
+    python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6 --max-steps 30,120,60,100
+
+writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
+each scanner's draws, its log lines, and its step A time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from jaxafm.config import StudyConfig, load_config
+from jaxafm.instrument.afm import default_afm
+from jaxafm.jobs import study as job
+from jaxafm.jobs.calibrate import calibration_scans
+from jaxafm.jobs.run import ImplausibleModel, identify_scanner
+
+OUT = Path(__file__).resolve().parent / "results" / "step_a_study_log"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("config", type=Path)
+    ap.add_argument("scanners", type=int, nargs="+")
+    ap.add_argument("--max-steps", default=None, help="solver.max_steps, e.g. 40 or 30,120,60,100")
+    args = ap.parse_args()
+    cfg = load_config(args.config, StudyConfig)
+    if args.max_steps:
+        steps = [int(s) for s in args.max_steps.split(",")]
+        solver = cfg.calibration.solver.model_copy(
+            update={"max_steps": steps[0] if len(steps) == 1 else steps}
+        )
+        cfg = cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"solver": solver})})
+    draws = job.scanner_draws(cfg)
+    rows = []
+    for s in args.scanners:
+        params = draws[s]
+        print(f"scanner {s}: {params}", flush=True)
+        lines = []
+        log = lambda m: (lines.append(m), print("   ", m, flush=True))
+        afm = default_afm(**{k: v for k, v in params.items() if k != "truth_class"})
+        scans, _ = calibration_scans(cfg.calibration.simulate, cfg.calibration.grating, afm)
+        began = time.perf_counter()
+        try:
+            identify_scanner(cfg, scans, args.config, log)
+        except ImplausibleModel as e:
+            log(f"refused: {e}")
+        rows.append({"scanner": s, "draws": params, "log": lines, "seconds": time.perf_counter() - began})
+    name = f"{args.config.stem}_{'_'.join(map(str, args.scanners))}"
+    name += f"_steps_{args.max_steps.replace(',', '_')}" if args.max_steps else ""
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / f"{name}.json"
+    path.write_text(
+        json.dumps({"config": str(args.config), "max_steps": args.max_steps, "scanners": rows}, indent=1)
+    )
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
