@@ -21,6 +21,8 @@ import json
 import time
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from jaxafm.config import StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import study as job
@@ -37,12 +39,15 @@ def main() -> None:
     ap.add_argument("--max-steps", default=None, help="solver.max_steps, e.g. 40 or 30,120,60,100")
     args = ap.parse_args()
     cfg = load_config(args.config, StudyConfig)
-    if args.max_steps:
-        steps = [int(s) for s in args.max_steps.split(",")]
-        solver = cfg.calibration.solver.model_copy(
-            update={"max_steps": steps[0] if len(steps) == 1 else steps}
-        )
-        cfg = cfg.model_copy(update={"calibration": cfg.calibration.model_copy(update={"solver": solver})})
+    if args.max_steps:  # validated as the config's own would be (one step limit or one per stage)
+        steps = [int(v) for v in args.max_steps.split(",")]
+        calibration = cfg.calibration.model_dump()
+        calibration["solver"]["max_steps"] = steps[0] if len(steps) == 1 else steps
+        try:
+            calibration = type(cfg.calibration).model_validate(calibration)
+        except ValidationError as e:
+            raise SystemExit(f"--max-steps {args.max_steps}: {e.errors()[0]['msg']}") from None
+        cfg = cfg.model_copy(update={"calibration": calibration})
     draws = job.scanner_draws(cfg)
     rows = []
     for s in args.scanners:

@@ -524,13 +524,13 @@ def test_every_committed_run_can_be_made_again_over_its_own_folder():
     user's file and refusing the run. A figure redrawn from a run's results must be recorded in its
     manifest (its chunk files, left out of the repository, are not checked)."""
     root = Path(__file__).resolve().parents[1] / "experiments" / "results"
-    changed = []
-    for manifest in sorted(root.rglob(MANIFEST)):
+    manifests, changed = sorted(root.rglob(MANIFEST)), []
+    for manifest in manifests:
         recorded = json.loads(manifest.read_text())["files"]
         assert isinstance(recorded, dict), f"{manifest}: no hashes recorded"
         for rel, hashes in recorded.items():
             path = manifest.parent / rel
             if path.is_file() and hashlib.sha256(path.read_bytes()).hexdigest() not in hashes:
                 changed.append(str(path.relative_to(root)))
-    assert len(list(root.rglob(MANIFEST))) >= 40  # the committed runs are where this looks
+    assert len(manifests) >= 40  # the committed runs are where this looks
     assert not changed, f"files whose bytes their run's manifest does not record: {changed}"
