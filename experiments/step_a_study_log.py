@@ -7,8 +7,9 @@ identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
 ``jaxafm.jobs.run.identify_scanner``); ``--max-steps`` replaces the config's
 ``calibration.solver.max_steps`` (one number, or one per stage, comma-separated).
 
-    python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6
+    python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6 8
     python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6 --max-steps 30,120,60,100
+    python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 8 --max-steps 120,30,60,100
 
 writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
 each scanner's draws, its log lines, and its step A time.

@@ -12,7 +12,7 @@ from jaxafm.identify.calibration_scan import _retrace_matches, one_pitch_back
 from jaxafm.identify.features import LatticeFeatures
 from jaxafm.identify.scan_model import ScanModelSpec, nominal_scan_model, start_lattice, start_loop
 from jaxafm.identify.staged_fit import identify
-from jaxafm.identify.stages import FitPlan
+from jaxafm.identify.stages import FitPlan, StageFit
 from jaxafm.identify.step_a import true_scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import calibrate
@@ -188,3 +188,63 @@ def test_wide_loop_adds_the_pitch_back_matching_and_leaves_the_reversals_own_as_
     e = np.stack([np.asarray(p) - np.asarray(getattr(sim.measured, k)) for p, k in paths])
     e = e - e.reshape(-1, 2).mean(axis=0)  # the lattice's absolute place is not observable
     assert np.all(np.sqrt(np.mean(e.reshape(-1, 2) ** 2, axis=0)) < 100.0)  # nm; a pitch is 1000
+
+
+def _lm_fit(start: float, floor: float, rate: float, steps: int):
+    """A stand-in for a chord stage's fit whose loss falls from ``start`` towards ``floor``
+    geometrically (by ``rate`` a step), as a Levenberg-Marquardt fit does near its optimum,
+    after ``steps`` steps; converged once within 1 % of its floor. Its ``model`` is the pair
+    ``(floor, rate)`` that the next fit goes on from."""
+    loss = floor + (start - floor) * rate**steps
+    return StageFit((floor, rate, loss), steps, loss < 1.01 * floor, loss)
+
+
+def _go_on(fit, data, limit=30):
+    """Another ``limit`` steps of ``fit`` (the ``more`` of ``_confirmed_choice``)."""
+    floor, rate, loss = fit.model
+    return _lm_fit(loss, floor, rate, limit)
+
+
+def _matchings(*fits, own=(False, True)):
+    """The matchings tried, in order: the first from the model so far, the next from its own start."""
+    return [staged_fit._Matching(fit, None, [], [], None, o) for fit, o in zip(fits, own)]
+
+
+def test_a_matching_from_its_own_start_replaces_the_first_only_on_fits_gone_on_long_enough():
+    """The case of study_wide_0_90_wide_loop.yaml's scanners 3 and 6: the first (right) matching
+    descends from far off (2.3e-3 after 30 steps) to its floor 5e-5; the pitch-back one, started
+    near its own optimum, sits at 7.8e-4 with its floor 7e-4. After one step limit it leads by
+    three times (more than ``MATCH_RATIO``): compared then, it would be kept. Gone on, the first
+    leads, and is kept; the fits the stage keeps are those of its step limit."""
+    tried = _matchings(_lm_fit(1.0, 5e-5, 0.9, 30), _lm_fit(1e-3, 7e-4, 0.9, 30))
+    assert tried[1].fit.loss * staged_fit.MATCH_RATIO < tried[0].fit.loss  # one step limit's verdict
+    best, note = staged_fit._confirmed_choice(tried, _go_on)
+    assert best == 0 and "to confirm the lead" in note
+    assert [t.fit.steps for t in tried] == [30, 30]
+
+
+def test_a_matching_that_fits_far_better_on_converged_fits_is_kept():
+    """The pitch-back matching truly fits better (floor 1e-5 against 1e-3): it leads after one
+    step limit and still leads once both fits have converged, so it replaces the first; fits
+    that had converged at the first comparison are not gone on with (no note), and no fit goes
+    on for more than ``CONFIRM_ROUNDS`` step limits."""
+    tried = _matchings(_lm_fit(1.0, 1e-3, 0.5, 30), _lm_fit(1.0, 1e-5, 0.5, 30))
+    assert staged_fit._confirmed_choice(tried, _go_on) == (1, "")  # converged at once: compared as they are
+    calls = []
+    slow = _matchings(_lm_fit(1.0, 1e-3, 0.9, 30), _lm_fit(1.0, 1e-5, 0.8, 30))
+    best, note = staged_fit._confirmed_choice(slow, lambda fit, data: calls.append(fit) or _go_on(fit, data))
+    assert best == 1 and "to confirm the lead" in note
+    assert 0 < len(calls) <= 2 * (staged_fit.CONFIRM_ROUNDS - 1)
+    assert max(fit.steps for fit in calls) < 30 * staged_fit.CONFIRM_ROUNDS  # each goes on from below the cap
+
+
+def test_matchings_from_one_start_and_a_first_that_leads_are_compared_as_they_stand():
+    """Matchings fitted from the same model for the same steps race fairly: the one that leads
+    by ``MATCH_RATIO`` is kept at once, unconverged (the other way of configs/study.yaml's
+    scanner 3). And when the first leads, or another by less than ``MATCH_RATIO``, nothing is
+    fitted again: the rule costs no time where the first matching is kept."""
+    never = lambda fit, data: pytest.fail("fitted again")
+    fair = _matchings(_lm_fit(1.0, 5e-5, 0.9, 30), _lm_fit(1e-3, 7e-4, 0.9, 30), own=(False, False))
+    assert staged_fit._confirmed_choice(fair, never) == (1, "")
+    close = _matchings(_lm_fit(1.0, 1e-3, 0.95, 30), _lm_fit(1.0, 8e-4, 0.95, 30))
+    assert staged_fit._confirmed_choice(close, never) == (0, "")

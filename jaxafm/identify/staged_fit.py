@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .calibration_scan import CalibrationScan, check_scan_set, drive_range, one_pitch_back
+from .features import LatticeFeatures
 from .fit import FitResult
 from .held_out import (
     fitted_parameters,
@@ -48,6 +49,7 @@ from .selection import RungFit, aicc, matching_spec, select, supported_dead_zone
 from .stages import (
     FitPlan,
     Stage,
+    StageFit,
     StageKind,
     check_plan,
     chord_data,
@@ -393,14 +395,15 @@ class _StagedFit:
         return fit
 
     def _matched(self, stage: Stage, level: tuple, limit: int, k: int) -> tuple:
-        """Scan ``k``'s chord stage, fitted once for each way of matching its retrace's indices
-        to its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`);
-        the first matching is kept unless another fits ``MATCH_RATIO`` times better, and its
-        features and their split with it: a retrace indexed a pitch off asks the hysteresis loop
-        for a branch separation a pitch off near the reversal, where the loop closes, which no
-        scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the right
-        match's). Scan 0 is fitted alone (the first stage), a later scan with the others, its
-        indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
+        """Scan ``k``'s chord stage, fitted once for each way of matching its retrace's indices to
+        its trace's (:meth:`~jaxafm.identify.calibration_scan.CalibrationScan.feature_matches`);
+        the first matching is kept unless another fits ``MATCH_RATIO`` times better (one started
+        from a model of its own: once their fits have converged, :func:`_confirmed_choice`), and
+        its features and their split with it: a retrace indexed a pitch off asks the hysteresis
+        loop for a branch separation a pitch off near the reversal, where the loop closes, which
+        no scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the
+        right match's). Scan 0 is fitted alone (the first stage), a later scan with the others,
+        its indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
         pitch-back matching (the retrace a pitch further behind the trace at the reversal than
         the first matching) starts from a uniform loop scaled to its features
         (:func:`~jaxafm.identify.scan_model.start_loop`): from the nominal model's narrow loop
@@ -412,8 +415,8 @@ class _StagedFit:
         back = one_pitch_back(trace, self.retraces[k][0], scan.pitch_px).ij if self.plan.wide_loop else None
         tried = []
         for retrace in self.retraces[k]:
-            start = self.model
-            if back is not None and np.array_equal(retrace.ij, back):
+            start, own = self.model, back is not None and np.array_equal(retrace.ij, back)
+            if own:
                 start = start_loop(
                     start, scan, *(dataclasses.replace(f, ij=f.ij + shift) for f in (trace, retrace))
                 )
@@ -422,25 +425,24 @@ class _StagedFit:
             )
             fitted = [*self.train[:k], train, *self.train[k + 1 :]]
             data = chord_data(fitted[:1] if k == 0 else fitted, self.scans, self.factor)
-            tried.append((fit_stage(stage, start, level, data, self.plan, limit), retrace, train, test))
-        losses = [t[0].loss for t in tried]
-        best = int(np.argmin(losses))
-        if losses[best] * MATCH_RATIO > losses[0]:  # the first matching unless another fits far better
-            best = 0
+            fit = fit_stage(stage, start, level, data, self.plan, limit)
+            tried.append(_Matching(fit, retrace, train, test, data, own))
+        best, confirmed = _confirmed_choice(
+            tried, lambda fit, data: fit_stage(stage, fit.model, level, data, self.plan, limit)
+        )
+        losses = [t.fit.loss for t in tried]
         others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
-        which = ("nearer", "other")[min(best, 1)]
-        if back is not None and np.array_equal(tried[best][1].ij, back):
-            which = "pitch-back"
+        which = "pitch-back" if tried[best].own_start else ("nearer", "other")[min(best, 1)]
         name = "retrace" if k == 0 else f"{scan.name}'s retrace"
         note = (
             f"; {name} indices matched the {which} way at the line reversal "
-            f"(loss {losses[best]:.3e}; {others} the other way{'s' if len(tried) > 2 else ''})"
+            f"(loss {losses[best]:.3e}; {others} the other way{'s' if len(tried) > 2 else ''}{confirmed})"
             if len(tried) > 1
             else ""
         )
-        fit, retrace, self.train[k], self.test[k] = tried[best]
-        self.found[k] = (trace, retrace)
-        return fit, note
+        chosen = tried[best]
+        self.train[k], self.test[k], self.found[k] = chosen.train, chosen.test, (trace, chosen.retrace)
+        return chosen.fit, note
 
     def align(self) -> None:
         """Shift each later scan's lattice indices onto the first scan's, through the model
@@ -457,6 +459,71 @@ def _shifted(part: list, shift) -> list:
 
 #: how many times better another retrace matching must fit than the first one to be taken
 MATCH_RATIO = 2.0
+
+#: how many times its stage's step limit a retrace matching's fit from a start of its own may take
+#: to confirm that it fits ``MATCH_RATIO`` times better than the first matching
+CONFIRM_ROUNDS = 4
+
+
+def _choice(losses: list) -> int:
+    """The retrace matching kept on these losses: the first, unless another fits
+    ``MATCH_RATIO`` times better (then the best)."""
+    best = int(np.argmin(losses))
+    return best if losses[best] * MATCH_RATIO <= losses[0] else 0
+
+
+@dataclasses.dataclass
+class _Matching:
+    """One retrace matching's chord stage (:meth:`_StagedFit._matched`): its ``fit``
+    (:class:`~jaxafm.identify.stages.StageFit`), the ``retrace`` features so indexed, their
+    ``train`` and ``test`` chords, the stage's chord ``data`` with them, and whether the fit
+    started from a model of its ``own`` (``wide_loop``'s pitch-back matching, from a loop
+    scaled to its features) rather than from the model so far as the others do."""
+
+    fit: StageFit
+    retrace: LatticeFeatures
+    train: list
+    test: list
+    data: tuple
+    own_start: bool
+
+
+def _confirmed_choice(tried: list, more: Callable) -> tuple:
+    """:func:`_choice` over the :class:`_Matching` s ``tried``, where another matching that
+    started from a model of its own replaces the first only on fits that have converged: while
+    the choice is such a matching and its fit or the first's has not, each of the two that has
+    not goes on from where it stopped (``more(fit, data)``, another step limit's worth), up to
+    ``CONFIRM_ROUNDS`` step limits in all, and the choice is made again on those fits.
+    Matchings fitted from one start for one step limit race fairly; from different starts
+    their losses compare the starts as much as the matchings: ``wide_loop``'s pitch-back
+    matching, started from a loop scaled to its features, led the right one by 2.4 and 3 times
+    after 30 steps and trailed it by 12 after 120 (the 90° scans of
+    study_wide_0_90_wide_loop.yaml's scanners 3 and 6, experiments/results/step_a_study_log).
+    The fits gone on with decide the matching only; the stage keeps its fit at the step limit,
+    as the plan asks: a chord fit of one coarse scan converged further can fit its chords
+    better and the features worse (study_wide_0_90_wide_loop.yaml's scanner 8: its 0° scan's
+    pitch-back fit after 30 steps, loss 4.2e-5, training features 42 nm; converged at 102
+    steps, loss 3.9e-5, 185 nm). Returns the chosen index and a note for the stage's message
+    (empty when no fit went on): the losses compared, in the order tried, and after how many
+    steps."""
+    fits = [t.fit for t in tried]
+    best, rounds = _choice([f.loss for f in fits]), 1
+
+    def unsettled(best: int) -> bool:
+        started_apart = tried[best].own_start != tried[0].own_start
+        return started_apart and not (fits[0].converged and fits[best].converged)
+
+    while best and rounds < CONFIRM_ROUNDS and unsettled(best):
+        for j in {0, best}:
+            if not fits[j].converged:
+                fit = more(fits[j], tried[j].data)
+                fits[j] = dataclasses.replace(fit, steps=fits[j].steps + fit.steps)
+        rounds += 1
+        best = _choice([f.loss for f in fits])
+    if rounds == 1:
+        return best, ""
+    losses = ", ".join(f"{f.loss:.3e} after {f.steps} steps" for f in fits)
+    return best, f"; chosen on fits gone on to confirm the lead: {losses}"
 
 
 def _lattice_shifts(model: ScanModel, scans: tuple, found: list) -> list:
