@@ -311,7 +311,8 @@ class CalibrationSolver(Strict):
         False,
         description="the scanner's loop may hold the retrace more than a pitch behind the trace at the "
         "line reversal (loops over about 18 % of the range at 10 % overscan): every scan's retrace is "
-        "also tried indexed a pitch further back, and the best-fitting matching is kept (docs/step_a.md)",
+        "also tried indexed a pitch further back, kept where it fits more than twice as well as the "
+        "first matching once both fits have gone on to converge, up to four step limits (docs/step_a.md)",
     )
     path_tolerance_nm: Optional[Annotated[float, Field(gt=0)]] = Field(
         None,
