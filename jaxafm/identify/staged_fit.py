@@ -477,8 +477,8 @@ class _Matching:
     """One retrace matching's chord stage (:meth:`_StagedFit._matched`): its ``fit``
     (:class:`~jaxafm.identify.stages.StageFit`), the ``retrace`` features so indexed, their
     ``train`` and ``test`` chords, the stage's chord ``data`` with them, and whether the fit
-    started from a model of its ``own`` (``wide_loop``'s pitch-back matching, from a loop
-    scaled to its features) rather than from the model so far as the others do."""
+    started from a model of its own (``own_start``: ``wide_loop``'s pitch-back matching, from a
+    loop scaled to its features) rather than from the model so far as the others do."""
 
     fit: StageFit
     retrace: LatticeFeatures
