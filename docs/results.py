@@ -239,6 +239,7 @@ STUDY_CLASSES_0_90_CY = Run(
 STUDY_CLASSES_WIDE_LOOP = Run(
     "study_classes_0_90_wide_loop/metrics.json", "jaxafm study configs/study_classes_0_90_wide_loop.yaml"
 )
+STUDY_CLASSES_SPEED = Run("study_classes_speed/metrics.json", "jaxafm study configs/study_classes_speed.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
 STUDY_NO_LEARNING = Run("study_no_learning/metrics.json", "jaxafm study configs/study_no_learning.yaml")
@@ -728,6 +729,15 @@ GOALS = [
         "the same with step A also told of wide loops (study_classes_0_90_wide_loop.yaml): A+B+C and push ≥ 98 %",
         STUDY_CLASSES_WIDE_LOOP,
         "docs/study.md#step-a-from-a-0-90-pair-on-the-other-classes",
+        classes_result,
+        lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
+    ),
+    Goal(
+        "study_classes_speed",
+        "the same calibrated at the study's two line rates with the lag in step A's model "
+        "(study_classes_speed.yaml): A+B+C and push ≥ 98 %",
+        STUDY_CLASSES_SPEED,
+        "docs/study.md#calibrated-at-the-surveys-line-rate",
         classes_result,
         lambda m: min(m["ABC_success_pct"], m["push_success_pct"]) >= 98,
     ),
@@ -2644,12 +2654,14 @@ def study_truth_classes(run: Run) -> Callable[[Results], Table]:
 TABLES["study_classes_per_class"] = study_truth_classes(STUDY_CLASSES)
 TABLES["study_classes_0_90_condition_y_per_class"] = study_truth_classes(STUDY_CLASSES_0_90_CY)
 TABLES["study_classes_0_90_wide_loop_per_class"] = study_truth_classes(STUDY_CLASSES_WIDE_LOOP)
+TABLES["study_classes_speed_per_class"] = study_truth_classes(STUDY_CLASSES_SPEED)
 for _name, _run, _wall in (
     ("study", STUDY, True),
     ("study_wide", STUDY_WIDE, True),
     ("study_classes", STUDY_CLASSES, True),
     ("study_classes_0_90_condition_y", STUDY_CLASSES_0_90_CY, True),
     ("study_classes_0_90_wide_loop", STUDY_CLASSES_WIDE_LOOP, True),
+    ("study_classes_speed", STUDY_CLASSES_SPEED, True),
     ("study_speed", STUDY_SPEED, True),
 ):
     TABLES[f"{_name}_stages"] = study_stages(_run)
@@ -2879,6 +2891,18 @@ TABLES["study_classes_0_90_per_scanner"] = per_scanner_0_90(
     ),
     classes=True,
     path_names=("0°, 1 Hz", "2 Hz", "0° + 90°, 1 Hz", "2 Hz", "+ wide_loop, 1 Hz", "2 Hz"),
+)
+TABLES["study_classes_speed_per_scanner"] = per_scanner_0_90(
+    (STUDY_CLASSES_WIDE_LOOP, STUDY_CLASSES_SPEED),
+    ("1 Hz", "1 and 2 Hz"),
+    (
+        "study_classes_0_90_wide_loop",
+        _paths_run("study_classes_0_90_wide_loop", 2.0),
+        "study_classes_speed",
+        _paths_run("study_classes_speed", 2.0),
+    ),
+    classes=True,
+    path_names=("1 Hz, on the 1 Hz scan", "2 Hz scan", "1 and 2 Hz, on the 1 Hz scan", "2 Hz scan"),
 )
 
 

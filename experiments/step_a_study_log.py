@@ -12,7 +12,9 @@ identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
     python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 8 --max-steps 120,30,60,100
 
 writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
-each scanner's draws, its log lines, and its step A time.
+each scanner's draws, its log lines, its step A time, and the model's tip path against the
+truth along the 0 degree calibration scan at each of the config's line rates (x and y rms after
+the rigid shift, ``step_a_study_paths.path_rms``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import time
 from pathlib import Path
 
 from pydantic import ValidationError
+from step_a_study_paths import path_rms
 
 from jaxafm.config import StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
@@ -56,14 +59,20 @@ def main() -> None:
         print(f"scanner {s}: {params}", flush=True)
         lines = []
         log = lambda m: (lines.append(m), print("   ", m, flush=True))
-        afm = default_afm(**{k: v for k, v in params.items() if k != "truth_class"})
+        afm = default_afm(**params)  # the truth class's scanner, as the study draws it
         scans, _ = calibration_scans(cfg.calibration.simulate, cfg.calibration.grating, afm)
         began = time.perf_counter()
         try:
-            identify_scanner(cfg, scans, args.config, log)
+            scanner, _ = identify_scanner(cfg, scans, args.config, log)
         except ImplausibleModel as e:
+            scanner = None
             log(f"refused: {e}")
-        rows.append({"scanner": s, "draws": params, "log": lines, "seconds": time.perf_counter() - began})
+        seconds = time.perf_counter() - began
+        paths = {} if scanner is None else tip_paths(cfg, afm, scanner)
+        for rate, (x, y) in paths.items():
+            log(f"tip path along the 0 degree scan at {rate} Hz: x {x:.2f} nm, y {y:.2f} nm rms")
+        row = {"scanner": s, "draws": params, "log": lines, "seconds": seconds, "path_rms_nm": paths}
+        rows.append(row)
     name = f"{args.config.stem}_{'_'.join(map(str, args.scanners))}"
     name += f"_steps_{args.max_steps.replace(',', '_')}" if args.max_steps else ""
     OUT.mkdir(parents=True, exist_ok=True)
@@ -72,6 +81,17 @@ def main() -> None:
         json.dumps({"config": str(args.config), "max_steps": args.max_steps, "scanners": rows}, indent=1)
     )
     print(f"wrote {path}")
+
+
+def tip_paths(cfg: StudyConfig, afm, scanner) -> dict:
+    """x and y rms (nm) of ``scanner``'s tip path less the true one along the 0 degree
+    calibration scan at each of the config's line rates, keyed by the rate (Hz)."""
+    paths = {}
+    for rate in cfg.calibration.simulate.line_rates_hz:
+        one = cfg.calibration.simulate.model_copy(update={"angles_deg": [0.0], "line_rate_hz": rate})
+        (scan,), sim = calibration_scans(one, cfg.calibration.grating, afm)
+        paths[f"{rate:g}"] = path_rms(scanner, scan, sim.measured)
+    return paths
 
 
 if __name__ == "__main__":
