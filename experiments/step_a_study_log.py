@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from pydantic import ValidationError
-from step_a_study_paths import path_rms
+from step_a_study_paths import one_scan, path_rms
 
 from jaxafm.config import StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
@@ -88,8 +88,7 @@ def tip_paths(cfg: StudyConfig, afm, scanner) -> dict:
     calibration scan at each of the config's line rates, keyed by the rate (Hz)."""
     paths = {}
     for rate in cfg.calibration.simulate.line_rates_hz:
-        one = cfg.calibration.simulate.model_copy(update={"angles_deg": [0.0], "line_rate_hz": rate})
-        (scan,), sim = calibration_scans(one, cfg.calibration.grating, afm)
+        scan, sim = one_scan(cfg.calibration, 0.0, rate, afm)
         paths[f"{rate:g}"] = path_rms(scanner, scan, sim.measured)
     return paths
 

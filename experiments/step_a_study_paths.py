@@ -50,6 +50,14 @@ def path_rms(scanner, scan, truth) -> list:
     return [e["path_x_rms_nm"], e["path_y_rms_nm"]]
 
 
+def one_scan(calibration, angle: float, rate: float, afm) -> tuple:
+    """``(scan, Simulation)``: the one calibration scan of a study's ``calibration`` config at
+    ``angle`` (degrees) and ``rate`` (Hz), of the simulated AFM ``afm``."""
+    spec = calibration.simulate.model_copy(update={"angles_deg": [angle], "line_rate_hz": rate})
+    (scan,), sim = calibration_scans(spec, calibration.grating, afm)
+    return scan, sim
+
+
 def right_matching(scan, sim, wide_loop: bool = False) -> str:
     """Which retrace matching of ``scan`` that step A tries (``"first"``, ``"second"``, with
     ``wide_loop`` also ``"third"``, or ``"none"``) puts its trace and retrace features on the same
@@ -82,17 +90,16 @@ def main() -> None:
     spec = cfg.calibration
     angle = spec.simulate.angles_deg[0] if a.angle is None else a.angle
     rate = spec.simulate.line_rates_hz[0] if a.line_rate is None else a.line_rate
-    first = spec.simulate.model_copy(update={"angles_deg": [angle], "line_rate_hz": rate})
     rows = []
     for s, params in enumerate(job.scanner_draws(cfg)):
         saved = a.study / "scanners" / f"model_{s:05d}.json"
-        scans, sim = calibration_scans(first, spec.grating, default_afm(**params))
-        right = right_matching(scans[0], sim, spec.solver.wide_loop)
+        scan, sim = one_scan(spec, angle, rate, default_afm(**params))
+        right = right_matching(scan, sim, spec.solver.wide_loop)
         if not saved.is_file():
             rows.append({"scanner": s, "path_rms_nm": None, "right_matching": right})
             print(f"scanner {s:2d}: no model saved; right matching {right}", flush=True)
             continue
-        x, y = path_rms(load_model(saved), scans[0], sim.measured)
+        x, y = path_rms(load_model(saved), scan, sim.measured)
         rows.append({"scanner": s, "path_rms_nm": [x, y], "right_matching": right})
         print(f"scanner {s:2d}: x {x:9.2f} nm  y {y:9.2f} nm rms; right matching {right}", flush=True)
     a.out.mkdir(parents=True, exist_ok=True)

@@ -248,3 +248,45 @@ def test_matchings_from_one_start_and_a_first_that_leads_are_compared_as_they_st
     assert staged_fit._confirmed_choice(fair, never) == (1, "")
     close = _matchings(_lm_fit(1.0, 1e-3, 0.95, 30), _lm_fit(1.0, 8e-4, 0.95, 30))
     assert staged_fit._confirmed_choice(close, never) == (0, "")
+
+
+def test_a_later_scans_matchings_are_judged_beside_the_scans_matched_before_it_alone(monkeypatch):
+    """Three scans of a 25 % loop (0° and 90° at 1 Hz, 0° at 2 Hz) with ``wide_loop``: the chord
+    stage over all scans matches scans 1 and 2 in turn, each matching's fit on that scan and the
+    scans before it in their kept matchings, never beside a later scan, which would bring its
+    first matching, right or not (configs/study_classes_speed.yaml's Preisach scanner 5, four
+    scans: its model 276 nm off along y so, 3.9 nm matched beside the scans before it alone).
+    The fits are stood in for by one that records what it was given; every matching then fits
+    equally well and the first is kept."""
+    afm = default_afm(loop_width=0.25, creep_gamma=0.01, coupling=0.02, noise_std=0.2)
+    spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, seed=0)
+    lattice = CalibrationLattice(pitch_nm=1000, rotation_deg=0)
+    scans = [
+        calibrate.calibration_scans(
+            spec.model_copy(update={"angles_deg": [a], "line_rate_hz": r}), lattice, afm
+        )[0][0]
+        for a, r in ((0, 1.0), (90, 1.0), (0, 2.0))
+    ]
+    seen, kept = [], {}
+
+    def fit_stage(stage, model, level, data, plan, max_steps):
+        if not stage.first_scan_only:
+            seen.append((len(level), [[np.asarray(chords[1]) for chords in images] for images in data]))
+        return StageFit(model, 1, True, 1.0)
+
+    align = staged_fit._StagedFit.align
+
+    def aligned(self):  # each scan's training chords' lattice indices per image, first matchings
+        align(self)
+        kept["train"] = [[np.asarray(ij) for _, ij, _ in part] for part in self.train]
+
+    monkeypatch.setattr(staged_fit, "fit_stage", fit_stage)
+    monkeypatch.setattr(staged_fit._StagedFit, "align", aligned)
+    plan = FitPlan(max_steps=(2, 2), blur_px=(), coarsen="auto", hold_out=False, select=False, wide_loop=True)
+    identify(scans, plan=plan, log=lambda m: None)
+    tried = [len(scan.feature_matches(True)[1]) for scan in scans[1:]]
+    matching = seen[: sum(tried)]
+    assert [n for n, _ in matching] == [k + 1 for k, t in enumerate(tried, 1) for _ in range(t)]
+    for n, indices in matching:  # the scans before it, in their kept matching (here the first)
+        for before, given in zip(kept["train"][: n - 1], indices[: n - 1]):
+            assert all(np.array_equal(a, b[: len(a)]) for a, b in zip(before, given))

@@ -402,8 +402,9 @@ class _StagedFit:
         its features and their split with it: a retrace indexed a pitch off asks the hysteresis
         loop for a branch separation a pitch off near the reversal, where the loop closes, which
         no scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the
-        right match's). Scan 0 is fitted alone (the first stage), a later scan with the others,
-        its indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
+        right match's). Scan 0 is fitted alone (the first stage), a later scan with the scans
+        before it in their kept matchings (a scan not yet matched would bring its first matching,
+        right or not), its indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
         pitch-back matching (the retrace a pitch further behind the trace at the reversal than
         the first matching) starts from a uniform loop scaled to its features
         (:func:`~jaxafm.identify.scan_model.start_loop`): from the nominal model's narrow loop
@@ -423,12 +424,11 @@ class _StagedFit:
             train, test = (
                 _shifted(part[0], shift) for part in split_chords([(trace, retrace)], self.plan.hold_out)
             )
-            fitted = [*self.train[:k], train, *self.train[k + 1 :]]
-            data = chord_data(fitted[:1] if k == 0 else fitted, self.scans, self.factor)
-            fit = fit_stage(stage, start, level, data, self.plan, limit)
+            data = chord_data([*self.train[:k], train], self.scans, self.factor)
+            fit = fit_stage(stage, start, level[: k + 1], data, self.plan, limit)
             tried.append(_Matching(fit, retrace, train, test, data, own))
         best, confirmed = _confirmed_choice(
-            tried, lambda fit, data: fit_stage(stage, fit.model, level, data, self.plan, limit)
+            tried, lambda fit, data: fit_stage(stage, fit.model, level[: k + 1], data, self.plan, limit)
         )
         losses = [t.fit.loss for t in tried]
         others = ", ".join(f"{v:.3e}" for j, v in enumerate(losses) if j != best)
