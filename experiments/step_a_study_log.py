@@ -14,7 +14,7 @@ identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
 writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
 each scanner's draws, its log lines, its step A time, and the model's tip path against the
 truth along the 0 degree calibration scan at each of the config's line rates (x and y rms after
-the rigid shift, ``step_a_study_paths.path_rms``).
+the rigid shift, ``step_a_study_paths.path_rms``), and the delays it fitted (:func:`fitted_delays`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from step_a_study_paths import one_scan, path_rms
 
 from jaxafm.config import StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
+from jaxafm.jobs import run
 from jaxafm.jobs import study as job
 from jaxafm.jobs.calibrate import calibration_scans
 from jaxafm.jobs.run import ImplausibleModel, identify_scanner
@@ -62,17 +63,27 @@ def main() -> None:
         afm = default_afm(**params)  # the truth class's scanner, as the study draws it
         scans, _ = calibration_scans(cfg.calibration.simulate, cfg.calibration.grating, afm)
         began = time.perf_counter()
+        identified = []  # identify_scanner keeps the scanner alone; its whole model is kept here
+        identify_model = run.identify_model
+        run.identify_model = lambda *a, **k: identified.append(identify_model(*a, **k)) or identified[-1]
         try:
             scanner, _ = identify_scanner(cfg, scans, args.config, log)
         except ImplausibleModel as e:
             scanner = None
             log(f"refused: {e}")
+        finally:
+            run.identify_model = identify_model
         seconds = time.perf_counter() - began
+        delays = fitted_delays(identified[-1].model) if identified else {}
+        if delays:
+            log("fitted delays: " + ", ".join(f"{k} {v:.3f}" for k, v in delays.items()))
         paths = {} if scanner is None else tip_paths(cfg, afm, scanner)
         for rate, (x, y) in paths.items():
             log(f"tip path along the 0 degree scan at {rate} Hz: x {x:.2f} nm, y {y:.2f} nm rms")
-        row = {"scanner": s, "draws": params, "log": lines, "seconds": seconds, "path_rms_nm": paths}
-        rows.append(row)
+        rows.append(
+            {"scanner": s, "draws": params, "log": lines, "seconds": seconds, "path_rms_nm": paths}
+            | {"delays_ms": delays}
+        )
     name = f"{args.config.stem}_{'_'.join(map(str, args.scanners))}"
     name += f"_steps_{args.max_steps.replace(',', '_')}" if args.max_steps else ""
     OUT.mkdir(parents=True, exist_ok=True)
@@ -81,6 +92,21 @@ def main() -> None:
         json.dumps({"config": str(args.config), "max_steps": args.max_steps, "scanners": rows}, indent=1)
     )
     print(f"wrote {path}")
+
+
+def fitted_delays(model) -> dict:
+    """The delays (ms) step A's whole ``model`` fitted: the drive's lag per axis
+    (``rate_dependence``), and the z signal's lag (``feedback_lag``) with the chords' edge delay,
+    those the model has."""
+    out = {}
+    for a in ("x", "y"):
+        lag = getattr(model.scanner, a).rate_dependence
+        if lag is not None:
+            out[f"rate_lag_{a}_ms"] = 1e3 * float(lag.tau)
+    if model.feedback is not None:
+        out["feedback_lag_ms"] = 1e3 * float(model.feedback.tau)
+        out["edge_delay_ms"] = 1e3 * float(model.edge_delay)
+    return out
 
 
 def tip_paths(cfg: StudyConfig, afm, scanner) -> dict:
