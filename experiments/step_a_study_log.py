@@ -14,7 +14,7 @@ identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
 writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
 each scanner's draws, its log lines, its step A time, and the model's tip path against the
 truth along the 0 degree calibration scan at each of the config's line rates (x and y rms after
-the rigid shift, ``step_a_study_paths.path_rms``), and the delays it fitted (:func:`fitted_delays`).
+the rigid shift, ``step_a_study_paths.path_rms``); and the delays it fitted (:func:`fitted_delays`).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from unittest import mock
 
 from pydantic import ValidationError
 from step_a_study_paths import one_scan, path_rms
@@ -31,7 +32,7 @@ from jaxafm.config import StudyConfig, load_config
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import run
 from jaxafm.jobs import study as job
-from jaxafm.jobs.calibrate import calibration_scans
+from jaxafm.jobs.calibrate import calibration_scans, identify_model
 from jaxafm.jobs.run import ImplausibleModel, identify_scanner
 
 OUT = Path(__file__).resolve().parent / "results" / "step_a_study_log"
@@ -64,15 +65,13 @@ def main() -> None:
         scans, _ = calibration_scans(cfg.calibration.simulate, cfg.calibration.grating, afm)
         began = time.perf_counter()
         identified = []  # identify_scanner keeps the scanner alone; its whole model is kept here
-        identify_model = run.identify_model
-        run.identify_model = lambda *a, **k: identified.append(identify_model(*a, **k)) or identified[-1]
+        keeping = lambda *a, **k: identified.append(identify_model(*a, **k)) or identified[-1]
         try:
-            scanner, _ = identify_scanner(cfg, scans, args.config, log)
+            with mock.patch.object(run, "identify_model", keeping):
+                scanner, _ = identify_scanner(cfg, scans, args.config, log)
         except ImplausibleModel as e:
             scanner = None
             log(f"refused: {e}")
-        finally:
-            run.identify_model = identify_model
         seconds = time.perf_counter() - began
         delays = fitted_delays(identified[-1].model) if identified else {}
         if delays:
@@ -81,8 +80,14 @@ def main() -> None:
         for rate, (x, y) in paths.items():
             log(f"tip path along the 0 degree scan at {rate} Hz: x {x:.2f} nm, y {y:.2f} nm rms")
         rows.append(
-            {"scanner": s, "draws": params, "log": lines, "seconds": seconds, "path_rms_nm": paths}
-            | {"delays_ms": delays}
+            {
+                "scanner": s,
+                "draws": params,
+                "log": lines,
+                "seconds": seconds,
+                "path_rms_nm": paths,
+                "delays_ms": delays,
+            }
         )
     name = f"{args.config.stem}_{'_'.join(map(str, args.scanners))}"
     name += f"_steps_{args.max_steps.replace(',', '_')}" if args.max_steps else ""

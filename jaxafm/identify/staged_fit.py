@@ -404,9 +404,9 @@ class _StagedFit:
         no scanner model fits (on scanner 3 of configs/study.yaml its loss is 150 times the
         right match's). Scan 0 is fitted alone (the first stage), a later scan with the scans
         before it in their kept matchings (a scan not yet matched would bring its first matching,
-        right or not), its indices shifted onto the first scan's (:meth:`align`). With ``plan.wide_loop`` the
-        pitch-back matching (the retrace a pitch further behind the trace at the reversal than
-        the first matching) starts from a uniform loop scaled to its features
+        right or not), its indices shifted onto the first scan's (:meth:`align`). With
+        ``plan.wide_loop`` the pitch-back matching (the retrace a pitch further behind the trace
+        at the reversal than the first matching) starts from a uniform loop scaled to its features
         (:func:`~jaxafm.identify.scan_model.start_loop`): from the nominal model's narrow loop
         the chord fit does not reach it. The line reversal's own matchings start from the
         nominal model, so ``wide_loop`` adds a matching and changes no other. Returns the fit
