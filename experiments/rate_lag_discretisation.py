@@ -20,10 +20,16 @@ only), the one after-lag ``tau_eff`` that best turns ``P[u]`` into ``P[L_tau u]`
 line rates (least squares on the fast-axis position over lines 2-6): what the order alone costs
 a lag fitted after the hysteresis with the true Preisach.
 
+A third part, on jaxafm's own simulated truth: the rate-dependent scanners of ``jaxafm study
+configs/study_classes_speed.yaml`` lag their hysteresis output through the zero hold, stepped
+once a pixel, and step A's model through the linear hold. Per scanner, the linear-hold lag that
+best reproduces the truth's over the study's calibration lines (128 px, 10 % over-scan, 1 and
+2 Hz at once), beside the true lag and the one step A fitted (the study's saved model).
+
     python experiments/rate_lag_discretisation.py
 
-writes ``experiments/results/rate_lag_discretisation/metrics.json`` (the docs' table
-``rate_lag_discretisation``).
+writes ``experiments/results/rate_lag_discretisation/metrics.json`` (the docs' tables
+``rate_lag_discretisation``, ``rate_lag_order`` and ``rate_lag_truth``).
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from independent_lattice import lag_ramp, make_scanner, preisach
 from scipy.optimize import brentq, minimize_scalar
 
 from jaxafm.model.effects import RateDependence
+from jaxafm.model.io import load_model
 
 OUT = Path(__file__).resolve().parent / "results" / "rate_lag_discretisation"
 RATES_HZ = (0.5, 1.0, 2.0)  # the generator's speed series
@@ -46,9 +53,9 @@ TRUE_LAGS_S = (0.7e-3, 1.0e-3, 2.0e-3)  # the generator's drive lags span 0.7-2 
 HALF_WIDTH_NM = 2500.0
 
 
-def line_drive(rate_hz: float, lines: int = 21) -> tuple:
+def line_drive(rate_hz: float, lines: int = 21, pixels: int = PIXELS, overscan: float = OVERSCAN) -> tuple:
     """A raster's fast-axis drive (nm) sampled once a pixel, trace and retrace, and its times (s)."""
-    n = PIXELS + 2 * int(round(OVERSCAN * PIXELS))
+    n = pixels + 2 * int(round(overscan * pixels))
     h = 1.0 / (2 * rate_hz * n)
     one = np.concatenate([np.linspace(-1, 1, n), np.linspace(1, -1, n)]) * HALF_WIDTH_NM
     u = np.tile(one, lines)
@@ -106,6 +113,37 @@ def order_row(seed: int, tau: float = ORDER_LAG_S, lines: int = 6) -> dict:
             "relative_error_pct": 100 * (fitted / tau - 1)}  # fmt: skip
 
 
+STUDY = Path(__file__).resolve().parent / "results" / "study_classes_speed"
+STUDY_LAG_SCANNERS = (2, 6, 10, 14)  # its rate-dependent scanners
+STUDY_RATES_HZ, STUDY_PIXELS, STUDY_OVERSCAN = (1.0, 2.0), 128, 0.1  # its calibration scans
+
+
+def truth_row(scanner: int) -> dict:
+    """A rate-dependent scanner of ``jaxafm study configs/study_classes_speed.yaml``: its true lag
+    (``scanners.json``; jaxafm's simulator steps it through the zero hold, once a pixel), the
+    x lag its step A model fitted (``scanners/model_*.json``; through the linear hold), and the
+    linear-hold lag that best reproduces the truth's lag of the study's calibration line drives
+    at its two rates at once (the lag stage alone, no hysteresis)."""
+    true_tau = json.loads((STUDY / "scanners.json").read_text())[str(scanner)]["rate_tau"]
+    model = load_model(STUDY / "scanners" / f"model_{scanner:05d}.json")
+    drives = [line_drive(r, 6, STUDY_PIXELS, STUDY_OVERSCAN) for r in STUDY_RATES_HZ]
+
+    def cost(log_tau):
+        return sum(
+            float(
+                np.sum(
+                    (jaxafm_lag(u, t, np.exp(log_tau), "linear") - jaxafm_lag(u, t, true_tau, "zero"))[skip:]
+                    ** 2
+                )
+            )
+            for u, t, _, skip in drives
+        )
+
+    same = float(np.exp(minimize_scalar(cost, bounds=(np.log(1e-5), np.log(0.1)), method="bounded").x))
+    return {"scanner": scanner, "true_lag_s": true_tau, "step_a_lag_s": float(model.x.rate_dependence.tau),
+            "linear_hold_equivalent_s": same}  # fmt: skip
+
+
 def main() -> None:
     rows = []
     for true_tau in TRUE_LAGS_S:
@@ -132,9 +170,18 @@ def main() -> None:
             f"order, scanner {r['seed']} (loop {r['loop_pct']:.1f} %): drive lag {r['true_lag_s'] * 1e3:.2f} ms "
             f"before the Preisach = {r['after_lag_s'] * 1e3:.3f} ms after it ({r['relative_error_pct']:+.1f} %)"
         )
+    truth = [truth_row(s) for s in STUDY_LAG_SCANNERS]
+    for r in truth:
+        print(
+            f"study_classes_speed scanner {r['scanner']}: true lag {r['true_lag_s'] * 1e3:.2f} ms (zero hold), "
+            f"the same through the linear hold {r['linear_hold_equivalent_s'] * 1e3:.2f} ms, "
+            f"step A's {r['step_a_lag_s'] * 1e3:.2f} ms"
+        )
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "metrics.json").write_text(
-        json.dumps({"pixels": PIXELS, "overscan": OVERSCAN, "rows": rows, "order": order}, indent=1)
+        json.dumps(
+            {"pixels": PIXELS, "overscan": OVERSCAN, "rows": rows, "order": order, "truth": truth}, indent=1
+        )
     )
 
 

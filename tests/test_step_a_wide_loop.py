@@ -1,8 +1,6 @@
 """Step A on a scanner whose hysteresis loop is wide: the retrace indexed by the feature fit.
 Its own module so that ``--dist loadfile`` can hand it to one worker and test_step_a to the other."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -98,11 +96,11 @@ def test_a_retrace_more_than_a_pitch_behind_is_matched_only_with_wide_loop(displ
 def test_wide_loop_puts_a_25_percent_loop_on_its_lattice_in_both_scans_of_a_0_90_pair():
     """A 25 % loop (configs/study_wide.yaml's widest) imaged at 0° and 90° with 10 % overscan: near
     the reversal each retrace sees the pillars about 1.7 pitches behind the trace, beyond every
-    matching the reversal alone gives. With ``wide_loop`` each scan's retrace is matched the
-    way whose trace and retrace features lie on the same true lattice sites (one shift for both,
-    through the true scanner), the later scan's in the chord stage over both scans, and the tip
-    path over the 0° scan is within a tenth of a pitch of the truth on both axes; without it the
-    first scan's retrace stays indexed a pitch off and the path along x is not (295 nm rms)."""
+    matching the reversal alone gives (so no model fits the first scan's retrace indexed by
+    them). With ``wide_loop`` each scan's retrace is matched the way whose trace and retrace
+    features lie on the same true lattice sites (one shift for both, through the true scanner),
+    the later scan's in the chord stage over both scans, and the tip path over the 0° scan is
+    within a tenth of a pitch of the truth on both axes."""
     afm = default_afm(loop_width=0.25, creep_gamma=0.01, coupling=0.02, noise_std=0.2)
     spec = SimulatedCalibration(pixels=64, size_nm=8000, line_rate_hz=1.0, angles_deg=[0, 90], seed=0)
     scans, sims = [], []
@@ -120,22 +118,20 @@ def test_wide_loop_puts_a_25_percent_loop_on_its_lattice_in_both_scans_of_a_0_90
         e = true.site_errors(scan, [(trace.rc, trace.ij), (retrace.rc, retrace.ij)])
         return len({tuple(np.round(np.median(np.asarray(x), axis=0))) for x in e}) == 1
 
-    plan = FitPlan(max_steps=(30, 30), blur_px=(), coarsen="auto", hold_out=False, select=False)
-    for wide in (False, True):
-        matches = [scan.feature_matches(wide) for scan in scans]
-        right = [[on_true_sites(s, t, r) for r in rs] for s, (t, rs) in zip(scans, matches)]
-        assert (True in right[0]) is wide  # the first scan's right matching is the pitch-back one
-        ident = identify(scans, plan=dataclasses.replace(plan, wide_loop=wide), log=lambda m: None)
-        paths = zip(ident.model.paths(scans[0]), ("path_trace", "path_retrace"))
-        e = np.stack([np.asarray(p) - np.asarray(getattr(sims[0].measured, k)) for p, k in paths])
-        e = e - e.reshape(-1, 2).mean(axis=0)  # the lattice's absolute place is not observable
-        rms = np.sqrt(np.mean(e.reshape(-1, 2) ** 2, axis=0))
-        if wide:
-            assert "matched the pitch-back way" in ident.stages[0].message
-            assert "90 degree scan" in ident.stages[1].message and "matched the" in ident.stages[1].message
-            assert np.all(rms < 100.0), rms  # nm; a pitch is 1000
-        else:
-            assert rms[0] > 100.0, rms  # the first scan's retrace a pitch off: no model fits both
+    for wide in (False, True):  # the first scan's right matching is the pitch-back one alone
+        trace, retraces = scans[0].feature_matches(wide)
+        assert (True in [on_true_sites(scans[0], trace, r) for r in retraces]) is wide
+    plan = FitPlan(
+        max_steps=(30, 30), blur_px=(), coarsen="auto", hold_out=False, select=False, wide_loop=True
+    )
+    ident = identify(scans, plan=plan, log=lambda m: None)
+    assert "matched the pitch-back way" in ident.stages[0].message
+    assert "90 degree scan" in ident.stages[1].message and "matched the" in ident.stages[1].message
+    paths = zip(ident.model.paths(scans[0]), ("path_trace", "path_retrace"))
+    e = np.stack([np.asarray(p) - np.asarray(getattr(sims[0].measured, k)) for p, k in paths])
+    e = e - e.reshape(-1, 2).mean(axis=0)  # the lattice's absolute place is not observable
+    rms = np.sqrt(np.mean(e.reshape(-1, 2) ** 2, axis=0))
+    assert np.all(rms < 100.0), rms  # nm; a pitch is 1000
 
 
 def test_the_loop_start_puts_a_wide_loops_tip_path_within_a_quarter_pitch():
