@@ -5,13 +5,16 @@ study, which keeps only the model, says nothing of it.
 Each scanner is the study's own (``jaxafm.jobs.study.scanner_draws`` of the config), scanned and
 identified as the study does (``jaxafm.jobs.calibrate.calibration_scans``,
 ``jaxafm.jobs.run.identify_scanner``); ``--max-steps`` replaces the config's
-``calibration.solver.max_steps`` (one number, or one per stage, comma-separated).
+``calibration.solver.max_steps`` (one number, or one per stage, comma-separated); ``--lag-hold
+zero`` steps step A's lag through the zero hold (``jaxafm.identify.scan_model.LAG_HOLD``), the
+hold jaxafm's simulated truth steps its own through.
 
     python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6 8
     python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 3 6 --max-steps 30,120,60,100
     python experiments/step_a_study_log.py configs/study_wide_0_90_wide_loop.yaml 8 --max-steps 120,30,60,100
+    python experiments/step_a_study_log.py configs/study_classes_speed.yaml 2 14 --lag-hold zero
 
-writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>].json``:
+writes ``experiments/results/step_a_study_log/<config>_<scanners>[_steps_<max-steps>][_zero_hold].json``:
 each scanner's draws, its log lines, its step A time, and the model's tip path against the
 truth along the 0 degree calibration scan at each of the config's line rates (x and y rms after
 the rigid shift, ``step_a_study_paths.path_rms``); and the delays it fitted (:func:`fitted_delays`).
@@ -29,11 +32,13 @@ from pydantic import ValidationError
 from step_a_study_paths import one_scan, path_rms
 
 from jaxafm.config import StudyConfig, load_config
+from jaxafm.identify import scan_model
 from jaxafm.instrument.afm import default_afm
 from jaxafm.jobs import run
 from jaxafm.jobs import study as job
 from jaxafm.jobs.calibrate import calibration_scans, identify_model
 from jaxafm.jobs.run import ImplausibleModel, identify_scanner
+from jaxafm.model.effects import HOLDS
 
 OUT = Path(__file__).resolve().parent / "results" / "step_a_study_log"
 
@@ -43,6 +48,7 @@ def main() -> None:
     ap.add_argument("config", type=Path)
     ap.add_argument("scanners", type=int, nargs="+")
     ap.add_argument("--max-steps", default=None, help="solver.max_steps, e.g. 40 or 30,120,60,100")
+    ap.add_argument("--lag-hold", choices=HOLDS, default=scan_model.LAG_HOLD, help="the hold of step A's lag")
     args = ap.parse_args()
     cfg = load_config(args.config, StudyConfig)
     if args.max_steps:  # validated as the config's own would be (one step limit or one per stage)
@@ -67,7 +73,10 @@ def main() -> None:
         identified = []  # identify_scanner keeps the scanner alone; its whole model is kept here
         keeping = lambda *a, **k: identified.append(identify_model(*a, **k)) or identified[-1]
         try:
-            with mock.patch.object(run, "identify_model", keeping):
+            with (
+                mock.patch.object(run, "identify_model", keeping),
+                mock.patch.object(scan_model, "LAG_HOLD", args.lag_hold),
+            ):
                 scanner, _ = identify_scanner(cfg, scans, args.config, log)
         except ImplausibleModel as e:
             scanner = None
@@ -91,10 +100,19 @@ def main() -> None:
         )
     name = f"{args.config.stem}_{'_'.join(map(str, args.scanners))}"
     name += f"_steps_{args.max_steps.replace(',', '_')}" if args.max_steps else ""
+    name += f"_{args.lag_hold}_hold" if args.lag_hold != scan_model.LAG_HOLD else ""
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / f"{name}.json"
     path.write_text(
-        json.dumps({"config": str(args.config), "max_steps": args.max_steps, "scanners": rows}, indent=1)
+        json.dumps(
+            {
+                "config": str(args.config),
+                "max_steps": args.max_steps,
+                "lag_hold": args.lag_hold,
+                "scanners": rows,
+            },
+            indent=1,
+        )
     )
     print(f"wrote {path}")
 

@@ -41,6 +41,10 @@ CREEP_START = 1e-3
 #: the log law is often written from (``log10(t / 0.1 s)``)
 CREEP_ONSET_TAUS_S = (0.01, 1000.0)
 CREEP_ONSET_START_S = 0.1
+#: the hold step A's rate dependence steps its lag through (:func:`~jaxafm.model.effects.hold_weights`):
+#: a raster's drive is a ramp between its samples, one a pixel, so the linear hold, whose
+#: ``tau`` is the delay of a ramp at any sample time
+LAG_HOLD = "linear"
 
 # The order-one scales of step A's parameters (what a raw value of 1 stands for). Phase and
 # radius are in pitches and the depth in the image's height range (the scan's ``depth_scale``);
@@ -393,8 +397,7 @@ def _nominal_axis(scan: CalibrationScan, spec: ScanModelSpec, k: int, scans: tup
             raise ValueError(f"unknown hysteresis model {kind!r}; one of pi, gpi, preisach")
     return Axis(
         h,
-        # a raster's drive is a ramp between its samples, one a pixel: the linear hold
-        RateDependence(jnp.asarray(5e-3), hold="linear") if "rate_dependence" in spec.effects else None,
+        RateDependence(jnp.asarray(5e-3), hold=LAG_HOLD) if "rate_dependence" in spec.effects else None,
         _nominal_creep(spec) if "creep" in spec.effects else None,
     )
 
