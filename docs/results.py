@@ -2848,6 +2848,67 @@ def _scanner_success(rows: list, scanner: str, tolerance_radii: float) -> tuple:
     return within("ABC_error_nm", 0.1), within("push_error_nm", tolerance_radii)
 
 
+#: particle radius bands (nm) of :func:`pushes_by_class`
+RADIUS_BANDS_NM = ((5.0, 10.0), (10.0, 20.0), (20.0, 50.0))
+
+
+def pushes_by_class(run: Run) -> Callable[[Results], Table]:
+    """A study's pushes per truth class, from its ``trials.csv`` and ``scanners.json``: the first
+    push's miss along its direction (median, nm and % of the push), what the check at the goal saw
+    of it (the particle's seen move along the push less the push, median), and the pushes within
+    their tolerance per band of particle radius (:data:`RADIUS_BANDS_NM`)."""
+    info = Run(run.path.replace("metrics.json", "scanners.json"), run.command)
+
+    def make(results: Results) -> Table:
+        rows, truth = results(_trials(run)), {k: v["truth_class"] for k, v in results(info).items()}
+        tol = results(run)["push_tolerance_radii"]
+        out = []
+        for c in dict.fromkeys(truth.values()):
+            mine = [_push_row(r, tol) for r in rows if truth[r["scanner"]] == c]
+            seen = [p for p in mine if math.isfinite(p["checked"])]
+            bands = []
+            for lo, hi in RADIUS_BANDS_NM:
+                band = [p["ok"] for p in mine if lo <= p["radius"] < hi]
+                bands.append(f"{q(100 * sum(band) / len(band), '%')} ({count(len(band))})" if band else "–")
+            out.append(
+                [c, count(len(mine)), q(statistics.median(p["along"] for p in mine), "nm")]
+                + [q(100 * statistics.median(p["along"] / p["push"] for p in mine), "%", 2)]
+                + [q(statistics.median(p["checked"] for p in seen), "nm"), *bands]
+            )
+        head = ["truth class", "pushes", "first push: miss along it", "of the push", "the check saw"]
+        head += [f"within tolerance, R {lo:g}–{hi:g} nm" for lo, hi in RADIUS_BANDS_NM]
+        note = (
+            "Medians over each class's first pushes (trials.csv); a miss along the push is positive when long; the "
+            "check saw the particle's move along the push less the push, where it found the particle. Within "
+            "tolerance: the push's final error within 1 R, by the particle's radius (the pushes in the band)."
+        )
+        return Table(head, out, [run], note)
+
+    return make
+
+
+def _push_row(r: dict, tolerance_radii: float) -> dict:
+    """One ``trials.csv`` row's push: its distance, the first push's miss along it, what the check
+    saw of that miss (NaN where it found nothing), the particle's radius and whether the push
+    ended within ``tolerance_radii`` R."""
+    num = lambda k: float(r[k]) if r[k] not in ("", "nan") else math.nan
+    dx, dy, push = num("push_dx"), num("push_dy"), num("push_distance_nm")
+    norm = math.hypot(dx, dy)
+    seen = (num("push_seen_moved_x_nm") * dx + num("push_seen_moved_y_nm") * dy) / norm
+    radius = num("radius_nm")
+    ok = r["push_contact"] == "1" and num("push_error_nm") <= tolerance_radii * radius
+    return {
+        "push": push,
+        "along": num("push_first_along_nm"),
+        "checked": seen - push,
+        "radius": radius,
+        "ok": ok,
+    }
+
+
+TABLES["study_classes_speed_pushes"] = pushes_by_class(STUDY_CLASSES_SPEED)
+
+
 def per_scanner_0_90(
     runs: tuple, names: tuple, path_folders: tuple, classes: bool = False, path_names: Optional[tuple] = None
 ) -> Callable[[Results], Table]:
