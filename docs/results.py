@@ -3050,20 +3050,39 @@ def study_push_gate(results: Results) -> Table:
     return Table(header, rows, [STUDY, STUDY_GATE])
 
 
-@table("push_shortfall")
-def push_shortfall(results: Results) -> Table:
-    """Each study scanner's push-like move: the true travel's error per direction, and what a
-    check arriving at the goal sees of it."""
-    m = results(PUSH_SHORTFALL)
-    ways = ("+x", "-x", "+y", "-y")
-    rows = [
-        [s]
-        + [q(100 * r[w]["travel_error"], "%") for w in ways]
-        + [q(r[w]["seen_short_nm"], "nm") for w in ways]
-        for s, r in m["scanners"].items()
-    ]
-    header = ["scanner"] + [f"travel {w}" for w in ways] + [f"seen short {w}" for w in ways]
-    return Table(header, rows, [PUSH_SHORTFALL])
+PUSH_SHORTFALL_CLASSES = Run(
+    "push_shortfall/shortfall_study_classes_speed_scanners_0_1_2_3_5_9_13.json",
+    "python experiments/push_shortfall.py --config configs/study_classes_speed.yaml --scanners 0 1 2 3 5 9 13",
+)
+
+
+def push_shortfall(run: Run, classes: Optional[Run] = None) -> Callable[[Results], Table]:
+    """Each study scanner's push-like move (``experiments/push_shortfall.py``): the true travel's
+    error per direction, and what a check arriving at the goal sees of it; with ``classes`` (a
+    study's ``scanners.json``), each scanner's truth class."""
+
+    def make(results: Results) -> Table:
+        m = results(run)
+        truth = {k: v["truth_class"] for k, v in results(classes).items()} if classes else {}
+        ways = ("+x", "-x", "+y", "-y")
+        rows = [
+            [s]
+            + ([truth[s]] if classes else [])
+            + [q(100 * r[w]["travel_error"], "%") for w in ways]
+            + [q(r[w]["seen_short_nm"], "nm") for w in ways]
+            for s, r in m["scanners"].items()
+        ]
+        header = ["scanner"] + (["truth class"] if classes else [])
+        header += [f"travel {w}" for w in ways] + [f"seen short {w}" for w in ways]
+        return Table(header, rows, [run])
+
+    return make
+
+
+TABLES["push_shortfall"] = push_shortfall(PUSH_SHORTFALL)
+TABLES["push_shortfall_classes_speed"] = push_shortfall(
+    PUSH_SHORTFALL_CLASSES, Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command)
+)
 
 
 @table("bench_study")

@@ -1,9 +1,10 @@
 """How far a push-like move really goes on each scanner of a study, through step A's model and
 step B's map: where a study's pushes fall short, and whether a check in the wanted frame sees it.
 
-For each scanner of ``configs/study.yaml`` (its step A model read from the committed run's
-``scanners/``, its A+B survey and landmark map made again as the study makes them), the tip is
-brought to one place ``PLACE`` with the study's 500 nm approach, then moved as a push moves it:
+For each scanner of a study (``--config``, default ``configs/study.yaml``; its step A model read
+from the committed run's ``scanners/`` in ``experiments/results/<config's name>/``, its A+B
+survey and landmark map made again as the study makes them), the tip is brought to one place
+``PLACE`` with the study's 500 nm approach, then moved as a push moves it:
 back ``BACK`` nm, a dwell of 0.1 s, and forward ``BACK + TRAVEL`` nm at 200 nm/s, along +x, -x,
 +y and -y. Printed and written: the true travel's relative error (true travel over wanted, less
 one), and how short a check that arrives at the goal as the study's does sees the push fall:
@@ -11,9 +12,11 @@ the true position of the goal reached afresh with the approach, less the true en
 along the push (what the wanted frame there shows of the shortfall, in nm).
 
     python experiments/push_shortfall.py [--scanners 0 3 9] [--approach 1000]
+    python experiments/push_shortfall.py --config configs/study_classes_speed.yaml --scanners 0 1 2 3 5 9 13
 
 Writes ``experiments/results/push_shortfall/shortfall.json`` (with ``--approach A``:
-``shortfall_approach_A.json``; with ``--scanners``, their numbers added to the name).
+``shortfall_approach_A.json``; with ``--scanners``, their numbers added to the name; with another
+``--config``, its name).
 """
 
 from __future__ import annotations
@@ -62,16 +65,20 @@ def one_move(pos, stand, d: jax.Array, approach: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--config", type=Path, default=CONFIG, help="a study config (default: configs/study.yaml)"
+    )
     parser.add_argument("--scanners", type=int, nargs="*", default=None, help="default: every scanner")
     parser.add_argument("--approach", type=float, default=None, help="nm (default: the study's)")
     args = parser.parse_args()
-    cfg = load_config(CONFIG, StudyConfig)
+    cfg = load_config(args.config, StudyConfig)
     draws = job.scanner_draws(cfg)
-    models = Output(ROOT / "experiments" / "results" / "study")  # read: the study saved its models there
+    # read: the study saved its models there
+    models = Output(ROOT / "experiments" / "results" / args.config.stem)
     approach = args.approach or cfg.landmarks.approach_nm
     rows = {}
     for s in range(cfg.scanners) if args.scanners is None else args.scanners:
-        surveys, _ = job.prepare_scanner(cfg, CONFIG, s, draws[s], models, lambda m: None)
+        surveys, _ = job.prepare_scanner(cfg, args.config, s, draws[s], models, lambda m: None)
         ab = surveys["A+B"]
         rows[s] = {
             name: one_move(ab.positioner, ab.stand, jnp.asarray(d), approach)
@@ -87,13 +94,15 @@ def main() -> None:
     out = ROOT / "experiments" / "results" / "push_shortfall"
     out.mkdir(parents=True, exist_ok=True)
     setup = {
+        "config": str(args.config),
         "place_nm": PLACE,
         "back_nm": BACK,
         "travel_nm": TRAVEL,
         "speed_nm_per_s": SPEED,
         "approach_nm": approach,
     }
-    name = "shortfall" + ("" if args.approach is None else f"_approach_{approach:g}")
+    name = "shortfall" + ("" if args.config.resolve() == CONFIG else f"_{args.config.stem}")
+    name += "" if args.approach is None else f"_approach_{approach:g}"
     name += "" if args.scanners is None else "_scanners_" + "_".join(map(str, args.scanners))
     (out / f"{name}.json").write_text(json.dumps({"setup": setup, "scanners": rows}, indent=1) + "\n")
 
