@@ -2213,25 +2213,14 @@ def rate_lag_order(results: Results) -> Table:
 
 @table("rate_lag_truth")
 def rate_lag_truth(results: Results) -> Table:
+    ms = lambda seconds: q(1e3 * seconds, "ms", 2)
     rows = [
-        [
-            str(r["scanner"]),
-            q(1e3 * r["true_lag_s"], "ms", 2),
-            q(1e3 * r["linear_hold_equivalent_s"], "ms", 2),
-        ]
-        + [
-            q(1e3 * r["step_a_lag_s"], "ms", 2),
-            q(1e3 * (r["step_a_lag_s"] - r["linear_hold_equivalent_s"]), "ms", 2),
-        ]
+        [str(r["scanner"]), ms(r["true_lag_s"]), ms(r["linear_hold_equivalent_s"]), ms(r["step_a_lag_s"])]
+        + [ms(r["step_a_lag_s"] - r["linear_hold_equivalent_s"])]
         for r in results(RATE_LAG)["truth"]
     ]
-    header = [
-        "scanner",
-        "true lag (zero hold)",
-        "the same through the linear hold",
-        "step A's lag (linear hold)",
-    ]
-    header += ["step A's less the same"]
+    header = ["scanner", "true lag (zero hold)", "the same through the linear hold"]
+    header += ["step A's lag (linear hold)", "step A's less the same"]
     note = "x axis; the lag stage alone, fitted to the truth's lag over 128 px lines (10 % over-scan) at 1 and 2 Hz."
     return Table(header, rows, [RATE_LAG], note)
 
