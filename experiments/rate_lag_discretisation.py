@@ -127,16 +127,12 @@ def truth_row(scanner: int) -> dict:
     true_tau = json.loads((STUDY / "scanners.json").read_text())[str(scanner)]["rate_tau"]
     model = load_model(STUDY / "scanners" / f"model_{scanner:05d}.json")
     drives = [line_drive(r, 6, STUDY_PIXELS, STUDY_OVERSCAN) for r in STUDY_RATES_HZ]
+    lagged = [jaxafm_lag(u, t, true_tau, "zero") for u, t, _, _ in drives]  # the truth's, once
 
     def cost(log_tau):
         return sum(
-            float(
-                np.sum(
-                    (jaxafm_lag(u, t, np.exp(log_tau), "linear") - jaxafm_lag(u, t, true_tau, "zero"))[skip:]
-                    ** 2
-                )
-            )
-            for u, t, _, skip in drives
+            float(np.sum((jaxafm_lag(u, t, np.exp(log_tau), "linear") - z)[skip:] ** 2))
+            for (u, t, _, skip), z in zip(drives, lagged)
         )
 
     same = float(np.exp(minimize_scalar(cost, bounds=(np.log(1e-5), np.log(0.1)), method="bounded").x))
