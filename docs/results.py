@@ -242,6 +242,7 @@ STUDY_CLASSES_WIDE_LOOP = Run(
 STUDY_CLASSES_SPEED = Run("study_classes_speed/metrics.json", "jaxafm study configs/study_classes_speed.yaml")
 STUDY_SPEED = Run("study_speed/metrics.json", "jaxafm study configs/study_speed.yaml")
 STUDY_PUSHES = Run("study_push_learning/metrics.json", "jaxafm study configs/study_push_learning.yaml")
+STUDY_LEAD_IN = Run("study_push_lead_in/metrics.json", "jaxafm study configs/study_push_lead_in.yaml")
 STUDY_NO_LEARNING = Run("study_no_learning/metrics.json", "jaxafm study configs/study_no_learning.yaml")
 STUDY_GATE = Run("study_push_gate/metrics.json", "jaxafm study configs/study_push_gate.yaml")
 PUSH_SHORTFALL = Run("push_shortfall/shortfall.json", "python experiments/push_shortfall.py")
@@ -2685,11 +2686,22 @@ for _name, _run in (("study", STUDY), ("study_wide", STUDY_WIDE)):
     TABLES[f"{_name}_learning"] = study_learning(_run)
 
 
-@table("study_push_learning")
-def study_push_learning(results: Results) -> Table:
-    """study.yaml beside study_push_learning.yaml: what the push did with and without learning."""
-    runs = (STUDY, STUDY_PUSHES)
-    m = [results(r) for r in runs]
+def study_pushes(other: Run, header: str) -> Callable[[Results], Table]:
+    """study.yaml beside ``other``, a study that differs in its pushes alone: what the push did."""
+
+    def make(results: Results) -> Table:
+        runs = (STUDY, other)
+        return Table(
+            ["", "pushes as commanded (study.yaml)", header],
+            _push_rows([results(r) for r in runs]),
+            list(runs),
+        )
+
+    return make
+
+
+def _push_rows(m: list) -> list:
+    """What the pushes of the studies ``m`` (their metrics) did, one column a study."""
     fails = [f["failure_modes"]["push"] for f in m]
     rows = [
         ["first push within 1 R"] + [q(f["push_first_success_pct"], "%") for f in m],
@@ -2698,12 +2710,15 @@ def study_push_learning(results: Results) -> Table:
         ["push error, median"] + [q(f["push_error_median_nm"], "nm") for f in m],
         ["push error, p95"] + [q(f["push_error_p95_nm"], "nm") for f in m],
     ]
-    rows += [
+    return rows + [
         [f"failed: {k}"] + [count(f.get(k, 0)) for f in fails]
         for k in fails[0]
         if any(f.get(k) for f in fails)
     ]
-    return Table(["", "pushes as commanded (study.yaml)", "pushes that learn"], rows, list(runs))
+
+
+TABLES["study_push_learning"] = study_pushes(STUDY_PUSHES, "pushes that learn")
+TABLES["study_push_lead_in"] = study_pushes(STUDY_LEAD_IN, "pushes through a 500 nm lead-in")
 
 
 @table("study_learning_cost")
@@ -3069,6 +3084,46 @@ def push_shortfall(run: Run, classes: Optional[Run] = None) -> Callable[[Results
 
 
 TABLES["push_shortfall"] = push_shortfall(PUSH_SHORTFALL)
+TABLES["push_shortfall_truth_model"] = push_shortfall(
+    Run(
+        "push_shortfall/shortfall_study_classes_speed_scanners_0_1_2_3_5_9_13_truth_model.json",
+        PUSH_SHORTFALL_CLASSES.command + " --truth-model",
+    ),
+    Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command),
+)
+PUSH_LEAD_IN = Run(
+    "push_shortfall/shortfall_lead_in_500.json", "python experiments/push_shortfall.py --lead-in 500"
+)
+
+
+@table("push_lead_in")
+def push_lead_in(results: Results) -> Table:
+    """study.yaml's scanners' push-like moves, the start backed straight from the place (as the
+    study's push backs from the particle) or reached through a 500 nm lead-in along the move: per
+    direction, medians over the scanners of the travel's error and of where the move truly
+    starts and ends against where it should, from the tip's true place (the frame a particle
+    there is found in)."""
+    runs = (PUSH_SHORTFALL, PUSH_LEAD_IN)
+    rows = []
+    for w in ("+x", "-x", "+y", "-y"):
+        for run, how in zip(runs, ("backed straight", "500 nm lead-in")):
+            r = [v[w] for v in results(run)["scanners"].values()]
+            med = lambda k: statistics.median(x[k] for x in r)
+            worst = max((x["end_error_nm"] for x in r), key=abs)
+            rows.append(
+                [
+                    w,
+                    how,
+                    q(100 * med("travel_error"), "%"),
+                    q(med("start_error_nm"), "nm"),
+                    q(med("end_error_nm"), "nm"),
+                    q(worst, "nm"),
+                ]
+            )
+    header = ["push", "start reached", "travel error, median", "start, median", "end, median", "end, worst"]
+    return Table(header, rows, list(runs))
+
+
 TABLES["push_shortfall_classes_speed"] = push_shortfall(
     PUSH_SHORTFALL_CLASSES, Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command)
 )

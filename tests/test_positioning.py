@@ -25,6 +25,7 @@ from jaxafm.position.online import NO_PUSH_FIELD, learn_push
 from jaxafm.position.positioning import (
     LocalScan,
     Positioner,
+    Push,
     goto,
     local_scan,
     pulse,
@@ -512,6 +513,43 @@ def test_a_corrective_push_brings_a_short_push_towards_the_goal():
     assert np.all(miss_learnt < miss_first), (miss_first, miss_learnt)
 
 
+def narrow_plays(scanner, k: float = 0.05):
+    """``scanner`` without creep, drift and noise, every play's threshold times ``k`` (default_afm's
+    widest, 9.375 V, to 0.47 V: 234 nm at 500 nm/V): nothing it does remembers more than 234 nm."""
+    s = scanner.without("creep", "drift", "noise")
+    pis = lambda s: (s.x.hysteresis.pi.thresholds, s.y.hysteresis.pi.thresholds)
+    return eqx.tree_at(pis, s, tuple(k * t for t in pis(s)))
+
+
+@pytest.mark.parametrize("lead_in, same", [(500.0, True), (0.0, False)])
+def test_a_push_through_a_lead_in_wider_than_every_play_goes_alike_from_anywhere(lead_in, same):
+    """The wiping-out property of a play (after a one-way move of 2r or more its state is set by
+    the input alone): on a scanner whose plays are all narrower than 234 nm, without creep or
+    drift, and a model of the same kind with other loops, a push along (-0.6, 0.8) reached
+    through a 500 nm lead-in along it (its middle leg moves x 600 nm and y 800 nm one way, more
+    than twice every play) follows the same true path to round-off whichever way the tip came
+    to the particle; reached straight from the particle (no lead-in), the plays the tip's way
+    there set are still in the path."""
+    afm = default_afm(drift_nm_per_min=(0.0, 0.0))
+    afm = eqx.tree_at(lambda a: a.scanner, afm, narrow_plays(afm.scanner))
+    model = narrow_plays(default_afm(loop_width=0.12).scanner)
+    state = run_cycle(afm, Plane(), afm.initial_state((0.0, 0.0), 0.0, CYCLE), CYCLE, jax.random.key(0))
+    pos = Positioner(afm, model)
+    stand = pos.start(state, twin_after_cycle(afm, model))
+    centre, d, spec = jnp.array([100.0, -50.0]), jnp.array([-0.6, 0.8]), Push(lead_in=lead_in)
+    nowhere = Particles(jnp.full((1, 2), 1e6), jnp.ones(1))
+
+    @eqx.filter_jit
+    def push_from(came_from):
+        _, _, s = goto(pos, nowhere, stand, came_from, jax.random.key(1))
+        _, _, s = goto(pos, nowhere, s, centre, jax.random.key(2))
+        return push(pos, nowhere, s, centre, centre, 10.0, d, 200.0, jax.random.key(3), spec)[0].path
+
+    paths = [push_from(jnp.array(p)) for p in ([-700.0, 600.0], [800.0, -400.0])]
+    apart = float(jnp.max(jnp.linalg.norm(paths[0] - paths[1], axis=-1)))
+    assert (apart < 1e-6) == same, apart  # nm
+
+
 @eqx.filter_jit
 def _scan_push_and_check(pos, stand, centres, directions, R, distance, approach, key, learnt=NO_PUSH_FIELD):
     """Each of the particles of radius ``R`` at ``centres`` (k, 2) nm reached with ``approach``,
@@ -543,6 +581,7 @@ def _scan_push_and_check(pos, stand, centres, directions, R, distance, approach,
         ({"particles": {"radius_nm": [0, 20]}}, "radius must be > 0"),
         ({"particles": {"radius_nm": [30, 20]}}, "min <= max"),
         ({"workspace": {"size_nm": 9000}}, "beyond the .* nm that step A's calibration scan covers"),
+        ({"push": {"lead_in_nm": -100}}, "push.lead_in_nm"),
         ({"calibration": {"model": {"name": "m", "effects": ["tip"]}}}, "cannot be fitted"),
     ],
 )

@@ -138,6 +138,14 @@ class PushSpec(Strict):
 
     distance_nm: list[float] = Field([100.0, 300.0], min_length=2, max_length=2)
     speed_nm_per_s: float = Field(200.0, gt=0)
+    lead_in_nm: float = Field(
+        0.0,
+        ge=0,
+        le=5000,
+        description="the push's start reached through this far beyond it and this far before it along "
+        "the push, so the push goes on the way the tip came, far from its last reversal (0: straight "
+        "from the particle, the push starting at the reversal)",
+    )
     tolerance_radii: float = Field(1.0, gt=0)
     corrections: int = Field(
         1,

@@ -78,7 +78,9 @@ def local_scan_settings(spec: LocalScanSpec) -> LocalScan:
 def push_settings(spec: PushSpec, min_odds: float = 0.0) -> Push:
     """The push's settings a config's ``push`` gives (``gap``, ``samples`` and
     ``correct_beyond`` keep their defaults), pushes with odds below ``min_odds`` withheld."""
-    return Push(speed=spec.speed_nm_per_s, corrections=spec.corrections, min_odds=min_odds)
+    return Push(
+        lead_in=spec.lead_in_nm, speed=spec.speed_nm_per_s, corrections=spec.corrections, min_odds=min_odds
+    )
 
 
 class ImplausibleModel(ValueError):

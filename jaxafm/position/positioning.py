@@ -85,18 +85,23 @@ def goto(
     dwell: float = 0.2,
     samples: int = 64,
     approach: float = 0.0,
+    along: Optional[Array] = None,
 ) -> tuple:
     """Move straight to ``target`` (2,) nm over ``move_time`` s and dwell there ``dwell`` s.
 
-    With ``approach`` a > 0 nm the move first passes through ``target + (a, a)`` and
-    ``target - (a, a)`` (a leg of ``move_time`` each) and reaches the target rising on both
-    axes: whatever came before, every hysteresis operator narrower than a arrives in the same
-    state, so two arrivals at one place agree however the tip came there (step B: landmarks
-    and targets reached alike). Returns the true tip position (2,) nm at the end of the
-    dwell, the true path and the next stand.
+    With ``approach`` a > 0 nm the move first passes through ``target + a e`` and
+    ``target - a e`` (a leg of ``move_time`` each), ``e`` = ``along`` (2,) (default (1, 1)), and
+    reaches the target moving along ``e``: whatever came before, every hysteresis operator
+    narrower than the middle leg's move on its axis (2 a |e_i|) arrives in the same state, so two
+    arrivals at one place agree however the tip came there (step B: landmarks and targets reached
+    alike, rising on both axes). Returns the true tip position (2,) nm at the end of the dwell, the true path and the
+    next stand.
     """
     target = jnp.asarray(target, dtype=float)
-    points = [stand.wanted] + ([target + approach, target - approach] if approach > 0 else []) + [target]
+    e = jnp.ones(2) if along is None else jnp.asarray(along, dtype=float)
+    points = (
+        [stand.wanted] + ([target + approach * e, target - approach * e] if approach > 0 else []) + [target]
+    )
     n_move = samples // 2
     frac = (jnp.arange(1, n_move + 1) / n_move)[:, None]
     legs = [a + frac * (b - a) for a, b in zip(points[:-1], points[1:])]
@@ -436,8 +441,9 @@ class _Line(NamedTuple):
 
 
 class Push(eqx.Module):
-    """The pushing task's settings: start ``gap`` nm behind the contact, push at ``speed``
-    nm/s in ``samples`` steps; then up to ``corrections`` checks (:func:`push_and_check`), each
+    """The pushing task's settings: start ``gap`` nm behind the contact, reached through a
+    ``lead_in`` nm along the push (:func:`push`; 0: straight from where the tip is), push at
+    ``speed`` nm/s in ``samples`` steps; then up to ``corrections`` checks (:func:`push_and_check`), each
     a local scan at the goal and, when the particle lies more than ``correct_beyond`` R from
     it, a corrective push. A push whose predicted success (:mod:`~jaxafm.position.push_odds`) is
     below ``min_odds`` is withheld (0: every push is made). The particle model: the tip touches
@@ -445,6 +451,7 @@ class Push(eqx.Module):
     particle moves with the tip (rigidly), and it stays where it is when the tip retracts."""
 
     gap: float = eqx.field(static=True, default=20.0)
+    lead_in: float = eqx.field(static=True, default=0.0)
     speed: float = eqx.field(static=True, default=200.0)
     samples: int = eqx.field(static=True, default=512)
     corrections: int = eqx.field(static=True, default=1)
@@ -477,6 +484,12 @@ def push(
     ``particle``) by ``distance`` nm along the unit ``direction`` (2,): approach behind it
     (lifted), lower, push so that it ends at ``centre + distance * direction``, retract.
 
+    With ``spec.lead_in`` L > 0 nm the tip reaches the push's start through ``start + L d`` and
+    ``start - L d`` (:func:`goto`'s approach along ``d``), so the push goes on along the way the
+    tip came, far from its last reversal, where a model's error in the loop's first part after
+    a turn (the small operators a short move sets) matters least; without, the tip backs
+    ``R + tip radius + gap`` from the particle and the push starts right at that reversal.
+
     Returns ``(PushResult, stand)``: what the push did, and the next stand.
     """
     rho = radius + pos.afm.tip.radius
@@ -484,7 +497,7 @@ def push(
     start = centre - (rho + spec.gap) * direction
     end = centre + (distance - rho) * direction
     k_to, k_push = jax.random.split(key)
-    _, _, stand = goto(pos, sample, stand, start, k_to, dwell=0.1)
+    _, _, stand = goto(pos, sample, stand, start, k_to, dwell=0.1, approach=spec.lead_in, along=direction)
     frac = jnp.arange(1, spec.samples + 1) / spec.samples
     wanted = start + frac[:, None] * (end - start)
     length = spec.gap + distance
