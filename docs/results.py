@@ -3054,6 +3054,8 @@ def study_push_gate(results: Results) -> Table:
     return Table(header, rows, [STUDY, STUDY_GATE])
 
 
+#: the truth class of each scanner of the study of record
+STUDY_CLASSES_SPEED_SCANNERS = Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command)
 PUSH_SHORTFALL_CLASSES = Run(
     "push_shortfall/shortfall_study_classes_speed_scanners_0_1_2_3_5_9_13.json",
     "python experiments/push_shortfall.py --config configs/study_classes_speed.yaml --scanners 0 1 2 3 5 9 13",
@@ -3089,7 +3091,7 @@ TABLES["push_shortfall_truth_model"] = push_shortfall(
         "push_shortfall/shortfall_study_classes_speed_scanners_0_1_2_3_5_9_13_truth_model.json",
         PUSH_SHORTFALL_CLASSES.command + " --truth-model",
     ),
-    Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command),
+    STUDY_CLASSES_SPEED_SCANNERS,
 )
 PUSH_LEAD_IN = Run(
     "push_shortfall/shortfall_lead_in_500.json", "python experiments/push_shortfall.py --lead-in 500"
@@ -3124,9 +3126,7 @@ def push_lead_in(results: Results) -> Table:
     return Table(header, rows, list(runs))
 
 
-TABLES["push_shortfall_classes_speed"] = push_shortfall(
-    PUSH_SHORTFALL_CLASSES, Run("study_classes_speed/scanners.json", STUDY_CLASSES_SPEED.command)
-)
+TABLES["push_shortfall_classes_speed"] = push_shortfall(PUSH_SHORTFALL_CLASSES, STUDY_CLASSES_SPEED_SCANNERS)
 
 
 @table("bench_study")

@@ -94,8 +94,8 @@ def goto(
     reaches the target moving along ``e``: whatever came before, every hysteresis operator
     narrower than the middle leg's move on its axis (2 a |e_i|) arrives in the same state, so two
     arrivals at one place agree however the tip came there (step B: landmarks and targets reached
-    alike, rising on both axes). Returns the true tip position (2,) nm at the end of the dwell, the true path and the
-    next stand.
+    alike, rising on both axes). Returns the true tip position (2,) nm at the end of the dwell,
+    the true path and the next stand.
     """
     target = jnp.asarray(target, dtype=float)
     e = jnp.ones(2) if along is None else jnp.asarray(along, dtype=float)
@@ -443,12 +443,13 @@ class _Line(NamedTuple):
 class Push(eqx.Module):
     """The pushing task's settings: start ``gap`` nm behind the contact, reached through a
     ``lead_in`` nm along the push (:func:`push`; 0: straight from where the tip is), push at
-    ``speed`` nm/s in ``samples`` steps; then up to ``corrections`` checks (:func:`push_and_check`), each
-    a local scan at the goal and, when the particle lies more than ``correct_beyond`` R from
-    it, a corrective push. A push whose predicted success (:mod:`~jaxafm.position.push_odds`) is
-    below ``min_odds`` is withheld (0: every push is made). The particle model: the tip touches
-    a particle of radius R when their centres come within ``R + tip radius``; from then on the
-    particle moves with the tip (rigidly), and it stays where it is when the tip retracts."""
+    ``speed`` nm/s in ``samples`` steps; then up to ``corrections`` checks
+    (:func:`push_and_check`), each a local scan at the goal and, when the particle lies more than
+    ``correct_beyond`` R from it, a corrective push. A push whose predicted success
+    (:mod:`~jaxafm.position.push_odds`) is below ``min_odds`` is withheld (0: every push is made).
+    The particle model: the tip touches a particle of radius R when their centres come within
+    ``R + tip radius``; from then on the particle moves with the tip (rigidly), and it stays where
+    it is when the tip retracts."""
 
     gap: float = eqx.field(static=True, default=20.0)
     lead_in: float = eqx.field(static=True, default=0.0)
