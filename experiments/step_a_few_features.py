@@ -14,8 +14,14 @@ inside and outside the features' reach, and per axis.
 
     python experiments/step_a_few_features.py [--seed 7] [--pixels 256] [--rates 0.5 1 2 4]
     python experiments/step_a_few_features.py --blur-px 2 1   # with the simulated AFM's image stages
+    python experiments/step_a_few_features.py --known y --sd-pct 2   # the y gain stated, as a user may know it
 
-writes experiments/results/step_a_few_features/seed<seed>[_blur<...>].json (with its log).
+With ``--known`` the config also states the generator's true gain of those axes (``models[].known``,
+as step A's quantities define a gain: the ascending branch's mean slope over the drive the scans
+cover, computed from the generator's own relays) with an sd of ``--sd-pct`` % of it.
+
+writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct].json
+(with its log).
 """
 
 from __future__ import annotations
@@ -32,18 +38,38 @@ import numpy as np
 import step_a_independent as S
 
 from jaxafm.config import CalibrateConfig
+from jaxafm.identify.calibration_scan import drive_range
 from jaxafm.identify.identifiability import path_sd
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
 
 OUT = Path(__file__).parent / "results" / "step_a_few_features"
 
 
-def user_config(given: dict, blur_px: list | None = None) -> CalibrateConfig:
+def user_config(given: dict, blur_px: list | None = None, known: dict | None = None) -> CalibrateConfig:
     """What a user writes for the files: the ``data`` section and the lattice's pitch and kind
-    (and ``solver.blur_px`` when given)."""
+    (and ``solver.blur_px`` and a model's ``known`` quantities when given)."""
     solver = {} if blur_px is None else {"blur_px": blur_px}
     grating = {k: given["grating"][k] for k in ("pitch_nm", "pits")}
-    return CalibrateConfig(data=given["data"], grating=grating, solver=solver, compensate=None)
+    models = [{"name": "gpi", "known": known}] if known else [{"name": "gpi"}]
+    return CalibrateConfig(data=given["data"], grating=grating, solver=solver, models=models, compensate=None)
+
+
+def true_gains(case, scans) -> dict:
+    """The generator's gain of each axis (nm/V) as step A's quantities define it
+    (:func:`jaxafm.identify.quantities.quantities`): the ascending branch's mean slope over the
+    drive range the scans cover (:func:`~jaxafm.identify.calibration_scan.drive_range`), after a
+    sweep down over it; from the generator's own axis, ``p = k u + S sum w R``."""
+    drive = drive_range(scans)
+    out = {}
+    for k, a in enumerate("xy"):
+        axis = case["scanner"].axes[k]
+        lo, hi = drive[k]
+        u = np.concatenate(
+            [np.linspace(0, hi, 201), np.linspace(hi, lo, 401)[1:], np.linspace(lo, hi, 401)[1:]]
+        )
+        p = axis.reversible_nm_per_v * u + axis.hysteretic_nm * G.preisach(u, axis.relays)
+        out[f"{a}_gain_nm_per_v"] = float((p[-1] - p[600]) / (hi - lo))
+    return out
 
 
 def axis_errors_px(model, scans, case) -> list:
@@ -64,8 +90,17 @@ def predicted_sd_by_reach(ident, scans, case) -> dict:
     return {"path_sd_inside_reach_px": rms(within), "path_sd_outside_reach_px": rms(~within)}
 
 
-def run(seed: int, pixels: int, rates: tuple, blur_px: list | None = None, log=print) -> dict:
-    """Draw, write and identify the case; score it."""
+def run(
+    seed: int,
+    pixels: int,
+    rates: tuple,
+    blur_px: list | None = None,
+    known: tuple = (),
+    sd_pct: float = 2.0,
+    log=print,
+) -> dict:
+    """Draw, write and identify the case, the true gains of the ``known`` axes stated with an sd
+    of ``sd_pct`` % (:func:`true_gains`); score it."""
     case = G.draw_case(
         seed,
         "coarse",
@@ -77,8 +112,16 @@ def run(seed: int, pixels: int, rates: tuple, blur_px: list | None = None, log=p
     )
     with tempfile.TemporaryDirectory() as folder:
         files = G.write_case(case, folder, fmt="tiff")
-        cfg = user_config(json.loads(Path(files["data"]).read_text()), blur_px)
-        scans = read_calibration(cfg.data, cfg.grating, Path(folder) / "c.yaml", log=lambda *_: None)
+        given = json.loads(Path(files["data"]).read_text())
+        scans = read_calibration(
+            user_config(given).data, user_config(given).grating, Path(folder) / "c.yaml", log=lambda *_: None
+        )
+        gains = true_gains(case, scans)
+        stated = {
+            f"{a}_gain_nm_per_v": [gains[f"{a}_gain_nm_per_v"], sd_pct / 100 * gains[f"{a}_gain_nm_per_v"]]
+            for a in known
+        }
+        cfg = user_config(given, blur_px, stated)
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log, measured=True)
     out = {
@@ -88,6 +131,8 @@ def run(seed: int, pixels: int, rates: tuple, blur_px: list | None = None, log=p
         "pixel_nm": scans[0].raster.pixel_size[0],
         "seconds": time.perf_counter() - began,
         "image_blurs_px": list(cfg.solver.image_blurs(True)),
+        "true_gains_nm_per_v": gains,
+        "known": stated,
         "kept": ident.spec.kind + f" {ident.spec.operators} plays + " + ", ".join(ident.spec.effects),
         "plausible": ident.plausible,
         "failures": list(ident.failures),
@@ -109,6 +154,10 @@ def main() -> None:
     a.add_argument("--pixels", type=int, default=256)
     a.add_argument("--rates", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0])
     a.add_argument("--blur-px", type=float, nargs="*", help="solver.blur_px (default: unset)")
+    a.add_argument(
+        "--known", nargs="*", choices=["x", "y"], default=[], help="axes whose true gain is stated"
+    )
+    a.add_argument("--sd-pct", type=float, default=2.0, help="the stated gains' sd, %% of each")
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     said = []
@@ -117,10 +166,11 @@ def main() -> None:
         said.append(line)
         print(line, flush=True)
 
-    row = run(args.seed, args.pixels, tuple(args.rates), args.blur_px, log)
+    row = run(args.seed, args.pixels, tuple(args.rates), args.blur_px, tuple(args.known), args.sd_pct, log)
     row["log"] = said
     blurs = "" if args.blur_px is None else "_blur" + "_".join(f"{b:g}" for b in args.blur_px)
-    (OUT / f"seed{args.seed}{blurs}.json").write_text(json.dumps(row, indent=1, default=float))
+    known = f"_known_{''.join(args.known)}_{args.sd_pct:g}pct" if args.known else ""
+    (OUT / f"seed{args.seed}{blurs}{known}.json").write_text(json.dumps(row, indent=1, default=float))
     keys = ("plausible", "failures", "kept", "tip_path_rms_px", "tip_path_xy_rms_px", "seconds")
     print(json.dumps({k: row[k] for k in keys}, indent=1, default=float))
 

@@ -294,19 +294,21 @@ def test_the_share_of_the_path_variance_a_quantity_settles_is_its_gaussian_condi
     from jaxafm.identify.identifiability import (
         PATH_SAMPLES,
         _path_gradients,
-        _quantities,
         chord_covariance,
         identifiability,
     )
+    from jaxafm.identify.quantities import quantities
 
     scans, ident = _small_fit()
     model = ident.model.as_float64()
     found = identifiability(model, scans, ident.chords, drive_range(scans))
     C = chord_covariance(model, scans, ident.chords)
-    raw, _ = model.free_parameters(scans[0])
+    raw, rebuild = model.free_parameters(scans[0])
     flat, unravel = ravel_pytree(raw)
-    keys, _, _, q = _quantities(model, scans, drive_range(scans))
-    G = np.asarray(jax.jacfwd(lambda x: q(unravel(x)))(flat))
+    defined = quantities(model, scans, drive_range(scans))
+    keys = [d.key for d in defined]
+    q = lambda x: jnp.stack([d.of(rebuild(unravel(x))) for d in defined])
+    G = np.asarray(jax.jacfwd(q)(flat))
     P = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in _path_gradients(model, scans, PATH_SAMPLES)])
     total = np.einsum("nij,jk,nik->", P, C, P)
     np.testing.assert_allclose(found.path_rms_nm, np.sqrt(total / len(P)), rtol=1e-10)
@@ -317,11 +319,49 @@ def test_the_share_of_the_path_variance_a_quantity_settles_is_its_gaussian_condi
         assert -1e-9 <= found.settles[key] <= 100 + 1e-9, key
 
 
+def test_a_stated_quantity_is_fitted_under_its_prior():
+    """A quantity the user states (``known``) is a Gaussian prior on it. Stated at the value the
+    chords alone fit, with an sd a fiftieth of theirs, the fit stays there and what the chords
+    determine of it is the two combined, ``(1 / sd_data^2 + 1 / sd^2)^-1/2``, to 1 % (the
+    cluster-robust covariance, its scores' spread in place of the residuals' and a unit prior on
+    every raw parameter, parts in a thousand from the Gaussian's closed form).
+    Stated 3 % off, it takes the fit most of the way there (a prior 2,500 times the data's
+    precision: the constraint it tends to); stated 1,000 times wider than the data's sd, the
+    fit is the one without it, to a twentieth of what the data determine. (_small_fit's model,
+    each fit run to convergence: some 100 steps.)"""
+    from jaxafm.identify.calibration_scan import drive_range
+    from jaxafm.identify.identifiability import identifiability
+
+    scans, _ = _scans(angles=(0.0,), rotation=0.0)
+    drive = drive_range(scans)
+
+    def fitted(*known):
+        spec = ScanModelSpec(kind="pi", effects=("coupling", "creep"), operators=4, known=known)
+        ident = staged_fit.identify(
+            scans, spec, FitPlan(max_steps=300, blur_px=(), select=False), log=lambda *_: None
+        )
+        assert ident.converged
+        found = identifiability(ident.model, scans, ident.chords, drive).quantities
+        return next(q for q in found if q.key == "y_gain_nm_per_v")
+
+    data = fitted()
+    fitted = lambda value, sd, fit=fitted: fit(("y_gain_nm_per_v", value, sd))
+    sd = data.sd / 50
+    there = fitted(data.value, sd)
+    assert abs(there.value - data.value) < 0.05 * sd, (there.value, data.value, sd)
+    np.testing.assert_allclose(there.sd, (data.sd**-2 + sd**-2) ** -0.5, rtol=0.01)
+    stated = 1.03 * data.value
+    off = fitted(stated, sd)
+    assert abs(off.value - stated) < 0.1 * abs(stated - data.value), (off.value, stated, data.value)
+    loose = fitted(stated, 1000 * data.sd)
+    assert abs(loose.value - data.value) < 0.05 * data.sd, (loose.value, data.value, data.sd)
+
+
 def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_and_the_task_allows_is_refused():
     """Refused when the path's sd (rms over the images, here sqrt((300² + 400²) / 1) = 500 nm)
     exceeds both the held-out features' predicted error and the path tolerance, naming the
-    quantity that would settle most of it; not refused at or below either, nor without held-out
-    features to compare with."""
+    quantity that would settle most of it and how to state it; not refused at or below either,
+    nor without held-out features to compare with."""
     from jaxafm.identify.identifiability import Determination, Quantity
     from jaxafm.identify.plausibility import unsettled
 
@@ -335,6 +375,7 @@ def test_a_path_the_scans_leave_more_open_than_a_feature_is_placed_and_the_task_
     said = unsettled(wide, {"held_out_predicted_rms_nm": 110.0}, 50.0)
     assert len(said) == 1 and "500 nm" in said[0] and "y loop at mid-drive" in said[0] and "80 %" in said[0]
     assert "50 nm the path may be open" in said[0]
+    assert "known: {y_loop_pct_of_travel: [value, sd]}" in said[0]
     assert unsettled(wide, {"held_out_predicted_rms_nm": 500.0}, 50.0) == []
     assert unsettled(wide, {"held_out_predicted_rms_nm": 110.0}, 500.0) == []
     assert unsettled(wide, {}, 50.0) == []
@@ -680,6 +721,26 @@ def test_a_bad_scan_set_names_the_key(tmp_path, data, match):
         ("simulate: {lattice_rotation_deg: 60}\n", "simulate.lattice_rotation_deg"),
         ("simulate: {}\ngrating: {rotation_deg: 50}\n", "grating.rotation_deg"),
         ("simulate: {}\ngrating: {rotation_deg: fitted}\n", "grating.rotation_deg"),
+        (
+            "simulate: {}\nmodels: [{name: m, known: {y_gain: [1940, 40]}}]\n",
+            "known: 'y_gain' is not a quantity.*y_gain_nm_per_v",
+        ),
+        (
+            "simulate: {}\nmodels: [{name: m, known: {y_gain_nm_per_v: [1940, 0]}}]\n",
+            r"known: y_gain_nm_per_v: \[1940.0, 0.0\] needs .*sd > 0",
+        ),
+        (
+            "simulate: {}\nmodels: [{name: m, known: {y_gain_nm_per_v: [1940]}}]\n",
+            "models.0.known.y_gain_nm_per_v",
+        ),
+        (
+            "simulate: {}\nmodels: [{name: m, effects: [coupling], known: {x_creep_per_decade: [0.01, 0.005]}}]\n",
+            r"known: x_creep_per_decade needs the effect 'creep' among effects \(coupling\)",
+        ),
+        (
+            "simulate: {}\nmodels: [{name: m, known: {coupling_yx: [0.01, 0.005]}}]\n",
+            "models m: known: coupling_yx cannot be stated while grating.rotation_deg is 'fit'",
+        ),
     ],
 )
 def test_bad_angles_name_the_key(tmp_path, text, match):

@@ -22,7 +22,7 @@ from .common import (
     Solver,
     Strict,
 )
-from .names import MODEL_EFFECTS, check_effect_names
+from .names import KNOWABLE, MODEL_EFFECTS, check_effect_names
 
 
 class CalibrationLattice(Strict):
@@ -242,6 +242,11 @@ class CalibrationModel(HysteresisSpec):
         description="creep as d0 (1 + gamma log10(1 + t / t0)) with its onset t0 (s) fitted too; "
         "otherwise a log law of fixed shape from 0.1 s",
     )
+    known: dict[str, Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        {},
+        description="what you know of the scanner beforehand, each quantity as [value, sd] in its "
+        "units (y_gain_nm_per_v: [1940, 40]): step A fits it under a Gaussian prior of that mean and sd",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -257,6 +262,24 @@ class CalibrationModel(HysteresisSpec):
             )
         return given
 
+    @model_validator(mode="after")
+    def _knowable(self):
+        for key, (value, sd) in self.known.items():
+            if key not in KNOWABLE:
+                raise ValueError(
+                    f"known: {key!r} is not a quantity step A fits; one of {', '.join(KNOWABLE)}"
+                )
+            if not (math.isfinite(value) and math.isfinite(sd) and sd > 0):
+                raise ValueError(
+                    f"known: {key}: [{value}, {sd}] needs a finite value and a finite sd > 0 (in the key's units)"
+                )
+            needs = KNOWABLE[key]
+            if needs is not None and needs not in self.effects:
+                raise ValueError(
+                    f"known: {key} needs the effect {needs!r} among effects ({', '.join(self.effects)})"
+                )
+        return self
+
     @field_validator("effects")
     @classmethod
     def _fittable(cls, effects):
@@ -266,6 +289,18 @@ class CalibrationModel(HysteresisSpec):
                     f"effect {e!r} cannot be fitted from grating images; choose from {', '.join(MODEL_EFFECTS)}"
                 )
         return effects
+
+
+def check_known(model: CalibrationModel, grating: CalibrationLattice) -> None:
+    """Refuse a stated ``coupling_yx`` where the lattice's angle is fitted: step A then holds the
+    coupling of y from x at 0 (the lattice's angle and it move the images alike), so there is
+    nothing to state it of."""
+    if "coupling_yx" in model.known and grating.rotation_deg == "fit":
+        raise ValueError(
+            f"models {model.name}: known: coupling_yx cannot be stated while grating.rotation_deg is 'fit': "
+            "step A then holds the coupling of y from x at 0 and fits the lattice's angle; give the "
+            "lattice's angle (grating.rotation_deg) or leave coupling_yx out"
+        )
 
 
 StepLimit = Annotated[int, Field(ge=1, le=10_000)]
@@ -411,6 +446,8 @@ class CalibrateConfig(Strict):
         names = [m.name for m in self.models]
         if len(set(names)) != len(names):
             raise ValueError(f"model names must be unique, got {names}")
+        for model in self.models:
+            check_known(model, self.grating)
         if self.simulate is not None:
             check_coarsen(self.solver, self.simulate, self.grating)
         check_stage_steps(

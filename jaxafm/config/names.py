@@ -33,6 +33,22 @@ TRUTH_CLASSES = ("generalised_pi", "preisach", "rate_dependent", "resonant")
 #: The effects besides hysteresis that step A can fit from a grating's trace/retrace images.
 MODEL_EFFECTS = ("asymmetry", "rate_dependence", "creep", "coupling", "bow", "drift", "feedback_lag")
 
+#: the quantities of a scanner step A fits that a user may state as known beforehand (a
+#: calibration model's ``known``; :func:`jaxafm.identify.quantities.quantities` defines each),
+#: and the effect each needs among the model's effects (``None``: every model has it)
+KNOWABLE = {
+    "x_gain_nm_per_v": None,
+    "y_gain_nm_per_v": None,
+    "x_loop_pct_of_travel": None,
+    "y_loop_pct_of_travel": None,
+    "x_creep_per_decade": "creep",
+    "y_creep_per_decade": "creep",
+    "x_rate_lag_s": "rate_dependence",
+    "y_rate_lag_s": "rate_dependence",
+    "coupling_xy": "coupling",
+    "coupling_yx": "coupling",
+}
+
 #: The solvers a fit can use: ``library.method``.
 SOLVERS = (
     "optimistix.levenberg_marquardt",

@@ -15,6 +15,7 @@ from .calibrate import (
     Compensation,
     SimulatedCalibration,
     check_coarsen,
+    check_known,
     check_stage_steps,
 )
 from .common import Seed, Strict
@@ -37,6 +38,7 @@ class StepA(Strict):
             raise ValueError("simulate.withheld: a positioning run needs the full simulated instrument")
         check_coarsen(self.solver, self.simulate, self.grating)
         check_stage_steps(self.solver, len(self.simulate.scans))
+        check_known(self.model, self.grating)
         return self
 
 

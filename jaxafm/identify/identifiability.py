@@ -37,6 +37,7 @@ import numpy as np
 
 from .calibration_scan import line_strokes
 from .held_out import hat_trace
+from .quantities import quantities as quantity_table
 from .scan_model import ScanModel
 from .stages import chord_linearisation, feature_groups, feature_keys
 from .uncertainty import covariance
@@ -95,100 +96,6 @@ def _unmeasured_loops(scans: tuple) -> dict:
     }
 
 
-def _quantities(model: ScanModel, scans: tuple, drive: np.ndarray):
-    """The model's physical quantities as a function of its raw parameters: ``(keys, names, units,
-    q(raw) -> (m,))``. ``drive`` (2, 2) V is the drive range [min, max] per axis that the scans
-    covered: an axis's gain is its branches' mean slope, and its loop their separation (descending
-    less ascending branch), at the middle of that range, after a sweep over it. (One function of
-    about 70 lines: one small closure per quantity, each a line or two, which read best side by
-    side.)"""
-    rebuild = model.free_parameters(scans[0])[1]
-    travel = np.ptp(drive, axis=1) * np.asarray(scans[0].sensitivity)
-    keys, names, units, parts = [], [], [], []
-
-    def add(key, name, unit, fn):
-        keys.append(key)
-        names.append(name)
-        units.append(unit)
-        parts.append(fn)
-
-    for k, a in enumerate("xy"):
-        lo, hi = drive[k]
-        mid = 0.5 * (lo + hi)
-        u = jnp.concatenate([jnp.linspace(lo, hi, 101), jnp.linspace(hi, lo, 101)])
-        branch = lambda m, a=a, u=u, lo=lo, hi=hi: getattr(m.scanner, a).hysteresis(u, jnp.asarray([hi, lo]))
-        grid = jnp.linspace(lo, hi, 101)
-        loop = lambda y, mid=mid, grid=grid: (
-            jnp.interp(mid, grid, y[101:][::-1]) - jnp.interp(mid, grid, y[:101])
-        )
-        add(
-            f"{a}_gain_nm_per_v",
-            f"{a} gain",
-            "nm/V",
-            lambda m, b=branch, span=hi - lo: (b(m)[100] - b(m)[0]) / span,
-        )
-        add(
-            f"{a}_loop_pct_of_travel",
-            f"{a} loop at mid-drive",
-            "% of travel",
-            lambda m, b=branch, t=travel[k]: 100 * loop(b(m)) / t,
-        )
-        axis = getattr(model.scanner, a)
-        if axis.creep is not None:
-            add(
-                f"{a}_creep_per_decade",
-                f"{a} creep",
-                "per decade",
-                lambda m, a=a: getattr(m.scanner, a).creep.per_decade,
-            )
-            if axis.creep.onset is not None:
-                add(
-                    f"{a}_creep_onset_s",
-                    f"{a} creep onset",
-                    "s",
-                    lambda m, a=a: getattr(m.scanner, a).creep.onset,
-                )
-        if axis.rate_dependence is not None:
-            add(
-                f"{a}_rate_lag_s",
-                f"{a} rate-dependence lag",
-                "s",
-                lambda m, a=a: getattr(m.scanner, a).rate_dependence.tau,
-            )
-    for k, scan in enumerate(scans):
-        add(f"loop_scan{k}_nm", f"loop in {scan.name}", "nm", lambda m, scan=scan: _scan_loop(m, scan))
-    s = model.scanner
-    if s.coupling is not None:
-        add("coupling_xy", "coupling x from y", "", lambda m: m.scanner.coupling.xy)
-        if not model.rotation_free:
-            add("coupling_yx", "coupling y from x", "", lambda m: m.scanner.coupling.yx)
-    if s.bow is not None:
-        add("bow_x_per_nm", "bow x from y^2", "1/nm", lambda m: m.scanner.bow.bx)
-        add("bow_y_per_nm", "bow y from x^2", "1/nm", lambda m: m.scanner.bow.by)
-    if s.drift is not None:
-        add("drift_x_nm_per_s", "drift x", "nm/s", lambda m: m.scanner.drift.velocity[0])
-        add("drift_y_nm_per_s", "drift y", "nm/s", lambda m: m.scanner.drift.velocity[1])
-    if model.feedback is not None:
-        add("edge_delay_s", "edge delay (z signal)", "s", lambda m: m.edge_delay)
-    if model.rotation_free:
-        add("lattice_angle_deg", "lattice angle", "deg", lambda m: jnp.rad2deg(m.lattice.angle))
-    return (
-        keys,
-        names,
-        units,
-        lambda raw: jnp.stack([jnp.asarray(f(rebuild(raw)), dtype=float) for f in parts]),
-    )
-
-
-def _scan_loop(model: ScanModel, scan) -> jnp.ndarray:
-    """How far (nm) the model's retrace lies behind its trace along the scan's fast axis in the
-    middle column, on average over the lines: the loop (and the lag) the scan itself shows."""
-    trace, retrace = model.paths(scan)
-    mid = scan.raster.pixels // 2
-    fast = jnp.asarray(scan.raster.rotation[:, 0])
-    return jnp.mean((retrace[:, mid] - trace[:, mid]) @ fast)
-
-
 def chord_covariance(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarray:
     """The covariance (k, k) of the model's raw parameters (raveled) from the chord stage's data
     ``chords`` on ``scans``: cluster-robust, one feature a cluster, with one order-one unit of
@@ -245,7 +152,8 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     model = model.as_float64()
     raw, rebuild = model.free_parameters(scans[0])
     C = chord_covariance(model, scans, chords)
-    keys, names, units, q = _quantities(model, scans, drive)
+    defined = quantity_table(model, scans, drive)
+    q = lambda raw: jnp.stack([jnp.asarray(d.of(rebuild(raw)), dtype=float) for d in defined])
     flat, unravel = jax.flatten_util.ravel_pytree(raw)
     with (
         warnings.catch_warnings()
@@ -256,15 +164,16 @@ def identifiability(model: ScanModel, scans: tuple, chords: tuple, drive: np.nda
     sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G, optimize=True), 0.0))
     unmeasured = _unmeasured_loops(scans)
     quantities = [
-        Quantity(*row, unmeasured.get(row[0], ""))
-        for row in zip(keys, names, value.tolist(), sd.tolist(), units)
+        Quantity(d.key, d.name, v, s, d.unit, unmeasured.get(d.key, ""))
+        for d, v, s in zip(defined, value.tolist(), sd.tolist())
     ]
     P = np.concatenate([g.reshape(-1, 2, g.shape[-1]) for g in _path_gradients(model, scans, PATH_SAMPLES)])
     variance = np.einsum("nij,jk,nik->ni", P, C, P, optimize=True)  # (N, 2) nm^2
     cross = np.einsum("nij,jk,qk->qni", P, C, G, optimize=True)  # the path's covariance with each quantity
     removed = np.sum(cross**2, axis=(1, 2)) / np.maximum(sd**2, 1e-300)
     shares = 100 * removed / max(float(np.sum(variance)), 1e-300)
-    return Determination(quantities, np.sqrt(np.mean(variance, axis=0)), dict(zip(keys, shares.tolist())))
+    shares = dict(zip([d.key for d in defined], shares.tolist()))
+    return Determination(quantities, np.sqrt(np.mean(variance, axis=0)), shares)
 
 
 def _path_gradients(model: ScanModel, scans: tuple, samples: Optional[int] = None) -> list:

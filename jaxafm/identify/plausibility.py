@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
+from ..config.names import KNOWABLE
 from ..model.hysteresis import AbstractHysteresis
 from ..model.io import check_monotone
 from ..model.scanner import Scanner
@@ -174,7 +175,8 @@ def unsettled(determination, validation: dict, tolerance_nm: float) -> list:
     alone that places the tip, and a path less certain there than a feature is placed has not
     been checked, unless it is still as certain as the task needs (a fit whose features sit to
     a nanometre need not fix its path to one). Names the quantity whose knowledge would settle
-    most of it."""
+    most of it, and how to state it where the user may know it (a calibration model's
+    ``known``, :data:`~jaxafm.config.names.KNOWABLE`)."""
     expected = validation.get("held_out_predicted_rms_nm")
     path = determination.path_rms_nm
     if expected is None or not path_open(path, expected, tolerance_nm):
@@ -186,9 +188,16 @@ def unsettled(determination, validation: dict, tolerance_nm: float) -> list:
         f"rms over the images (x {x:.4g}, y {y:.4g} nm), more than the {expected:.4g} nm a held-out "
         f"feature is predicted to be placed to and the {tolerance_nm:.4g} nm the path may be open "
         f"(solver.path_tolerance_nm); knowing the {q.name} ({q.value:.4g} +- {q.sd:.3g} {q.unit}) "
-        f"would settle {share:.0f} % of it: scan at more line rates or angles, or a lattice with "
-        "more features"
+        f"would settle {share:.0f} % of it: {_state_it(q)}scan at more line rates or angles, or a "
+        "lattice with more features"
     ]
+
+
+def _state_it(q) -> str:
+    """How to tell step A a quantity the user may know (:func:`unsettled`), or nothing."""
+    if q.key not in KNOWABLE:
+        return ""
+    return f"state it if you know it (the model's known: {{{q.key}: [value, sd]}}), or "
 
 
 def creep_fall(creep) -> float:

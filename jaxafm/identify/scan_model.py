@@ -85,6 +85,9 @@ class ScanModelSpec:
         creep_onset: creep follows ``d0 (1 + gamma log10(1 + t / t0))`` with its onset ``t0``
             fitted too (:meth:`~jaxafm.model.effects.Creep.with_onset`); otherwise a log law
             of fixed shape from 0.1 s.
+        known: what the user knows of the scanner beforehand, ``(key, value, sd)`` per
+            quantity (keys of :data:`~jaxafm.identify.quantities.KNOWABLE`): step A's Gaussian
+            prior on it (:attr:`ScanModel.known`).
     """
 
     kind: str = "gpi"
@@ -95,6 +98,7 @@ class ScanModelSpec:
     rotation: Optional[float] = 0.0
     deadzone_reach: Optional[tuple] = None
     creep_onset: bool = False
+    known: tuple = ()
 
 
 class ScanModel(eqx.Module):
@@ -115,7 +119,16 @@ class ScanModel(eqx.Module):
     kept >= 0: a z signal cannot show an edge before the tip reaches it. At one line rate it
     trades against the loop's width (both set trace and retrace edges apart by a constant where
     the tip's speed is); unbounded, a fit settles on a wider loop and a negative delay
-    (docs/step_a.md)."""
+    (docs/step_a.md).
+
+    ``known``: the keys of the quantities the user states beforehand (of
+    :func:`~jaxafm.identify.quantities.quantities`, e.g. ``("y_gain_nm_per_v",)``), with their
+    values ``known_value`` (k,) and sds ``known_sd`` (k,) in the keys' units: every stage fits
+    them under a Gaussian prior of that mean and sd (:func:`~jaxafm.identify.stages.prior_rows`),
+    and what the scans determine counts it.
+    ``known_scale``: the stage's residual spread in units of the spread its priors are weighed
+    against (:func:`~jaxafm.identify.stages.weigh_known`), so that a stated sd counts against
+    the residuals as they scatter."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
@@ -123,6 +136,10 @@ class ScanModel(eqx.Module):
     chord_slope: Array = eqx.field(default_factory=lambda: jnp.zeros(2))
     edge_delay: Array = eqx.field(default_factory=lambda: jnp.zeros(()))
     rotation_free: bool = eqx.field(static=True, default=False)
+    known: tuple = eqx.field(static=True, default=())
+    known_value: Array = eqx.field(default_factory=lambda: jnp.zeros(0))
+    known_sd: Array = eqx.field(default_factory=lambda: jnp.ones(0))
+    known_scale: Array = eqx.field(default_factory=lambda: jnp.ones(()))
 
     def chord_ends(self, path: Array, ends: Array, shift, xp=jnp) -> Array:
         """Where the tip was (n, 2, 2) nm when it crossed the chords' ``ends`` (n, 2, 2)
@@ -333,7 +350,16 @@ def nominal_scan_model(
         jnp.zeros(2),
     )
     feedback = has("feedback_lag", FeedbackLag(jnp.asarray(5e-4)))
-    return ScanModel(scanner, feedback, lattice, rotation_free=spec.rotation is None)
+    known = np.asarray([v for _, *v in spec.known], dtype=float).reshape(-1, 2)
+    return ScanModel(
+        scanner,
+        feedback,
+        lattice,
+        rotation_free=spec.rotation is None,
+        known=tuple(k for k, *_ in spec.known),
+        known_value=jnp.asarray(known[:, 0]),
+        known_sd=jnp.asarray(known[:, 1]),
+    )
 
 
 #: the widest play, as a fraction of the drive a line sweeps on its axis

@@ -274,10 +274,12 @@ class _StagedFit:
             train = chord_data(self.train[: len(fitted)], fitted, 1)
             fit = dataclasses.replace(fit, model=refit_edges(fit.model, fitted, train))
         solver = self.plan.solver
+        passes = f" over {fit.passes} passes (the stated quantities weighed anew)" if fit.passes > 1 else ""
         message = (
-            f"{solver}: converged in {fit.steps} steps, loss {fit.loss:.3e}"
+            f"{solver}: converged in {fit.steps} steps{passes}, loss {fit.loss:.3e}"
             if fit.converged
-            else f"{solver}: did NOT converge in {fit.steps} steps (max_steps={limit}); last loss {fit.loss:.3e}"
+            else f"{solver}: did NOT converge in {fit.steps} steps{passes} (max_steps={limit}"
+            f"{' a pass' if passes else ''}); last loss {fit.loss:.3e}"
         ) + matched
         which, features = ("held-out", self.test) if holds_features(self.test) else ("training", self.train)
         judged = held_out_rms(fit.model, fitted, features[: len(fitted)])

@@ -29,6 +29,7 @@ from .calibration_scan import CalibrationScan, coarse_pixels
 from .chords import background_design
 from .fit import check_solver, linearisation, residual_values, solve
 from .image_ops import blur, gaussian_kernel
+from .quantities import known_misfits
 from .scan_model import ScanModel
 
 Array = jax.Array
@@ -366,47 +367,76 @@ CHORD_NOISE = 0.01
 IMAGE_NOISE = 0.05
 
 
-def density_prior(raw, args, noise: float) -> Array:
-    """The Preisach densities' roughness (:meth:`ScanModel.roughness`) of the model ``raw``
-    stands for, weighed against a residual spread ``noise``: ``noise / DENSITY_CURVATURE`` times
-    it, the rows that add ``sum (roughness / DENSITY_CURVATURE)^2`` to ``sum (r / noise)^2`` in
-    least-squares form. Empty for plays."""
+def prior_rows(raw, args, noise: float) -> Array:
+    """Step A's priors as least-squares rows weighed against a residual spread ``noise``: a
+    Preisach density's roughness (:meth:`ScanModel.roughness`) in spreads of
+    :data:`DENSITY_CURVATURE`, and each quantity the user stated (:attr:`ScanModel.known`) in its
+    stated sd (:func:`~jaxafm.identify.quantities.known_misfits`), each times ``noise``: the rows
+    that add ``sum (roughness / DENSITY_CURVATURE)^2 + sum ((q - value) / sd)^2`` to
+    ``sum (r / noise)^2``; the stated quantities' rows times ``known_scale`` too, the residuals'
+    own spread against ``noise`` (:func:`weigh_known`). Empty for plays with nothing stated."""
     start, scans, _ = args
-    return noise / DENSITY_CURVATURE * start.free_parameters(scans[0])[1](raw).roughness(scans[0])
+    model = start.free_parameters(scans[0])[1](raw)
+    rough = model.roughness(scans[0]) / DENSITY_CURVATURE
+    return noise * jnp.concatenate([rough, model.known_scale * known_misfits(model, scans)])
 
 
-def smooth_chord_residuals(raw, args) -> Array:
-    """:func:`chord_residuals` and the density prior's rows weighed against a chord's spread."""
-    return jnp.concatenate([chord_residuals(raw, args), density_prior(raw, args, CHORD_NOISE)])
+def weigh_known(model: ScanModel, residuals: np.ndarray, count: float, noise: float) -> ScanModel:
+    """``model`` with its stated quantities' rows (:func:`prior_rows`) weighed against the
+    spread of its stage's ``residuals`` (rms over their ``count``, the padding left out) instead
+    of ``noise``: ``known_scale`` = that spread / ``noise``, so that a stated sd counts as a
+    Gaussian prior's against residuals that scatter as these do. Unchanged when nothing is
+    stated."""
+    if not model.known:
+        return model
+    spread = np.sqrt(np.sum(np.asarray(residuals) ** 2) / count)
+    return eqx.tree_at(lambda m: m.known_scale, model, jnp.asarray(spread / noise, dtype=float))
 
 
-def smooth_chord_loss(raw, args) -> Array:
-    """Half the sum of squares of :func:`smooth_chord_residuals` over the chords' count."""
-    return 0.5 * jnp.sum(smooth_chord_residuals(raw, args) ** 2) / count_chords(args[2])
+def has_priors(model: ScanModel, scans: tuple) -> bool:
+    """Whether :func:`prior_rows` has any row for ``model``: a Preisach density, or a stated quantity."""
+    return bool(model.roughness(scans[0]).size or known_misfits(model, scans).size)
+
+
+def prior_chord_residuals(raw, args) -> Array:
+    """:func:`chord_residuals` and the priors' rows weighed against a chord's spread."""
+    return jnp.concatenate([chord_residuals(raw, args), prior_rows(raw, args, CHORD_NOISE)])
+
+
+def prior_chord_loss(raw, args) -> Array:
+    """Half the sum of squares of :func:`prior_chord_residuals` over the chords' count."""
+    return 0.5 * jnp.sum(prior_chord_residuals(raw, args) ** 2) / count_chords(args[2])
 
 
 def chord_linearisation(model: ScanModel, scans: tuple, chords: tuple) -> tuple:
     """``(r, J, P)`` at ``model``: :func:`chord_residuals` over the data ``chords`` (n,), their
     Jacobian (n, k) in the model's raw parameters (:meth:`ScanModel.free_parameters`, raveled),
-    and the precision (k, k) of a Preisach density's smoothness prior in the same units
-    (``J_p^T J_p`` of :func:`smooth_chord_residuals`' prior rows; zero for plays)."""
+    and the precision (k, k) of step A's priors in the same units (``J_p^T J_p`` of
+    :func:`prior_chord_residuals`' prior rows: a Preisach density's smoothness, the quantities
+    the user stated, weighed against the chords' own spread, :func:`weigh_known`; zero for
+    plays with nothing stated)."""
     model = model.as_float64()
     raw = model.free_parameters(scans[0])[0]
-    prior = model.roughness(scans[0]).size
-    r, J = linearisation(smooth_chord_residuals if prior else chord_residuals, raw, (model, scans, chords))
+    args = (model, scans, chords)
+    if model.known:
+        r = residual_values(chord_residuals, raw, args)
+        model = weigh_known(model, r, float(count_chords(chords)), CHORD_NOISE)
+        args = (model, scans, chords)
+    prior = prior_rows(raw, args, CHORD_NOISE).size
+    r, J = linearisation(prior_chord_residuals if prior else chord_residuals, raw, args)
     n = r.size - prior
     return r[:n], J[:n], J[n:].T @ J[n:]
 
 
-def smooth_image_residuals(raw, args) -> Array:
-    """:func:`image_residuals` and the density prior's rows weighed against a pixel's spread."""
-    return jnp.concatenate([image_residuals(raw, args), density_prior(raw, args, IMAGE_NOISE)])
+def prior_image_residuals(raw, args) -> Array:
+    """:func:`image_residuals` and the priors' rows weighed against a pixel's spread."""
+    return jnp.concatenate([image_residuals(raw, args), prior_rows(raw, args, IMAGE_NOISE)])
 
 
-def smooth_image_loss(raw, args) -> Array:
-    """Half the sum of squares of :func:`smooth_image_residuals` over the image residuals' count."""
+def prior_image_loss(raw, args) -> Array:
+    """Half the sum of squares of :func:`prior_image_residuals` over the image residuals' count."""
     r = image_residuals(raw, args)
-    return 0.5 * (jnp.sum(r**2) + jnp.sum(density_prior(raw, args, IMAGE_NOISE) ** 2)) / r.size
+    return 0.5 * (jnp.sum(r**2) + jnp.sum(prior_rows(raw, args, IMAGE_NOISE) ** 2)) / r.size
 
 
 # ---------------------------------------------------------------------------------------------
@@ -417,12 +447,14 @@ def smooth_image_loss(raw, args) -> Array:
 class StageFit:
     """What :func:`fit_stage` returns: the fitted ``model``, the solver's ``steps``, whether it
     ``converged``, and the mean square residual ``loss`` (features: of the site errors in
-    pitches; images: in fractions of the depth)."""
+    pitches; images: in fractions of the depth); ``passes``: the solves the steps were taken
+    in (more than one where stated quantities were weighed anew, :data:`KNOWN_PASSES`)."""
 
     model: ScanModel
     steps: int
     converged: bool
     loss: float
+    passes: int = 1
 
 
 def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan, max_steps: int) -> StageFit:
@@ -439,19 +471,25 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
     args = (model, tuple(scans), data)
     raw0, rebuild = model.free_parameters(scans[0])
     fitted, fitted_loss = residuals, loss_fn
-    if model.roughness(scans[0]).size:  # a Preisach density, smooth by its prior
+    if has_priors(model, scans):  # a Preisach density's smoothness, quantities the user stated
         fitted, fitted_loss = (
-            (smooth_image_residuals, smooth_image_loss)
-            if images
-            else (smooth_chord_residuals, smooth_chord_loss)
+            (prior_image_residuals, prior_image_loss) if images else (prior_chord_residuals, prior_chord_loss)
         )
     # the path at fixed pixels is smooth in the parameters, a finite difference is as good there
     # as the exact second derivative (the same tip path after the stage, to 0.01 nm, at 256²) and
     # compiles nothing more; the images are not (3.6 against 3.3 nm after the image stage)
     curvature = "jvp" if images else "difference"
-    raw, steps, ok = solve(
-        plan.solver, fitted, fitted_loss, raw0, max_steps, plan.rtol, plan.atol, args, curvature
-    )
+    steps, passes, raw, scale = 0, 0, raw0, None
+    for _ in range(KNOWN_PASSES if model.known else 1):
+        if model.known:  # stated quantities, weighed against the residuals where the solve starts
+            weighed = _weighed_at(model, raw, args, residuals, images)
+            if scale is not None and abs(float(weighed.known_scale) / scale - 1) <= KNOWN_SCALE_RTOL:
+                break
+            scale, args = float(weighed.known_scale), (weighed, tuple(scans), data)
+        raw, taken, ok = solve(
+            plan.solver, fitted, fitted_loss, raw, max_steps, plan.rtol, plan.atol, args, curvature
+        )
+        steps, passes = steps + taken, passes + 1
     r = residual_values(residuals, raw, args)
     loss = float(np.mean(r**2) if images else np.sum(r**2) / float(count_chords(data)))
     if not np.isfinite(loss):
@@ -459,7 +497,22 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
             f"step A stage '{stage.label}' diverged with {plan.solver} (loss {loss}); try another solver "
             "or a smaller model"
         )
-    return StageFit(rebuild(raw), steps, ok, loss)
+    return StageFit(rebuild(raw), steps, ok, loss, passes)
+
+
+#: a stage with stated quantities is solved again from its solution, the quantities' rows weighed
+#: against the residuals' spread there, until that spread moves by at most KNOWN_SCALE_RTOL of
+#: itself, at most KNOWN_PASSES times in all (:func:`weigh_known`)
+KNOWN_PASSES = 3
+KNOWN_SCALE_RTOL = 0.05
+
+
+def _weighed_at(model: ScanModel, raw, args: tuple, residuals, images: bool) -> ScanModel:
+    """``model`` with its stated quantities weighed (:func:`weigh_known`) against its stage's
+    ``residuals`` at ``raw``."""
+    r = residual_values(residuals, raw, args)
+    count = r.size if images else float(count_chords(args[2]))
+    return weigh_known(model, r, count, IMAGE_NOISE if images else CHORD_NOISE)
 
 
 def check_plan(plan: FitPlan, stages: Sequence[Stage]) -> list:

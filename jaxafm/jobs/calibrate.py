@@ -191,6 +191,7 @@ def identify_model(
         model.levels,
         grating.rotation_rad,
         creep_onset=model.creep_onset,
+        known=tuple((key, float(value), float(sd)) for key, (value, sd) in model.known.items()),
     )
     max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
     plan = FitPlan(

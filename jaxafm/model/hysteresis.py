@@ -1158,7 +1158,7 @@ class Preisach(PlayOperator):
         of the output, a ridge the hysteretic density beside it need not continue, so no
         difference spans both. Zero for a density linear in ``alpha`` and ``beta`` below the
         diagonal and linear along it. As a prior (step A's,
-        :func:`~jaxafm.identify.stages.smooth_chord_residuals`) this is second-difference
+        :func:`~jaxafm.identify.stages.prior_chord_residuals`) this is second-difference
         Tikhonov regularisation: it carries the density smoothly into the cells the data leave
         free instead of letting each take any weight."""
         n = self.levels
