@@ -15,12 +15,13 @@ inside and outside the features' reach, and per axis.
     python experiments/step_a_few_features.py [--seed 7] [--pixels 256] [--rates 0.5 1 2 4]
     python experiments/step_a_few_features.py --blur-px 2 1   # with the simulated AFM's image stages
     python experiments/step_a_few_features.py --known y --sd-pct 2   # the y gain stated, as a user may know it
+    python experiments/step_a_few_features.py --known y --lag        # and the model's rate dependence too
 
 With ``--known`` the config also states the generator's true gain of those axes (``models[].known``,
 as step A's quantities define a gain: the ascending branch's mean slope over the drive the scans
 cover, computed from the generator's own relays) with an sd of ``--sd-pct`` % of it.
 
-writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct].json
+writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct][_lag].json
 (with its log).
 """
 
@@ -38,6 +39,7 @@ import numpy as np
 import step_a_independent as S
 
 from jaxafm.config import CalibrateConfig
+from jaxafm.config.calibrate import CALIBRATION_EFFECTS
 from jaxafm.identify.calibration_scan import drive_range
 from jaxafm.identify.identifiability import path_sd
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
@@ -45,12 +47,18 @@ from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_c
 OUT = Path(__file__).parent / "results" / "step_a_few_features"
 
 
-def user_config(given: dict, blur_px: list | None = None, known: dict | None = None) -> CalibrateConfig:
+def user_config(
+    given: dict, blur_px: list | None = None, known: dict | None = None, lag: bool = False
+) -> CalibrateConfig:
     """What a user writes for the files: the ``data`` section and the lattice's pitch and kind
-    (and ``solver.blur_px`` and a model's ``known`` quantities when given)."""
+    (and ``solver.blur_px`` and a model's ``known`` quantities when given; with ``lag``, the
+    model's default effects with ``rate_dependence`` in place of ``feedback_lag``: at one angle
+    step A fits only one of the two, the edges showing their sum)."""
     solver = {} if blur_px is None else {"blur_px": blur_px}
     grating = {k: given["grating"][k] for k in ("pitch_nm", "pits")}
-    models = [{"name": "gpi", "known": known}] if known else [{"name": "gpi"}]
+    model = {"name": "gpi"} | ({"known": known} if known else {})
+    lagged = [e for e in CALIBRATION_EFFECTS if e != "feedback_lag"] + ["rate_dependence"]
+    models = [model | ({"effects": lagged} if lag else {})]
     return CalibrateConfig(data=given["data"], grating=grating, solver=solver, models=models, compensate=None)
 
 
@@ -97,10 +105,11 @@ def run(
     blur_px: list | None = None,
     known: tuple = (),
     sd_pct: float = 2.0,
+    lag: bool = False,
     log=print,
 ) -> dict:
     """Draw, write and identify the case, the true gains of the ``known`` axes stated with an sd
-    of ``sd_pct`` % (:func:`true_gains`); score it."""
+    of ``sd_pct`` % (:func:`true_gains`), with ``lag`` the model's rate dependence too; score it."""
     case = G.draw_case(
         seed,
         "coarse",
@@ -113,15 +122,14 @@ def run(
     with tempfile.TemporaryDirectory() as folder:
         files = G.write_case(case, folder, fmt="tiff")
         given = json.loads(Path(files["data"]).read_text())
-        scans = read_calibration(
-            user_config(given).data, user_config(given).grating, Path(folder) / "c.yaml", log=lambda *_: None
-        )
+        plain = user_config(given)
+        scans = read_calibration(plain.data, plain.grating, Path(folder) / "c.yaml", log=lambda *_: None)
         gains = true_gains(case, scans)
         stated = {
             f"{a}_gain_nm_per_v": [gains[f"{a}_gain_nm_per_v"], sd_pct / 100 * gains[f"{a}_gain_nm_per_v"]]
             for a in known
         }
-        cfg = user_config(given, blur_px, stated)
+        cfg = user_config(given, blur_px, stated, lag)
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log, measured=True)
     out = {
@@ -158,6 +166,7 @@ def main() -> None:
         "--known", nargs="*", choices=["x", "y"], default=[], help="axes whose true gain is stated"
     )
     a.add_argument("--sd-pct", type=float, default=2.0, help="the stated gains' sd, %% of each")
+    a.add_argument("--lag", action="store_true", help="rate_dependence in place of feedback_lag in the model")
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     said = []
@@ -166,11 +175,14 @@ def main() -> None:
         said.append(line)
         print(line, flush=True)
 
-    row = run(args.seed, args.pixels, tuple(args.rates), args.blur_px, tuple(args.known), args.sd_pct, log)
+    row = run(
+        args.seed, args.pixels, tuple(args.rates), args.blur_px, tuple(args.known), args.sd_pct, args.lag, log
+    )
     row["log"] = said
     blurs = "" if args.blur_px is None else "_blur" + "_".join(f"{b:g}" for b in args.blur_px)
     known = f"_known_{''.join(args.known)}_{args.sd_pct:g}pct" if args.known else ""
-    (OUT / f"seed{args.seed}{blurs}{known}.json").write_text(json.dumps(row, indent=1, default=float))
+    lag = "_lag" if args.lag else ""
+    (OUT / f"seed{args.seed}{blurs}{known}{lag}.json").write_text(json.dumps(row, indent=1, default=float))
     keys = ("plausible", "failures", "kept", "tip_path_rms_px", "tip_path_xy_rms_px", "seconds")
     print(json.dumps({k: row[k] for k in keys}, indent=1, default=float))
 
