@@ -32,9 +32,8 @@ def quantities(model: ScanModel, scans: tuple, drive: np.ndarray) -> list:
     (its value of any model of that structure). ``drive`` (2, 2) V is the drive range [min,
     max] per axis that the scans covered: an axis's gain is its branches' mean slope, and its
     loop their separation (descending less ascending branch), at the middle of that range,
-    after a sweep over it. (One function of
-    about 70 lines: one small closure per quantity, each a line or two, which read best side by
-    side.)"""
+    after a sweep over it. (One function of about 70 lines: one small closure per quantity,
+    each a line or two, which read best side by side.)"""
     travel = np.ptp(drive, axis=1) * np.asarray(scans[0].sensitivity)
     out = []
 

@@ -86,7 +86,7 @@ class ScanModelSpec:
             fitted too (:meth:`~jaxafm.model.effects.Creep.with_onset`); otherwise a log law
             of fixed shape from 0.1 s.
         known: what the user knows of the scanner beforehand, ``(key, value, sd)`` per
-            quantity (keys of :data:`~jaxafm.identify.quantities.KNOWABLE`): step A's Gaussian
+            quantity (keys of :data:`~jaxafm.config.names.KNOWABLE`): step A's Gaussian
             prior on it (:attr:`ScanModel.known`).
     """
 
