@@ -479,9 +479,10 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
     # as the exact second derivative (the same tip path after the stage, to 0.01 nm, at 256²) and
     # compiles nothing more; the images are not (3.6 against 3.3 nm after the image stage)
     curvature = "jvp" if images else "difference"
+    stated = bool(known_misfits(model, scans).size)  # rows only for quantities this model has
     steps, passes, raw, scale = 0, 0, raw0, None
-    for _ in range(KNOWN_PASSES if model.known else 1):
-        if model.known:  # stated quantities, weighed against the residuals where the solve starts
+    for _ in range(KNOWN_PASSES if stated else 1):
+        if stated:  # stated quantities, weighed against the residuals where the solve starts
             weighed = _weighed_at(model, raw, args, residuals, images)
             if scale is not None and abs(float(weighed.known_scale) / scale - 1) <= KNOWN_SCALE_RTOL:
                 break
