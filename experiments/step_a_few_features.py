@@ -16,12 +16,13 @@ inside and outside the features' reach, and per axis.
     python experiments/step_a_few_features.py --blur-px 2 1   # with the simulated AFM's image stages
     python experiments/step_a_few_features.py --known y --sd-pct 2   # the y gain stated, as a user may know it
     python experiments/step_a_few_features.py --known y --lag        # and the model's rate dependence too
+    python experiments/step_a_few_features.py --known y --model preisach  # step A's Preisach class
 
 With ``--known`` the config also states the generator's true gain of those axes (``models[].known``,
 as step A's quantities define a gain: the ascending branch's mean slope over the drive the scans
 cover, computed from the generator's own relays) with an sd of ``--sd-pct`` % of it.
 
-writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct][_lag].json
+writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct][_lag][_preisach].json
 (with its log).
 """
 
@@ -48,16 +49,19 @@ OUT = Path(__file__).parent / "results" / "step_a_few_features"
 
 
 def user_config(
-    given: dict, blur_px: list | None = None, known: dict | None = None, lag: bool = False
+    given: dict, blur_px: list | None = None, known: dict | None = None, lag: bool = False, kind: str = "gpi"
 ) -> CalibrateConfig:
     """What a user writes for the files: the ``data`` section and the lattice's pitch and kind
     (and ``solver.blur_px`` and a model's ``known`` quantities when given; with ``lag``, the
     model's default effects with ``rate_dependence`` in place of ``feedback_lag``: at one angle
-    step A fits only one of the two, the edges showing their sum)."""
+    step A fits only one of the two, the edges showing their sum; ``kind``: step A's model class,
+    the Preisach class as step_a_independent.py fits it)."""
     solver = {} if blur_px is None else {"blur_px": blur_px}
     grating = {k: given["grating"][k] for k in ("pitch_nm", "pits")}
-    model = {"name": "gpi"} | ({"known": known} if known else {})
+    model = (S.PREISACH if kind == "preisach" else {"name": "gpi"}) | ({"known": known} if known else {})
     lagged = [e for e in CALIBRATION_EFFECTS if e != "feedback_lag"] + ["rate_dependence"]
+    if kind == "preisach":  # a Preisach plane has no dead zones
+        lagged.remove("asymmetry")
     models = [model | ({"effects": lagged} if lag else {})]
     return CalibrateConfig(data=given["data"], grating=grating, solver=solver, models=models, compensate=None)
 
@@ -88,6 +92,43 @@ def axis_errors_px(model, scans, case) -> list:
     return [float(v) for v in np.sqrt(np.mean(e**2, axis=0))]
 
 
+def error_breakdown(model, scans, case) -> dict:
+    """Where the tip path's error lies (px, after the one rigid motion of
+    :func:`axis_errors_px`): per scan (its line rate) and direction, the rms and the mean error
+    along x and y; the rms along x in eight bands of the nominal x position and of the nominal y
+    position, along y in those of y, and the mean along x in those of y (the outer bands the
+    image's margins); and each scan's rms after its own rigid motion (small where each scan's
+    path is right but the scans sit apart)."""
+    fitted, true, nominal = S._paths(model, scans, case)
+    e = S._rigid(fitted, true)[0] / scans[0].raster.pixel_size[0]
+    sizes = [
+        np.asarray(c.truth[f"tip_{d}_nm"])[..., 0].size for c in case["scans"] for d in ("trace", "retrace")
+    ]
+    parts = np.split(np.arange(len(e)), np.cumsum(sizes)[:-1])  # trace, retrace of each scan in turn
+    rows = []
+    for k, idx in enumerate(parts):
+        scan = scans[k // 2]
+        rms, mean = np.sqrt(np.mean(e[idx] ** 2, axis=0)), np.mean(e[idx], axis=0)
+        rows.append(
+            {
+                "line_rate_hz": scan.raster.line_rate,
+                "direction": ("trace", "retrace")[k % 2],
+                "rms_xy_px": [float(v) for v in rms],
+                "mean_xy_px": [float(v) for v in mean],
+            }
+        )
+    bands = [np.array_split(np.argsort(nominal[:, k], kind="stable"), 8) for k in (0, 1)]
+    rms = lambda b, k: [float(np.sqrt(np.mean(e[i, k] ** 2))) for i in b]
+    return {
+        "error_by_scan": rows,
+        "x_error_by_x_band_px": rms(bands[0], 0),
+        "x_error_by_y_band_px": rms(bands[1], 0),
+        "y_error_by_y_band_px": rms(bands[1], 1),
+        "mean_x_error_by_y_band_px": [float(np.mean(e[i, 0])) for i in bands[1]],
+        "tip_path_per_scan_own_rigid_px": S._path_error_per_scan(model, scans, case),
+    }
+
+
 def predicted_sd_by_reach(ident, scans, case) -> dict:
     """The tip path's standard deviation as the fit predicts it from its parameters' covariance
     (:func:`~jaxafm.identify.identifiability.path_sd`), rms (px) over the pixels inside the
@@ -98,6 +139,11 @@ def predicted_sd_by_reach(ident, scans, case) -> dict:
     return {"path_sd_inside_reach_px": rms(within), "path_sd_outside_reach_px": rms(~within)}
 
 
+def _size(spec) -> str:
+    """A kept model's size as its class counts it: plays, or a Preisach plane's levels."""
+    return f"{spec.levels} levels" if spec.kind == "preisach" else f"{spec.operators} plays"
+
+
 def run(
     seed: int,
     pixels: int,
@@ -106,10 +152,12 @@ def run(
     known: tuple = (),
     sd_pct: float = 2.0,
     lag: bool = False,
+    kind: str = "gpi",
     log=print,
 ) -> dict:
     """Draw, write and identify the case, the true gains of the ``known`` axes stated with an sd
-    of ``sd_pct`` % (:func:`true_gains`), with ``lag`` the model's rate dependence too; score it."""
+    of ``sd_pct`` % (:func:`true_gains`), with ``lag`` the model's rate dependence too, with a
+    model of class ``kind``; score it."""
     case = G.draw_case(
         seed,
         "coarse",
@@ -129,7 +177,7 @@ def run(
             f"{a}_gain_nm_per_v": [gains[f"{a}_gain_nm_per_v"], sd_pct / 100 * gains[f"{a}_gain_nm_per_v"]]
             for a in known
         }
-        cfg = user_config(given, blur_px, stated, lag)
+        cfg = user_config(given, blur_px, stated, lag, kind)
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log, measured=True)
     out = {
@@ -141,7 +189,7 @@ def run(
         "image_blurs_px": list(cfg.solver.image_blurs(True)),
         "true_gains_nm_per_v": gains,
         "known": stated,
-        "kept": ident.spec.kind + f" {ident.spec.operators} plays + " + ", ".join(ident.spec.effects),
+        "kept": f"{ident.spec.kind} {_size(ident.spec)} + " + ", ".join(ident.spec.effects),
         "plausible": ident.plausible,
         "failures": list(ident.failures),
         "metrics": identification_metrics(ident),
@@ -150,6 +198,7 @@ def run(
         "truth": case["truth"]["scanner"],
     }
     out |= S.path_coverage(ident, scans, case) | predicted_sd_by_reach(ident, scans, case)
+    out |= error_breakdown(ident.model, scans, case)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
     out |= {"tip_path_inside_reach_rms_px": inside, "tip_path_outside_reach_rms_px": outside}
     out["inside_reach_share"] = share
@@ -167,6 +216,7 @@ def main() -> None:
     )
     a.add_argument("--sd-pct", type=float, default=2.0, help="the stated gains' sd, %% of each")
     a.add_argument("--lag", action="store_true", help="rate_dependence in place of feedback_lag in the model")
+    a.add_argument("--model", choices=["gpi", "preisach"], default="gpi", help="step A's model class")
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     said = []
@@ -176,13 +226,24 @@ def main() -> None:
         print(line, flush=True)
 
     row = run(
-        args.seed, args.pixels, tuple(args.rates), args.blur_px, tuple(args.known), args.sd_pct, args.lag, log
+        args.seed,
+        args.pixels,
+        tuple(args.rates),
+        args.blur_px,
+        tuple(args.known),
+        args.sd_pct,
+        args.lag,
+        args.model,
+        log,
     )
     row["log"] = said
     blurs = "" if args.blur_px is None else "_blur" + "_".join(f"{b:g}" for b in args.blur_px)
     known = f"_known_{''.join(args.known)}_{args.sd_pct:g}pct" if args.known else ""
     lag = "_lag" if args.lag else ""
-    (OUT / f"seed{args.seed}{blurs}{known}{lag}.json").write_text(json.dumps(row, indent=1, default=float))
+    kind = "_preisach" if args.model == "preisach" else ""
+    (OUT / f"seed{args.seed}{blurs}{known}{lag}{kind}.json").write_text(
+        json.dumps(row, indent=1, default=float)
+    )
     keys = ("plausible", "failures", "kept", "tip_path_rms_px", "tip_path_xy_rms_px", "seconds")
     print(json.dumps({k: row[k] for k in keys}, indent=1, default=float))
 
