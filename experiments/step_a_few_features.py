@@ -108,12 +108,12 @@ def error_breakdown(model, scans, case) -> dict:
     rows = []
     for k, idx in enumerate(parts):
         scan = scans[k // 2]
-        rms, mean = np.sqrt(np.mean(e[idx] ** 2, axis=0)), np.mean(e[idx], axis=0)
+        spread, mean = np.sqrt(np.mean(e[idx] ** 2, axis=0)), np.mean(e[idx], axis=0)
         rows.append(
             {
                 "line_rate_hz": scan.raster.line_rate,
                 "direction": ("trace", "retrace")[k % 2],
-                "rms_xy_px": [float(v) for v in rms],
+                "rms_xy_px": [float(v) for v in spread],
                 "mean_xy_px": [float(v) for v in mean],
             }
         )
