@@ -166,8 +166,9 @@ def level(z: np.ndarray, pits: bool, name: str = "image", order: int = BACKGROUN
         if np.array_equal(new, surface) or new.sum() <= design.shape[1]:  # converged, or no surface left
             break
         surface = new
-    if not height > max(10 * sd, 1e-6 * np.ptp(s)):  # the floor: features of round-off on a noiseless plane
-        if (lines := _spanning(r)) >= 3:
+    rounding = 1e-6 * np.ptp(s)  # features of round-off on a noiseless plane
+    if not height > max(10 * sd, rounding):
+        if height > rounding and (lines := _spanning(r)) >= 3:  # round-off's streaks are no grating
             raise ValueError(
                 f"{name}: {lines} features run right across the image: it shows the lines of a 1-D "
                 "grating, not a lattice of separate pits or pillars. Step A identifies both axes from a "
