@@ -17,13 +17,14 @@ inside and outside the features' reach, and per axis.
     python experiments/step_a_few_features.py --known y --sd-pct 2   # the y gain stated, as a user may know it
     python experiments/step_a_few_features.py --known y --lag        # and the model's rate dependence too
     python experiments/step_a_few_features.py --known y --model preisach  # step A's Preisach class
+    python experiments/step_a_few_features.py --known y --chord-lengths   # the chords' lengths fitted too
 
 With ``--known`` the config also states the generator's true gain of those axes (``models[].known``,
 as step A's quantities define a gain: the ascending branch's mean slope over the drive the scans
 cover, computed from the generator's own relays) with an sd of ``--sd-pct`` % of it.
 
-writes experiments/results/step_a_few_features/seed<seed>[_blur<...>][_known_<axes>_<sd>pct][_lag][_preisach].json
-(with its log).
+writes experiments/results/step_a_few_features/seed<seed>[_blur..][_known_..][_lag][_preisach][_lengths].json
+(with its log) and the fitted scanner beside it (``..._model.json``, :func:`jaxafm.model.io.save_model`).
 """
 
 from __future__ import annotations
@@ -44,19 +45,25 @@ from jaxafm.config.calibrate import CALIBRATION_EFFECTS
 from jaxafm.identify.calibration_scan import drive_range
 from jaxafm.identify.identifiability import path_sd
 from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
+from jaxafm.model.io import save_model
 
 OUT = Path(__file__).parent / "results" / "step_a_few_features"
 
 
 def user_config(
-    given: dict, blur_px: list | None = None, known: dict | None = None, lag: bool = False, kind: str = "gpi"
+    given: dict,
+    blur_px: list | None = None,
+    known: dict | None = None,
+    lag: bool = False,
+    kind: str = "gpi",
+    lengths: bool = False,
 ) -> CalibrateConfig:
     """What a user writes for the files: the ``data`` section and the lattice's pitch and kind
     (and ``solver.blur_px`` and a model's ``known`` quantities when given; with ``lag``, the
     model's default effects with ``rate_dependence`` in place of ``feedback_lag``: at one angle
     step A fits only one of the two, the edges showing their sum; ``kind``: step A's model class,
-    the Preisach class as step_a_independent.py fits it)."""
-    solver = {} if blur_px is None else {"blur_px": blur_px}
+    the Preisach class as step_a_independent.py fits it; ``lengths``: ``solver.chord_lengths``)."""
+    solver = ({} if blur_px is None else {"blur_px": blur_px}) | ({"chord_lengths": True} if lengths else {})
     grating = {k: given["grating"][k] for k in ("pitch_nm", "pits")}
     model = (S.PREISACH if kind == "preisach" else {"name": "gpi"}) | ({"known": known} if known else {})
     lagged = [e for e in CALIBRATION_EFFECTS if e != "feedback_lag"] + ["rate_dependence"]
@@ -129,6 +136,18 @@ def error_breakdown(model, scans, case) -> dict:
     }
 
 
+def true_loops_nm(case) -> list:
+    """Per scan, how far (nm) the generator's retrace lies behind its trace along the fast axis
+    (x, at 0 degrees) in the middle column, on average over the lines: the truth of step A's
+    ``loop_scan<k>_nm``."""
+    out = []
+    for s in case["scans"]:
+        trace, retrace = (np.asarray(s.truth[f"tip_{d}_nm"]) for d in ("trace", "retrace"))
+        mid = trace.shape[1] // 2
+        out.append(float(np.mean(retrace[:, mid, 0] - trace[:, mid, 0])))
+    return out
+
+
 def predicted_sd_by_reach(ident, scans, case) -> dict:
     """The tip path's standard deviation as the fit predicts it from its parameters' covariance
     (:func:`~jaxafm.identify.identifiability.path_sd`), rms (px) over the pixels inside the
@@ -153,11 +172,13 @@ def run(
     sd_pct: float = 2.0,
     lag: bool = False,
     kind: str = "gpi",
+    lengths: bool = False,
     log=print,
-) -> dict:
+) -> tuple:
     """Draw, write and identify the case, the true gains of the ``known`` axes stated with an sd
     of ``sd_pct`` % (:func:`true_gains`), with ``lag`` the model's rate dependence too, with a
-    model of class ``kind``; score it."""
+    model of class ``kind``, with ``lengths`` the chords' lengths fitted too; score it: the
+    scores and the fitted scanner."""
     case = G.draw_case(
         seed,
         "coarse",
@@ -177,7 +198,7 @@ def run(
             f"{a}_gain_nm_per_v": [gains[f"{a}_gain_nm_per_v"], sd_pct / 100 * gains[f"{a}_gain_nm_per_v"]]
             for a in known
         }
-        cfg = user_config(given, blur_px, stated, lag, kind)
+        cfg = user_config(given, blur_px, stated, lag, kind, lengths)
     began = time.perf_counter()
     ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log, measured=True)
     out = {
@@ -196,13 +217,14 @@ def run(
         "tip_path_rms_px": S.path_error(ident.model, scans, case),
         "tip_path_xy_rms_px": axis_errors_px(ident.model, scans, case),
         "truth": case["truth"]["scanner"],
+        "true_loops_nm": true_loops_nm(case),
     }
     out |= S.path_coverage(ident, scans, case) | predicted_sd_by_reach(ident, scans, case)
     out |= error_breakdown(ident.model, scans, case)
     inside, outside, share = S.path_error_by_reach(ident.model, scans, case)
     out |= {"tip_path_inside_reach_rms_px": inside, "tip_path_outside_reach_rms_px": outside}
     out["inside_reach_share"] = share
-    return out
+    return out, ident.model.scanner
 
 
 def main() -> None:
@@ -217,6 +239,9 @@ def main() -> None:
     a.add_argument("--sd-pct", type=float, default=2.0, help="the stated gains' sd, %% of each")
     a.add_argument("--lag", action="store_true", help="rate_dependence in place of feedback_lag in the model")
     a.add_argument("--model", choices=["gpi", "preisach"], default="gpi", help="step A's model class")
+    a.add_argument(
+        "--chord-lengths", action="store_true", help="solver.chord_lengths: fit the chords' lengths too"
+    )
     args = a.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     said = []
@@ -225,7 +250,7 @@ def main() -> None:
         said.append(line)
         print(line, flush=True)
 
-    row = run(
+    row, scanner = run(
         args.seed,
         args.pixels,
         tuple(args.rates),
@@ -234,6 +259,7 @@ def main() -> None:
         args.sd_pct,
         args.lag,
         args.model,
+        args.chord_lengths,
         log,
     )
     row["log"] = said
@@ -241,9 +267,10 @@ def main() -> None:
     known = f"_known_{''.join(args.known)}_{args.sd_pct:g}pct" if args.known else ""
     lag = "_lag" if args.lag else ""
     kind = "_preisach" if args.model == "preisach" else ""
-    (OUT / f"seed{args.seed}{blurs}{known}{lag}{kind}.json").write_text(
-        json.dumps(row, indent=1, default=float)
-    )
+    lengths = "_lengths" if args.chord_lengths else ""
+    name = f"seed{args.seed}{blurs}{known}{lag}{kind}{lengths}"
+    (OUT / f"{name}.json").write_text(json.dumps(row, indent=1, default=float))
+    save_model(scanner, OUT / f"{name}_model.json")
     keys = ("plausible", "failures", "kept", "tip_path_rms_px", "tip_path_xy_rms_px", "seconds")
     print(json.dumps({k: row[k] for k in keys}, indent=1, default=float))
 

@@ -59,12 +59,12 @@ def preisach(lattice: str) -> dict:
     return {k: m[k] for k in KEPT}
 
 
-def committed(lattice: str) -> dict:
-    """The generalised PI's committed run of the lattice's configuration."""
+def committed(lattice: str, kept: tuple = KEPT) -> dict:
+    """The generalised PI's committed run of the lattice's configuration: its ``kept`` metrics."""
     m = json.loads(
         (ROOT / "experiments" / "results" / f"calibrate_nanosurf_{lattice}" / "metrics.json").read_text()
     )
-    return {k: m[f"gpi_{k}"] for k in KEPT}
+    return {k: m[f"gpi_{k}"] for k in kept}
 
 
 def main() -> None:

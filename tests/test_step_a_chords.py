@@ -7,7 +7,7 @@ import pytest
 
 from jaxafm.identify.chords import background_design
 from jaxafm.identify.scan_model import ScanModel, transplant
-from jaxafm.identify.stages import level_out
+from jaxafm.identify.stages import WIDTH_NODES, level_out, width_misfits
 from jaxafm.instrument.samples import Lattice
 from jaxafm.model.hysteresis import PrandtlIshlinskii
 from jaxafm.model.scanner import Axis, Scanner
@@ -90,3 +90,61 @@ def test_chord_offsets_of_a_turned_square_follow_its_sides(slope):
     ij = np.zeros((7, 2))
     out = np.asarray(model.chord_offsets(jnp.asarray(tips), jnp.asarray(ij), jnp.ones(7, bool)))
     np.testing.assert_allclose(out, 0.0, atol=1e-8)
+
+
+def _circle_chords(model, rng, n: int, radius: float, offsets: float, sites: int = 0):
+    """``n`` chords of round features of ``radius`` nm at random directions and distances (below
+    ``offsets`` nm) from their centres, at random sites, or (``sites`` > 0) the same ``n`` at
+    each of that many sites: tip positions at their ends (m, 2, 2), the sites' indices (m, 2),
+    the chords' directions (m,) and their distances (m,)."""
+    angle = rng.uniform(0, np.pi, n)
+    offset = rng.uniform(-offsets, offsets, n)
+    ij = rng.integers(-3, 4, (n, 2)).astype(float)
+    if sites:
+        ij = np.repeat(np.stack([np.arange(sites), np.zeros(sites)], -1), n, axis=0)
+        angle, offset = np.tile(angle, sites), np.tile(offset, sites)
+    centres = np.asarray(model.lattice.sites(jnp.asarray(ij)))
+    d = np.stack([np.cos(angle), np.sin(angle)], -1)
+    p = np.stack([-d[:, 1], d[:, 0]], -1)
+    half = np.sqrt(radius**2 - offset**2)[:, None]
+    middle = centres + offset[:, None] * p
+    return np.stack([middle - half * d, middle + half * d], axis=1), ij, angle < np.pi / 2, offset
+
+
+def test_chord_spans_are_a_chords_length_and_distance_from_its_site():
+    """Closed form: a chord of a circle of radius R at distance o from its centre is
+    2 sqrt(R^2 - o^2) long, whichever way it runs and wherever the site."""
+    model = _scan_model(PrandtlIshlinskii.uniform(1, 10.0, 300.0))
+    tips, ij, _, offset = _circle_chords(model, np.random.default_rng(2), 40, 250.0, 200.0)
+    length, distance = model.chord_spans(jnp.asarray(tips), jnp.asarray(ij))
+    np.testing.assert_allclose(length, 2 * np.sqrt(250.0**2 - offset**2), rtol=1e-12)
+    np.testing.assert_allclose(distance, np.abs(offset), atol=1e-9)
+
+
+def test_width_misfits_hold_one_shape_and_find_a_feature_crossed_too_fast():
+    """Chords of features of one shape (circles, radius R = 0.25 pitch) fit one length profile
+    to within its interpolation error (linear between nodes h = 0.5 / (WIDTH_NODES - 1) pitch
+    apart: h^2 / 8 max |f''|, f = 2 sqrt(R^2 - o^2), |f''| <= 2 R^2 / (R^2 - o^2)^(3/2), at most
+    three times that for a least-squares fit), halved as the misfits weigh lengths. A path that
+    runs 10 % fast across one of seven features (its chords 10 % long, the same chords at each)
+    shifts that feature's misfits by 0.5 * 0.1 * L * 6/7 (the profile takes up a seventh of the
+    excess) and the others' by -0.5 * 0.1 * L / 7, to within the profile's error on the excess
+    (0.1 / 7 of the bound)."""
+    model = _scan_model(PrandtlIshlinskii.uniform(1, 10.0, 300.0))
+    pitch, radius, reach = 1000.0, 250.0, 150.0
+    rng = np.random.default_rng(3)
+    tips, ij, along, _ = _circle_chords(model, rng, 100, radius, reach, sites=7)
+    length, distance = (np.asarray(v) for v in model.chord_spans(jnp.asarray(tips), jnp.asarray(ij)))
+    misfits = lambda lengths: np.asarray(
+        width_misfits(
+            jnp.asarray(lengths), jnp.asarray(distance), jnp.asarray(along), jnp.ones(len(ij)), pitch
+        )
+    )
+    h = 0.5 / (WIDTH_NODES - 1)
+    bound = 3 * h**2 / 8 * 2 * (radius / pitch) ** 2 / ((radius**2 - reach**2) / pitch**2) ** 1.5
+    same = misfits(length)
+    assert np.abs(same).max() <= 0.5 * bound
+    fast = ij[:, 0] == 0
+    shift = misfits(np.where(fast, 1.1, 1.0) * length) - same
+    expected = 0.5 * 0.1 * length / pitch * np.where(fast, 6 / 7, -1 / 7)
+    np.testing.assert_allclose(shift, expected, atol=0.5 * 0.1 / 7 * bound)

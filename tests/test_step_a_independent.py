@@ -10,6 +10,7 @@ from pathlib import Path
 
 import independent_lattice as G
 import numpy as np
+import pytest
 
 from jaxafm.config import CalibrateConfig
 from jaxafm.identify.scan_model import ScanModelSpec, feature_reach, nominal_scan_model
@@ -20,14 +21,16 @@ from jaxafm.jobs.calibrate import identify_model, read_calibration
 MODEL = {"name": "gpi", "kind": "gpi", "operators": 16, "deadzones": 3}
 
 
-def _identify(case: dict, folder: Path, effects: list, select: bool = True, operators: int = 16):
+def _identify(
+    case: dict, folder: Path, effects: list, select: bool = True, operators: int = 16, lengths: bool = False
+):
     files = G.write_case(case, folder)
     given = json.loads(Path(files["data"]).read_text())
     cfg = CalibrateConfig(
         data=given["data"],
         grating=given["grating"],
         models=[MODEL | {"effects": effects, "operators": operators}],
-        solver={"coarsen": "auto", "max_steps": 100, "select": select},
+        solver={"coarsen": "auto", "max_steps": 100, "select": select, "chord_lengths": lengths},
         compensate=None,
     )
     scans = read_calibration(cfg.data, cfg.grating, folder / "c.yaml", log=lambda *_: None)
@@ -57,17 +60,25 @@ def _path_error_px(model, scans, case) -> float:
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) / scans[0].raster.pixel_size[0]
 
 
-def test_a_drawn_scanner_is_recovered_from_one_scan(tmp_path):
+@pytest.mark.parametrize("lengths", [False, True])
+def test_a_drawn_scanner_is_recovered_from_one_scan(tmp_path, lengths):
     """A Preisach scanner with drive lag, creep, coupling and drift, a lattice of rounded pits or
     pillars with sloped walls under a broadened tip, a plane, a bow, line offsets, spikes and
     noise, one 0-degree scan: the model step A keeps puts the held-out features where they are
     to a third of the raw images' error or better and within 0.3 px, and its tip path over the
-    scan is nearer the true one than a third of the nominal calibration's distance from it."""
+    scan is nearer the true one than a third of the nominal calibration's distance from it; so
+    too with the chords' lengths fitted (``solver.chord_lengths``)."""
     case = G.draw_case(3, "fine", line_rates_hz=(1.0,), angles_deg=(0.0,), pixels=64)
     scans, run, said = _identify(
-        case, tmp_path, ["creep", "coupling", "bow", "feedback_lag"], select=False, operators=4
+        case,
+        tmp_path,
+        ["creep", "coupling", "bow", "feedback_lag"],
+        select=False,
+        operators=4,
+        lengths=lengths,
     )
     ident = run()
+    assert ident.model.chord_lengths is lengths
     v = ident.validation
     pixel = scans[0].raster.pixel_size[0]
     assert StageKind.IMAGES not in ident.kinds, "measured images: the chord stages alone by default"

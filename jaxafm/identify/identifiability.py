@@ -107,7 +107,7 @@ def chord_covariance(model: ScanModel, scans: tuple, chords: tuple) -> np.ndarra
 def _covariance(chords: tuple, linearised: tuple) -> np.ndarray:
     """:func:`chord_covariance` from the chords' linearisation ``(r, J, smooth)``."""
     r, J, smooth = linearised
-    groups = feature_groups(chords)
+    groups = feature_groups(chords, len(r))
     real = groups >= 0
     prior = np.mean(r[real] ** 2) * np.eye(J.shape[1]) + smooth
     return covariance(J[real], r[real], groups[real], prior)
@@ -239,7 +239,9 @@ def path_sd(model: ScanModel, scans: tuple, chords: tuple) -> list:
 def feature_points(chords: tuple, values: np.ndarray) -> tuple:
     """Per feature per image (a *point*), the mean of ``values`` (n, ...) over its chords along
     the lines and over those across them, for the rows of
-    :func:`~jaxafm.identify.stages.chord_residuals` over ``chords``: ``(keys, means)``, ``keys``
+    :func:`~jaxafm.identify.stages.chord_fit_residuals` over ``chords`` (their first, the
+    midpoints' of :func:`~jaxafm.identify.stages.chord_residuals`; the lengths' left out):
+    ``(keys, means)``, ``keys``
     (p, 3) the image's number (scan by scan, trace then retrace) and the feature's lattice
     indices, ``means`` (p, 2, ...). A chord's residual is its midpoint's offset from the
     feature's site along the chord, so the two means are how far the model misplaces the feature
@@ -249,11 +251,10 @@ def feature_points(chords: tuple, values: np.ndarray) -> tuple:
     image = np.concatenate([np.full(len(c.weight), i) for i, c in enumerate(rows)])
     along = np.concatenate([np.asarray(c.along, bool) for c in rows])
     real = np.concatenate([np.asarray(c.weight) > 0 for c in rows])
-    keys, point = np.unique(
-        np.column_stack([image, np.nan_to_num(feature_keys(chords))])[real], axis=0, return_inverse=True
-    )
+    midpoints = np.nan_to_num(feature_keys(chords))
+    keys, point = np.unique(np.column_stack([image, midpoints])[real], axis=0, return_inverse=True)
     slot = 2 * point.ravel() + (~along[real])
-    values = np.asarray(values)[real]
+    values = np.asarray(values)[: len(real)][real]  # the midpoints' rows
     count = np.bincount(slot, minlength=2 * len(keys)).reshape(-1, 2)
     sums = np.zeros((count.size,) + values.shape[1:])
     np.add.at(sums, slot, values)

@@ -124,7 +124,7 @@ def uneven_widths(validation: dict) -> list:
                 f"the correction makes the features' widths {way} the lines less uniform "
                 f"({corrected:.3g} % spread against {raw:.3g} % raw over {n} widths, more than the "
                 f"{allowed:.2f} times chance allows): the fitted path runs too fast or too slow "
-                "across some features"
+                "across some features; solver.chord_lengths: true fits the chords' lengths too"
             )
     return out
 

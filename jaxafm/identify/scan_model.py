@@ -88,6 +88,7 @@ class ScanModelSpec:
         known: what the user knows of the scanner beforehand, ``(key, value, sd)`` per
             quantity (keys of :data:`~jaxafm.config.names.KNOWABLE`): step A's Gaussian
             prior on it (:attr:`ScanModel.known`).
+        chord_lengths: the chord stages fit each chord's length too (:attr:`ScanModel.chord_lengths`).
     """
 
     kind: str = "gpi"
@@ -99,6 +100,7 @@ class ScanModelSpec:
     deadzone_reach: Optional[tuple] = None
     creep_onset: bool = False
     known: tuple = ()
+    chord_lengths: bool = False
 
 
 class ScanModel(eqx.Module):
@@ -128,7 +130,10 @@ class ScanModel(eqx.Module):
     and what the scans determine counts it.
     ``known_scale``: the stage's residual spread in units of the spread its priors are weighed
     against (:func:`~jaxafm.identify.stages.weigh_known`), so that a stated sd counts against
-    the residuals as they scatter."""
+    the residuals as they scatter.
+
+    ``chord_lengths``: the chord stages fit each chord's length against its features' common
+    length as well as its midpoint (:func:`~jaxafm.identify.stages.width_misfits`)."""
 
     scanner: Scanner
     feedback: Optional[FeedbackLag]
@@ -140,6 +145,7 @@ class ScanModel(eqx.Module):
     known_value: Array = eqx.field(default_factory=lambda: jnp.zeros(0))
     known_sd: Array = eqx.field(default_factory=lambda: jnp.ones(0))
     known_scale: Array = eqx.field(default_factory=lambda: jnp.ones(()))
+    chord_lengths: bool = eqx.field(static=True, default=False)
 
     def chord_ends(self, path: Array, ends: Array, shift, xp=jnp) -> Array:
         """Where the tip was (n, 2, 2) nm when it crossed the chords' ``ends`` (n, 2, 2)
@@ -162,6 +168,15 @@ class ScanModel(eqx.Module):
         p = jnp.stack([-d[:, 1], d[:, 0]], axis=-1)
         s = jnp.where(along_lines, self.chord_slope[0], self.chord_slope[1])
         return jnp.sum(d * m, axis=1) - s * jnp.sum(p * m, axis=1)
+
+    def chord_spans(self, tips: Array, ij: Array) -> tuple:
+        """Each chord's length (n,) nm between the tip positions ``tips`` (n, 2, 2) nm at its
+        ends, and how far (n,) nm its midpoint lies from the line through its feature's lattice
+        site ``ij`` (n, 2) along it: where across its feature the chord runs."""
+        d = tips[:, 1] - tips[:, 0]
+        length = jnp.linalg.norm(d, axis=1)
+        p = jnp.stack([-d[:, 1], d[:, 0]], axis=-1) / length[:, None]
+        return length, jnp.abs(jnp.sum(p * (tips.mean(axis=1) - self.lattice.sites(ij)), axis=1))
 
     def lag_from_edges(self) -> ScanModel:
         """This model with its feedback lag set to what its edge delay implies,
@@ -359,6 +374,7 @@ def nominal_scan_model(
         known=tuple(k for k, *_ in spec.known),
         known_value=jnp.asarray(known[:, 0]),
         known_sd=jnp.asarray(known[:, 1]),
+        chord_lengths=spec.chord_lengths,
     )
 
 

@@ -184,23 +184,79 @@ def chord_residuals(raw, args) -> Array:
     midpoints through the lattice site
     (:meth:`~jaxafm.identify.scan_model.ScanModel.chord_offsets`), the chord's ends placed where
     the model's tip was when it crossed them (the edge delay earlier), times its weight (0 for
-    the padding of :func:`pad_chords`). Needs only the tip's path. ``args = (start model,
-    scans, chords)``, ``chords`` as :func:`chord_data` gives them."""
+    the padding of :func:`pad_chords`): where the model places the features. Needs only the
+    tip's path. ``args = (start model, scans, chords)``, ``chords`` as :func:`chord_data` gives
+    them."""
     start, scans, chords = args
     model = start.free_parameters(scans[0])[1](raw)
-    return _chord_offsets(model, scans, chords, [model.paths(scan) for scan in scans])
+    return _chord_terms(model, scans, chords, [model.paths(scan) for scan in scans])[0]
 
 
-def _chord_offsets(model: ScanModel, scans: tuple, chords: tuple, paths: list) -> Array:
-    """:func:`chord_residuals` of ``model`` with the tip's ``paths`` (per scan, trace and
-    retrace) given."""
-    out = []
+def chord_fit_residuals(raw, args) -> Array:
+    """What the chord stages minimise: :func:`chord_residuals`, then, where the model says so
+    (:attr:`~jaxafm.identify.scan_model.ScanModel.chord_lengths`), each chord's length against
+    its features' common length (:func:`width_misfits`), scan by scan."""
+    start, scans, chords = args
+    model = start.free_parameters(scans[0])[1](raw)
+    return jnp.concatenate(_chord_terms(model, scans, chords, [model.paths(scan) for scan in scans]))
+
+
+def _chord_terms(model: ScanModel, scans: tuple, chords: tuple, paths: list) -> tuple:
+    """``(offsets, widths)``: :func:`chord_residuals` of ``model`` with the tip's ``paths`` (per
+    scan, trace and retrace) given, and :func:`width_misfits` per scan (empty unless the model
+    fits the chords' lengths)."""
+    out, widths = [], [jnp.zeros(0)]
     for scan, images, path in zip(scans, chords, paths):
         shift = model.edge_delay / scan.raster.sample_time  # columns of this scan
+        placed = []
         for trace, (ends, ij, along, w), forward in zip(path, images, (1.0, -1.0)):
             tips = model.chord_ends(trace, ends, forward * shift)
             out.append(w * model.chord_offsets(tips, ij, along) / min(scan.pitch))
-    return jnp.concatenate(out)
+            placed.append((tips, ij, along, w))
+        if model.chord_lengths:
+            widths.append(_scan_width_misfits(model, scan, placed))
+    return jnp.concatenate(out), jnp.concatenate(widths)
+
+
+def _scan_width_misfits(model: ScanModel, scan: CalibrationScan, placed: list) -> Array:
+    """:func:`width_misfits` of one scan's chords, trace and retrace together: per image the
+    tip positions at the chords' ends (n, 2, 2) nm and the chords' ``(ij, along, w)``."""
+    parts = [(*model.chord_spans(tips, ij), along, w) for tips, ij, along, w in placed]
+    lengths, offsets, along, w = (jnp.concatenate(v) for v in zip(*parts))
+    return width_misfits(lengths, offsets, along, w, min(scan.pitch))
+
+
+#: the nodes of a feature's chord-length profile over the chord's distance from the feature's
+#: centre, 0 to half a pitch (:func:`width_misfits`)
+WIDTH_NODES = 17
+
+
+def width_misfits(lengths: Array, offsets: Array, along: Array, w: Array, pitch: float) -> Array:
+    """How far (n,) each chord's length lies from its features' common length at its distance
+    from their centres, in pitches: every feature of a lattice has one shape, so chords the same
+    distance from their features' centres, running the same way, are one length, whatever the
+    shape. The common length is a profile linear between :data:`WIDTH_NODES` nodes over half a
+    pitch, one for the chords along the lines and one for those along the columns, fitted to
+    the weighted chords and projected out (Frisch-Waugh-Lovell). A chord's midpoint alone leaves
+    the path free to run fast or slow across its feature; its length holds the path's local
+    scale. Times half the chords' weights: a length is the difference of two edges, a midpoint
+    their mean, so its noise is twice the midpoint's.
+
+    Arguments:
+        lengths: the chords' lengths (n,) nm.
+        offsets: their distances (n,) nm from their features' centres.
+        along: whether each runs along the lines (n,).
+        w: their weights (n,).
+        pitch: the lattice's pitch, nm.
+    """
+    nodes = jnp.linspace(0.0, 0.5, WIDTH_NODES)
+    hat = jnp.clip(1.0 - jnp.abs(jnp.minimum(offsets / pitch, 0.5)[:, None] - nodes) / nodes[1], 0.0, 1.0)
+    along = jnp.asarray(along, dtype=hat.dtype)[:, None]
+    z = jnp.concatenate([hat * along, hat * (1.0 - along)], axis=1)
+    zw = z * w[:, None]
+    gram = zw.T @ z + 1e-9 * jnp.eye(z.shape[1])
+    fitted = z @ jnp.linalg.solve(gram, zw.T @ (lengths / pitch))
+    return 0.5 * w * (lengths / pitch - fitted)
 
 
 def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -> ScanModel:
@@ -216,7 +272,7 @@ def refit_edges(model: ScanModel, scans: tuple, chords: tuple, steps: int = 8) -
 
     def residuals(p):
         m = eqx.tree_at(lambda m: (m.edge_delay, m.chord_slope), model, (p[0], p[1:]))
-        return _chord_offsets(m, scans, chords, paths)
+        return _chord_terms(m, scans, chords, paths)[0]
 
     p = jnp.concatenate([jnp.reshape(model.edge_delay, 1), model.chord_slope])
     keep = jnp.asarray([1.0 if free_delay else 0.0, 1.0, 1.0])
@@ -237,8 +293,8 @@ def count_chords(chords) -> Array:
 
 
 def chord_loss(raw, args) -> Array:
-    """Half the mean square of :func:`chord_residuals` over the chords (not the padding)."""
-    return 0.5 * jnp.sum(chord_residuals(raw, args) ** 2) / count_chords(args[2])
+    """Half the sum of squares of :func:`chord_fit_residuals` over the chords' count (not the padding)."""
+    return 0.5 * jnp.sum(chord_fit_residuals(raw, args) ** 2) / count_chords(args[2])
 
 
 class PaddedChords(NamedTuple):
@@ -277,22 +333,26 @@ def chord_capacity(scan: CalibrationScan) -> int:
     return r.lines * per_line + r.pixels * per_column
 
 
-def feature_keys(chords: tuple) -> np.ndarray:
-    """Per row of :func:`chord_residuals` over the data ``chords``, its feature's lattice indices
-    (n, 2); NaN for the padding."""
-    return np.concatenate(
+def feature_keys(chords: tuple, rows: Optional[int] = None) -> np.ndarray:
+    """Per row of :func:`chord_fit_residuals` over the data ``chords``, its feature's lattice
+    indices (n, 2); NaN for the padding. Its midpoints' rows (:func:`chord_residuals`) come
+    first, then, where it has ``rows`` (default: as many as midpoints) for them, its lengths',
+    chord for chord in the same order."""
+    keys = np.concatenate(
         [
             np.where(np.asarray(w)[:, None] > 0, np.asarray(ij), np.nan)
             for images in chords
             for _, ij, _, w in images
         ]
     )
+    return np.tile(keys, ((rows or len(keys)) // len(keys), 1))
 
 
-def feature_groups(chords: tuple) -> np.ndarray:
-    """Per row of :func:`chord_residuals` over the data ``chords``, its feature's number: one
-    number per lattice site, whichever image or scan shows it; -1 for the padding."""
-    keys = feature_keys(chords)
+def feature_groups(chords: tuple, rows: Optional[int] = None) -> np.ndarray:
+    """Per row of :func:`chord_fit_residuals` over the data ``chords`` (``rows`` of them,
+    :func:`feature_keys`), its feature's number: one number per lattice site, whichever image or
+    scan shows it; -1 for the padding."""
+    keys = feature_keys(chords, rows)
     real = ~np.isnan(keys[:, 0])
     out = np.full(len(keys), -1)
     out[real] = np.unique(keys[real], axis=0, return_inverse=True)[1].ravel()
@@ -399,8 +459,8 @@ def has_priors(model: ScanModel, scans: tuple) -> bool:
 
 
 def prior_chord_residuals(raw, args) -> Array:
-    """:func:`chord_residuals` and the priors' rows weighed against a chord's spread."""
-    return jnp.concatenate([chord_residuals(raw, args), prior_rows(raw, args, CHORD_NOISE)])
+    """:func:`chord_fit_residuals` and the priors' rows weighed against a chord's spread."""
+    return jnp.concatenate([chord_fit_residuals(raw, args), prior_rows(raw, args, CHORD_NOISE)])
 
 
 def prior_chord_loss(raw, args) -> Array:
@@ -409,7 +469,7 @@ def prior_chord_loss(raw, args) -> Array:
 
 
 def chord_linearisation(model: ScanModel, scans: tuple, chords: tuple) -> tuple:
-    """``(r, J, P)`` at ``model``: :func:`chord_residuals` over the data ``chords`` (n,), their
+    """``(r, J, P)`` at ``model``: :func:`chord_fit_residuals` over the data ``chords`` (n,), their
     Jacobian (n, k) in the model's raw parameters (:meth:`ScanModel.free_parameters`, raveled),
     and the precision (k, k) of step A's priors in the same units (``J_p^T J_p`` of
     :func:`prior_chord_residuals`' prior rows: a Preisach density's smoothness, the quantities
@@ -419,11 +479,11 @@ def chord_linearisation(model: ScanModel, scans: tuple, chords: tuple) -> tuple:
     raw = model.free_parameters(scans[0])[0]
     args = (model, scans, chords)
     if model.known:
-        r = residual_values(chord_residuals, raw, args)
+        r = residual_values(chord_fit_residuals, raw, args)
         model = weigh_known(model, r, float(count_chords(chords)), CHORD_NOISE)
         args = (model, scans, chords)
     prior = prior_rows(raw, args, CHORD_NOISE).size
-    r, J = linearisation(prior_chord_residuals if prior else chord_residuals, raw, args)
+    r, J = linearisation(prior_chord_residuals if prior else chord_fit_residuals, raw, args)
     n = r.size - prior
     return r[:n], J[:n], J[n:].T @ J[n:]
 
@@ -466,7 +526,7 @@ def fit_stage(stage: Stage, model: ScanModel, scans: tuple, data, plan: FitPlan,
         RuntimeError: when the loss is not finite, naming the stage and the solver.
     """
     images = stage.kind is StageKind.IMAGES
-    residuals, loss_fn = (image_residuals, image_loss) if images else (chord_residuals, chord_loss)
+    residuals, loss_fn = (image_residuals, image_loss) if images else (chord_fit_residuals, chord_loss)
     model = model.as_float64()
     args = (model, tuple(scans), data)
     raw0, rebuild = model.free_parameters(scans[0])

@@ -192,6 +192,7 @@ def identify_model(
         grating.rotation_rad,
         creep_onset=model.creep_onset,
         known=tuple((key, float(value), float(sd)) for key, (value, sd) in model.known.items()),
+        chord_lengths=solver.chord_lengths,
     )
     max_steps = solver.max_steps if isinstance(solver.max_steps, int) else tuple(solver.max_steps)
     plan = FitPlan(

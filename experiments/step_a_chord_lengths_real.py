@@ -1,0 +1,84 @@
+"""The chords' lengths (``solver.chord_lengths``) on the real lattices.
+
+The three shipped Nanosurf lattices (jaxafm/data/real/README.md), each identified as its
+``configs/calibrate_nanosurf_NAME.yaml`` says but with ``solver.chord_lengths: true``: the
+chord stages fit each chord's length against its features' common length as well as its
+midpoint (:func:`jaxafm.identify.stages.width_misfits`). Beside each, the committed run of the
+configuration as it is (``experiments/results/calibrate_nanosurf_NAME/metrics.json``): the
+held-out features' residual (nm), their local pitch spread (%), the largest error of a distance
+between them (%), the features' widths' spread along the lines after the correction (%), the
+model the ladder kept and the fit's time. No truth is known here: the held-out features are
+the check.
+
+    python experiments/step_a_chord_lengths_real.py [--lattices square_pits round_pits round_pillars]
+
+writes experiments/results/step_a_chord_lengths_real/metrics.json (a table of docs/step_a.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import jax
+from step_a_real_classes import LATTICES, ROOT, committed
+
+from jaxafm.config import CalibrateConfig
+from jaxafm.config.common import load_config
+from jaxafm.identify.fit import clear_caches
+from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
+
+OUT = ROOT / "experiments" / "results" / "step_a_chord_lengths_real"
+#: what the table keeps of each identification (``identification_metrics``' keys)
+KEPT = (
+    "held_out_rms_nm",
+    "held_out_coverage_90_pct",
+    "held_out_pitch_std_corrected_pct",
+    "held_out_distance_error_max_corrected_pct",
+    "feature_width_spread_along_raw_pct",
+    "feature_width_spread_along_corrected_pct",
+    "model_kind",
+    "model_operators",
+    "model_effects",
+    "plausible",
+    "fit_s",
+)
+
+
+def with_lengths(lattice: str) -> dict:
+    """The lattice's configuration with ``solver.chord_lengths: true``, identified."""
+    path = ROOT / "configs" / f"calibrate_nanosurf_{lattice}.yaml"
+    cfg = load_config(path, CalibrateConfig)
+    solver = cfg.solver.model_copy(update={"chord_lengths": True})
+    jax.clear_caches()
+    clear_caches()
+    scans = read_calibration(cfg.data, cfg.grating, path, log=lambda *_: None)
+    ident = identify_model(scans, cfg.models[0], solver, cfg.grating, log=print, measured=True)
+    m = identification_metrics(ident)
+    return {k: m[k] for k in KEPT}
+
+
+def main() -> None:
+    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--lattices", nargs="+", default=list(LATTICES), choices=LATTICES)
+    args = a.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "metrics.json"
+    rows = json.loads(path.read_text()) if path.exists() else {}
+    for lattice in args.lattices:
+        rows[lattice] = {"midpoints": committed(lattice, KEPT), "lengths": with_lengths(lattice)}
+        for name, r in rows[lattice].items():
+            print(
+                f"{lattice} {name}: held-out features {r['held_out_rms_nm']:.1f} nm "
+                f"({r['held_out_coverage_90_pct']:.0f} % in their 90 % ellipses); pitch spread "
+                f"{r['held_out_pitch_std_corrected_pct']:.2f} %; distances "
+                f"{r['held_out_distance_error_max_corrected_pct']:.2f} % at most; widths along "
+                f"{r['feature_width_spread_along_corrected_pct']:.2f} %; kept {r['model_kind']} "
+                f"{r['model_operators']} + {', '.join(r['model_effects'])}; {r['fit_s']:.0f} s",
+                flush=True,
+            )
+        path.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
