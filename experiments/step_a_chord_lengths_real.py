@@ -20,13 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 
-import jax
-from step_a_real_classes import LATTICES, ROOT, committed
-
-from jaxafm.config import CalibrateConfig
-from jaxafm.config.common import load_config
-from jaxafm.identify.fit import clear_caches
-from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_calibration
+from step_a_real_classes import LATTICES, ROOT, committed, identified
 
 OUT = ROOT / "experiments" / "results" / "step_a_chord_lengths_real"
 #: what the table keeps of each identification (``identification_metrics``' keys)
@@ -45,19 +39,6 @@ KEPT = (
 )
 
 
-def with_lengths(lattice: str) -> dict:
-    """The lattice's configuration with ``solver.chord_lengths: true``, identified."""
-    path = ROOT / "configs" / f"calibrate_nanosurf_{lattice}.yaml"
-    cfg = load_config(path, CalibrateConfig)
-    solver = cfg.solver.model_copy(update={"chord_lengths": True})
-    jax.clear_caches()
-    clear_caches()
-    scans = read_calibration(cfg.data, cfg.grating, path, log=lambda *_: None)
-    ident = identify_model(scans, cfg.models[0], solver, cfg.grating, log=print, measured=True)
-    m = identification_metrics(ident)
-    return {k: m[k] for k in KEPT}
-
-
 def main() -> None:
     a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("--lattices", nargs="+", default=list(LATTICES), choices=LATTICES)
@@ -66,7 +47,10 @@ def main() -> None:
     path = OUT / "metrics.json"
     rows = json.loads(path.read_text()) if path.exists() else {}
     for lattice in args.lattices:
-        rows[lattice] = {"midpoints": committed(lattice, KEPT), "lengths": with_lengths(lattice)}
+        rows[lattice] = {
+            "midpoints": committed(lattice, KEPT),
+            "lengths": identified(lattice, KEPT, solver={"chord_lengths": True}),
+        }
         for name, r in rows[lattice].items():
             print(
                 f"{lattice} {name}: held-out features {r['held_out_rms_nm']:.1f} nm "
