@@ -1807,13 +1807,18 @@ def step_a_creep_onset_floor(results: Results) -> Table:
     return Table(header, rows, [STEP_A_FLOOR_ONSET, STEP_A_FLOOR_PREISACH], note)
 
 
+def _with_study(results: Results, run: Run) -> tuple:
+    """``(pairs, runs)``: each case of ``run`` after the generalised PI study's fit of its seed,
+    ``(study's, run's)``, and the runs they come from."""
+    study = _gpi_cases(results)
+    pairs = [(study[r["seed"]][0], r) for r in results(run)]
+    return pairs, list(dict.fromkeys([run] + [study[r["seed"]][1] for r in results(run)]))
+
+
 @table("step_a_creep_onset")
 def step_a_creep_onset(results: Results) -> Table:
-    study = _gpi_cases(results)
-    rows, runs = [], [STEP_A_CREEP_ONSET]
-    for r in results(STEP_A_CREEP_ONSET):
-        fixed, run = study[r["seed"]]
-        runs.append(run)
+    rows, (pairs, runs) = [], _with_study(results, STEP_A_CREEP_ONSET)
+    for fixed, r in pairs:
         true = r["true_rate_lag_s"]
         onset = r.get("gpi_x_creep_onset_s")
         rows.append(
@@ -1829,7 +1834,39 @@ def step_a_creep_onset(results: Results) -> Table:
         "Generalised PI class, speed series at 0.5, 1 and 2 Hz at 0°. The generator's creep is "
         "1–2 % per decade from an onset of 0.1 s on both axes."
     )
-    return Table(header, rows, list(dict.fromkeys(runs)), note)
+    return Table(header, rows, runs, note)
+
+
+STEP_A_LENGTHS = Run(
+    "step_a_independent_lengths/cases-rerun.json",
+    "python experiments/step_a_independent.py --pixels 64 --chord-lengths --seeds 102 105 108 111 114 117",
+)
+
+
+@table("step_a_independent_lengths")
+def step_a_independent_lengths(results: Results) -> Table:
+    rows, (pairs, runs) = [], _with_study(results, STEP_A_LENGTHS)
+    for pair in pairs:
+        r = pair[1]
+        rows.append(
+            [f"{r['seed']} ({r['feature'].replace('_', ' ')})"]
+            + [_tip_path_cell(c["gpi_plausible"], c["tip_path_rms_px"]) for c in pair]
+            + [q(c["gpi_held_out_rms_nm"] / c["pixel_nm"], "px", 2) for c in pair]
+            + [_lag_error(c.get("gpi_x_rate_lag_s"), r["true_rate_lag_s"]) for c in pair]
+            + [q(c["gpi_feature_width_spread_across_corrected_pct"], "%", 1) for c in pair]
+            + [q(c["tip_path_coverage_90_with_spread_pct"], "%", 0) for c in pair]
+            + [f"{q(c['gpi_fit_s'], 's', 0)}" for c in pair]
+        )
+    header = ["case", "tip path: midpoints", "lengths", "held-out features: midpoints", "lengths"]
+    header += ["x lag (error): midpoints", "lengths", "widths across the lines: midpoints", "lengths"]
+    header += ["true path in the 90 % ellipses: midpoints", "lengths", "step A's time: midpoints", "lengths"]
+    note = (
+        "Generalised PI class, speed series at 0.5, 1 and 2 Hz at 0°; the midpoints are the "
+        "study's fits (the default), the lengths `solver.chord_lengths: true`. Widths across "
+        "the lines: their spread after the correction. The true path in the predicted 90 % ellipses "
+        "with a feature's spread. Times on 2 cores."
+    )
+    return Table(header, rows, runs, note)
 
 
 STEP_A_FLOOR_PREISACH = Run(

@@ -21,11 +21,13 @@ generator's truth:
     python experiments/step_a_independent.py --seeds 102 105  # those cases again, in place
     python experiments/step_a_independent.py --model preisach  # step A with the Preisach class
     python experiments/step_a_independent.py --creep-onset --seeds 102 105  # creep's onset fitted too
+    python experiments/step_a_independent.py --chord-lengths --seeds 102 105  # solver.chord_lengths
 
 writes experiments/results/step_a_independent/ (step_a_independent_preisach/ with --model
-preisach; the folder's name ending _creep_onset with --creep-onset): cases-K-of-N.json per
-shard, after each case (with --resume the cases already in one are skipped); then summary.json
-and summary.png, what the docs table shows (--summarise: those alone).
+preisach; the folder's name ending _creep_onset with --creep-onset, _lengths with
+--chord-lengths): cases-K-of-N.json per shard, after each case (with --resume the cases already
+in one are skipped); then summary.json and summary.png, what the docs table shows (--summarise:
+those alone).
 """
 
 from __future__ import annotations
@@ -115,17 +117,18 @@ def draw_and_read(
     return case, scans, cfg
 
 
-def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL) -> dict:
-    """Draw, write, read and identify one case with ``model`` as step A's richest model; score it
-    against the truth. The compiled functions of earlier cases are dropped first: kept, they fill
-    the memory of a long run."""
+def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL, solver: dict | None = None) -> dict:
+    """Draw, write, read and identify one case with ``model`` as step A's richest model (and
+    ``solver``'s settings over the case's own); score it against the truth. The compiled
+    functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
     jax.clear_caches()
     clear_caches()
     case, scans, cfg = draw_and_read(spec, pixels, kind, model=model)
+    settings = cfg.solver.model_copy(update=solver or {})
     began = time.perf_counter()
     said = []
     try:
-        ident = identify_model(scans, cfg.models[0], cfg.solver, cfg.grating, log=said.append)
+        ident = identify_model(scans, cfg.models[0], settings, cfg.grating, log=said.append)
     except ValueError as e:
         refused = {"model_class": model["name"], "refused": str(e)}
         return _row(spec, case, refused, time.perf_counter() - began, said)
@@ -410,12 +413,20 @@ def _line(r: dict) -> str:
     )
 
 
-def rerun(seeds: list, cases: list, pixels: int, kind: str, model: dict = MODEL, out: Path = OUT) -> None:
+def rerun(
+    seeds: list,
+    cases: list,
+    pixels: int,
+    kind: str,
+    model: dict = MODEL,
+    out: Path = OUT,
+    solver: dict | None = None,
+) -> None:
     """Run the cases of ``seeds`` again, each row replacing the one of its seed in the
     cases-*.json of ``out`` that holds it (after each case)."""
     held = {r["seed"]: path for path in out.glob("cases-*.json") for r in json.loads(path.read_text())}
     for spec in (c for c in cases if c["seed"] in seeds):
-        row = run_case(spec, pixels, kind, model)
+        row = run_case(spec, pixels, kind, model, solver)
         print(_line(row), flush=True)
         path = held.get(spec["seed"], out / "cases-rerun.json")
         rows = json.loads(path.read_text()) if path.exists() else []
@@ -446,13 +457,21 @@ def main() -> None:
         action="store_true",
         help="fit creep's onset too (the model's creep_onset; its own results folder)",
     )
+    a.add_argument(
+        "--chord-lengths",
+        action="store_true",
+        help="fit the chords' lengths too (solver.chord_lengths; its own results folder)",
+    )
     args = a.parse_args()
     model, folder = CLASSES[args.model]
     if args.creep_onset:
         model, folder = model | {"creep_onset": True}, folder.with_name(folder.name + "_creep_onset")
+    solver = {"chord_lengths": True} if args.chord_lengths else {}
+    if args.chord_lengths:
+        folder = folder.with_name(folder.name + "_lengths")
     folder.mkdir(parents=True, exist_ok=True)
     if args.seeds:
-        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder)
+        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder, solver)
     elif not args.summarise:
         k, n = (int(v) for v in args.shard.split("/"))
         done = {r["seed"] for p in folder.glob("cases-*.json") for r in json.loads(p.read_text())}
@@ -462,7 +481,7 @@ def main() -> None:
         out = folder / f"cases-{k}-of-{n}.json"
         rows = json.loads(out.read_text()) if args.resume and out.exists() else []
         for spec in todo:
-            rows.append(run_case(spec, args.pixels, args.kind, model))
+            rows.append(run_case(spec, args.pixels, args.kind, model, solver))
             print(_line(rows[-1]), flush=True)
             out.write_text(json.dumps(rows, indent=1, default=float))
     print(json.dumps(summarise(folder), indent=1))

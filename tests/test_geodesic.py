@@ -68,3 +68,18 @@ def test_a_step_limit_and_a_start_that_is_not_finite_are_reported():
     assert steps == 0 and not ok
     with pytest.raises(ValueError, match="curvature must be one of jvp, difference, got 'hessian'"):
         geodesic.solve(_rosenbrock, np.zeros(2), None, 10, 1e-8, 1e-8, "hessian")
+
+
+def _undefined_beyond_one(x, packed):
+    # r = x0 - 2, finite everywhere; its derivative is not defined (0 * inf) from x0 = 1 on
+    return jnp.stack([x[0] - 2 + 0 * jnp.sqrt(jnp.maximum(1 - x[0], 0.0))])
+
+
+@pytest.mark.parametrize("curvature", geodesic.CURVATURES)
+def test_a_point_without_a_jacobian_is_not_taken(curvature):
+    """The minimum (2) lies where the Jacobian is NaN: the solver stays where it is defined
+    (x0 < 1), moving towards it, and returns without raising; started there it does not move."""
+    x, _, ok = geodesic.solve(_undefined_beyond_one, np.zeros(1), None, 50, 1e-12, 1e-14, curvature)
+    assert 0 < x[0] < 1 and not ok
+    x, steps, ok = geodesic.solve(_undefined_beyond_one, np.array([1.5]), None, 50, 1e-12, 1e-14, curvature)
+    assert x[0] == 1.5 and steps == 0 and not ok

@@ -27,6 +27,7 @@ from jaxafm import (
     Scanner,
     default_scanner,
 )
+from jaxafm.model.effects import TAU_FLOOR_S
 from jaxafm.model.scanner import pi_with_loop_width
 
 ALL = {"hysteresis", "asymmetry", "creep", "coupling", "bow", "drift", "noise"}
@@ -259,6 +260,24 @@ def test_tiny_tau_is_identity():
     # a constant drive passes a real lag unchanged: it starts relaxed at v[0]
     const = jnp.full_like(u, 3.7)
     np.testing.assert_allclose(call(lag, const, t), 3.7, rtol=1e-14)
+
+
+@pytest.mark.parametrize("hold", ["zero", "linear"])
+def test_a_vanishing_lag_has_a_derivative(hold):
+    """A time constant a softplus left far below its knee (1e-190 s, where a fit's raw value ran
+    to -437): the output is the input (the lag's limit tau -> 0), and its derivative in tau is
+    finite, not ``exp(-dt / tau) dt / tau^2 = 0 * inf``; a lag of 1 ms still has one. The
+    lag computes with its floor, TAU_FLOOR_S, which delays a ramp by that much through the
+    linear hold: at most the drive's steepest slope times it (twice, for the tolerance)."""
+    u, t = sine_drive(FREQS[-1])
+    out = lambda tau: RateDependence(tau, hold)(u, t)
+    delay = 2 * np.abs(np.diff(u) / np.diff(t)).max() * TAU_FLOOR_S
+    np.testing.assert_allclose(out(jnp.asarray(1e-190)), u, rtol=0, atol=max(delay, 1e-12))
+    assert np.all(np.isfinite(np.asarray(jax.jacfwd(out)(jnp.asarray(1e-190)))))
+    assert np.abs(np.asarray(jax.jacfwd(out)(jnp.asarray(1e-3)))).max() > 0
+    # a fit's raw value run to where the softplus is 0 gives the floor, not a refused lag
+    raw, rebuild = RateDependence(jnp.asarray(1e-3), hold).free_parameters(1e-3)
+    assert float(rebuild(raw - 1000.0).tau) == TAU_FLOOR_S
 
 
 # ---------------------------------------------------------------- 3. coupling, bow, drift, noise

@@ -79,9 +79,12 @@ def solve(
     below ``atol`` (converged), or after ``max_steps`` iterations (each one trial point).
     ``curvature``: how ``r_vv`` is had, one of :data:`CURVATURES`.
 
+    A trial point whose residuals or Jacobian are not finite (a model linearised where its
+    derivative is not defined) is not taken: the step is refused as one that raises the cost.
+
     Returns:
-        ``(x, steps, converged)``; ``x`` is ``x0`` and ``steps`` 0 where the residuals at ``x0``
-        are not finite.
+        ``(x, steps, converged)``; ``x`` is ``x0`` and ``steps`` 0 where the residuals or their
+        Jacobian at ``x0`` are not finite.
     """
     if curvature not in CURVATURES:
         raise ValueError(f"curvature must be one of {', '.join(CURVATURES)}, got {curvature!r}")
@@ -99,7 +102,7 @@ def solve(
         return (2 / H) * ((np.asarray(residuals(x + H * v, packed)) - r) / H - J @ v)
 
     r, J, A, g = at(x)
-    if not np.all(np.isfinite(r)):
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(A))):
         return x, 0, False
     cost = 0.5 * float(r @ r)
     mu, nu = TAU * float(np.max(np.diag(A), initial=1.0)), 2.0
@@ -121,9 +124,10 @@ def solve(
         new = 0.5 * float(trial @ trial)
         predicted = 0.5 * float(v @ (mu * v - g))
         rho = (cost - new) / predicted if np.isfinite(new) and predicted > 0 else -1.0
-        if rho > 0:
+        linear = at(x + delta) if rho > 0 else None
+        if linear is not None and np.all(np.isfinite(linear[2])):
             x = x + delta
-            r, J, A, g = at(x)
+            r, J, A, g = linear
             cost = 0.5 * float(r @ r)
             mu, nu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3), 2.0
         else:
