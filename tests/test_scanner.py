@@ -263,21 +263,22 @@ def test_tiny_tau_is_identity():
 
 
 @pytest.mark.parametrize("hold", ["zero", "linear"])
-def test_a_vanishing_lag_has_a_derivative(hold):
-    """A time constant a softplus left far below its knee (1e-190 s, where a fit's raw value ran
-    to -437): the output is the input (the lag's limit tau -> 0), and its derivative in tau is
-    finite, not ``exp(-dt / tau) dt / tau^2 = 0 * inf``; a lag of 1 ms still has one. The
-    lag computes with its floor, TAU_FLOOR_S, which delays a ramp by that much through the
-    linear hold: at most the drive's steepest slope times it (twice, for the tolerance)."""
+def test_a_fitted_lag_that_vanishes_keeps_a_derivative(hold):
+    """A fit's raw time constant run far below the softplus' knee (-437, where a fit of the
+    independent generator's speed series took it: 1e-190 s; and -1000, where the softplus is 0)
+    rebuilds the floor TAU_FLOOR_S: the output is the input (the lag's limit tau -> 0, delayed
+    through the linear hold by the floor at most: the drive's steepest slope times it, twice for
+    the tolerance) and its derivative in the raw value is finite (0), not
+    ``exp(-dt / tau) dt / tau^2 = 0 * inf``; at 1 ms the lag has one."""
     u, t = sine_drive(FREQS[-1])
-    out = lambda tau: RateDependence(tau, hold)(u, t)
-    delay = 2 * np.abs(np.diff(u) / np.diff(t)).max() * TAU_FLOOR_S
-    np.testing.assert_allclose(out(jnp.asarray(1e-190)), u, rtol=0, atol=max(delay, 1e-12))
-    assert np.all(np.isfinite(np.asarray(jax.jacfwd(out)(jnp.asarray(1e-190)))))
-    assert np.abs(np.asarray(jax.jacfwd(out)(jnp.asarray(1e-3)))).max() > 0
-    # a fit's raw value run to where the softplus is 0 gives the floor, not a refused lag
     raw, rebuild = RateDependence(jnp.asarray(1e-3), hold).free_parameters(1e-3)
-    assert float(rebuild(raw - 1000.0).tau) == TAU_FLOOR_S
+    out = lambda p: rebuild(p)(u, t)
+    delay = 2 * np.abs(np.diff(u) / np.diff(t)).max() * TAU_FLOOR_S
+    for far in (-437.0, -1000.0):
+        assert float(rebuild(jnp.asarray(far)).tau) == TAU_FLOOR_S
+        np.testing.assert_allclose(out(jnp.asarray(far)), u, rtol=0, atol=max(delay, 1e-12))
+        assert np.all(np.isfinite(np.asarray(jax.jacfwd(out)(jnp.asarray(far)))))
+    assert np.abs(np.asarray(jax.jacfwd(out)(raw))).max() > 0
 
 
 # ---------------------------------------------------------------- 3. coupling, bow, drift, noise

@@ -29,11 +29,6 @@ Array = jax.Array
 # fit should start.
 
 
-#: the shortest time constant (s) a lag computes with (:func:`hold_weights`, :func:`lowpass`): a
-#: picosecond, a millionth of the fastest sample time a scanner sees, so no lag at all there
-TAU_FLOOR_S = 1e-12
-
-
 def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -> tuple:
     """First-order lags ``dz_k/dt = (v - z_k) / tau_k``, exact for ``v`` held over each step.
 
@@ -52,7 +47,7 @@ def lowpass(v: Array, t: Array, taus: Array, z0: Array, t0=None, weights=None) -
 
     def step(z, inputs):
         vn, dtn = inputs
-        a = jnp.exp(-dtn / jnp.maximum(taus, TAU_FLOOR_S))
+        a = jnp.exp(-dtn / taus)
         z = a * z + (1 - a) * vn
         return z, z @ weights
 
@@ -74,7 +69,7 @@ def associative_lags(v: Array, dt: Array, taus: Array, z0: Array) -> Array:
     being ``(a1 a2, a2 b1 + b2)``: ``Z_n = A_n z0 + B_n`` with ``(A, B)`` the associative scan
     (``jax.lax.associative_scan``, depth O(log T)) of the steps. Equal to the sequential lags to
     round-off (the sums are taken in another order)."""
-    a = jnp.exp(-dt[:, None] / jnp.maximum(taus, TAU_FLOOR_S))
+    a = jnp.exp(-dt[:, None] / taus)
     return affine_prefix(a, (1 - a) * v[:, None], z0)
 
 
@@ -104,10 +99,8 @@ def hold_weights(dt: Array, tau: Array, hold: str) -> tuple:
     (the linear hold's weights from integrating ``exp(-(dt - s) / tau) v(s) / tau`` over the
     step). Through the linear hold a ramp ``v = c t`` settles to ``z = c (t - tau)``: delayed by
     ``tau`` at any sample time; through the zero hold by ``dt / (exp(dt / tau) - 1)``, which
-    falls far below ``tau`` once ``dt > tau``. A ``tau`` below :data:`TAU_FLOOR_S` acts as that
-    floor (no lag at any sample rate), which keeps ``exp(-dt / tau)``'s derivative, ``0 * inf``
-    at a vanishing ``tau``, out of the gradient. Returns ``(a, b_prev, b_now)``."""
-    x = dt / jnp.maximum(tau, TAU_FLOOR_S)
+    falls far below ``tau`` once ``dt > tau``. Returns ``(a, b_prev, b_now)``."""
+    x = dt / tau
     a = jnp.exp(-x)
     if hold == "zero":
         return a, jnp.zeros_like(a), 1 - a
@@ -248,6 +241,11 @@ class Creep(eqx.Module):
         return self.run(v, t, self.initial_state(v[0]), t[0])[0]
 
 
+#: the shortest time constant (s) a fitted lag takes (:meth:`FirstOrderLag.free_parameters`): a
+#: picosecond, a millionth of the fastest sample time a scanner sees, so no lag at all there
+TAU_FLOOR_S = 1e-12
+
+
 class FirstOrderLag(eqx.Module):
     """``dz/dt = (v - z) / tau``: a first-order lag of time constant ``tau`` (s).
 
@@ -268,8 +266,9 @@ class FirstOrderLag(eqx.Module):
 
     def free_parameters(self, scale: float) -> tuple:
         """The time constant at order one, kept > 0: ``raw = softplus^-1(tau / scale)``, and
-        at least :data:`TAU_FLOOR_S` (a fit that wants no lag runs its raw value towards -inf,
-        where the softplus reaches 0).
+        at least :data:`TAU_FLOOR_S`. A fit that wants no lag runs its raw value towards -inf:
+        there the softplus reaches 0, and below the floor ``exp(-dt / tau)``'s derivative is
+        ``0 * inf`` (NaN); at the floor it is 0, and the lag none at any sample rate.
 
         Arguments:
             scale: the time constant (s) a raw value of about 1 stands for.
