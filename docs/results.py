@@ -1542,6 +1542,20 @@ def _reasons(failures: list) -> str:
     return "refused: " + "; ".join(short) if short else "saved"
 
 
+def _tip_path_rows(runs: list, px) -> list:
+    """Two rows of a few-features table: the true tip path's rms over all pixels (x / y), and
+    inside / outside the features' reach, per run (``px`` writes a number of pixels)."""
+    return [
+        ["true tip path, rms: all pixels (x / y)"]
+        + [f"{px(r['tip_path_rms_px'])} ({' / '.join(map(px, r['tip_path_xy_rms_px']))})" for r in runs],
+        ["true tip path, rms: inside / outside the features' reach"]
+        + [
+            f"{px(r['tip_path_inside_reach_rms_px'])} / {px(r['tip_path_outside_reach_rms_px'])}"
+            for r in runs
+        ],
+    ]
+
+
 @table("step_a_few_features_known")
 def step_a_few_features_known(results: Results) -> Table:
     runs = [results(STEP_A_FEW)] + [results(r) for r in STEP_A_FEW_KNOWN]
@@ -1573,13 +1587,7 @@ def step_a_few_features_known(results: Results) -> Table:
             for r in runs
         ],
         ["outcome"] + [_reasons(r["failures"]) for r in runs],
-        ["true tip path, rms: all pixels (x / y)"]
-        + [f"{px(r['tip_path_rms_px'])} ({' / '.join(map(px, r['tip_path_xy_rms_px']))})" for r in runs],
-        ["true tip path, rms: inside / outside the features' reach"]
-        + [
-            f"{px(r['tip_path_inside_reach_rms_px'])} / {px(r['tip_path_outside_reach_rms_px'])}"
-            for r in runs
-        ],
+        *_tip_path_rows(runs, px),
         ["step A's time on 2 cores"] + [q(r["seconds"], "s", 0) for r in runs],
     ]
     note = (
@@ -1659,13 +1667,7 @@ def step_a_chord_lengths(results: Results) -> Table:
         ],
         ["the tip path's sd over the images (step A's check)"] + [q(v, "nm", 0) for v in m("path_sd_rms_nm")],
         ["outcome"] + [_reasons(r["failures"]) for r in runs],
-        ["true tip path, rms: all pixels (x / y)"]
-        + [f"{px(r['tip_path_rms_px'])} ({' / '.join(map(px, r['tip_path_xy_rms_px']))})" for r in runs],
-        ["true tip path, rms: inside / outside the features' reach"]
-        + [
-            f"{px(r['tip_path_inside_reach_rms_px'])} / {px(r['tip_path_outside_reach_rms_px'])}"
-            for r in runs
-        ],
+        *_tip_path_rows(runs, px),
         ["x error in eight bands of x, left to right"]
         + [" · ".join(q(v, "", 1) for v in r["x_error_by_x_band_px"]) + " px" for r in runs],
         ["true tip path inside the predicted 90 % ellipses (with a feature's spread)"]

@@ -17,10 +17,7 @@ writes experiments/results/step_a_chord_lengths_real/metrics.json (a table of do
 
 from __future__ import annotations
 
-import argparse
-import json
-
-from step_a_real_classes import LATTICES, ROOT, committed, identified
+from step_a_real_classes import ROOT, committed, identified, run_lattices
 
 OUT = ROOT / "experiments" / "results" / "step_a_chord_lengths_real"
 #: what the table keeps of each identification (``identification_metrics``' keys)
@@ -39,29 +36,27 @@ KEPT = (
 )
 
 
+def _line(lattice: str, name: str, r: dict) -> str:
+    return (
+        f"{lattice} {name}: held-out features {r['held_out_rms_nm']:.1f} nm "
+        f"({r['held_out_coverage_90_pct']:.0f} % in their 90 % ellipses); pitch spread "
+        f"{r['held_out_pitch_std_corrected_pct']:.2f} %; distances "
+        f"{r['held_out_distance_error_max_corrected_pct']:.2f} % at most; widths along "
+        f"{r['feature_width_spread_along_corrected_pct']:.2f} %; kept {r['model_kind']} "
+        f"{r['model_operators']} + {', '.join(r['model_effects'])}; {r['fit_s']:.0f} s"
+    )
+
+
 def main() -> None:
-    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    a.add_argument("--lattices", nargs="+", default=list(LATTICES), choices=LATTICES)
-    args = a.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / "metrics.json"
-    rows = json.loads(path.read_text()) if path.exists() else {}
-    for lattice in args.lattices:
-        rows[lattice] = {
+    run_lattices(
+        OUT,
+        __doc__,
+        lambda lattice: {
             "midpoints": committed(lattice, KEPT),
             "lengths": identified(lattice, KEPT, solver={"chord_lengths": True}),
-        }
-        for name, r in rows[lattice].items():
-            print(
-                f"{lattice} {name}: held-out features {r['held_out_rms_nm']:.1f} nm "
-                f"({r['held_out_coverage_90_pct']:.0f} % in their 90 % ellipses); pitch spread "
-                f"{r['held_out_pitch_std_corrected_pct']:.2f} %; distances "
-                f"{r['held_out_distance_error_max_corrected_pct']:.2f} % at most; widths along "
-                f"{r['feature_width_spread_along_corrected_pct']:.2f} %; kept {r['model_kind']} "
-                f"{r['model_operators']} + {', '.join(r['model_effects'])}; {r['fit_s']:.0f} s",
-                flush=True,
-            )
-        path.write_text(json.dumps(rows, indent=1))
+        },
+        _line,
+    )
 
 
 if __name__ == "__main__":

@@ -71,25 +71,41 @@ def committed(lattice: str, kept: tuple = KEPT) -> dict:
     return {k: m[f"gpi_{k}"] for k in kept}
 
 
-def main() -> None:
-    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def run_lattices(out: Path, description: str, row, line) -> None:
+    """The command line of a real-lattice study (``--lattices``, default all three): for each
+    lattice its ``row(lattice)`` (a dict of named results) printed, one ``line(lattice, name,
+    result)`` each, and written into ``out``/metrics.json beside the lattices already there,
+    after each."""
+    a = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("--lattices", nargs="+", default=list(LATTICES), choices=LATTICES)
     args = a.parse_args()
-    OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / "metrics.json"
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "metrics.json"
     rows = json.loads(path.read_text()) if path.exists() else {}
     for lattice in args.lattices:
-        rows[lattice] = {"gpi": committed(lattice), "preisach": identified(lattice, KEPT, model=PREISACH)}
+        rows[lattice] = row(lattice)
         for name, r in rows[lattice].items():
-            print(
-                f"{lattice} {name}: held-out features {r['held_out_raw_rms_nm']:.1f} nm raw -> "
-                f"{r['held_out_rms_nm']:.1f} nm; pitch spread {r['held_out_pitch_std_raw_pct']:.2f} % -> "
-                f"{r['held_out_pitch_std_corrected_pct']:.2f} %; distances "
-                f"{r['held_out_distance_error_max_corrected_pct']:.2f} % at most; "
-                f"kept {r['model_kind']} {r['model_operators']} + {', '.join(r['model_effects'])}",
-                flush=True,
-            )
+            print(line(lattice, name, r), flush=True)
         path.write_text(json.dumps(rows, indent=1))
+
+
+def _line(lattice: str, name: str, r: dict) -> str:
+    return (
+        f"{lattice} {name}: held-out features {r['held_out_raw_rms_nm']:.1f} nm raw -> "
+        f"{r['held_out_rms_nm']:.1f} nm; pitch spread {r['held_out_pitch_std_raw_pct']:.2f} % -> "
+        f"{r['held_out_pitch_std_corrected_pct']:.2f} %; distances "
+        f"{r['held_out_distance_error_max_corrected_pct']:.2f} % at most; "
+        f"kept {r['model_kind']} {r['model_operators']} + {', '.join(r['model_effects'])}"
+    )
+
+
+def main() -> None:
+    run_lattices(
+        OUT,
+        __doc__,
+        lambda lattice: {"gpi": committed(lattice), "preisach": identified(lattice, KEPT, model=PREISACH)},
+        _line,
+    )
 
 
 if __name__ == "__main__":
