@@ -209,6 +209,7 @@ PAPER = Run("paper/metrics.json", "jaxafm run configs/paper.yaml")
 PAPER_TRUE = Run(
     "paper_true_model/metrics.json", "python experiments/paper_true_model.py --config configs/paper.yaml"
 )
+PAPER_CONVERGED = Run("paper_converged/metrics.json", "jaxafm run configs/paper_converged.yaml")
 PUSH_STUDY = Run("push_study/metrics.json", "python experiments/push_study.py --fields 4")
 PUSH_0_90 = Run(
     "push_study_0_90/metrics.json",
@@ -2687,6 +2688,28 @@ def run_summary(run: Run) -> Callable[[Results], Table]:
 
 TABLES["paper_summary"] = run_summary(PAPER)
 TABLES["paper_true_model_summary"] = run_summary(PAPER_TRUE)
+
+
+@table("paper_converged")
+def paper_converged(results: Results) -> Table:
+    """The paper run with step A stopped at its step limits, run until it converges, and with the
+    true scanner as the model: what each puts where."""
+    runs = (PAPER, PAPER_CONVERGED, PAPER_TRUE)
+    m = [results(run) for run in runs]
+    nm = lambda key: [q(r[key], "nm") for r in m]
+    rows = [
+        ["A: median", *nm("A_error_median_nm")],
+        ["A: worst", *nm("A_error_max_nm")],
+        ["A+B (polynomial): median", *nm("AB_polynomial_error_median_nm")],
+        ["A+B (polynomial): worst", *nm("AB_polynomial_error_max_nm")],
+        ["A+B+C error / R: worst", *[q(r["ABC_error_over_radius_max"], "", 3) for r in m]],
+        ["push miss: median", *nm("push_error_median_nm")],
+        ["push miss: worst", *nm("push_error_max_nm")],
+        ["step A's identification", *[q(r["step_a_fit_s"] or None, "s") for r in m]],
+    ]
+    header = ["", "step A stopped at 30 · 60 · 100 steps", "step A converged", "the true scanner"]
+    note = "Errors: true tip to true particle centre; times as each run recorded them (the converged run on one core)."
+    return Table(header, rows, list(runs), note)
 
 
 def push_fields(run: Run, folder: str) -> Callable[[Results], Table]:

@@ -5,6 +5,7 @@ triangle of +-a V; the travel of the last rising sweep is compared. Step A's cal
 reverses x every line but moves y one way only, so y's small loops are not in its data.
 
     python experiments/minor_loops.py [--model experiments/results/paper/model_scanner.json]
+        [--out experiments/results/minor_loops.json]
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def main() -> None:
     ap.add_argument(
         "--model", type=Path, default=ROOT / "experiments" / "results" / "paper" / "model_scanner.json"
     )
+    ap.add_argument("--out", type=Path, default=ROOT / "experiments" / "results" / "minor_loops.json")
     args = ap.parse_args()
     true = jaxafm.default_scanner().without("drift", "noise")
     fit = load_model(args.model)
@@ -55,8 +57,7 @@ def main() -> None:
             f"{2 * a:10.1f} {travel[0][0]:8.1f}nm {travel[1][0]:8.1f}nm {ratio[0]:8.3f} "
             f"{travel[0][1]:8.1f}nm {travel[1][1]:8.1f}nm {ratio[1]:8.3f}"
         )
-    out = ROOT / "experiments" / "results" / "minor_loops.json"
-    out.write_text(json.dumps(rows, indent=1))
+    args.out.write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
