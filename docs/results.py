@@ -1718,6 +1718,47 @@ def step_a_chord_lengths_real(results: Results) -> Table:
     return Table(header, rows, [STEP_A_LENGTHS_REAL], note)
 
 
+STEP_A_OFF_LINE_REAL = Run(
+    "step_a_off_line_chords/metrics.json", "python experiments/step_a_off_line_chords.py"
+)
+
+
+@table("step_a_off_line_chords")
+def step_a_off_line_chords(results: Results) -> Table:
+    """Each Nanosurf lattice fitted with every chord and without those off their features' lines."""
+    ways = {"every chord": "every chord (committed run)", "on their lines": "`off_line_chords_sd: 5`"}
+    rows = []
+    for lattice, by_way in results(STEP_A_OFF_LINE_REAL).items():
+        for name, r in by_way.items():
+            kept = f"{r['model_kind']} {r['model_operators']} plays + " + ", ".join(r["model_effects"])
+            rows.append(
+                [lattice.replace("_", " "), ways[name], count(r["chords"])]
+                + [f"{q(r['midpoint_rms_nm'], 'nm')} ({q(r['midpoint_along_rms_nm'], 'nm')})"]
+                + [f"{q(r['held_out_raw_rms_nm'], 'nm')} → {q(r['held_out_rms_nm'], 'nm')}"]
+                + [q(r["held_out_predicted_rms_nm"], "nm"), q(r["held_out_coverage_90_pct"], "%", 0)]
+                + [q(r["held_out_pitch_std_corrected_pct"], "%", 2)]
+                + [q(r["held_out_distance_error_max_corrected_pct"], "%", 2), kept, q(r["plausible"])]
+            )
+    header = [
+        "lattice",
+        "chords read",
+        "chords in all images",
+        "midpoints off their lines at the fit (along the lines)",
+    ]
+    header += ["held-out features, raw → corrected", "predicted for them", "inside their 90 % ellipses"]
+    header += [
+        "their local pitch spread",
+        "largest distance error",
+        "model the ladder kept",
+        "saved as plausible",
+    ]
+    note = (
+        "The held-out features as `jaxafm calibrate` gives them, each run placing them by its own "
+        "chords; the midpoints rms over the training chords at the fit."
+    )
+    return Table(header, rows, [STEP_A_OFF_LINE_REAL], note)
+
+
 STEP_A_FLOOR = Run(
     "step_a_independent/floor.json", "python experiments/step_a_floor.py --seeds 100 106 111 114 116"
 )
@@ -1840,34 +1881,83 @@ def step_a_creep_onset(results: Results) -> Table:
     return Table(header, rows, runs, note)
 
 
-STEP_A_LENGTHS = Run(
-    "step_a_independent_lengths/cases-rerun.json",
-    "python experiments/step_a_independent.py --pixels 64 --chord-lengths --seeds 102 105 108 111 114 117",
-)
+#: the generator's cases with ``solver.chord_lengths``, per ``--seeds`` run (each seed in one)
+STEP_A_LENGTHS_RUNS = {
+    Run(
+        "step_a_independent_lengths/cases-rerun.json",
+        f"python experiments/step_a_independent.py --pixels 64 --chord-lengths --seeds {seeds}",
+    ): seeds
+    for seeds in ("102 105 108 111 114 117", "100 101 103 104 106 107 109 110 112 113 115 116 118 119")
+}
+STEP_A_LENGTHS = next(iter(STEP_A_LENGTHS_RUNS))
 
 
 @table("step_a_independent_lengths")
 def step_a_independent_lengths(results: Results) -> Table:
-    rows, (pairs, runs) = [], _with_study(results, STEP_A_LENGTHS)
+    rows, (pairs, study_runs) = [], _with_study(results, STEP_A_LENGTHS)
+    runs = [_run_of(r["seed"], STEP_A_LENGTHS, STEP_A_LENGTHS_RUNS, STEP_A_LENGTHS) for _, r in pairs]
     for pair in pairs:
         r = pair[1]
+        one_rate = len(r["rates_hz"]) == 1
         rows.append(
-            [f"{r['seed']} ({r['feature'].replace('_', ' ')})"]
+            [f"{r['seed']} ({_scans_label(r)}, {r['feature'].replace('_', ' ')})"]
             + [_tip_path_cell(c["gpi_plausible"], c["tip_path_rms_px"]) for c in pair]
             + [q(c["gpi_held_out_rms_nm"] / c["pixel_nm"], "px", 2) for c in pair]
-            + [_lag_error(c.get("gpi_x_rate_lag_s"), r["true_rate_lag_s"]) for c in pair]
+            + ["–" if one_rate else _lag_error(c.get("gpi_x_rate_lag_s"), r["true_rate_lag_s"]) for c in pair]
             + [q(c["gpi_feature_width_spread_across_corrected_pct"], "%", 1) for c in pair]
             + [q(c["tip_path_coverage_90_with_spread_pct"], "%", 0) for c in pair]
             + [f"{q(c['gpi_fit_s'], 's', 0)}" for c in pair]
         )
+    both = [p for p in pairs if all(c["gpi_plausible"] for c in p)]
+    median = [f"median of the {len(both)} saved by both"]
+    median += [q(statistics.median(c["tip_path_rms_px"] for c in way), "px", 2) for way in zip(*both)]
+    rows.append(median + [""] * (len(rows[0]) - len(median)))
     header = ["case", "tip path: midpoints", "lengths", "held-out features: midpoints", "lengths"]
     header += ["x lag (error): midpoints", "lengths", "widths across the lines: midpoints", "lengths"]
     header += ["true path in the 90 % ellipses: midpoints", "lengths", "step A's time: midpoints", "lengths"]
     note = (
-        "Generalised PI class, speed series at 0.5, 1 and 2 Hz at 0°; the midpoints are the "
-        "study's fits (the default), the lengths `solver.chord_lengths: true`. Widths across "
-        "the lines: their spread after the correction. The true path in the predicted 90 % ellipses "
-        "with a feature's spread. Times on 2 cores."
+        "Generalised PI class; speed series at 0.5, 1 and 2 Hz at 0°, pairs at 0° and 90° at 1 Hz "
+        "(no lag fitted: –). The midpoints are the study's fits (the default), the lengths "
+        "`solver.chord_lengths: true`. Widths across the lines: their spread after the correction. "
+        "The true path in the predicted 90 % ellipses with a feature's spread. Times on 2 cores."
+    )
+    return Table(header, rows, list(dict.fromkeys(runs + study_runs[1:])), note)
+
+
+STEP_A_OFF_LINE = Run(
+    "step_a_independent_off_line/cases-rerun.json",
+    "python experiments/step_a_independent.py --pixels 64 --off-line-chords 5 --seeds 107 113 116",
+)
+
+
+@table("step_a_independent_off_line")
+def step_a_independent_off_line(results: Results) -> Table:
+    """The generator's square-pit cases read with every chord (the study's fits) and without the
+    chords off their features' lines."""
+    rows, (pairs, runs) = [], _with_study(results, STEP_A_OFF_LINE)
+    for pair in pairs:
+        r = pair[1]
+        rows.append(
+            [f"{r['seed']} ({_scans_label(r)}, {r['feature'].replace('_', ' ')})"]
+            + [_tip_path_cell(c["gpi_plausible"], c["tip_path_rms_px"]) for c in pair]
+            + [q(c["gpi_held_out_rms_nm"] / c["pixel_nm"], "px", 2) for c in pair]
+            + [q(c["gpi_held_out_distance_error_max_corrected_pct"], "%", 2) for c in pair]
+            + [q(c["tip_path_coverage_90_with_spread_pct"], "%", 0) for c in pair]
+        )
+    ways = ("every chord", "`off_line_chords_sd: 5`")
+    header = ["case"] + [
+        f"{what}: {way}" if k == 0 else way
+        for what in (
+            "tip path",
+            "held-out features",
+            "largest held-out distance error",
+            "true path in the 90 % ellipses",
+        )
+        for k, way in enumerate(ways)
+    ]
+    note = (
+        "Generalised PI class; every chord: the study's fits (the default). The true path in the "
+        "predicted 90 % ellipses with a feature's spread."
     )
     return Table(header, rows, runs, note)
 

@@ -17,7 +17,7 @@ writes experiments/results/step_a_chord_lengths_real/metrics.json (a table of do
 
 from __future__ import annotations
 
-from step_a_real_classes import ROOT, committed, identified, run_lattices
+from step_a_real_classes import MODEL_KEPT, ROOT, committed, identified, run_lattices
 
 OUT = ROOT / "experiments" / "results" / "step_a_chord_lengths_real"
 #: what the table keeps of each identification (``identification_metrics``' keys)
@@ -28,12 +28,7 @@ KEPT = (
     "held_out_distance_error_max_corrected_pct",
     "feature_width_spread_along_raw_pct",
     "feature_width_spread_along_corrected_pct",
-    "model_kind",
-    "model_operators",
-    "model_effects",
-    "plausible",
-    "fit_s",
-)
+) + MODEL_KEPT
 
 
 def _line(lattice: str, name: str, r: dict) -> str:

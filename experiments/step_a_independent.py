@@ -22,12 +22,13 @@ generator's truth:
     python experiments/step_a_independent.py --model preisach  # step A with the Preisach class
     python experiments/step_a_independent.py --creep-onset --seeds 102 105  # creep's onset fitted too
     python experiments/step_a_independent.py --chord-lengths --seeds 102 105  # solver.chord_lengths
+    python experiments/step_a_independent.py --off-line-chords 5 --seeds 101 107  # grating.off_line_chords_sd
 
 writes experiments/results/step_a_independent/ (step_a_independent_preisach/ with --model
 preisach; the folder's name ending _creep_onset with --creep-onset, _lengths with
---chord-lengths): cases-K-of-N.json per shard, after each case (with --resume the cases already
-in one are skipped); then summary.json and summary.png, what the docs table shows (--summarise:
-those alone).
+--chord-lengths, _off_line with --off-line-chords): cases-K-of-N.json per shard, after each
+case (with --resume the cases already in one are skipped); then summary.json and summary.png,
+what the docs table shows (--summarise: those alone).
 """
 
 from __future__ import annotations
@@ -82,12 +83,18 @@ def plan(cases: int, speeds: int) -> list:
 
 
 def draw_and_read(
-    spec: dict, pixels: int, kind: str, magnitudes: dict | None = None, model: dict = MODEL
+    spec: dict,
+    pixels: int,
+    kind: str,
+    magnitudes: dict | None = None,
+    model: dict = MODEL,
+    grating: dict | None = None,
 ) -> tuple:
     """``(case, scans)``: the generator's case for ``spec`` (its scanner's ``magnitudes`` as
     :func:`independent_lattice.draw_case` takes them), written as a user would give it and read
-    back through ``jaxafm calibrate``'s own reading; and the step A configuration for it, with
-    ``model`` (:data:`MODEL` or :data:`PREISACH`) as its richest model."""
+    back through ``jaxafm calibrate``'s own reading (``grating``'s settings over the case's own);
+    and the step A configuration for it, with ``model`` (:data:`MODEL` or :data:`PREISACH`) as
+    its richest model."""
     case = G.draw_case(
         spec["seed"],
         kind,
@@ -108,7 +115,7 @@ def draw_and_read(
             effects.remove("asymmetry")
         cfg = CalibrateConfig(
             data=given["data"],
-            grating=given["grating"],
+            grating=given["grating"] | (grating or {}),
             models=[model | {"effects": effects}],
             solver={"blur_px": [], "coarsen": "auto", "max_steps": 200},
             compensate=None,
@@ -117,13 +124,20 @@ def draw_and_read(
     return case, scans, cfg
 
 
-def run_case(spec: dict, pixels: int, kind: str, model: dict = MODEL, solver: dict | None = None) -> dict:
+def run_case(
+    spec: dict,
+    pixels: int,
+    kind: str,
+    model: dict = MODEL,
+    solver: dict | None = None,
+    grating: dict | None = None,
+) -> dict:
     """Draw, write, read and identify one case with ``model`` as step A's richest model (and
-    ``solver``'s settings over the case's own); score it against the truth. The compiled
-    functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
+    ``solver``'s and ``grating``'s settings over the case's own); score it against the truth. The
+    compiled functions of earlier cases are dropped first: kept, they fill the memory of a long run."""
     jax.clear_caches()
     clear_caches()
-    case, scans, cfg = draw_and_read(spec, pixels, kind, model=model)
+    case, scans, cfg = draw_and_read(spec, pixels, kind, model=model, grating=grating)
     settings = cfg.solver.model_copy(update=solver or {})
     began = time.perf_counter()
     said = []
@@ -421,12 +435,13 @@ def rerun(
     model: dict = MODEL,
     out: Path = OUT,
     solver: dict | None = None,
+    grating: dict | None = None,
 ) -> None:
     """Run the cases of ``seeds`` again, each row replacing the one of its seed in the
     cases-*.json of ``out`` that holds it (after each case)."""
     held = {r["seed"]: path for path in out.glob("cases-*.json") for r in json.loads(path.read_text())}
     for spec in (c for c in cases if c["seed"] in seeds):
-        row = run_case(spec, pixels, kind, model, solver)
+        row = run_case(spec, pixels, kind, model, solver, grating)
         print(_line(row), flush=True)
         path = held.get(spec["seed"], out / "cases-rerun.json")
         rows = json.loads(path.read_text()) if path.exists() else []
@@ -462,6 +477,12 @@ def main() -> None:
         action="store_true",
         help="fit the chords' lengths too (solver.chord_lengths; its own results folder)",
     )
+    a.add_argument(
+        "--off-line-chords",
+        type=float,
+        metavar="SD",
+        help="leave out chords off their features' lines (grating.off_line_chords_sd; its own results folder)",
+    )
     args = a.parse_args()
     model, folder = CLASSES[args.model]
     if args.creep_onset:
@@ -469,9 +490,14 @@ def main() -> None:
     solver = {"chord_lengths": True} if args.chord_lengths else {}
     if args.chord_lengths:
         folder = folder.with_name(folder.name + "_lengths")
+    grating = {} if args.off_line_chords is None else {"off_line_chords_sd": args.off_line_chords}
+    if grating:
+        folder = folder.with_name(folder.name + "_off_line")
     folder.mkdir(parents=True, exist_ok=True)
     if args.seeds:
-        rerun(args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder, solver)
+        rerun(
+            args.seeds, plan(args.cases, args.speeds), args.pixels, args.kind, model, folder, solver, grating
+        )
     elif not args.summarise:
         k, n = (int(v) for v in args.shard.split("/"))
         done = {r["seed"] for p in folder.glob("cases-*.json") for r in json.loads(p.read_text())}
@@ -481,7 +507,7 @@ def main() -> None:
         out = folder / f"cases-{k}-of-{n}.json"
         rows = json.loads(out.read_text()) if args.resume and out.exists() else []
         for spec in todo:
-            rows.append(run_case(spec, args.pixels, args.kind, model, solver))
+            rows.append(run_case(spec, args.pixels, args.kind, model, solver, grating))
             print(_line(rows[-1]), flush=True)
             out.write_text(json.dumps(rows, indent=1, default=float))
     print(json.dumps(summarise(folder), indent=1))

@@ -31,36 +31,42 @@ from jaxafm.jobs.calibrate import identification_metrics, identify_model, read_c
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "step_a_real_classes"
 LATTICES = ("square_pits", "round_pits", "round_pillars")
-#: what the table keeps of each identification (``identification_metrics``' keys)
+#: what every real-lattice table keeps of an identification's model (``identification_metrics``' keys)
+MODEL_KEPT = ("model_kind", "model_operators", "model_effects", "plausible", "fit_s")
+#: what the table keeps of each identification
 KEPT = (
     "held_out_rms_nm",
     "held_out_raw_rms_nm",
     "held_out_pitch_std_raw_pct",
     "held_out_pitch_std_corrected_pct",
     "held_out_distance_error_max_corrected_pct",
-    "model_kind",
-    "model_operators",
-    "model_effects",
-    "plausible",
-    "fit_s",
-)
+) + MODEL_KEPT
 #: the richest model of the Preisach rows: a plane of up to 16 levels, its default effects
 PREISACH = {"name": "preisach", "kind": "preisach", "levels": 16}
 
 
-def identified(lattice: str, kept: tuple, model: dict | None = None, solver: dict | None = None) -> dict:
+def identified(
+    lattice: str,
+    kept: tuple,
+    model: dict | None = None,
+    solver: dict | None = None,
+    grating: dict | None = None,
+    more=None,
+) -> dict:
     """The lattice's configuration identified as ``jaxafm calibrate`` does (measured images), its
-    first model updated with ``model`` and its solver with ``solver``: the ``kept`` metrics."""
+    first model updated with ``model``, its solver with ``solver`` and its grating with
+    ``grating``: the ``kept`` metrics, and what ``more(ident, scans) -> dict`` adds."""
     path = ROOT / "configs" / f"calibrate_nanosurf_{lattice}.yaml"
     cfg = load_config(path, CalibrateConfig)
     spec = cfg.models[0].model_validate(model) if model else cfg.models[0]
     settings = cfg.solver.model_copy(update=solver or {})
+    lattice_spec = cfg.grating.model_copy(update=grating or {})
     jax.clear_caches()
     clear_caches()
-    scans = read_calibration(cfg.data, cfg.grating, path, log=lambda *_: None)
-    ident = identify_model(scans, spec, settings, cfg.grating, log=print, measured=True)
+    scans = read_calibration(cfg.data, lattice_spec, path, log=lambda *_: None)
+    ident = identify_model(scans, spec, settings, lattice_spec, log=print, measured=True)
     m = identification_metrics(ident)
-    return {k: m[k] for k in kept}
+    return {k: m[k] for k in kept} | (more(ident, scans) if more else {})
 
 
 def committed(lattice: str, kept: tuple = KEPT) -> dict:

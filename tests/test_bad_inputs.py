@@ -694,6 +694,8 @@ CALIBRATE = [
     nan_case("calibrate-grating.pitch_nm-.nan", "calibrate", "grating.pitch_nm", NAN),
     nan_case("calibrate-grating.pitch_nm-.inf", "calibrate", "grating.pitch_nm", INF),
     nan_case("calibrate-grating.pitch_nm-negative", "calibrate", "grating.pitch_nm", -1000.0),
+    nan_case("calibrate-grating.off_line_chords_sd-zero", "calibrate", "grating.off_line_chords_sd", 0),
+    nan_case("calibrate-grating.off_line_chords_sd-.nan", "calibrate", "grating.off_line_chords_sd", NAN),
     nan_case("calibrate-compensate.scan_fraction-.nan", "calibrate", "compensate.scan_fraction", NAN),
     case(
         "calibrate-simulate.withheld-unknown",

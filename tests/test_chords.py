@@ -242,3 +242,65 @@ def test_background_design_is_the_legendre_products_up_to_the_order():
     a = background_design((5, 7), order=2)
     assert a.shape == (35, 6)
     assert np.linalg.matrix_rank(a) == 6
+
+
+def _turned_squares(shape, centres, half, turn_deg, height, wall=1.5):
+    """Squares of half side ``half`` px turned ``turn_deg`` off the lines at ``centres`` (row,
+    col) px, ``height`` nm, with a linear wall ``wall`` px wide centred on the sides."""
+    rows, cols = np.mgrid[: shape[0], : shape[1]].astype(float)
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    z = np.zeros(shape)
+    for r0, c0 in centres:
+        u, v = c * (cols - c0) + s * (rows - r0), -s * (cols - c0) + c * (rows - r0)
+        d = np.maximum(np.abs(u), np.abs(v)) - half
+        z = np.maximum(z, height * np.clip(0.5 - d / wall, 0, 1))
+    return z
+
+
+def _cut(line, centre, half, turn_deg):
+    """How far (px) the scan line ``line`` runs into the top or bottom side of the turned
+    square about ``centre`` (row, col), at its nearer end: 0 for a chord from the left side to
+    the right one, which is the interval where |u| <= half inside the one where |v| <= half."""
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    dy = line - centre[0]
+    u = sorted([(-half - s * dy) / c, (half - s * dy) / c])  # x - x0 where |u| <= half
+    v = sorted([(c * dy - half) / s, (c * dy + half) / s])  # x - x0 where |v| <= half
+    return max(v[0] - u[0], u[1] - v[1], 0.0)
+
+
+@pytest.mark.parametrize("turn_deg", [3.0, 6.0])
+def test_a_chord_that_meets_a_turned_squares_top_or_bottom_is_off_its_features_line(turn_deg):
+    """Squares turned a few degrees off the lines: a scan line near a square's top or bottom
+    crosses that side by its corner, and its chord, cut short there, has its midpoint off the
+    line the others' lie on by half the cut. Kept by default; with ``off_line_sd`` every chord
+    cut by a pixel or more is dropped, every chord a pixel or more from a cut line (the wall is
+    1.5 px wide) is kept, and the midpoints left lie on their features' lines to the edges'
+    interpolation (a tenth of a pixel) and half of what a side cuts off a chord near it."""
+    shape, half = (104, 104), 9.0
+    centres = np.array([(r, c) for r in (20.3, 52.6, 84.1) for c in (19.7, 51.2, 83.9)])
+    z = _turned_squares(shape, centres, half, turn_deg, 200.0)
+    z += np.random.default_rng(1).normal(0, 1.0, shape)
+
+    def along_lines(found):
+        """The chords along the lines: their ends, their squares' centres, each one's cut and
+        the largest cut of the lines within a pixel of it."""
+        ends = found.ends[found.along_lines]
+        found_centres = found.centres[found.feature[found.along_lines]]
+        centre = centres[np.argmin(np.hypot(*(found_centres[:, None] - centres[None]).T), axis=0)]
+        cut = np.array([_cut(e[0, 0], c, half, turn_deg) for e, c in zip(ends, centre)])
+        near = np.array(
+            [max(_cut(e[0, 0] + d, c, half, turn_deg) for d in (-1, 1)) for e, c in zip(ends, centre)]
+        )
+        return ends, centre, cut, np.maximum(cut, near)
+
+    ends, centre, cut, near = along_lines(find_chords(z, pits=False))
+    assert (cut >= 1.0).sum() >= 9  # the default keeps chords cut by a pixel or more
+    kept, kept_centre, _, kept_near = along_lines(find_chords(z, pits=False, off_line_sd=5.0))
+    kept_lines = {(*c, e[0, 0]) for e, c in zip(kept, kept_centre)}
+    for e, c, k, n in zip(ends, centre, cut, near):
+        assert ((*c, e[0, 0]) in kept_lines) == (k < 1.0) or 0.0 < n and k < 1.0
+    mid = kept.mean(axis=1)
+    for c in centres:
+        on = np.all(kept_centre == c, axis=1)
+        slope, offset = np.polyfit(mid[on, 0], mid[on, 1], 1)
+        assert np.all(np.abs(mid[on, 1] - slope * mid[on, 0] - offset) < kept_near[on] / 2 + 0.1)  # px

@@ -37,6 +37,13 @@ class CalibrationLattice(Strict):
         "axis, if known (e.g. 0 for a grating mounted square); fit: identified with the scanner, "
         "the x axis then being the direction the x piezo moves the tip (docs/step_a.md)",
     )
+    off_line_chords_sd: Optional[float] = Field(
+        None,
+        gt=0,
+        description="leave out every chord whose midpoint lies more than this many robust sds off "
+        "its feature's line of midpoints (5: square features turned off the scan lines, whose "
+        "chords by their corners meet a third side; docs/step_a.md); none: keep every chord",
+    )
 
     @property
     def rotation_rad(self) -> Optional[float]:

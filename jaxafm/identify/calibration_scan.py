@@ -30,7 +30,8 @@ class CalibrationScan(eqx.Module):
     """A trace/retrace image pair (lines, pixels) nm of a lattice of ``pitch`` (2,) nm, and
     how it was driven: the nominal calibration ``sensitivity`` (2,) nm/V through ``raster``,
     from rest at ``u0`` (2,) V at ``t0`` s after the drive ``history`` (H, 2) V.
-    ``pits``: the lattice has pits, not pillars."""
+    ``pits``: the lattice has pits, not pillars. ``off_line_sd``: its features' chords are read
+    without those off their features' lines (:func:`~jaxafm.identify.chords.find_chords`)."""
 
     trace: Array
     retrace: Array
@@ -42,6 +43,7 @@ class CalibrationScan(eqx.Module):
     t0: float = eqx.field(static=True)
     history: Optional[tuple] = eqx.field(static=True)
     pits: bool = eqx.field(static=True)
+    off_line_sd: Optional[float] = eqx.field(static=True)
     depth_scale: Array  # nm, () : an array, so that step A's compiled solves serve every scan
 
     def __init__(
@@ -56,6 +58,7 @@ class CalibrationScan(eqx.Module):
         t0: float = 0.0,
         history=None,
         pits: bool = False,
+        off_line_sd: Optional[float] = None,
     ):
         shape = (raster.lines, raster.pixels)
         for name, z in (("trace", trace), ("retrace", retrace)):
@@ -75,6 +78,7 @@ class CalibrationScan(eqx.Module):
             None if history is None else tuple(tuple(float(v) for v in h) for h in np.asarray(history))
         )
         self.pits = bool(pits)
+        self.off_line_sd = None if off_line_sd is None else float(off_line_sd)
         self.depth_scale = jnp.asarray(float(np.ptp(np.asarray(trace))) or 1.0)
 
     def coarse(self, factor: int) -> CalibrationScan:
@@ -102,6 +106,7 @@ class CalibrationScan(eqx.Module):
             self.t0,
             self.history,
             self.pits,
+            self.off_line_sd,
         )
 
     @property
@@ -138,7 +143,7 @@ class CalibrationScan(eqx.Module):
         found = []
         for k in ("trace", "retrace"):
             name = f"{self.name}'s {k} image"
-            chords = find_chords(np.asarray(getattr(self, k)), self.pits, name)
+            chords = find_chords(np.asarray(getattr(self, k)), self.pits, name, self.off_line_sd)
             rc = chords.centres
             if len(rc) < 9 and chords.spanning >= 3:
                 raise ValueError(

@@ -56,6 +56,11 @@ SCAR_LINES = 3
 SCAR_RUN = 8
 #: a chord shorter than this fraction of its feature's longest chord (same direction) grazes the rim
 MIN_CHORD = 0.5
+#: the least robust sd (px) of the midpoints about their lines: an image without noise scatters them
+#: by the edges' interpolation alone, and no chord is an outlier for lying a few hundredths off
+OFF_LINE_FLOOR_PX = 0.05
+#: the fewest chords one way across a feature whose midpoints :func:`_on_line` judges
+OFF_LINE_CHORDS = 4
 #: a pixel further than this (in feature heights) beyond the surface and the feature level is not
 #: the lattice's (:func:`_beyond`)
 BEYOND = 0.5
@@ -290,9 +295,13 @@ def _clipped(s: np.ndarray) -> np.ndarray:
     return out
 
 
-def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
+def find_chords(
+    z: np.ndarray, pits: bool, name: str = "image", off_line_sd: Optional[float] = None
+) -> Chords:
     """The features and chords of the lattice image ``z`` (lines, pixels) nm (the module's rules);
-    an image of no complete feature gives none.
+    an image of no complete feature gives none. With ``off_line_sd``, a chord whose midpoint lies
+    further than that many robust sds off its feature's line of midpoints is dropped too
+    (:func:`_on_line`: it meets a third side, as a turned square's top or bottom).
 
     Raises:
         ValueError: naming the image, when no feature level stands out of it (:func:`level`).
@@ -308,7 +317,9 @@ def find_chords(z: np.ndarray, pits: bool, name: str = "image") -> Chords:
     centres = np.array(ndimage.center_of_mass(n > 0.5, labels, keep)).reshape(-1, 2)
     index = np.full(count + 1, -1)
     index[keep] = np.arange(len(keep))
-    runs = [_runs(n, labels, image.outliers, index, along_lines) for along_lines in (True, False)]
+    runs = [
+        _runs(n, labels, image.outliers, index, along_lines, off_line_sd) for along_lines in (True, False)
+    ]
     runs = [_straddling(*run, centres, axis) for axis, run in enumerate(runs)]
     both = np.intersect1d(runs[0][1], runs[1][1])  # the features whose chords fix both coordinates
     runs = [(e[np.isin(f, both)], f[np.isin(f, both)]) for e, f in runs]
@@ -342,9 +353,10 @@ def _straddling(ends: np.ndarray, feature: np.ndarray, centres: np.ndarray, axis
     return ends[keep], feature[keep]
 
 
-def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:
+def _runs(n, labels, outliers, index, along_lines: bool, off_line_sd: Optional[float] = None) -> tuple:
     """The chords along the lines (rows) or the pixel columns: ends (m, 2, 2) (row, col) and
-    features (m,), those grazing a rim or ending at an outlier dropped."""
+    features (m,), those grazing a rim or ending at an outlier dropped, and with ``off_line_sd``
+    those off their features' lines (:func:`_on_line`)."""
     if not along_lines:
         n, labels, outliers = n.T, labels.T, outliers.T
     ends, feature = [], []
@@ -370,5 +382,42 @@ def _runs(n, labels, outliers, index, along_lines: bool) -> tuple:
     longest = np.zeros(index.max() + 1)
     np.maximum.at(longest, feature, length)
     keep = length > MIN_CHORD * longest[feature]
+    if off_line_sd is not None:
+        keep[keep] = _on_line(ends[keep], feature[keep], off_line_sd)
     ends, feature = ends[keep], feature[keep]
     return (ends if along_lines else ends[..., ::-1]), feature
+
+
+def _on_line(ends: np.ndarray, feature: np.ndarray, sds: float) -> np.ndarray:
+    """Which chords (m,) of one way (``ends`` (m, 2, 2) (line, position along it)) have their
+    midpoints within ``sds`` robust sds of their feature's line of midpoints.
+
+    The chords of a point-symmetric feature that cross the same two sides have their midpoints on
+    one line (``ScanModel.chord_offsets``), and so have a feature's chords under any path that is
+    affine across the feature. Where a line meets a third side (the top or bottom of a square
+    turned a few degrees off the lines, by its corner), its chord is cut short there and its
+    midpoint lies off that line by up to half the cut. Per feature of :data:`OFF_LINE_CHORDS`
+    chords or more, the line is the Theil-Sen fit of the midpoints against the chords' lines (the
+    median of the pairwise slopes: the outliers do not tilt it); the sd is 1.4826 times the
+    median absolute residual over every feature's chords, at least :data:`OFF_LINE_FLOOR_PX`.
+    """
+    line, mid = ends[:, 0, 0], ends[:, :, 1].mean(axis=1)
+    residual = np.full(len(feature), np.nan)  # NaN: too few chords to judge, kept
+    for f in np.unique(feature):
+        k = np.flatnonzero(feature == f)
+        if len(k) < OFF_LINE_CHORDS:
+            continue
+        i, j = np.triu_indices(len(k), 1)
+        apart = line[k][j] != line[k][i]
+        slope = (
+            np.median((mid[k][j] - mid[k][i])[apart] / (line[k][j] - line[k][i])[apart])
+            if apart.any()
+            else 0.0
+        )
+        residual[k] = mid[k] - slope * line[k]
+        residual[k] -= np.median(residual[k])
+    judged = np.isfinite(residual)
+    if not judged.any():
+        return np.ones(len(feature), bool)
+    sd = max(1.4826 * float(np.median(np.abs(residual[judged]))), OFF_LINE_FLOOR_PX)
+    return ~(np.abs(residual) > sds * sd)

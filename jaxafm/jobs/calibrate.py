@@ -131,6 +131,7 @@ def read_calibration(
             0.0,
             spec.history_v,
             pits=grating.pits,
+            off_line_sd=grating.off_line_chords_sd,
         )
         for (trace, retrace), raster in zip(images, rasters)
     )
