@@ -23,11 +23,8 @@ from __future__ import annotations
 import numpy as np
 from step_a_real_classes import MODEL_KEPT, ROOT, committed, identified, run_lattices
 
-from jaxafm.config import CalibrateConfig
-from jaxafm.config.common import load_config
 from jaxafm.identify.chords import find_chords
 from jaxafm.identify.stages import chord_residuals
-from jaxafm.jobs.calibrate import read_calibration
 
 OUT = ROOT / "experiments" / "results" / "step_a_off_line_chords"
 #: how far off its feature's line a chord's midpoint may lie, robust sds
@@ -43,19 +40,12 @@ KEPT = (
 ) + MODEL_KEPT
 
 
-def chord_count(lattice: str, sds) -> int:
-    """How many chords the lattice's images give, every image of every scan, with
-    ``off_line_chords_sd`` at ``sds``."""
-    path = ROOT / "configs" / f"calibrate_nanosurf_{lattice}.yaml"
-    cfg = load_config(path, CalibrateConfig)
-    scans = read_calibration(cfg.data, cfg.grating, path, log=lambda *_: None)
-    images = [np.asarray(getattr(s, k)) for s in scans for k in ("trace", "retrace")]
-    return int(sum(len(find_chords(z, scans[0].pits, off_line_sd=sds).feature) for z in images))
-
-
-def midpoint_rms(ident, scans: tuple) -> dict:
-    """The training chords' midpoints off their features' lines at the fit (nm rms,
+def chords_at_fit(ident, scans: tuple) -> dict:
+    """How many chords the ``scans``' images give (every image of every scan, read as the scans
+    say), and the training chords' midpoints off their features' lines at the fit (nm rms,
     :func:`~jaxafm.identify.stages.chord_residuals`), all and along the lines."""
+    images = [(np.asarray(getattr(s, k)), s) for s in scans for k in ("trace", "retrace")]
+    count = sum(len(find_chords(z, s.pits, off_line_sd=s.off_line_sd).feature) for z, s in images)
     r = np.asarray(
         chord_residuals(ident.model.free_parameters(scans[0])[0], (ident.model, scans, ident.chords))
     )
@@ -64,6 +54,7 @@ def midpoint_rms(ident, scans: tuple) -> dict:
     real = w > 0
     nm = min(scans[0].pitch) * r[real] / w[real]
     return {
+        "chords": int(count),
         "midpoint_rms_nm": float(np.sqrt(np.mean(nm**2))),
         "midpoint_along_rms_nm": float(np.sqrt(np.mean(nm[along[real]] ** 2))),
     }
@@ -72,12 +63,12 @@ def midpoint_rms(ident, scans: tuple) -> dict:
 def run(lattice: str, sds) -> dict:
     """The lattice identified with every chord (``sds`` None: the configuration as it is, its
     metrics as committed) or with ``grating.off_line_chords_sd`` at ``sds``: the ``KEPT``
-    metrics, the fit's midpoints (:func:`midpoint_rms`) and the chords counted."""
+    metrics and :func:`chords_at_fit`."""
     grating = None if sds is None else {"off_line_chords_sd": sds}
-    out = identified(lattice, KEPT, grating=grating, more=midpoint_rms)
+    out = identified(lattice, KEPT, grating=grating, more=chords_at_fit)
     if sds is None:  # the same fit as the committed run's: its metrics as committed
         out |= committed(lattice, KEPT)
-    return out | {"chords": chord_count(lattice, sds)}
+    return out
 
 
 def _line(lattice: str, name: str, r: dict) -> str:

@@ -32,7 +32,9 @@ chord with an outlier at either end. A feature's chords one way fix its centre a
 they lie on both sides of it (a lattice's features are point-symmetric: chords at mirrored lines
 balance); where outliers took all of them on one side, those left may run along a wall, and the
 feature keeps none that way. A feature without chords along the lines or along the columns keeps
-none: its chords do not fix its centre.
+none: its chords do not fix its centre. On request (``off_line_sd``), a chord whose midpoint lies
+off the line its feature's other midpoints lie on is dropped too (:func:`_on_line`: a line by a
+turned square's corner meets a third side).
 """
 
 from __future__ import annotations
